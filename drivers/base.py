@@ -1,0 +1,209 @@
+"""The one contract every hardware path implements.
+
+Lifecycle (as in ros2_control): ``open()`` (configure: connect, set up)
+-> ``activate()`` (energize: drive enabled, torque accepted) -> ``read()`` /
+``write()`` every tick -> ``safe_stop()`` (zero torque, drive disabled) ->
+``close()``. The public methods here are template methods: they keep the
+lifecycle state, clamp torque before it leaves the host and make
+``safe_stop()``/``close()`` idempotent; subclasses implement the ``_``-prefixed
+hooks. Used as a context manager, a backend is opened on entry and always
+ends with ``safe_stop()`` then ``close()`` on exit, whatever happened.
+
+Torque commands are per sample: ``write(value)`` holds one torque from now
+on; ``write(values, start_seq=s)`` asks for ``values[i]`` to be applied to the
+sample whose sequence number is ``s + i`` (a plan; a newer plan replaces the
+rest of an older one; samples not covered hold the last value). That lets a
+1 kHz loop excite a 662 Hz mode at the backend's own sample rate.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar, Mapping
+
+import numpy as np
+
+from drivers.errors import BackendStateError, DriverError
+from rt_ident.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SampleBlock:
+    """All samples a backend produced since the previous ``read()``.
+
+    Arrays share one length. ``t`` are hardware timestamps [s] (the device's
+    clock where it has one), ``seq`` monotonically increasing sequence numbers
+    (a gap means lost samples), ``theta1`` motor angle [rad], ``theta2`` table
+    angle x/l [rad], ``torque_cmd`` the host command in force for that sample
+    [N m], ``torque_meas`` the torque the device reports applying [N m] or
+    ``None`` when the hardware has no such signal.
+    """
+
+    t: np.ndarray
+    seq: np.ndarray
+    theta1: np.ndarray
+    theta2: np.ndarray
+    torque_cmd: np.ndarray
+    torque_meas: np.ndarray | None = None
+    lost: int = 0  # samples known lost in this block (sequence gaps)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def torque(self) -> np.ndarray:
+        """The best torque signal: measured when available, else commanded."""
+        return self.torque_meas if self.torque_meas is not None else self.torque_cmd
+
+    @staticmethod
+    def empty(with_measured: bool = False) -> "SampleBlock":
+        z = np.empty(0)
+        return SampleBlock(z, np.empty(0, dtype=np.int64), z, z, z, z if with_measured else None)
+
+
+class State(enum.Enum):
+    CREATED = "created"
+    OPEN = "open"
+    ACTIVE = "active"
+    STOPPED = "stopped"
+    CLOSED = "closed"
+
+
+class Backend(ABC):
+    """Base class of every backend. Constructors do no I/O."""
+
+    #: registry name, e.g. "sim"
+    name: ClassVar[str] = "base"
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        cfg = dict(config or {})
+        limit = cfg.get("torque_limit", math.inf)
+        try:
+            limit = float(limit)
+        except (TypeError, ValueError):
+            raise ConfigError("backend.torque_limit", f"must be a number, got {limit!r}") from None
+        if not limit > 0:
+            raise ConfigError("backend.torque_limit", f"must be > 0, got {limit!r}")
+        self.torque_limit: float = limit
+        self.state = State.CREATED
+        self.clamped = 0            # commands clamped to the torque limit
+        self.last_torque = 0.0      # last value that left the host
+        self.stop_cause: str | None = None
+
+    # ----- properties each backend provides --------------------------------
+    @property
+    @abstractmethod
+    def sample_period(self) -> float:
+        """Nominal time between samples [s]."""
+
+    @property
+    def has_measured_torque(self) -> bool:
+        return False
+
+    # ----- lifecycle (template methods) ------------------------------------
+    def open(self) -> "Backend":
+        if self.state is not State.CREATED:
+            raise BackendStateError(f"open() in state {self.state.value}")
+        self._open()
+        self.state = State.OPEN
+        return self
+
+    def activate(self) -> None:
+        if self.state is not State.OPEN:
+            raise BackendStateError(f"activate() in state {self.state.value}")
+        self._activate()
+        self.state = State.ACTIVE
+
+    def read(self) -> SampleBlock:
+        if self.state is not State.ACTIVE:
+            raise BackendStateError(f"read() in state {self.state.value}")
+        return self._read()
+
+    def write(self, torque: float | np.ndarray, *, start_seq: int | None = None) -> None:
+        """Send a torque command, clamped to ``torque_limit`` before it leaves the host."""
+        if self.state is not State.ACTIVE:
+            raise BackendStateError(f"write() in state {self.state.value}")
+        values = np.asarray(torque, dtype=float)
+        if not np.all(np.isfinite(values)):
+            raise DriverError("non-finite torque command refused")
+        lim = self.torque_limit
+        over = np.abs(values) > lim
+        if np.any(over):
+            self.clamped += int(np.count_nonzero(over))
+            values = np.clip(values, -lim, lim)
+        if values.ndim == 0:
+            self._write_hold(float(values))
+            self.last_torque = float(values)
+        else:
+            if start_seq is None:
+                raise DriverError("a torque plan (array) needs start_seq")
+            self._write_plan(values, int(start_seq))
+            if values.size:
+                self.last_torque = float(values[-1])
+
+    def safe_stop(self, cause: str | None = None) -> None:
+        """Quick stop -> zero torque -> drive disabled. Idempotent; never raises.
+
+        Failures while stopping are logged: the caller is already on its way out
+        and a second exception would hide the first.
+        """
+        if self.state in (State.STOPPED, State.CLOSED, State.CREATED):
+            return
+        if cause and self.stop_cause is None:
+            self.stop_cause = cause
+        try:
+            self._safe_stop()
+        except Exception:  # noqa: BLE001 - must not raise from a stop path
+            log.exception("%s: safe_stop failed", self.name)
+        self.last_torque = 0.0
+        self.state = State.STOPPED
+
+    def close(self) -> None:
+        """Release the device. Idempotent; always stops first."""
+        if self.state is State.CLOSED:
+            return
+        self.safe_stop()
+        try:
+            self._close()
+        except Exception:  # noqa: BLE001
+            log.exception("%s: close failed", self.name)
+        self.state = State.CLOSED
+
+    def __enter__(self) -> "Backend":
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        cause = None
+        if exc is not None:
+            cause = getattr(exc, "cause", type(exc).__name__)
+        self.safe_stop(cause)
+        self.close()
+
+    # ----- hooks ----------------------------------------------------------
+    @abstractmethod
+    def _open(self) -> None: ...
+
+    @abstractmethod
+    def _activate(self) -> None: ...
+
+    @abstractmethod
+    def _read(self) -> SampleBlock: ...
+
+    @abstractmethod
+    def _write_hold(self, torque: float) -> None: ...
+
+    @abstractmethod
+    def _write_plan(self, torques: np.ndarray, start_seq: int) -> None: ...
+
+    @abstractmethod
+    def _safe_stop(self) -> None:
+        """Quick stop, zero torque, disable. Called at most once per activation."""
+
+    @abstractmethod
+    def _close(self) -> None: ...

@@ -1,0 +1,63 @@
+"""Errors raised by backends. All derive from :class:`rt_ident.errors.RtIdentError`."""
+
+from __future__ import annotations
+
+from rt_ident.errors import RtIdentError
+
+
+class DriverError(RtIdentError):
+    """Root of backend errors. ``cause`` is a short machine-readable tag used in summaries."""
+
+    cause = "driver-error"
+
+
+class BackendNotFound(DriverError):
+    cause = "backend-not-found"
+
+
+class BackendStateError(DriverError):
+    """A method was called in the wrong lifecycle state (e.g. read() before activate())."""
+
+    cause = "lifecycle"
+
+
+class DeviceConnectionError(DriverError):
+    """The device cannot be reached: no answer from the node, missing port, no permission."""
+
+    cause = "no-connection"
+
+
+class DeviceTimeout(DriverError):
+    """The device stopped answering within the configured time."""
+
+    cause = "timeout"
+
+
+class ProtocolError(DriverError):
+    """Malformed traffic beyond what resynchronization can absorb (CRC storm, wrong EDS)."""
+
+    cause = "protocol"
+
+
+class DeviceFault(DriverError):
+    """The device reported a fault (EMCY, fault state, heartbeat lost)."""
+
+    cause = "device-fault"
+
+
+class SafetyTrip(DriverError):
+    """A host-side safety check tripped (position window, watchdog, torque)."""
+
+    cause = "safety-trip"
+
+
+class WatchdogTrip(SafetyTrip):
+    """No fresh feedback for the configured number of ticks."""
+
+    cause = "watchdog"
+
+
+class TravelLimitTrip(SafetyTrip):
+    """The table would leave its window (position or predicted stopping distance)."""
+
+    cause = "travel-limit"

@@ -1,0 +1,28 @@
+"""One exception hierarchy for the whole product.
+
+Every error raised on purpose by :mod:`rt_ident` or :mod:`drivers` derives from
+:class:`RtIdentError`, so a caller (the CLI, the loop) can handle "our" errors in
+one place and let genuine bugs propagate.
+"""
+
+from __future__ import annotations
+
+
+class RtIdentError(Exception):
+    """Root of every error this package raises on purpose."""
+
+
+class ConfigError(RtIdentError, ValueError):
+    """Invalid configuration or parameter value. The message names the field."""
+
+    def __init__(self, field: str, message: str) -> None:
+        self.field = field
+        super().__init__(f"{field}: {message}")
+
+
+class EstimationError(RtIdentError):
+    """An estimator cannot produce an answer from the data it was given."""
+
+
+class DataError(RtIdentError, ValueError):
+    """Input data (a recording, a CSV, arrays) is malformed."""
