@@ -1,0 +1,142 @@
+"""Run configuration: one TOML file describes a whole run.
+
+Sections: ``[axis]`` (plant truth for sim / reference values), ``[backend]``
+(``name`` plus the backend's own keys, validated by the backend),
+``[emulator]`` (for emulated devices), ``[excitation]``, ``[loop]``,
+``[estimator]``, ``[safety]``, ``[telemetry]``, ``[recording]``. Every
+section is optional; the defaults are the sim backend with the THOMSON X axis.
+Errors name the offending field, e.g. ``loop.tick_hz: must be > 0``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from rt_ident.errors import ConfigError
+from rt_ident.params import CONFIG_DIR, AxisParams, thomson_x
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BackendConfig(BaseModel):
+    """``name`` picks the backend; every other key is passed to it untouched."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    name: str = "sim"
+    emulate: bool = False
+
+    def options(self) -> dict[str, Any]:
+        return dict(self.model_extra or {})
+
+
+class ExcitationConfig(_Section):
+    kind: Literal["schroeder", "random", "prbs", "chirp", "none"] = "schroeder"
+    period_samples: int = Field(512, ge=4)
+    band: tuple[int, int] = (1, 20)            # harmonics of the period, inclusive
+    peak: float = Field(0.3, gt=0)             # N m, added to the position-hold torque
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _band_fits(self) -> "ExcitationConfig":
+        lo, hi = self.band
+        if not (1 <= lo <= hi <= self.period_samples // 2 - 1):
+            raise ValueError(f"band {list(self.band)} must satisfy 1 <= lo <= hi <= period_samples//2 - 1 "
+                             f"= {self.period_samples // 2 - 1}")
+        return self
+
+
+class LoopConfig(_Section):
+    tick_hz: float = Field(1000.0, gt=0, le=20000)
+    duration: float = Field(10.0, gt=0)
+    realtime: bool = True                      # try SCHED_FIFO, affinity, mlockall, gc.freeze
+    warmup_periods: int = Field(2, ge=0)       # excitation periods discarded before estimating
+
+
+class EstimatorConfig(_Section):
+    method: str = "frequency"
+    forgetting: float = Field(1.0, gt=0, le=1)
+    kalman_process_noise: float = Field(1e9, gt=0)  # rad^2/s^5 (jerk spectral density) for the velocity filter
+
+
+class SafetyConfig(_Section):
+    window: tuple[float, float] = (-0.04, 0.04)  # table position window [m] on the scale
+    max_decel: float = Field(2.0e4, gt=0)        # rad/s^2 the motor can brake at (stopping distance)
+    watchdog_ticks: int = Field(20, ge=1)        # ticks without fresh feedback before a safe stop
+
+
+class TelemetryConfig(_Section):
+    sink: Literal["rrd", "spawn", "connect", "serve", "off"] = "rrd"
+    rrd: Optional[str] = None
+    connect_url: Optional[str] = None
+    bind_ip: str = "127.0.0.1"
+    rate_hz: float = Field(1000.0, gt=0)        # angle/torque samples per second sent to the viewer
+    publish_every_ticks: int = Field(20, ge=1)
+
+
+class RecordingConfig(_Section):
+    path: Optional[str] = None
+    enabled: bool = True
+
+
+class RunConfig(_Section):
+    axis: Optional[dict[str, float]] = None
+    backend: BackendConfig = BackendConfig()
+    emulator: dict[str, Any] = Field(default_factory=dict)
+    excitation: ExcitationConfig = ExcitationConfig()
+    loop: LoopConfig = LoopConfig()
+    estimator: EstimatorConfig = EstimatorConfig()
+    safety: SafetyConfig = SafetyConfig()
+    telemetry: TelemetryConfig = TelemetryConfig()
+    recording: RecordingConfig = RecordingConfig()
+    source: Optional[str] = None
+
+    def axis_params(self) -> AxisParams:
+        return AxisParams.from_mapping(self.axis, where="axis") if self.axis else thomson_x()
+
+
+def _field_name(err: dict) -> str:
+    return ".".join(str(p) for p in err["loc"] if not isinstance(p, int) or True)
+
+
+def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfig:
+    try:
+        cfg = RunConfig.model_validate({**data, "source": source})
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise ConfigError(_field_name(first) or "config", first["msg"]) from None
+    cfg.axis_params()  # validate physical values now, naming the field
+    return cfg
+
+
+def load(path: str | Path | None = None, **overrides: Any) -> RunConfig:
+    """Load a run configuration (default: ``configs/sim.toml`` if shipped, else built-in defaults).
+
+    A relative path that does not exist is also looked up in the shipped ``configs/`` folder.
+    """
+    if path is None:
+        candidate = CONFIG_DIR / "sim.toml"
+        data = tomllib.loads(candidate.read_text()) if candidate.is_file() else {}
+        source = str(candidate) if candidate.is_file() else "<defaults>"
+    else:
+        p = Path(path)
+        if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p.name).is_file():
+            p = CONFIG_DIR / p.name
+        if not p.is_file():
+            raise ConfigError(str(path), "config file not found")
+        try:
+            data = tomllib.loads(p.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(str(path), f"not valid TOML: {exc}") from None
+        source = str(p)
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        section, _, key = dotted.partition(".")
+        data.setdefault(section, {})[key] = value
+    return from_mapping(data, source=source)

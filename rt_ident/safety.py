@@ -1,0 +1,67 @@
+"""Host-side safety checks run by the loop every tick, for every backend.
+
+- Position window on the table scale, tripped on the *predicted stopping
+  position* x + v|v| / (2 a), not on position alone: a table moving fast toward
+  a limit trips while it can still stop inside the window.
+- Watchdog: no fresh feedback (no new samples) for ``watchdog_ticks`` ticks.
+- Stuck encoder: samples keep arriving but the motor angle has not changed
+  for ``watchdog_ticks`` ticks while torque was commanded.
+
+Torque clamping happens in :class:`drivers.base.Backend.write` before a
+command leaves the host. The monitor raises; the loop turns any raise into a
+safe stop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from drivers.errors import TravelLimitTrip, WatchdogTrip
+
+
+@dataclass
+class SafetyMonitor:
+    lead: float                       # m/rad, x = lead * theta2
+    window: tuple[float, float]       # m
+    max_decel: float                  # rad/s^2 on theta2 the axis can brake at
+    watchdog_ticks: int
+    stale_ticks: int = 0
+    stuck_ticks: int = 0
+    _last_theta1: float = math.nan
+
+    def __post_init__(self) -> None:
+        lo, hi = self.window
+        if not lo < hi:
+            raise ValueError(f"safety.window: lower bound {lo} must be below upper bound {hi}")
+
+    def stopping_position(self, theta2: float, omega2: float) -> float:
+        """x_stop = x + v|v| / (2 a): where the table ends if braking starts now [m]."""
+        x = self.lead * theta2
+        v = self.lead * omega2
+        a = self.lead * self.max_decel
+        return x + v * abs(v) / (2.0 * a)
+
+    def check(self, n_samples: int, theta1_last: float, theta2_last: float, omega2_last: float,
+              torque_active: bool) -> None:
+        """Run every tick after ``read()``; raises a SafetyTrip subclass to stop."""
+        if n_samples == 0:
+            self.stale_ticks += 1
+            if self.stale_ticks >= self.watchdog_ticks:
+                raise WatchdogTrip(f"no fresh feedback for {self.stale_ticks} ticks")
+            return
+        self.stale_ticks = 0
+        if torque_active and theta1_last == self._last_theta1:
+            self.stuck_ticks += 1
+            if self.stuck_ticks >= self.watchdog_ticks:
+                raise WatchdogTrip(f"motor encoder stuck at {theta1_last:.6g} rad for {self.stuck_ticks} ticks "
+                                   "while torque was commanded")
+        else:
+            self.stuck_ticks = 0
+        self._last_theta1 = theta1_last
+        lo, hi = self.window
+        x = self.lead * theta2_last
+        x_stop = self.stopping_position(theta2_last, omega2_last)
+        if not (lo <= x <= hi) or not (lo <= x_stop <= hi):
+            raise TravelLimitTrip(f"table at x={x * 1e3:.3f} mm would stop at {x_stop * 1e3:.3f} mm, outside the "
+                                  f"window [{lo * 1e3:.3f}, {hi * 1e3:.3f}] mm")
