@@ -1,0 +1,125 @@
+"""Compiled per-sample loops of the simulation layer.
+
+Each kernel is written once as a plain Python function (the *reference path*,
+run by the interpreter) and compiled with ``numba.njit(cache=True)`` (the fast
+path). Both see exactly the same source, so they differ only by the
+floating-point contraction numba may choose; tests check agreement to 1e-12.
+
+No kernel allocates: callers pass every output array.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+def linear_recursion_py(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.ndarray,
+                        Z: np.ndarray, k0: int) -> None:
+    """Fill ``Z[k0+1:]`` with ``z[k+1] = S z[k] + G0 u[k] + G1 u[k+1]`` (``Z[k0]`` given).
+
+    Every one-step integrator of :mod:`rt_ident.integrators` applied to the
+    linear model of Eq. (3) is such a recursion; the step matrices are built
+    once in numpy and only this loop runs per sample.
+    """
+    nz = S.shape[0]
+    n = u.shape[0]
+    for k in range(k0, n - 1):
+        uk = u[k]
+        uk1 = u[k + 1]
+        for i in range(nz):
+            acc = G0[i] * uk + G1[i] * uk1
+            for j in range(nz):
+                acc += S[i, j] * Z[k, j]
+            Z[k + 1, i] = acc
+
+
+def plant_block_py(Phi: np.ndarray, Gam: np.ndarray, x: np.ndarray, ctrl: np.ndarray,
+                   cmd: np.ndarray, noise: np.ndarray, par: np.ndarray,
+                   th1_out: np.ndarray, th2_out: np.ndarray, applied_out: np.ndarray,
+                   meas_out: np.ndarray, states_out: np.ndarray) -> int:
+    """Advance the sampled closed-loop plant by ``len(cmd)`` samples, in place.
+
+    x     : (4,) true state [theta1, omega1, theta2, omega2] at the current sample (updated)
+    ctrl  : (4,) carried controller state [previous measured theta1, filtered velocity,
+            has-previous flag (0/1), travel-exceeded flag (0/1)] (updated)
+    noise : (n, 4) unit normal draws [angle1, angle2, torque meas, torque process] or (0, 4)
+    par   : (15,) [q1, res, lead, ctrl_on, kp, kd, ref, beta, limit,
+                   s_angle, s_meas, s_proc, travel_lo, travel_hi, 1/dt]
+
+    Per sample: measure (true -> noise -> quantize), PD on the measured motor
+    angle (velocity from a first-order filtered backward difference), add the
+    command, saturate, add process noise, hold over the sample (x <- Phi x + Gam T).
+    Returns -1, or the index of the first non-finite command (nothing is advanced then).
+    """
+    n = cmd.shape[0]
+    for k in range(n):
+        if not math.isfinite(cmd[k]):
+            return k
+    q1 = par[0]
+    res = par[1]
+    lead = par[2]
+    ctrl_on = par[3] != 0.0
+    kp = par[4]
+    kd = par[5]
+    ref = par[6]
+    beta = par[7]
+    limit = par[8]
+    s_ang = par[9]
+    s_meas = par[10]
+    s_proc = par[11]
+    lo = par[12]
+    hi = par[13]
+    noisy = noise.shape[0] > 0
+    inv_dt = par[14]
+    for k in range(n):
+        th1 = x[0]
+        th2 = x[2]
+        if noisy:
+            th1 += s_ang * noise[k, 0]
+            th2 += s_ang * noise[k, 1]
+        if q1 > 0.0:
+            th1 = math.floor(th1 / q1 + 0.5) * q1
+        if res > 0.0:
+            th2 = math.floor(lead * th2 / res + 0.5) * res / lead
+        torque = cmd[k]
+        if ctrl_on:
+            if ctrl[2] == 0.0:
+                ctrl[0] = th1
+                ctrl[2] = 1.0
+            # first-order low-pass of the backward difference: vf += beta ((th1 - prev)/dt - vf)
+            vraw = (th1 - ctrl[0]) * inv_dt
+            ctrl[1] += beta * (vraw - ctrl[1])
+            ctrl[0] = th1
+            torque += kp * (ref - th1) - kd * ctrl[1]
+        if torque > limit:
+            torque = limit
+        elif torque < -limit:
+            torque = -limit
+        if noisy:
+            torque += s_proc * noise[k, 3]
+            meas = torque + s_meas * noise[k, 2]
+        else:
+            meas = torque
+        xpos = lead * x[2]
+        if xpos < lo or xpos > hi:
+            ctrl[3] = 1.0
+        th1_out[k] = th1
+        th2_out[k] = th2
+        applied_out[k] = torque
+        meas_out[k] = meas
+        for i in range(4):
+            states_out[k, i] = x[i]
+        x0 = x[0]
+        x1 = x[1]
+        x2 = x[2]
+        x3 = x[3]
+        for i in range(4):
+            x[i] = Phi[i, 0] * x0 + Phi[i, 1] * x1 + Phi[i, 2] * x2 + Phi[i, 3] * x3 + Gam[i] * torque
+    return -1
+
+
+linear_recursion = numba.njit(cache=True)(linear_recursion_py)
+plant_block = numba.njit(cache=True)(plant_block_py)
