@@ -1,0 +1,264 @@
+"""The simulated axis as a backend: :class:`rt_ident.plant.PlantSimulator` behind the :class:`Backend` contract.
+
+Two modes:
+
+* **paced** (default): ``read()`` advances the plant to "now" on the injected
+  wall clock, ``n = floor((now - t_activate) / dt) - produced`` samples, the
+  way a drive streaming at its own rate would deliver them;
+* **free-running** (``paced = false``): each ``read()`` produces exactly
+  ``samples_per_read`` samples (default ``round(1 ms / dt)``) — for tests, CI
+  and offline studies; deterministic given ``seed``.
+
+Timestamps are the device clock: sample ``seq`` (from 0 at activation) is at
+``t = seq * dt``. ``torque_cmd`` is the host command in force for each sample
+(per-sample plans, see :mod:`drivers.base`), ``torque_meas`` the plant's
+reported torque (the drive's "torque actual": command + hold loop, saturated,
+plus noise).
+
+When the table leaves ``travel``, ``read()`` disables the drive (zero torque,
+hold loop off) and raises :class:`~drivers.errors.TravelLimitTrip`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any, Callable, Literal, Mapping, Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from drivers.base import Backend, SampleBlock
+from drivers.errors import DriverError, TravelLimitTrip
+from rt_ident.errors import ConfigError
+from rt_ident.params import AxisParams, thomson_x
+from rt_ident.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig
+
+log = logging.getLogger(__name__)
+
+#: The paper's Dt (Table 2, N = 512, k = 10).
+PAPER_DT = 2.9481e-5
+#: A plan may not start further ahead than this many samples (guards against seq mix-ups).
+MAX_PLAN_LEAD = 1 << 22
+
+
+class SimConfig(BaseModel):
+    """Options of the ``sim`` backend (the ``[backend]`` table minus ``name``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: Optional[Literal["sim"]] = None
+    axis: Optional[dict[str, float]] = None         # I1, I2, B, K, lead; None -> Table 1
+    sample_period: float = Field(PAPER_DT, gt=0, le=0.1)
+    counts_per_rev: int = Field(2**17, ge=0)        # 0: ideal (unquantized) encoder
+    scale_resolution: float = Field(1e-7, ge=0)     # m; 0: ideal scale
+    angle_noise: float = Field(0.0, ge=0)
+    torque_meas_noise: float = Field(0.0, ge=0)
+    torque_process_noise: float = Field(0.0, ge=0)
+    torque_limit: float = Field(1.0, gt=0)          # N m
+    travel: Optional[tuple[float, float]] = (-0.05, 0.05)  # m on the linear scale
+    position_hold: bool = True
+    kp: Optional[float] = Field(None, ge=0)
+    kd: Optional[float] = Field(None, ge=0)
+    integrator: Literal["zoh", "newmark"] = "zoh"
+    seed: int = 0
+    paced: bool = True
+    samples_per_read: Optional[int] = Field(None, ge=1)
+    has_measured_torque: bool = True
+
+    @field_validator("travel")
+    @classmethod
+    def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+        if v is not None and not v[0] < v[1]:
+            raise ValueError(f"must satisfy min < max, got {list(v)}")
+        return v
+
+
+def _validate(config: Mapping[str, Any] | None) -> SimConfig:
+    try:
+        return SimConfig.model_validate(dict(config or {}))
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
+        raise ConfigError(f"backend.{loc}" if loc else "backend", err["msg"]) from None
+
+
+class SimBackend(Backend):
+    """Simulated axis (registry name ``"sim"``). See the module docstring.
+
+    ``clock`` is injected (seconds, monotonic) for paced mode; tests pass a fake.
+    """
+
+    name = "sim"
+
+    def __init__(self, config: Mapping[str, Any] | None = None, *,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
+        cfg = _validate(config)
+        super().__init__({"torque_limit": cfg.torque_limit})
+        self.config = cfg
+        self.true_params: AxisParams = (AxisParams.from_mapping(cfg.axis, where="backend.axis")
+                                        if cfg.axis is not None else thomson_x())
+        self._dt = cfg.sample_period
+        self.samples_per_read = cfg.samples_per_read or max(1, round(1e-3 / self._dt))
+        self.sensors = SensorConfig(counts_per_rev=cfg.counts_per_rev, scale_resolution=cfg.scale_resolution,
+                                    angle_noise=cfg.angle_noise, torque_meas_noise=cfg.torque_meas_noise,
+                                    torque_process_noise=cfg.torque_process_noise)
+        self.controller = (HoldController(kp=DEFAULT_KP if cfg.kp is None else cfg.kp,
+                                          kd=DEFAULT_KD if cfg.kd is None else cfg.kd)
+                           if cfg.position_hold else None)
+        self.plant = self._make_plant(self.controller, x0=None)
+        self._clock = clock
+        self._t_activate = 0.0
+        self._produced = 0                # samples produced = seq of the next sample
+        self._hold = 0.0                  # torque for samples not covered by the plan
+        self._plan = np.empty(0)          # values for seq _plan_start, _plan_start + 1, ...
+        self._plan_start = 0
+        self.late_plan_samples = 0        # plan values that arrived after their sample was produced
+        self.drive_enabled = False
+        self.applied_torque = 0.0         # last torque actually applied by the plant
+        self.tripped: str | None = None
+        self.trip_block: SampleBlock | None = None
+
+    def _make_plant(self, controller: HoldController | None, x0: np.ndarray | None) -> PlantSimulator:
+        cfg = self.config
+        return PlantSimulator(self.true_params, self._dt, sensors=self.sensors, controller=controller,
+                              torque_limit=cfg.torque_limit, travel=cfg.travel,
+                              integrator=cfg.integrator, seed=cfg.seed, x0=x0)
+
+    # ----- properties -----------------------------------------------------
+    @property
+    def sample_period(self) -> float:
+        return self._dt
+
+    @property
+    def has_measured_torque(self) -> bool:
+        return self.config.has_measured_torque
+
+    @property
+    def samples_produced(self) -> int:
+        """Sequence number of the next sample."""
+        return self._produced
+
+    # ----- hooks ----------------------------------------------------------
+    def _open(self) -> None:
+        # Compile (or load from cache) the plant kernel now, not in the first hot-path read().
+        self.plant.step_block(np.empty(0))
+
+    def _activate(self) -> None:
+        self._produced = 0
+        self._hold = 0.0
+        self._plan = np.empty(0)
+        self._plan_start = 0
+        self.drive_enabled = True
+        self._t_activate = self._clock()
+
+    def _due(self) -> int:
+        if not self.config.paced:
+            return self.samples_per_read
+        n = math.floor((self._clock() - self._t_activate) / self._dt) - self._produced
+        return n if n > 0 else 0
+
+    def _commands(self, n: int) -> np.ndarray:
+        """Per-sample host command for seq [produced, produced + n): plan where it covers, else hold.
+
+        Invariant: the stored plan never starts before the next sample (consumed values are dropped).
+        """
+        p = self._produced
+        end = p + n
+        plan = self._plan
+        if not plan.size:
+            return np.full(n, self._hold)
+        cmd = np.empty(n)
+        ps = self._plan_start
+        pe = ps + plan.size
+        head = min(ps - p, n)                 # samples before the plan starts hold the last value
+        cmd[:head] = self._hold
+        b = min(end, pe)
+        if ps < b:
+            cmd[ps - p:b - p] = plan[:b - ps]
+        if end >= pe:                         # plan used up: its last value holds from here on
+            cmd[pe - p:] = plan[-1]
+            self._hold = float(plan[-1])
+            self._plan = plan[:0]
+        elif end > ps:                        # drop the consumed part
+            self._plan = plan[end - ps:]
+            self._plan_start = end
+        return cmd
+
+    def _read(self) -> SampleBlock:
+        if self.tripped is not None:
+            raise TravelLimitTrip(f"sim: drive disabled after {self.tripped}")
+        n = self._due()
+        if n == 0:
+            return SampleBlock.empty(self.has_measured_torque)
+        cmd = self._commands(n)
+        blk = self.plant.step_block(cmd)
+        p = self._produced
+        seq = np.arange(p, p + n, dtype=np.int64)
+        self._produced = p + n
+        self.applied_torque = float(blk.torque_applied[-1])
+        out = SampleBlock(seq * self._dt, seq, blk.theta1, blk.theta2, blk.torque_cmd,
+                          blk.torque_meas if self.has_measured_torque else None)
+        if self.plant.travel_exceeded:
+            x = self.true_params.lead * float(self.plant.state[2])
+            self.tripped = f"table at {x:.6f} m outside travel {self.config.travel}"
+            self.trip_block = out         # the samples of the tripping read, for the recorder
+            self._disable()
+            raise TravelLimitTrip(f"sim: {self.tripped}; torque stopped")
+        return out
+
+    def _refuse_if_disabled(self) -> None:
+        if self.tripped is not None:
+            raise TravelLimitTrip(f"sim: drive disabled after {self.tripped}; torque command refused")
+
+    def _write_hold(self, torque: float) -> None:
+        self._refuse_if_disabled()
+        self._hold = float(torque)
+        self._plan = self._plan[:0]
+
+    def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
+        self._refuse_if_disabled()
+        vals = np.asarray(torques, dtype=float)
+        if vals.size == 0:
+            return
+        p = self._produced
+        if start_seq - p > MAX_PLAN_LEAD:
+            raise DriverError(f"plan start_seq {start_seq} is {start_seq - p} samples ahead (max {MAX_PLAN_LEAD})")
+        if start_seq < p:  # the first values are for samples already produced
+            late = min(p - start_seq, vals.size)
+            self.late_plan_samples += late
+            if late == vals.size:
+                self._hold = float(vals[-1])
+                self._plan = vals[:0]
+                return
+            vals = vals[late:]
+            start_seq = p
+        old, os_ = self._plan, self._plan_start
+        if old.size and os_ < start_seq:
+            # keep the older plan up to start_seq; a gap after it holds its last value
+            keep = old[: max(0, min(old.size, start_seq - os_))]
+            gap = start_seq - (os_ + keep.size)
+            self._plan = np.concatenate((keep, np.full(gap, old[-1]), vals))
+            self._plan_start = os_
+        else:
+            self._plan = vals.copy()
+            self._plan_start = start_seq
+
+    def _disable(self) -> None:
+        """Zero torque, drive off: later stepping runs with zero command and no hold loop."""
+        self._hold = 0.0
+        self._plan = self._plan[:0]
+        self.applied_torque = 0.0
+        if self.drive_enabled and self.controller is not None:
+            self.plant = self._make_plant(None, x0=self.plant.state)
+        self.drive_enabled = False
+
+    def _safe_stop(self) -> None:
+        self._disable()
+
+    def _close(self) -> None:
+        self._disable()
+
+
+__all__ = ["SimBackend", "SimConfig", "PAPER_DT"]
