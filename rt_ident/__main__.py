@@ -1,0 +1,3 @@
+from rt_ident.cli import main
+
+main()
