@@ -161,6 +161,137 @@ def _print_reproduce(result, sens) -> None:
                   "Theorem 1; see the README section 'Reproducing the paper'.")
 
 
+# --------------------------------------------------------------------------- run
+@app.command()
+def run(
+    config: Optional[Path] = typer.Argument(None, help="Run config (TOML). Default: configs/sim.toml."),
+    duration: Optional[float] = typer.Option(None, "--duration", min=0.001, help="Seconds to run."),
+    rrd: Optional[str] = typer.Option(None, "--rrd", help="Write the dashboard recording here (.rrd)."),
+    record: Optional[str] = typer.Option(None, "--record", help="Record raw samples here (.parquet)."),
+    spawn: bool = typer.Option(False, "--spawn", help="Spawn a rerun viewer (bound to 127.0.0.1)."),
+    connect: Optional[str] = typer.Option(None, "--connect", help="Stream to a viewer at rerun+http://HOST:PORT/proxy."),
+    serve: bool = typer.Option(False, "--serve", help="Serve telemetry over gRPC on 127.0.0.1."),
+    no_telemetry: bool = typer.Option(False, "--no-telemetry", help="No rerun streaming."),
+    method: Optional[str] = typer.Option(None, "--method", help="Streaming estimator (frequency, paper)."),
+    no_realtime: bool = typer.Option(False, "--no-realtime", help="Do not ask for SCHED_FIFO/mlockall."),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
+) -> None:
+    """Run the real-time identification loop (sim by default) with a live dashboard and a recording."""
+    from rt_ident import config as cfgmod
+    from rt_ident.run import exit_code, run as run_loop
+
+    sink = "off" if no_telemetry else "spawn" if spawn else "connect" if connect else "serve" if serve else None
+    overrides = {"loop.duration": duration, "estimator.method": method}
+    if no_realtime:
+        overrides["loop.realtime"] = False
+    cfg = cfgmod.load(config, **overrides)
+    if not json_out:
+        err.print(f"running {cfg.backend.name} for {cfg.loop.duration:g} s "
+                  f"(method {cfg.estimator.method}, tick {cfg.loop.tick_hz:g} Hz); Ctrl-C stops safely")
+    summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect)
+    if json_out:
+        typer.echo(json.dumps(summary, indent=2, default=_json_default))
+    else:
+        _print_run(summary)
+    raise typer.Exit(exit_code(summary))
+
+
+def _json_default(o):
+    import numpy as np
+
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def _print_run(s: dict) -> None:
+    loop = s.get("loop") or {}
+    lat = loop.get("lateness_us") or {}
+    tab = Table(title=f"rt-ident run - {s['backend']} - method {s.get('method')}")
+    tab.add_column("param")
+    tab.add_column("estimate", justify="right")
+    tab.add_column("95 % interval", justify="right")
+    if s.get("truth"):
+        tab.add_column("true", justify="right")
+        tab.add_column("error %", justify="right")
+    params = s.get("parameters") or {}
+    ci = s.get("ci95") or {}
+    for k, v in params.items():
+        row = [k, _fmt(v), "-" if k not in ci or ci[k] is None else f"[{_fmt(ci[k][0])}, {_fmt(ci[k][1])}]"]
+        if s.get("truth"):
+            row += [_fmt(s["truth"][k]), f"{s['error_pct'][k]:+.3f}"]
+        tab.add_row(*row)
+    out.print(tab)
+    if not params and s.get("final_fit_error"):
+        out.print(f"no estimate: {s['final_fit_error']}")
+    elif not params:
+        out.print("no estimate yet: the run ended before a full excitation period after the warm-up")
+    else:
+        out.print(f"trusted: {s.get('trusted')}")
+    out.print(f"loop: {loop.get('ticks', 0)} ticks, {loop.get('samples', 0)} samples, "
+              f"{loop.get('overruns', 0)} overruns, lateness p50 {_fmt(lat.get('p50'))} us, "
+              f"p99 {_fmt(lat.get('p99'))} us, max {_fmt(lat.get('max'))} us; "
+              f"telemetry dropped {s['telemetry'].get('dropped', 0)}")
+    rt = s.get("realtime") or {}
+    if rt:
+        out.print("real-time: " + ", ".join(f"{k}={'yes' if v is True else v}" for k, v in rt.items()))
+    files = s.get("files") or {}
+    if files.get("rrd"):
+        out.print(f"dashboard: {files['rrd']}   (open with: rerun {files['rrd']})")
+    if files.get("recording"):
+        out.print(f"recording: {files['recording']}   (re-identify: rt-ident identify {files['recording']})")
+    stop = s.get("stop") or {}
+    if stop.get("cause"):
+        err.print(f"[red]stopped by {stop['cause']}:[/red] {stop.get('message')} - torque zeroed, drive disabled")
+
+
+# --------------------------------------------------------------------------- identify
+@app.command()
+def identify(
+    file: Optional[Path] = typer.Argument(None, help="A recording (.parquet from `run`) or a CSV t,theta1,theta2,torque."),
+    method: Optional[str] = typer.Option(None, "--method", help="Estimator name (see --methods)."),
+    methods: bool = typer.Option(False, "--methods", help="List the estimators and exit."),
+    period: Optional[int] = typer.Option(None, "--period", min=2, help="Excitation period in samples (else detected)."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Identify I1, I2, B, K (and wn, wd, zeta) offline from a recording."""
+    if methods:
+        from rt_ident.estimators.registry import DEFAULT_METHOD, list_methods
+
+        ms = list_methods()
+        if json_out:
+            typer.echo(json.dumps([m.name for m in ms]))
+            return
+        tab = Table(title="estimators (rt-ident identify --method NAME)")
+        tab.add_column("name")
+        tab.add_column("needs")
+        tab.add_column("when to use it")
+        for m in ms:
+            tab.add_row(m.name + (" (default)" if m.name == DEFAULT_METHOD else ""), m.needs, m.summary)
+        out.print(tab)
+        return
+    if file is None:
+        raise typer.BadParameter("give a recording FILE (or --methods)")
+    from rt_ident.identify import identify_file
+
+    ident, info = identify_file(file, method, period=period)
+    d = ident.as_dict()
+    if json_out:
+        typer.echo(json.dumps({**d, "input": info}, indent=2, default=_json_default))
+        return
+    tab = Table(title=f"{file} - method {d['method']} ({info['how']}, {info['samples']} samples)")
+    tab.add_column("param")
+    tab.add_column("estimate", justify="right")
+    tab.add_column("95 % interval", justify="right")
+    for k, v in d["parameters"].items():
+        ci = (d.get("ci95") or {}).get(k)
+        tab.add_row(k, _fmt(v), "-" if not ci else f"[{_fmt(ci[0])}, {_fmt(ci[1])}]")
+    out.print(tab)
+    out.print(f"trusted: {d['trusted']}")
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

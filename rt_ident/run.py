@@ -1,0 +1,245 @@
+"""``rt-ident run``: build everything from a config, run the loop, always stop safely.
+
+Order matters: the recorder and telemetry processes are spawned first (so
+they do not inherit real-time scheduling), compiled kernels are warmed up,
+then real-time treatment is requested for this process, the backend is
+activated and the loop ticks. Whatever ends the loop (duration, Ctrl-C,
+SIGTERM, a safety trip, a device fault, any exception) the backend's context
+manager stops it: zero torque, drive disabled. Files are then closed and a
+summary is returned.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import logging
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers import make_backend
+from rt_ident.config import RunConfig
+from rt_ident.errors import RtIdentError
+from rt_ident.excitation import schroeder_multisine
+from rt_ident.loop import IdentificationLoop
+from rt_ident.modal import modal_parameters
+from rt_ident.safety import SafetyMonitor
+from rt_ident.state_estimation import AxisStateEstimator, encoder_quanta
+from rt_ident.streaming import FitWorker, make_streaming_estimator
+
+log = logging.getLogger(__name__)
+
+
+def default_paths(stamp: str | None = None) -> tuple[Path, Path]:
+    stamp = stamp or _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    base = Path("runs") / f"run-{stamp}"
+    return base.with_suffix(".rrd"), base.with_suffix(".parquet")
+
+
+def backend_options(cfg: RunConfig) -> dict[str, Any]:
+    opts = cfg.backend.options()
+    if cfg.backend.name == "sim":
+        opts.setdefault("axis", cfg.axis_params().as_dict())
+    return opts
+
+
+def _excitation(cfg: RunConfig):
+    ex = cfg.excitation
+    if ex.kind == "none":
+        return lambda seq: np.zeros(seq.shape)
+    if ex.kind not in ("schroeder", "random"):
+        raise RtIdentError(f"excitation.kind: the loop needs a periodic multisine ('schroeder' or 'random'), "
+                           f"got {ex.kind!r}")
+    ms = schroeder_multisine(ex.period_samples, ex.band, peak=ex.peak,
+                             phases="schroeder" if ex.kind == "schroeder" else "random", seed=ex.seed)
+    return ms.at
+
+
+def _install_signals(stop: threading.Event) -> dict:
+    old = {}
+    if threading.current_thread() is not threading.main_thread():
+        return old
+
+    def handler(signum, frame):  # noqa: ARG001
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        old[sig] = signal.signal(sig, handler)
+    return old
+
+
+def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
+        connect_url: str | None = None, stop_event: threading.Event | None = None,
+        tick_hook=None) -> dict[str, Any]:
+    """Run the loop described by ``cfg``; returns the summary (also on a safety stop).
+
+    ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached or Ctrl-C/SIGTERM)
+    and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise.
+    """
+    from rt_ident.recording import RecorderProcess
+    from rt_ident.telemetry import TelemetryConfig, TelemetryProcess
+
+    stop = stop_event or threading.Event()
+    truth = cfg.axis_params()
+    rrd_default, rec_default = default_paths()
+    sink = sink or cfg.telemetry.sink
+    rrd_path = rrd or cfg.telemetry.rrd or (str(rrd_default) if sink == "rrd" else None)
+    rec_path = record or cfg.recording.path or (str(rec_default) if cfg.recording.enabled else None)
+    for p in (rrd_path, rec_path):
+        if p:
+            Path(p).parent.mkdir(parents=True, exist_ok=True)
+
+    emulator = None
+    if cfg.backend.emulate:
+        emulator = _start_emulator(cfg)
+    backend = make_backend(cfg.backend.name, backend_options(cfg))
+    ex = cfg.excitation
+    summary: dict[str, Any] = {"backend": cfg.backend.name, "config": cfg.source, "method": cfg.estimator.method}
+    stop_cause = None
+    stop_message = None
+    loop = None
+    telemetry = recorder = None
+    old_signals = _install_signals(stop)
+    try:
+        with contextlib.ExitStack() as stack:
+            if emulator is not None:
+                stack.callback(emulator.close)
+            if sink != "off":
+                telemetry = TelemetryProcess(TelemetryConfig(sink=sink, rrd_path=rrd_path, connect_url=connect_url
+                                                             or cfg.telemetry.connect_url,
+                                                             bind_ip=cfg.telemetry.bind_ip))
+                telemetry.start()
+                if cfg.backend.name == "sim":
+                    telemetry.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
+                                         **{k: v for k, v in modal_parameters(truth).items() if k != "wd"}})
+            stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
+            dt = backend.sample_period
+            meta = {"backend": cfg.backend.name, "sample_period": dt, "axis": truth.as_dict(),
+                    "excitation": ex.model_dump(), "method": cfg.estimator.method,
+                    "warmup_periods": cfg.loop.warmup_periods, "forgetting": cfg.estimator.forgetting}
+            if rec_path:
+                recorder = RecorderProcess(rec_path, meta, overwrite=True).start()
+            q1, q2 = _quanta(cfg)
+            kf = AxisStateEstimator(dt, q1, q2, cfg.estimator.kalman_process_noise)
+            est = make_streaming_estimator(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
+                                           warmup_periods=cfg.loop.warmup_periods,
+                                           forgetting=cfg.estimator.forgetting, lead=truth.lead, quanta=(q1, q2),
+                                           process_noise=cfg.estimator.kalman_process_noise)
+            worker = FitWorker(cfg.estimator.method, lead=truth.lead).start()
+            stack.callback(worker.close)
+            _warmup(kf, est)
+            safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
+                                   watchdog_ticks=cfg.safety.watchdog_ticks)
+            loop = IdentificationLoop(
+                backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf, estimator=est,
+                safety=safety, duration=cfg.loop.duration, fit_worker=worker,
+                on_block=recorder.put if recorder else None,
+                on_telemetry=telemetry.publish if telemetry else None,
+                publish_every=cfg.telemetry.publish_every_ticks,
+                telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
+                stop_event=stop, tick_hook=tick_hook)
+            if telemetry is not None:
+                telemetry.wait_ready(5.0)
+            summary["realtime"] = _realtime(cfg)
+            backend.activate()
+            loop.run()
+            backend.safe_stop()                      # zero torque before the (slower) final fit
+            summary["final_fit_error"] = _final_fit(loop, est)
+    except RtIdentError as exc:
+        stop_cause = getattr(exc, "cause", "error")
+        stop_message = str(exc)
+        log.error("run stopped: %s", exc)
+        if loop is not None:                         # nothing lost: still fit what was measured
+            summary["final_fit_error"] = _final_fit(loop, loop.est)
+    finally:
+        for sig, handler in old_signals.items():
+            signal.signal(sig, handler)
+        import gc
+
+        gc.enable()
+        files = {"rrd": rrd_path if sink == "rrd" else None, "recording": rec_path}
+        if recorder is not None:
+            summary["recording"] = recorder.close()
+        if telemetry is not None:
+            tel = telemetry.close()
+            summary["telemetry"] = {"dropped": telemetry.dropped, "sent": telemetry.sent, **tel}
+        else:
+            summary["telemetry"] = {"dropped": 0, "sent": 0, "sink": "off"}
+        summary["files"] = files
+    summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set(),
+                       "final_torque": backend.last_torque, "backend_state": backend.state.value}
+    if loop is not None:
+        summary["loop"] = loop.stats.as_dict()
+        ident = loop.identification
+        if ident is not None:
+            summary.update(_ident_summary(ident))
+    summary.setdefault("parameters", None)
+    if cfg.backend.name == "sim" or cfg.backend.emulate:
+        tr = {"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K, **modal_parameters(truth)}
+        summary["truth"] = tr
+        if summary["parameters"]:
+            summary["error_pct"] = {k: 100.0 * (summary["parameters"][k] - v) / v for k, v in tr.items()}
+    return summary
+
+
+def _final_fit(loop: IdentificationLoop, est) -> str | None:
+    """Cold fit of everything seen (what `identify` replays); an error is reported, not raised."""
+    try:
+        final = est.final()
+    except RtIdentError as exc:
+        log.warning("final fit failed: %s", exc)
+        return str(exc)
+    if final is not None:
+        loop.identification = final
+    return None
+
+
+def _ident_summary(ident) -> dict[str, Any]:
+    d = ident.as_dict()
+    return {"parameters": d["parameters"], "ci95": d.get("ci95"), "trusted": d.get("trusted"),
+            "method": d.get("method")}
+
+
+def _quanta(cfg: RunConfig) -> tuple[float, float]:
+    opts = cfg.backend.options()
+    lead = cfg.axis_params().lead
+    cpr = int(opts.get("counts_per_rev", 2**17) or 2**17)
+    res = float(opts.get("scale_resolution", 1e-7) or 1e-7)
+    return encoder_quanta(cpr, res, lead)
+
+
+def _warmup(kf, est) -> None:
+    """Compile/cache the kernels before the first tick (the clone keeps the real state untouched)."""
+    import copy
+
+    z = np.zeros(8)
+    copy.deepcopy(kf).filter_block(z, z)
+    w = copy.deepcopy(est)
+    w.update_block(z, z, z, np.arange(8))
+
+
+def _realtime(cfg: RunConfig) -> dict[str, Any]:
+    if not cfg.loop.realtime:
+        return {"requested": False}
+    from rt_ident.scheduler import apply_realtime
+
+    return apply_realtime(priority=50, cpus=None, lock_memory=True, freeze_gc=True)
+
+
+def _start_emulator(cfg: RunConfig):
+    import importlib
+
+    mod = {"canopen": "drivers.emulated_drive", "serial": "drivers.emulated_board"}.get(cfg.backend.name)
+    if mod is None:
+        raise RtIdentError(f"backend.emulate: no emulator for backend {cfg.backend.name!r}")
+    return importlib.import_module(mod).start_emulator_for(cfg.model_dump())
+
+
+def exit_code(summary: dict[str, Any]) -> int:
+    return 0 if summary["stop"]["cause"] is None else 3
+
+
