@@ -1,0 +1,330 @@
+"""SerialBoardBackend against the emulated board on a pty: data, torque, faults, shutdown."""
+
+from __future__ import annotations
+
+import os
+import time
+import tty
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers import make_backend
+from drivers import serial_protocol as sp
+from drivers.emulated_board import EmulatedBoard, start_emulator_for
+from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
+from drivers.serial_board import SerialBoardBackend
+from rt_ident.config import load
+from rt_ident.errors import ConfigError
+from rt_ident.params import thomson_x
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def wait_until(pred, timeout: float = 1.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.001)
+    return pred()
+
+
+def read_for(backend: SerialBoardBackend, seconds: float) -> list:
+    blocks = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        blocks.append(backend.read())
+        time.sleep(0.001)
+    return [b for b in blocks if len(b)]
+
+
+def cat(blocks, field):
+    return np.concatenate([getattr(b, field) for b in blocks])
+
+
+@pytest.fixture
+def rig():
+    """rig(**emulator) -> (board, active backend); both torn down after the test."""
+    made = []
+
+    def make(backend_opts=None, **emulator):
+        # a busy machine may stall the test thread: with an unbounded board FIFO and a lenient
+        # watchdog that delays data instead of losing it or tripping the board
+        opts = {"tx_buffer": 1 << 24, "heartbeat_timeout": 0.5, **emulator}
+        board = start_emulator_for({"emulator": opts})
+        be = SerialBoardBackend({"port": board.port, **(backend_opts or {})})
+        made.append((board, be))
+        be.open()
+        be.activate()
+        return board, be
+
+    yield make
+    for board, be in made:
+        be.close()
+        board.stop()
+
+
+def assert_de_energized(board: EmulatedBoard) -> None:
+    assert wait_until(lambda: not board.enabled and board.applied_torque == 0.0)
+    assert board.motor_torque == 0.0 or wait_until(lambda: board.motor_torque == 0.0)
+
+
+# ----- configuration ----------------------------------------------------------------------
+@pytest.mark.parametrize("opts, field", [
+    ({}, "backend.port"),
+    ({"port": "x", "baudrate": 115200}, "backend.baudrate"),
+    ({"port": "x", "sample_rate_hz": -1}, "backend.sample_rate_hz"),
+    ({"port": "x", "bogus": 1}, "backend.bogus"),
+    ({"emulate": True, "emulator": {"drop_probability": 2}}, "backend.emulator.drop_probability"),
+])
+def test_bad_config_raises_config_error_naming_the_field(opts, field):
+    with pytest.raises(ConfigError) as info:
+        SerialBoardBackend(opts)
+    assert info.value.field == field
+
+
+def test_registry_builds_the_serial_backend_without_io():
+    be = make_backend("serial", {"port": "/dev/does-not-exist"})
+    assert isinstance(be, SerialBoardBackend) and be.sample_period == 1 / 20000
+    be.close()   # closing an unopened backend is harmless
+
+
+# ----- connection ------------------------------------------------------------------------
+def test_missing_port_raises_device_connection_error_naming_it():
+    be = SerialBoardBackend({"port": "/dev/rt-ident-no-such-port"})
+    with pytest.raises(DeviceConnectionError, match="rt-ident-no-such-port"):
+        be.open()
+
+
+def test_a_port_with_no_board_behind_it_times_out_at_open():
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        be = SerialBoardBackend({"port": os.ttyname(slave), "startup_timeout": 0.1})
+        with pytest.raises(DeviceTimeout, match="no valid data frame"):
+            be.open()
+        assert os.read(master, 100) == sp.encode_disable()   # it first asked for a de-energized board
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+# ----- data and torque -----------------------------------------------------------------------
+def test_streams_contiguous_samples_on_the_board_clock(rig):
+    board, be = rig()
+    blocks = read_for(be, 0.25)
+    seq, t = cat(blocks, "seq"), cat(blocks, "t")
+    assert len(seq) > 1000
+    assert np.array_equal(np.diff(seq), np.ones(len(seq) - 1))          # nothing lost, nothing doubled
+    assert np.allclose(np.diff(t), 50e-6, rtol=0, atol=1e-9)           # 20 kHz board clock
+    assert sum(b.lost for b in blocks) == 0 and be.stats()["crc_errors"] == 0
+    assert be.has_measured_torque and blocks[0].torque_meas is not None
+    assert np.all(cat(blocks, "torque_cmd") == 0.0)
+
+
+def test_hold_torque_is_applied_and_accelerates_the_free_axis(rig):
+    board, be = rig(hold=False)
+    be.read()
+    be.write(0.01)
+    blocks = read_for(be, 0.1)
+    cmd, meas = cat(blocks, "torque_cmd"), cat(blocks, "torque_meas")
+    on = cmd != 0
+    assert np.allclose(cmd[on], 0.01, rtol=1e-6) and on[-1]
+    assert np.allclose(meas[on], 0.01, atol=1e-4)                      # 1 mA * 0.1 N m/A resolution
+    assert board.enabled and board.applied_torque == pytest.approx(0.01, rel=1e-6)
+    t, th1 = cat(blocks, "t")[on], cat(blocks, "theta1")[on]
+    t = t - t[0]
+    # rigid body: theta1 ~ 1/2 T/(I1+I2) t^2 (+ small initial velocity) once the mode has rung down
+    p = thomson_x()
+    accel = 2 * np.polyfit(t, th1, 2)[0]
+    assert accel == pytest.approx(0.01 / (p.I1 + p.I2), rel=0.05)
+
+
+def test_torque_plan_lands_on_its_sequence_numbers(rig):
+    board, be = rig(hold=False)
+    start = int(read_for(be, 0.01)[-1].seq[-1]) + 800     # 40 ms ahead of the last sample seen
+    plan = np.linspace(0.001, 0.2, 150)
+    be.write(0.002)
+    be.write(plan, start_seq=start)
+    blocks = read_for(be, 0.08)
+    seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
+    idx = int(np.searchsorted(seq, start))
+    assert seq[idx] == start and len(seq) > idx + 200
+    # a busy machine may deliver the plan late: its past samples are then dropped, counted, flagged
+    late = board.plan_late_samples
+    assert late < 150 and (late > 0) == (be.stats()["plan_late"] > 0)
+    assert np.array_equal(cmd[idx + late:idx + 150], plan[late:].astype(np.float32))
+    assert np.all(cmd[idx + 150:idx + 200] == np.float32(0.2))       # then the last value is held
+    if late == 0:
+        assert cmd[idx - 1] == np.float32(0.002)                    # the hold before the plan
+
+
+def test_a_newer_plan_replaces_the_rest_of_an_older_one(rig):
+    board, be = rig(hold=False)
+    s = int(read_for(be, 0.01)[-1].seq[-1]) + 800
+    be.write(np.full(100, 0.01), start_seq=s)
+    be.write(np.full(20, 0.02), start_seq=s + 50)
+    blocks = read_for(be, 0.08)
+    seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
+    i = int(np.searchsorted(seq, s))
+    assert seq[i] == s and len(seq) > i + 120
+    assert np.all(cmd[i:i + 50] == np.float32(0.01))
+    assert np.all(cmd[i + 50:i + 120] == np.float32(0.02))   # 20 planned, then the last value held
+
+
+def test_commands_are_clamped_to_the_torque_limit_before_leaving_the_host(rig):
+    board, be = rig({"torque_limit": 0.05}, hold=False)
+    be.write(5.0)
+    assert be.clamped == 1
+    assert wait_until(lambda: board.applied_torque == pytest.approx(0.05, rel=1e-6))
+
+
+def test_counters_unwrap_across_the_32_bit_wrap_end_to_end(rig):
+    board, be = rig(seq0=2**32 - 1000, t0_us=2**32 - 30_000)
+    blocks = read_for(be, 0.15)
+    seq, t = cat(blocks, "seq"), cat(blocks, "t")
+    assert seq[0] < 2**32 < seq[-1]
+    assert np.all(np.diff(seq) == 1) and np.allclose(np.diff(t), 50e-6, atol=1e-9)
+
+
+# ----- faults: counted ones -------------------------------------------------------------------
+def test_dropped_frames_are_reported_as_lost_exactly(rig):
+    board, be = rig()
+    read_for(be, 0.02)
+    board.drop_next(7)
+    blocks = read_for(be, 0.05)
+    assert sum(b.lost for b in blocks) == 7 and be.stats()["lost"] == 7
+    assert board.enabled
+
+
+def test_corrupted_frames_are_crc_errors_and_lost_samples(rig):
+    board, be = rig()
+    read_for(be, 0.02)
+    board.corrupt_next(3)
+    blocks = read_for(be, 0.05)
+    assert be.stats()["crc_errors"] == 3 and sum(b.lost for b in blocks) == 3
+    assert board.enabled
+
+
+def test_garbage_bytes_are_skipped_without_losing_samples(rig):
+    board, be = rig()
+    read_for(be, 0.02)
+    board.inject_garbage(100)
+    blocks = read_for(be, 0.05)
+    assert be.stats()["garbage_bytes"] == 100 and sum(b.lost for b in blocks) == 0
+    assert np.all(np.diff(cat(blocks, "seq")) == 1)
+
+
+def test_a_short_delay_loses_nothing(rig):
+    board, be = rig({"read_timeout": 0.2})
+    read_for(be, 0.01)
+    board.delay(0.03)
+    blocks = read_for(be, 0.08)
+    assert sum(b.lost for b in blocks) == 0 and np.all(np.diff(cat(blocks, "seq")) == 1)
+    assert max(len(b) for b in blocks) >= 100      # the 600 held frames arrive late, in a few big reads
+    assert board.enabled
+
+
+# ----- faults: fatal ones ---------------------------------------------------------------------
+def test_silent_board_raises_device_timeout_and_ends_disabled(rig):
+    board, be = rig(hold=False)
+    be.write(0.01)
+    read_for(be, 0.01)
+    board.faults.silent = True
+    with pytest.raises(DeviceTimeout, match="no valid frame"):
+        read_for(be, 1.0)
+    assert_de_energized(board)
+
+
+def test_delay_longer_than_read_timeout_raises_device_timeout(rig):
+    board, be = rig({"read_timeout": 0.03})
+    read_for(be, 0.01)
+    board.delay(0.3)
+    with pytest.raises(DeviceTimeout):
+        read_for(be, 1.0)
+    assert_de_energized(board)
+
+
+def test_crc_storm_raises_protocol_error_and_nothing_stays_energized(rig):
+    board, be = rig(hold=False)
+    be.write(0.01)
+    read_for(be, 0.01)
+    board.faults.corrupt_probability = 1.0
+    with pytest.raises(ProtocolError, match="CRC storm"):
+        read_for(be, 1.0)
+    assert_de_energized(board)
+    be.safe_stop()
+    assert be.state.value == "stopped"
+
+
+def test_stuck_encoder_is_a_device_fault(rig):
+    board, be = rig(hold=False)
+    board.faults.stuck_encoder = True
+    be.write(0.02)
+    with pytest.raises(DeviceFault, match="disagree"):
+        read_for(be, 1.0)
+    assert_de_energized(board)
+
+
+def test_host_heartbeat_loss_disables_the_board_and_raises_device_fault(rig):
+    board, be = rig(hold=False)
+    be.write(0.01)
+    read_for(be, 0.01)
+    board.faults.deaf = True              # host frames (heartbeats included) no longer arrive
+    with pytest.raises(DeviceFault, match="heartbeat-lost"):
+        read_for(be, 1.0)
+    assert not board.enabled and board.applied_torque == 0.0
+
+
+def test_travel_limit_switch_is_a_device_fault(rig):
+    board, be = rig(hold=False, travel=(-1e-4, 1e-4))
+    be.write(0.05)
+    with pytest.raises(DeviceFault, match="limit-switch"):
+        read_for(be, 1.0)
+    assert_de_energized(board)
+
+
+# ----- shutdown -------------------------------------------------------------------------------
+def test_safe_stop_disables_the_board_and_is_idempotent(rig):
+    board, be = rig()
+    be.write(0.1)
+    assert wait_until(lambda: board.applied_torque != 0.0)
+    be.safe_stop()
+    be.safe_stop()
+    assert_de_energized(board)
+    assert board.status & sp.ST_QUICK_STOPPED
+    be.close()
+    be.close()
+    with pytest.raises(DriverError):
+        be.read()
+
+
+def test_exception_in_context_manager_leaves_the_board_disabled():
+    with start_emulator_for({}) as board:
+        with pytest.raises(RuntimeError):
+            with SerialBoardBackend({"port": board.port}) as be:
+                be.activate()
+                be.write(0.1)
+                assert wait_until(lambda: board.applied_torque != 0.0)
+                raise RuntimeError("loop bug")
+        assert_de_energized(board)
+
+
+def test_virtual_config_runs_the_backend_on_its_own_emulator():
+    cfg = load(CONFIGS / "serial-virtual.toml")
+    assert cfg.backend.name == "serial" and cfg.backend.emulate
+    opts = {**cfg.backend.options(), "emulate": True, "emulator": dict(cfg.emulator)}
+    be = make_backend("serial", opts)
+    with be:
+        board = be.emulator
+        be.activate()
+        blocks = read_for(be, 0.05)
+        assert sum(len(b) for b in blocks) > 200 and board.enabled
+    assert be.emulator is None and not board.enabled
+    # the loop's route: start the board from the run config, pass its port
+    with start_emulator_for(cfg) as board:
+        with make_backend("serial", {**cfg.backend.options(), "port": board.port}) as be2:
+            be2.activate()
+            assert len(np.concatenate([b.seq for b in read_for(be2, 0.02)])) > 50
