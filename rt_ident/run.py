@@ -23,6 +23,7 @@ import numpy as np
 
 from drivers import make_backend
 from rt_ident.config import RunConfig
+from rt_ident.emulation import start_emulator
 from rt_ident.errors import RtIdentError
 from rt_ident.excitation import schroeder_multisine
 from rt_ident.loop import IdentificationLoop
@@ -94,9 +95,12 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             Path(p).parent.mkdir(parents=True, exist_ok=True)
 
     emulator = None
+    opts = backend_options(cfg)
     if cfg.backend.emulate:
-        emulator = _start_emulator(cfg)
-    backend = make_backend(cfg.backend.name, backend_options(cfg))
+        emulator = start_emulator(cfg)
+        if getattr(emulator, "port", None):          # serial: the board's pseudo-terminal
+            opts["port"] = emulator.port
+    backend = make_backend(cfg.backend.name, opts)
     ex = cfg.excitation
     summary: dict[str, Any] = {"backend": cfg.backend.name, "config": cfg.source, "method": cfg.estimator.method}
     stop_cause = None
@@ -107,7 +111,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     try:
         with contextlib.ExitStack() as stack:
             if emulator is not None:
-                stack.callback(emulator.close)
+                stack.callback(getattr(emulator, "close", None) or emulator.stop)
             if sink != "off":
                 telemetry = TelemetryProcess(TelemetryConfig(sink=sink, rrd_path=rrd_path, connect_url=connect_url
                                                              or cfg.telemetry.connect_url,
@@ -116,8 +120,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 if cfg.backend.name == "sim":
                     telemetry.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
                                          **{k: v for k, v in modal_parameters(truth).items() if k != "wd"}})
-            stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
-            dt = backend.sample_period
+            dt = backend.sample_period                 # known from the config, before any I/O
             meta = {"backend": cfg.backend.name, "sample_period": dt, "axis": truth.as_dict(),
                     "excitation": ex.model_dump(), "method": cfg.estimator.method,
                     "warmup_periods": cfg.loop.warmup_periods, "forgetting": cfg.estimator.forgetting}
@@ -144,6 +147,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 stop_event=stop, tick_hook=tick_hook)
             if telemetry is not None:
                 telemetry.wait_ready(5.0)
+            # open as late as possible: a device streams from open() on and nobody reads it until the loop
+            stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
             summary["realtime"] = _realtime(cfg)
             backend.activate()
             loop.run()
@@ -228,15 +233,6 @@ def _realtime(cfg: RunConfig) -> dict[str, Any]:
     from rt_ident.scheduler import apply_realtime
 
     return apply_realtime(priority=50, cpus=None, lock_memory=True, freeze_gc=True)
-
-
-def _start_emulator(cfg: RunConfig):
-    import importlib
-
-    mod = {"canopen": "drivers.emulated_drive", "serial": "drivers.emulated_board"}.get(cfg.backend.name)
-    if mod is None:
-        raise RtIdentError(f"backend.emulate: no emulator for backend {cfg.backend.name!r}")
-    return importlib.import_module(mod).start_emulator_for(cfg.model_dump())
 
 
 def exit_code(summary: dict[str, Any]) -> int:

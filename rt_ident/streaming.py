@@ -15,9 +15,12 @@ After the loop ends, :meth:`final` fits the last snapshot *cold* (no warm
 start), so the loop's final estimate is a pure function of the samples: the
 same value ``rt-ident identify`` computes by replaying the recording.
 
-Lost samples (sequence gaps of up to ``MAX_FILL`` samples) are filled by
-linear interpolation so the excitation period stays aligned; longer gaps
-raise :class:`~rt_ident.errors.DataError` (the period alignment is gone).
+Lost samples (sequence gaps) are filled by linear interpolation so the
+excitation period stays aligned with the sequence numbers; the count is
+reported (``filled``), never hidden. A gap longer than ``MAX_FILL`` samples
+is still filled but logged as a warning: the period it falls in is then
+biased by the interpolation (the period-to-period scatter, and so the
+intervals, show it). Sequence numbers going backwards raise DataError.
 """
 
 from __future__ import annotations
@@ -57,9 +60,10 @@ class _GapFiller:
         if not contiguous:
             full = np.arange(seq[0] if prev is None else prev + 1, seq[-1] + 1)
             gap = full.size - seq.size
-            if gap > MAX_FILL or gap < 0:
-                raise DataError(f"seq: {gap} samples missing (more than {MAX_FILL} or out of order); the "
-                                "excitation period alignment is lost")
+            if gap < 0 or np.any(d <= 0):
+                raise DataError("seq: sequence numbers go backwards or repeat")
+            if gap > MAX_FILL:
+                log.warning("seq: %d samples missing at seq %d; filled by interpolation", gap, int(full[0]))
             xs = seq if prev is None else np.concatenate(([prev], seq))
             cols = []
             for i, y in enumerate((th1, th2, tq)):
