@@ -124,6 +124,8 @@ class IdentificationLoop:
             return
         stats.samples += n
         stats.lost_samples += block.lost
+        if self.on_block is not None:               # record first: a block that trips a check is kept
+            self.on_block(block)
         torque = block.torque
         states = self.kf.filter_block(block.theta1, block.theta2)
         if self.est.update_block(block.theta1, block.theta2, torque, block.seq) and self.worker is not None:
@@ -136,8 +138,6 @@ class IdentificationLoop:
         self.safety.check(n, float(block.theta1[-1]), float(block.theta2[-1]), float(states.omega[-1, 1]),
                           abs(self.backend.last_torque) > 0.0)
         self._next_seq = int(block.seq[-1]) + 1
-        if self.on_block is not None:
-            self.on_block(block)
         if self.on_telemetry is not None:
             self._collect_telemetry(block, states)
 

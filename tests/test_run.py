@@ -1,0 +1,159 @@
+"""The real-time loop end to end against the sim backend (sink off or .rrd; realtime off in tests)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from rt_ident import config
+from rt_ident.identify import identify_file
+from rt_ident.recording import read_recording
+from rt_ident.run import run
+
+PARAMS = ("I1", "I2", "B", "K", "wn", "wd", "zeta")
+
+
+def cfg(**over):
+    data = {"loop": {"realtime": False, "duration": 1.2},
+            "backend": {"name": "sim", "paced": False, "torque_meas_noise": 0.0005},
+            "telemetry": {"sink": "off"}}
+    for dotted, v in over.items():
+        sec, _, key = dotted.partition("__")
+        data.setdefault(sec, {})[key] = v
+    return config.from_mapping(data)
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    rec = d / "r.parquet"
+    rrd = d / "r.rrd"
+    s = run(cfg(telemetry__sink="rrd"), rrd=str(rrd), record=str(rec))
+    return s, rec, rrd
+
+
+def test_loop_identifies_the_quantized_closed_loop_plant_within_2_percent(recorded):
+    s, _, _ = recorded
+    assert s["stop"]["cause"] is None
+    for k in PARAMS:
+        assert abs(s["error_pct"][k]) < 2.0, (k, s["error_pct"][k])
+
+
+def test_loop_final_estimate_equals_identify_on_its_own_recording(recorded):
+    s, rec, _ = recorded
+    ident, info = identify_file(rec)
+    assert info["how"].startswith("replay")
+    for k in PARAMS:
+        assert ident.as_dict()["parameters"][k] == pytest.approx(s["parameters"][k], rel=1e-12)
+
+
+def test_recording_holds_every_sample_in_order(recorded):
+    s, rec, _ = recorded
+    r = read_recording(rec)
+    assert len(r) == s["loop"]["samples"]
+    assert np.all(np.diff(r.seq) == 1)
+    assert r.metadata["excitation"]["period_samples"] == 512
+
+
+def test_rrd_holds_the_dashboard_entities_with_values(recorded):
+    from rerun.chunk import RrdReader
+
+    s, _, rrd = recorded
+    seen = {}
+    for chunk in RrdReader(str(rrd)).stream():
+        batch = chunk.to_record_batch()
+        seen.setdefault(str(chunk.entity_path), 0)
+        seen[str(chunk.entity_path)] += batch.num_rows
+    for entity in ("/params/K/estimate", "/params/K/true", "/params/B/estimate", "/modal/zeta/estimate",
+                   "/torque/measured", "/torque/reconstructed", "/angles/theta1", "/angles/theta2",
+                   "/loop/lateness_us"):
+        assert seen.get(entity, 0) > 0, (entity, sorted(seen))
+    assert s["telemetry"]["dropped"] == 0
+
+
+def test_rrd_true_value_series_holds_the_plant_stiffness(recorded):
+    from rerun.chunk import RrdReader
+
+    s, _, rrd = recorded
+    values = []
+    for chunk in RrdReader(str(rrd)).stream():
+        if str(chunk.entity_path) == "/params/K/true":
+            batch = chunk.to_record_batch()
+            if "Scalars:scalars" not in batch.column_names:
+                continue                 # the static series-style chunk
+            values += [float(np.ravel(x)[0]) for x in batch.column("Scalars:scalars").to_pylist()]
+    assert values and all(v == pytest.approx(110.0) for v in values)
+
+
+def test_injected_slow_tick_is_counted_as_an_overrun():
+    def slow(tick):
+        if tick == 50:
+            time.sleep(0.0055)
+
+    s = run(cfg(loop__duration=0.2, recording__enabled=False), tick_hook=slow)
+    assert s["loop"]["overruns"] >= 1
+    assert s["loop"]["skipped_periods"] >= 4
+    assert s["loop"]["lateness_us"]["max"] > 4000
+
+
+def test_sigint_stops_safely_with_zero_torque(tmp_path):
+    def interrupt(tick):
+        if tick == 100:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    s = run(cfg(loop__duration=5.0), record=str(tmp_path / "i.parquet"), tick_hook=interrupt)
+    assert s["stop"]["interrupted"] and s["stop"]["cause"] is None
+    assert s["stop"]["final_torque"] == 0.0 and s["stop"]["backend_state"] == "closed"
+    assert s["loop"]["ticks"] < 200
+    assert len(read_recording(tmp_path / "i.parquet")) == s["loop"]["samples"]
+
+
+def test_travel_trip_stops_with_a_cause_and_keeps_the_recording(tmp_path):
+    s = run(cfg(safety__window=[-1e-7, 1e-7]), record=str(tmp_path / "t.parquet"))
+    assert s["stop"]["cause"] == "travel-limit"
+    assert s["stop"]["final_torque"] == 0.0
+    assert len(read_recording(tmp_path / "t.parquet")) == s["loop"]["samples"]
+
+
+def test_viewer_that_never_answers_does_not_block_the_loop():
+    import socket
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)                    # accepts TCP but never speaks gRPC
+    port = srv.getsockname()[1]
+    try:
+        t0 = time.monotonic()
+        s = run(cfg(loop__duration=1.0, recording__enabled=False, telemetry__sink="connect",
+                    telemetry__connect_url=f"rerun+http://127.0.0.1:{port}/proxy"))
+        wall = time.monotonic() - t0
+    finally:
+        srv.close()
+    assert s["loop"]["ticks"] == 1000
+    assert wall < 20
+    assert s["telemetry"]["sent"] + s["telemetry"]["dropped"] >= 1
+
+
+def test_kill_9_mid_run_leaves_a_readable_recording(tmp_path):
+    rec = tmp_path / "k.parquet"
+    cmd = [sys.executable, "-m", "rt_ident", "run", "--duration", "60", "--no-realtime", "--no-telemetry",
+           "--record", str(rec)]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        journal = rec.with_name(rec.name + ".arrows")
+        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 200_000):
+            time.sleep(0.2)
+        assert journal.exists(), "the run never started recording"
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)     # the loop and its recorder process, no cleanup at all
+        proc.wait(10)
+    r = read_recording(rec)
+    assert r.source == "journal"
+    assert len(r) > 1000
+    assert np.all(np.diff(r.seq) == 1) and r.seq[0] == 0
+    assert np.all(np.isfinite(r.theta1))
