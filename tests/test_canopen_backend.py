@@ -1,0 +1,390 @@
+"""Cia402Backend against the emulated CiA 402 drive on python-can's virtual bus.
+
+Each test gets its own virtual channel. The SYNC rate is 1 kHz and ``stale_limit``
+generous so that a loaded 2-core machine does not trip the watchdog by itself;
+fault tests inject faults that exceed it by far.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers import make_backend
+from drivers.canopen402 import Cia402Backend
+from drivers.canopen_config import bus_budget, validate
+from drivers.canopen_profile import OPERATION_ENABLED, SWITCH_ON_DISABLED, decode_state, frame_bits
+from drivers.canopen_stream import TorquePlan
+from drivers.emulated_drive import start_emulator_for
+from drivers.errors import (DeviceConnectionError, DeviceFault, ProtocolError, WatchdogTrip)
+from rt_ident.errors import ConfigError
+from rt_ident.params import CONFIG_DIR
+from rt_ident.plant import DEFAULT_KP
+
+EDS = CONFIG_DIR / "cia402_generic.eds"
+RATED = 0.64
+
+
+def backend_cfg(channel: str, **over) -> dict:
+    cfg = dict(interface="virtual", channel=channel, bitrate=1_000_000, node_id=5, eds="cia402_generic.eds",
+               sync_rate_hz=1000, torque_limit=1.0, rated_torque=RATED, counts_per_rev=131072,
+               scale_resolution=1e-7, heartbeat_ms=50, heartbeat_consumer_ms=250, sdo_timeout=0.3,
+               stale_limit=40, startup_timeout=3.0)
+    cfg.update(over)
+    return cfg
+
+
+@contextmanager
+def rig(faults: dict | None = None, emulator: dict | None = None, **over):
+    """An emulated drive on a fresh virtual channel and a (not yet opened) backend for it."""
+    cfg = {"backend": backend_cfg(f"t-{uuid.uuid4().hex[:10]}", **over),
+           "emulator": {"position_hold": True, "faults": faults or {}, **(emulator or {})}}
+    drive = start_emulator_for(cfg)
+    try:
+        yield drive, Cia402Backend(cfg["backend"])
+    finally:
+        drive.stop()
+
+
+def pump(be: Cia402Backend, seconds: float, torque=lambda seq: np.zeros_like(seq, dtype=float)) -> list:
+    """Read every ~1 ms for ``seconds`` and write a plan for the next samples; returns the blocks."""
+    blocks, nxt = [], 0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        time.sleep(0.001)
+        blk = be.read()
+        if len(blk):
+            blocks.append(blk)
+            nxt = int(blk.seq[-1]) + 1
+        seq = np.arange(nxt, nxt + 8)
+        be.write(torque(seq), start_seq=nxt)
+    return blocks
+
+
+def square(amplitude: float, half_period: int = 10):
+    return lambda seq: amplitude * np.where((seq // half_period) % 2 == 0, 1.0, -1.0)
+
+
+def assert_drive_safe(drive) -> None:
+    assert drive.applied_torque == 0.0
+    assert not drive.enabled
+    assert drive.state in (SWITCH_ON_DISABLED, "FAULT")
+
+
+# ----- configuration and bus budget ------------------------------------------------------
+def test_frame_bits_match_worst_case_stuffing_formula():
+    # Davis et al. (2007) Eq. (1), 11-bit ids: 47 + 8 s + floor((34 + 8 s - 1) / 4)
+    assert [frame_bits(s) for s in (0, 1, 4, 8)] == [55, 65, 95, 135]
+    assert frame_bits(8, extended=True) == 160
+    # SYNC + RPDO(4) + TPDO(8) + TPDO(4) = 380 bits: ~38 % at 1 kHz on 1 Mbit/s (design note: 35-40 %)
+    b = bus_budget(1000, 1_000_000, heartbeat_ms=100)
+    assert b.bits_per_sync == 380 and 0.37 < b.load < 0.40
+
+
+@pytest.mark.parametrize("rate, bitrate", [(10_000, 1_000_000), (2_000, 125_000)])
+def test_bus_budget_refuses_rates_the_bitrate_cannot_carry(rate, bitrate):
+    with pytest.raises(ConfigError) as err:
+        validate(backend_cfg("x", sync_rate_hz=rate, bitrate=bitrate))
+    assert err.value.field == "backend.sync_rate_hz"
+    load = bus_budget(rate, bitrate, 50).load
+    assert f"{100 * load:.1f} %" in str(err.value) and "bit stuffing" in str(err.value)
+
+
+def test_bus_budget_accepts_2khz_at_1mbit_and_names_the_max_rate():
+    cfg = validate(backend_cfg("x", sync_rate_hz=2000))
+    assert cfg.sample_period == pytest.approx(5e-4)
+    with pytest.raises(ConfigError, match=r"at most 2098 Hz"):   # (0.8 Mbit/s - 2 x 65 bit / 50 ms) / 380 bit
+        validate(backend_cfg("x", sync_rate_hz=2200))
+
+
+def test_config_errors_name_the_field():
+    cfg = backend_cfg("x")
+    del cfg["node_id"]
+    with pytest.raises(ConfigError) as err:
+        Cia402Backend(cfg)
+    assert err.value.field == "backend.node_id"
+    with pytest.raises(ConfigError) as err:
+        Cia402Backend(backend_cfg("x", sync_rat_hz=1000))
+    assert err.value.field == "backend.sync_rat_hz"
+    with pytest.raises(ConfigError) as err:
+        Cia402Backend(backend_cfg("x", node_id=200))
+    assert err.value.field == "backend.node_id"
+    with pytest.raises(ConfigError, match="eds"):
+        Cia402Backend(backend_cfg("x", eds="no-such.eds")).open()
+
+
+def test_registry_builds_the_canopen_backend_without_io():
+    be = make_backend("canopen", backend_cfg("never-opened"))
+    assert isinstance(be, Cia402Backend) and be.sample_period == pytest.approx(1e-3)
+
+
+def test_torque_plan_follows_the_base_class_semantics():
+    plan = TorquePlan()
+    plan.hold(0.5)
+    assert plan.take(0) == 0.5
+    plan.plan(np.array([1.0, 2.0, 3.0]), start=3)
+    assert [plan.take(k) for k in (1, 2, 3, 4, 5, 6)] == [0.5, 0.5, 1.0, 2.0, 3.0, 3.0]
+    plan.plan(np.array([7.0, 8.0, 9.0]), start=6)    # values for SYNC 6 come too late
+    assert plan.late == 1
+    assert [plan.take(k) for k in (7, 8, 9)] == [8.0, 9.0, 9.0]
+    plan.plan(np.array([1.0, 1.0, 1.0, 1.0]), start=12)
+    plan.plan(np.array([5.0]), start=14)             # a newer plan replaces the rest of the older
+    assert [plan.take(k) for k in (12, 13, 14, 15)] == [1.0, 1.0, 5.0, 5.0]
+
+
+# ----- start-up and streaming ------------------------------------------------------------
+def test_startup_reaches_operation_enabled_with_cst_mode_verified():
+    with rig() as (drive, be):
+        with be:
+            assert drive.state == SWITCH_ON_DISABLED and drive.nmt_state == "PRE-OPERATIONAL"
+            assert drive._values[(0x6061, 0)] == 10          # mode 10 written and displayed
+            be.activate()
+            assert drive.state == OPERATION_ENABLED and drive.nmt_state == "OPERATIONAL"
+            assert decode_state(be.statusword) == OPERATION_ENABLED
+            assert {lay.cob for lay in drive._tpdos} == {0x185, 0x285}
+            assert drive._values[(0x6072, 0)] == round(1.0 / RATED * 1000)   # drive-side torque limit
+        assert_drive_safe(drive)
+        assert drive.state == SWITCH_ON_DISABLED and drive.nmt_state == "PRE-OPERATIONAL"
+
+
+def test_samples_carry_plausible_angles_and_torque():
+    hold = 0.1
+    with rig() as (drive, be):
+        with be:
+            be.activate()
+            blocks = pump(be, 0.6, lambda seq: np.full(seq.shape, hold))
+            assert drive.applied_torque != 0.0
+        assert_drive_safe(drive)
+    seq = np.concatenate([b.seq for b in blocks])
+    t = np.concatenate([b.t for b in blocks])
+    th1 = np.concatenate([b.theta1 for b in blocks])
+    th2 = np.concatenate([b.theta2 for b in blocks])
+    cmd = np.concatenate([b.torque_cmd for b in blocks])
+    meas = np.concatenate([b.torque_meas for b in blocks])
+    assert len(seq) > 200 and seq[0] >= 0 and np.all(np.diff(seq) > 0) and np.all(np.diff(t) > 0)
+    assert sum(b.lost for b in blocks) == seq[-1] + 1 - len(seq)        # seq counts SYNCs from 0
+    # the command leaves the host quantized to 1 per mille of the rated torque
+    q = round(hold * 1000 / RATED) * RATED / 1000
+    assert np.mean(cmd[10:] == q) > 0.95
+    # the drive's hold loop (kp) balances the command: theta1 -> T / kp; the shaft twist T/K is tiny
+    assert th1[-1] == pytest.approx(q / DEFAULT_KP, rel=0.1)
+    assert abs(th1[-1] - th2[-1]) < 2e-3
+    assert np.all(np.abs(meas) <= 1.0 + 1e-9) and abs(meas[-1]) < 0.02    # torque actual ~ 0 at rest
+    assert np.all(np.abs(np.diff(th1)) < 0.05)                             # no jumps (rad per ms)
+
+
+def test_torque_plan_values_reach_their_samples():
+    with rig() as (drive, be):
+        with be:
+            be.activate()
+            blocks = pump(be, 0.4, square(0.2, half_period=7))
+    seq = np.concatenate([b.seq for b in blocks])
+    cmd = np.concatenate([b.torque_cmd for b in blocks])
+    want = np.round(square(0.2, 7)(seq) * 1000 / RATED) * RATED / 1000
+    assert np.mean(cmd == want) > 0.9      # the rest: the first samples, before the first plan
+
+
+# ----- faults ------------------------------------------------------------------------------
+def test_emcy_raises_device_fault_with_the_code_and_drive_ends_disabled():
+    with rig(faults={"emcy_at_sample": 80, "emcy_code": 0x2310}) as (drive, be):
+        with pytest.raises(DeviceFault, match=r"0x2310.*over-current"):
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.1))
+        assert drive.emcy_codes == [0x2310] and drive.state == "FAULT"
+        assert_drive_safe(drive)
+        assert be.stop_cause == "device-fault"
+
+
+def test_next_session_resets_a_faulted_drive_and_runs():
+    with rig(faults={"emcy_at_sample": 30}) as (drive, be):
+        with pytest.raises(DeviceFault):
+            with be:
+                be.activate()
+                pump(be, 2.0)
+        assert drive.state == "FAULT"
+        be2 = Cia402Backend(backend_cfg(drive.bus_kwargs["channel"]))
+        with be2:
+            be2.activate()                         # fault reset (bit 7 edge), then the normal walk
+            assert drive.enabled and drive.state == OPERATION_ENABLED
+            assert sum(len(b) for b in pump(be2, 0.2)) > 50
+        assert_drive_safe(drive)
+
+
+def test_drive_heartbeat_loss_raises_device_fault():
+    with rig(faults={"heartbeat_stop_at_s": 0.1}) as (drive, be):
+        with pytest.raises(DeviceFault, match=r"no heartbeat from node 5 for 0\.\d+ s \(consumer time 250 ms"):
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.1))
+        assert_drive_safe(drive)
+        assert drive.state == SWITCH_ON_DISABLED
+
+
+def test_master_heartbeat_loss_faults_the_drive():
+    with rig() as (drive, be):
+        with pytest.raises(DeviceFault, match=r"0x8130"):
+            with be:
+                be.activate()
+                pump(be, 0.1, square(0.1))
+                be._setup._hb_task.stop()              # the host's heartbeat dies
+                pump(be, 2.0, square(0.1))
+        assert 0x8130 in drive.emcy_codes
+        assert_drive_safe(drive)
+
+
+def test_stuck_encoder_trips_the_watchdog():
+    with rig(faults={"stuck_encoder_at_sample": 100}) as (drive, be):
+        with pytest.raises(WatchdogTrip, match=r"0x6064 unchanged .* 41 samples with torque"):
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.3, half_period=25))
+        assert be.counters["unchanged"] > 40
+        assert_drive_safe(drive)
+
+
+def test_dropping_every_tpdo_trips_the_watchdog():
+    with rig(faults={"drop_tpdo_every": 1, "tpdo_faults_from_sample": 50}) as (drive, be):
+        with pytest.raises(WatchdogTrip, match=r"no fresh TPDO data for 41 SYNCs in a row"):
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.1))
+        assert_drive_safe(drive)
+
+
+def test_sparse_tpdo_drops_are_counted_as_lost_samples():
+    with rig(faults={"drop_tpdo_every": 10}) as (drive, be):
+        with be:
+            be.activate()
+            blocks = pump(be, 0.5, square(0.1))
+            stale = be.counters["stale"]
+        assert_drive_safe(drive)
+    lost = sum(b.lost for b in blocks)
+    n = sum(len(b) for b in blocks)
+    assert stale >= (n + lost) // 10 - 2 and lost >= stale - 2
+
+
+def test_delayed_tpdos_trip_the_watchdog():
+    with rig(faults={"delay_tpdo_s": 0.2, "tpdo_faults_from_sample": 50}) as (drive, be):
+        with pytest.raises(WatchdogTrip, match="no fresh TPDO data"):
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.1))
+        assert_drive_safe(drive)
+
+
+def test_corrupted_tpdos_raise_protocol_error():
+    with rig(faults={"corrupt_tpdo_every": 1, "tpdo_faults_from_sample": 50}) as (drive, be):
+        with pytest.raises(ProtocolError, match=r"TPDO 0x[12]85 with \d bytes, [48] mapped"):
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.1))
+        assert be.counters["corrupt"] > 40
+        assert_drive_safe(drive)
+
+
+def test_garbage_frames_are_ignored():
+    with rig(faults={"garbage_frames_per_sync": 3}) as (drive, be):
+        with be:
+            be.activate()
+            blocks = pump(be, 0.4, square(0.1))
+            assert drive.enabled
+            assert be.counters["corrupt"] == 0
+        assert drive.garbage_frames > 300
+        assert_drive_safe(drive)
+    assert sum(len(b) for b in blocks) > 100
+
+
+def test_exception_inside_the_with_block_stops_the_drive():
+    with rig() as (drive, be):
+        with pytest.raises(RuntimeError, match="boom"):
+            with be:
+                be.activate()
+                pump(be, 0.2, lambda seq: np.full(seq.shape, 0.3))
+                assert drive.applied_torque != 0.0
+                raise RuntimeError("boom")
+        assert_drive_safe(drive)
+        assert drive.state == SWITCH_ON_DISABLED and be.stop_cause == "RuntimeError"
+        be.close()          # idempotent
+        be.safe_stop()
+
+
+def test_safe_stop_is_bounded_and_silent_when_the_drive_vanished():
+    with rig(stop_timeout=0.1) as (drive, be):
+        be.open()
+        be.activate()
+        pump(be, 0.1)
+        drive.stop()                                   # the drive drops off the bus
+        t0 = time.monotonic()
+        be.safe_stop("test")                           # must not raise
+        be.close()
+        assert time.monotonic() - t0 < 3.0             # two stop steps + one SDO timeout, not forever
+
+
+def test_no_node_at_that_id_raises_device_connection_error():
+    with rig(node_id=5) as (drive, _):
+        cfg = backend_cfg(drive.bus_kwargs["channel"], node_id=6, sdo_timeout=0.2)
+        be = Cia402Backend(cfg)
+        t0 = time.monotonic()
+        with pytest.raises(DeviceConnectionError, match=r"no answer from CANopen node 6 .* within 0\.\d+ s"):
+            with be:
+                pass
+        assert time.monotonic() - t0 < 5.0
+        assert drive.state == SWITCH_ON_DISABLED
+
+
+def _edited_eds(tmp_path: Path, name: str, edit) -> str:
+    text = edit(EDS.read_text())
+    p = tmp_path / name
+    p.write_text(text)
+    return str(p)
+
+
+def test_eds_missing_an_object_raises_protocol_error(tmp_path):
+    def drop_6077(text: str) -> str:
+        start = text.index("[6077]")
+        return text[:start] + text[text.index("[", start + 1):]
+    eds = _edited_eds(tmp_path, "no6077.eds", drop_6077)
+    with rig() as (drive, _):
+        be = Cia402Backend(backend_cfg(drive.bus_kwargs["channel"], eds=eds))
+        with pytest.raises(ProtocolError, match=r"lacks 0x6077 \(torque actual value\)"):
+            be.open()
+        assert drive.state == SWITCH_ON_DISABLED
+
+
+def test_drive_refusing_a_mapping_raises_protocol_error(tmp_path):
+    def unmappable_scale(text: str) -> str:
+        start = text.index("[60E4sub1]")
+        end = text.index("[", start + 1)
+        return text[:start] + text[start:end].replace("PDOMapping=1", "PDOMapping=0") + text[end:]
+    eds = _edited_eds(tmp_path, "drive.eds", unmappable_scale)
+    with rig(emulator={"eds": eds}) as (drive, be):
+        with pytest.raises(ProtocolError, match=r"refused writing 0x1A01:01 .*mapping 0x60E4:01 .*TPDO2.*"
+                                                r"cannot be mapped"):
+            with be:
+                pass
+        assert_drive_safe(drive)
+
+
+def test_drive_without_cst_mode_raises_protocol_error(tmp_path):
+    eds = _edited_eds(tmp_path, "nocst.eds", lambda t: t.replace("DefaultValue=0x000003AD", "DefaultValue=0x000001AD"))
+    with rig(emulator={"eds": eds}) as (drive, be):
+        with pytest.raises(ProtocolError, match=r"0x6061 .* reads 0 after writing 0x6060 = 10"):
+            with be:
+                pass
+        assert_drive_safe(drive)
+
+
+def test_rated_torque_mismatch_is_a_config_error():
+    with rig(emulator={"rated_torque": 1.27}) as (drive, be):
+        with pytest.raises(ConfigError, match=r"0x6076") as err:
+            with be:
+                pass
+        assert err.value.field == "backend.rated_torque"
+        assert math.isclose(drive.rated_torque, 1.27)

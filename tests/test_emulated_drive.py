@@ -1,0 +1,169 @@
+"""The emulated CiA 402 drive: profile tables, SDO/NMT behaviour, fault config, CLI across processes."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import canopen
+import numpy as np
+import pytest
+from canopen.sdo import SdoAbortedError
+
+from drivers import canopen_profile as p402
+from drivers.canopen402 import Cia402Backend
+from drivers.canopen_emulator import FaultConfig, build_emulator_for
+from drivers.emulated_drive import EmulatedCia402Drive, start_emulator_for
+from rt_ident import config as run_config
+from rt_ident.errors import ConfigError
+from rt_ident.params import CONFIG_DIR, thomson_x
+from rt_ident.plant import PlantSimulator, SensorConfig
+
+ROOT = Path(__file__).resolve().parent.parent
+EDS = CONFIG_DIR / "cia402_generic.eds"
+
+
+# ----- CiA 402 profile ---------------------------------------------------------------------
+def test_statusword_of_each_state_decodes_to_that_state():
+    for state, word in p402.STATUSWORD_OF.items():
+        assert p402.decode_state(word) == state
+    assert p402.decode_state(0x0637) == p402.OPERATION_ENABLED      # bits 9/10 do not matter
+
+
+def test_controlword_walk_reaches_operation_enabled_and_quick_stop_leaves_it():
+    state, cw = p402.SWITCH_ON_DISABLED, 0
+    path = []
+    for _ in range(5):
+        new_cw = p402.next_controlword(state, cw)
+        state, cw = p402.drive_transition(state, new_cw, cw), new_cw
+        path.append(state)
+    assert path[:3] == [p402.READY_TO_SWITCH_ON, p402.SWITCHED_ON, p402.OPERATION_ENABLED]
+    assert p402.drive_transition(state, p402.CW_QUICK_STOP, cw) == p402.QUICK_STOP_ACTIVE
+    assert p402.drive_transition(p402.QUICK_STOP_ACTIVE, p402.CW_DISABLE_VOLTAGE, 2) == p402.SWITCH_ON_DISABLED
+    # quick stop option 2: enable operation does not leave QUICK STOP ACTIVE (transition 16 needs 5..8)
+    assert p402.drive_transition(p402.QUICK_STOP_ACTIVE, p402.CW_ENABLE_OPERATION, 2) == p402.QUICK_STOP_ACTIVE
+    # a fault reset needs a rising edge of bit 7
+    assert p402.drive_transition(p402.FAULT, 0x80, 0x80) == p402.FAULT
+    assert p402.drive_transition(p402.FAULT, 0x80, 0x00) == p402.SWITCH_ON_DISABLED
+
+
+def test_fault_config_rejects_bad_values_naming_the_field():
+    with pytest.raises(ConfigError) as err:
+        FaultConfig.from_mapping({"drop_tpdo_every": -1})
+    assert err.value.field == "emulator.faults.drop_tpdo_every"
+    with pytest.raises(ConfigError) as err:
+        FaultConfig.from_mapping({"drop_every": 2})
+    assert err.value.field == "emulator.faults.drop_every"
+    with pytest.raises(ConfigError) as err:
+        FaultConfig.from_mapping({"emcy_at_sample": 1.5})
+    assert err.value.field == "emulator.faults.emcy_at_sample"
+    assert FaultConfig.from_mapping({"heartbeat_stop_at_s": 0.5}).heartbeat_stop_at_s == 0.5
+
+
+# ----- the drive on the virtual bus, driven by a bare canopen master ----------------------------
+def _drive(channel: str, **kw) -> EmulatedCia402Drive:
+    plant = PlantSimulator(thomson_x(), 1e-3, sensors=SensorConfig())
+    return EmulatedCia402Drive(5, EDS, {"interface": "virtual", "channel": channel}, plant, **kw)
+
+
+def test_drive_answers_sdo_and_refuses_unmappable_objects():
+    channel = f"e-{uuid.uuid4().hex[:8]}"
+    drive = _drive(channel, rated_torque=0.5)
+    assert drive.state == p402.NOT_READY                 # constructing did no I/O
+    with drive:
+        net = canopen.Network()
+        net.NOTIFIER_CYCLE = 0.05
+        net.connect(interface="virtual", channel=channel)
+        try:
+            node = net.add_node(5, str(EDS))
+            node.sdo.RESPONSE_TIMEOUT = 0.5
+            assert node.sdo[0x1000].raw == 0x00020192     # CiA 402 drive
+            assert node.sdo[0x6076].raw == 500            # rated torque override, mN m
+            assert p402.decode_state(node.sdo[0x6041].raw) == p402.SWITCH_ON_DISABLED
+            with pytest.raises(SdoAbortedError) as err:   # 0x1000 is not PDO-mappable
+                node.sdo[0x1A01][1].raw = p402.mapping_entry(0x1000, 0, 32)
+            assert err.value.code == 0x06040041
+            with pytest.raises(SdoAbortedError) as err:   # length does not match the object
+                node.sdo[0x1A01][1].raw = p402.mapping_entry(0x6064, 0, 16)
+            assert err.value.code == 0x06040041
+            node.sdo[0x6060].raw = 10
+            assert node.sdo[0x6061].raw == 10
+            assert drive.samples == 0 and drive.applied_torque == 0.0   # no SYNC, no NMT start
+        finally:
+            net.disconnect()
+    assert drive.nmt_state == "PRE-OPERATIONAL"
+
+
+def test_start_emulator_for_accepts_a_run_config():
+    cfg = run_config.load(CONFIG_DIR / "canopen-virtual.toml")
+    assert cfg.backend.name == "canopen" and cfg.backend.emulate
+    drive = start_emulator_for(cfg)
+    try:
+        assert drive.node_id == 5 and drive.state == p402.SWITCH_ON_DISABLED
+        assert drive.plant.dt == pytest.approx(1 / 2000) and drive.plant.controller is not None
+        assert drive.rated_torque == pytest.approx(0.64)
+    finally:
+        drive.stop()
+        drive.stop()                                      # idempotent
+
+
+def test_emulator_config_errors_name_the_field():
+    base = {"backend": {"interface": "virtual", "channel": "x", "node_id": 5, "torque_limit": 1.0,
+                        "counts_per_rev": 4096, "scale_resolution": 1e-6}}
+    with pytest.raises(ConfigError) as err:
+        build_emulator_for({**base, "emulator": {"positon_hold": True}})
+    assert err.value.field == "emulator.positon_hold"
+    with pytest.raises(ConfigError) as err:
+        build_emulator_for({**base, "emulator": {"eds": "missing.eds"}})
+    assert err.value.field == "emulator.eds"
+
+
+# ----- across processes on udp_multicast ---------------------------------------------------
+def test_cli_drive_over_udp_multicast_serves_a_backend_in_another_process(tmp_path):
+    port = 41000 + os.getpid() % 20000
+    toml = tmp_path / "udp.toml"
+    toml.write_text(f"""
+[backend]
+name = "canopen"
+interface = "udp_multicast"
+channel = "239.74.163.2"
+port = {port}
+node_id = 9
+sync_rate_hz = 500
+torque_limit = 1.0
+rated_torque = 0.64
+counts_per_rev = 131072
+scale_resolution = 1e-7
+heartbeat_ms = 50
+sdo_timeout = 0.5
+stale_limit = 50
+[emulator]
+position_hold = true
+""")
+    import tomllib
+    backend_cfg = tomllib.loads(toml.read_text())["backend"]
+    child = subprocess.Popen([sys.executable, "-m", "drivers.emulated_drive", "--config", str(toml)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        ready = child.stdout.readline()
+        assert ready.startswith("READY node 9"), child.stderr.read() if child.poll() is not None else ready
+        be = Cia402Backend(backend_cfg)
+        n, last = 0, None
+        with be:
+            be.activate()
+            end = time.monotonic() + 0.5
+            while time.monotonic() < end:
+                time.sleep(0.002)
+                blk = be.read()
+                be.write(0.1)
+                if len(blk):
+                    n, last = n + len(blk), blk
+        assert n > 150
+        assert np.isfinite(last.theta1).all() and last.theta1[-1] > 0.01   # pushed by +0.1 N m against the hold loop
+    finally:
+        child.terminate()
+        assert child.wait(10) == 0
