@@ -1,0 +1,262 @@
+"""Frequency-domain estimator: exactness, bench accuracy (closed loop, quantized, noisy), streaming form.
+
+Bench setup used throughout (the brief's target):
+2^17-count motor encoder, 0.1 um linear scale (theta2 = x / lead), torque measurement noise
+0.5 % of the excitation rms, default position-hold controller closed, Schroeder multisine
+with 0.3 N m peak over harmonics ceil(0.1 wn/w0) .. floor(min(2 wn, 0.6 pi/dt)/w0) (at 4 kHz the
+cap applies: 2 wn is 0.66 of Nyquist for Table 1). Periods: N = 4096 at
+34 kHz (dt = 2.9481e-5, w0 = 52 rad/s) and N = 1024 at 4 kHz (w0 = 24.5 rad/s); one period
+of transient + 8 averaged periods. Quantization errors repeat period after period (the
+response is periodic), so averaging does not remove them; a longer period (more lines) does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rt_ident.errors import ConfigError, DataError, EstimationError
+from rt_ident.estimators.consistent import fit_tustin_angles
+from rt_ident.estimators.frequency import compute_spectra, detect_period, fit_frequency
+from rt_ident.estimators.frequency_stream import (StreamingFrequencyEstimator, rdft_accumulate,
+                                                  rdft_accumulate_py)
+from rt_ident.excitation import schroeder_multisine
+from rt_ident.integrators import Newmark, ZeroOrderHold
+from rt_ident.modal import modal_parameters
+from rt_ident.params import AxisParams, thomson_x
+from rt_ident.plant import HoldController, PlantSimulator, SensorConfig
+
+FAST, SLOW = (2.9481e-5, 4096), (2.5e-4, 1024)    # (dt, period N) at 34 kHz and 4 kHz
+
+
+def _band(wn: float, dt: float, N: int, lo: float = 0.1, hi: float = 2.0) -> tuple[int, int]:
+    """Harmonics over lo*wn .. hi*wn, capped at 0.6 x Nyquist (lines near Nyquist barely move the
+    axis - the plant falls as 1/w^2 - and are dominated by the deterministic quantization error)."""
+    w0 = 2.0 * math.pi / (N * dt)
+    top = min(hi * wn, 0.6 * math.pi / dt)
+    return max(1, math.ceil(lo * wn / w0)), min(N // 2 - 1, math.floor(top / w0))
+
+
+def _bench(p: AxisParams, dt: float, N: int, *, wn_design: float, seed: int = 0, periods: int = 9,
+           lo: float = 0.1, hi: float = 2.0, sensors: SensorConfig | None = None, integrator: str = "zoh"):
+    ms = schroeder_multisine(N, _band(wn_design, dt, N, lo, hi), peak=0.3)
+    if sensors is None:
+        sensors = SensorConfig(counts_per_rev=2**17, scale_resolution=1e-7, torque_meas_noise=0.005 * ms.rms)
+    sim = PlantSimulator(p, dt, sensors=sensors, controller=HoldController(), seed=seed, integrator=integrator)
+    return sim.step_block(ms.periodic(periods)), ms
+
+
+def _err(r, p: AxisParams) -> np.ndarray:
+    return np.array([r.params.I1 / p.I1, r.params.I2 / p.I2, r.params.B / p.B, r.params.K / p.K]) - 1.0
+
+
+# --------------------------------------------------------------------------- exactness
+def test_exact_on_noise_free_open_loop_newmark_data_despite_rigid_body_drift():
+    p, dt = thomson_x(), 2.9481e-5
+    u = schroeder_multisine(512, (1, None), peak=1.0).periodic(4)
+    tr = Newmark().simulate(p, u, dt)
+    assert abs(tr.theta[-1, 0] - tr.theta[511, 0]) > 1e-3       # the axis drifts: not periodic
+    r = fit_frequency(tr.theta[:, 0], tr.theta[:, 1], u, dt, hold="tustin")
+    assert np.max(np.abs(_err(r, p))) < 1e-8
+
+
+@pytest.mark.parametrize("dt", [2.9481e-5, 1.0761e-4, 2.5e-4])
+def test_exact_on_noise_free_zoh_data_at_any_sample_rate(dt):
+    p = thomson_x()
+    u = schroeder_multisine(512, (1, None), peak=1.0).periodic(4)
+    tr = ZeroOrderHold().simulate(p, u, dt)
+    r = fit_frequency(tr.theta[:, 0], tr.theta[:, 1], u, dt, hold="zoh")
+    assert np.max(np.abs(_err(r, p))) < 1e-8
+
+
+@pytest.mark.parametrize("integrator,hold", [("zoh", "zoh"), ("newmark", "tustin_held")])
+def test_exact_on_noise_free_closed_loop_plant(integrator, hold):
+    p, (dt, N) = thomson_x(), SLOW
+    ideal = SensorConfig(counts_per_rev=0, scale_resolution=0.0)
+    blk, _ = _bench(p, dt, N, wn_design=4162.6, sensors=ideal, integrator=integrator, periods=4)
+    r = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt, hold=hold)
+    assert np.max(np.abs(_err(r, p))) < 1e-8
+
+
+# --------------------------------------------------------------------------- bench accuracy
+@pytest.mark.parametrize("dt,N", [FAST, SLOW])
+def test_closed_loop_quantized_noisy_bench_within_one_percent(dt, N):
+    p = thomson_x()
+    blk, ms = _bench(p, dt, N, wn_design=modal_parameters(p)["wn"])
+    r = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt)     # period and lines detected
+    err = _err(r, p)
+    assert np.max(np.abs(err)) < 0.01, err
+    assert r.trusted
+    assert r.diagnostics["period_samples"] == N
+    assert r.diagnostics["n_harmonics"] == ms.harmonics.size
+    for key in ("wn", "zeta"):
+        assert r.modal[key] == pytest.approx(modal_parameters(p)[key], rel=0.01)
+
+
+def test_time_domain_equation_error_fails_on_the_same_bench_data():
+    """Errors in variables: quantized second differences swamp the three-point regression."""
+    p, (dt, N) = thomson_x(), FAST
+    blk, _ = _bench(p, dt, N, wn_design=modal_parameters(p)["wn"])
+    try:
+        r = fit_tustin_angles(blk.theta1, blk.theta2, blk.torque_meas, dt)
+    except EstimationError:
+        return
+    assert np.max(np.abs(_err(r, p))) > 0.2
+
+
+def _random_plants(n: int, seed: int = 20261121) -> list[AxisParams]:
+    """I1, I2, B, K each scaled by a log-uniform factor in [0.5, 2] (generated, not picked)."""
+    rng = np.random.default_rng(seed)
+    p = thomson_x()
+    out = []
+    for _ in range(n):
+        f = np.exp(rng.uniform(math.log(0.5), math.log(2.0), 4))
+        out.append(p.with_(I1=p.I1 * f[0], I2=p.I2 * f[1], B=p.B * f[2], K=p.K * f[3]))
+    return out
+
+
+@pytest.mark.parametrize("index", range(3))
+def test_untuned_random_plants_within_one_percent_two_pass(index):
+    """Pass 1: broadband (0.05..4 x nominal wn) finds wn; pass 2: band 0.1..2 x that wn, both rates."""
+    q = _random_plants(3)[index]
+    wn_nominal = modal_parameters(thomson_x())["wn"]
+    dt, N = FAST
+    blk, _ = _bench(q, dt, N, wn_design=wn_nominal, lo=0.05, hi=4.0, seed=index)
+    first = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt)
+    assert np.max(np.abs(_err(first, q))) < 0.03
+    for dt, N in (FAST, SLOW):
+        blk, _ = _bench(q, dt, N, wn_design=first.modal["wn"], seed=100 + index)
+        r = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt)
+        assert np.max(np.abs(_err(r, q))) < 0.01, (dt, _err(r, q))
+        assert r.trusted
+
+
+# --------------------------------------------------------------------------- detection, arguments
+def test_period_detection_on_closed_loop_torque():
+    p, (dt, N) = thomson_x(), SLOW
+    blk, _ = _bench(p, dt, N, wn_design=4162.6, periods=4)
+    assert detect_period(blk.torque_meas) == N
+    with pytest.raises(DataError):
+        detect_period(np.random.default_rng(0).standard_normal(4000))
+
+
+def test_arguments_are_validated():
+    x = np.zeros(4096)
+    with pytest.raises(ConfigError, match="hold"):
+        fit_frequency(x, x, x, 1e-3, period=512, hold="euler")
+    with pytest.raises(ConfigError, match="harmonics"):
+        compute_spectra(x, x, x, 1e-3, period=512, harmonics=[0, 3])
+    with pytest.raises(DataError, match="whole period"):
+        compute_spectra(x[:600], x[:600], x[:600], 1e-3, period=512, discard_periods=1)
+
+
+# --------------------------------------------------------------------------- streaming form
+def test_streaming_equals_batch_for_random_block_splits():
+    p, (dt, N) = thomson_x(), SLOW
+    blk, ms = _bench(p, dt, N, wn_design=modal_parameters(p)["wn"], periods=5)
+    batch = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt, period=N, harmonics=ms.harmonics,
+                          discard_periods=1)
+    rng = np.random.default_rng(3)
+    for _ in range(2):
+        st = StreamingFrequencyEstimator(N, ms.harmonics, dt, discard_periods=1)
+        i = 0
+        while i < blk.theta1.size:
+            k = int(rng.integers(1, 1500))
+            st.update_block(blk.theta1[i:i + k], blk.theta2[i:i + k], blk.torque_meas[i:i + k])
+            i += k
+        r = st.estimate()
+        assert st.periods == 4
+        assert np.max(np.abs(_err(r, batch.params))) < 1e-9
+
+
+def test_recursive_dft_kernel_matches_python_reference_and_fft():
+    rng = np.random.default_rng(5)
+    N, h = 64, np.array([1, 3, 7, 31], dtype=np.int64)
+    x = rng.standard_normal((3, 3 * N + 17))
+
+    def run(kernel):
+        H = h.size
+        table = np.exp(-2j * np.pi * np.arange(N) / N)
+        arrays = [np.zeros(H, np.int64), np.zeros((3, H), complex), np.zeros((3, H), complex),
+                  np.zeros((H, 3, 3), complex), np.zeros(6), np.zeros(3), np.zeros(2)]
+        n = kernel(x[0], x[1], x[2], h, table, *arrays, 0.9, 1)
+        return n, arrays
+    n_c, a_c = run(rdft_accumulate)
+    n_p, a_p = run(rdft_accumulate_py)
+    assert n_c == n_p == 2
+    for u, v in zip(a_c, a_p):
+        assert np.allclose(u, v, rtol=1e-12, atol=1e-12)
+    # S1 = 0.9 * (period 2 spectrum) + (period 3 spectrum), periods counted from 1
+    F = np.fft.fft(x[:, :3 * N].reshape(3, 3, N), axis=2)[:, :, h]
+    assert np.allclose(a_c[2], 0.9 * F[:, 1] + F[:, 2], rtol=1e-12, atol=1e-10)
+
+
+def test_warm_started_estimate_needs_few_iterations():
+    p, (dt, N) = thomson_x(), SLOW
+    blk, ms = _bench(p, dt, N, wn_design=modal_parameters(p)["wn"], periods=5)
+    st = StreamingFrequencyEstimator(N, ms.harmonics, dt, discard_periods=1)
+    st.update_block(blk.theta1[:4 * N], blk.theta2[:4 * N], blk.torque_meas[:4 * N])
+    st.estimate()
+    st.update_block(blk.theta1[4 * N:], blk.theta2[4 * N:], blk.torque_meas[4 * N:])
+    assert st.estimate().diagnostics["iterations"] <= 6
+
+
+def test_forgetting_tracks_a_change_in_damping():
+    p, dt, N = thomson_x(), 2.5e-4, 512
+    ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
+    sensors = SensorConfig(counts_per_rev=2**17, scale_resolution=1e-7, torque_meas_noise=0.005 * ms.rms)
+    sim = PlantSimulator(p, dt, sensors=sensors, controller=HoldController(), seed=1)
+    first = sim.step_block(ms.periodic(6))
+    p2 = p.with_(B=2.0 * p.B)
+    sim2 = PlantSimulator(p2, dt, sensors=sensors, controller=HoldController(), seed=2, x0=sim.state)
+    second = sim2.step_block(ms.periodic(8))
+    est = {lam: StreamingFrequencyEstimator(N, ms.harmonics, dt, forgetting=lam, discard_periods=1)
+           for lam in (1.0, 0.3)}
+    for blk in (first, second):
+        for st in est.values():
+            st.update_block(blk.theta1, blk.theta2, blk.torque_meas)
+    B_keep, B_forget = (est[lam].estimate().params.B for lam in (1.0, 0.3))
+    assert abs(B_forget / p2.B - 1.0) < 0.03          # follows the new damping
+    assert B_keep < 0.85 * p2.B                       # without forgetting: a blend of old and new
+
+
+def test_streaming_rejects_bad_configuration():
+    with pytest.raises(ConfigError, match="harmonics"):
+        StreamingFrequencyEstimator(64, np.array([40]), 1e-3)
+    with pytest.raises(ConfigError, match="forgetting"):
+        StreamingFrequencyEstimator(64, np.array([4]), 1e-3, forgetting=1.5)
+    with pytest.raises(EstimationError):
+        StreamingFrequencyEstimator(64, np.array([4]), 1e-3).estimate()
+
+
+# --------------------------------------------------------------------------- sampled model
+def test_small_expm_and_frechet_derivatives_match_scipy():
+    import scipy.linalg
+    from rt_ident.estimators.sampled_model import expm_frechet_small
+    rng = np.random.default_rng(0)
+    for size in (0.1, 1.0, 10.0):
+        X = size * rng.standard_normal((5, 5))
+        Es = rng.standard_normal((4, 5, 5))
+        P, dP = expm_frechet_small(X, Es)
+        ref = scipy.linalg.expm(X)
+        assert np.allclose(P, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+        for i in range(4):
+            L = scipy.linalg.expm_frechet(X, Es[i], compute_expm=False)
+            assert np.allclose(dP[i], L, rtol=1e-11, atol=1e-11 * np.abs(L).max())
+
+
+@pytest.mark.parametrize("hold", ["zoh", "tustin", "tustin_held"])
+def test_model_derivatives_match_finite_differences(hold):
+    from rt_ident.estimators.sampled_model import hold_model
+    theta = np.log([2.7e-5, 8.3e-6, 2.1e-3, 110.0])
+    z = np.exp(1j * np.linspace(0.05, 3.0, 7))
+    M, N, dM, dN = hold_model(theta, z, 2.5e-4, hold)
+    for i in range(4):
+        e = np.zeros(4)
+        e[i] = 1e-6
+        Mp, Np, _, _ = hold_model(theta + e, z, 2.5e-4, hold, derivs=False)
+        Mm, Nm, _, _ = hold_model(theta - e, z, 2.5e-4, hold, derivs=False)
+        assert np.allclose((Mp - Mm) / 2e-6, dM[i], rtol=1e-6, atol=1e-7 * np.abs(dM[i]).max())
+        assert np.allclose((Np - Nm) / 2e-6, dN[i], rtol=1e-6, atol=1e-7 * np.abs(dN[i]).max() + 1e-300)
