@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
+# Small dense linear algebra (4x4 expm, 8-parameter fits) is 10-20x slower with a multi-threaded BLAS on
+# a busy 2-core machine, and BLAS threads would compete with the real-time loop: one thread, unless set.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import json
 import logging
 import math
