@@ -89,11 +89,9 @@ def reproduce(
 
 
 def _beyond_methods() -> tuple[str, ...]:
-    try:
-        from rt_ident.estimators.registry import METHODS
-    except ImportError:
-        return ()
-    return tuple(name for name, info in METHODS.items() if name != "paper" and info.needs == "states")
+    from rt_ident.reproduce import BEYOND
+
+    return tuple(BEYOND)
 
 
 def _print_reproduce(result, sens) -> None:

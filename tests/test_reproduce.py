@@ -79,3 +79,17 @@ def test_amplitude_does_not_change_noise_free_ls_but_band_does():
 def test_bad_option_is_refused():
     res = runner.invoke(app, ["reproduce", "--periods", "0"])
     assert res.exit_code != 0
+
+
+def test_consistent_methods_recover_every_parameter_within_1e_6_percent(reproduced):
+    truth = reproduced["truth"]
+    for c in reproduced["cases"]:
+        for label in ("tustin (states)", "tustin (angles only)", "frequency (Newmark model, angles only)"):
+            est = c["beyond"][label]
+            for k in ("I1", "I2", "B", "K", "wn", "wd", "zeta"):
+                assert abs(est[k] - truth[k]) / truth[k] < 1e-8, (c["N"], label, k)
+
+
+def test_zoh_model_on_newmark_data_is_biased_which_shows_the_hold_matters(reproduced):
+    assert all(abs(c["beyond"]["zoh (wrong hold for these data)"]["B"] / 2.1e-3 - 1) > 0.1
+               for c in reproduced["cases"])
