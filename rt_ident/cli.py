@@ -53,6 +53,9 @@ def reproduce(
     peak: float = typer.Option(0.3, min=1e-9, help="Peak excitation torque [N m]."),
     beyond: bool = typer.Option(True, help="Also run the estimators beyond the paper."),
     sensitivity: bool = typer.Option(False, "--sensitivity", help="Also sweep band and amplitude (LS errors)."),
+    noise_study: Optional[Path] = typer.Option(None, "--noise-study",
+                                               help="Run the quantization x torque-noise x method study; "
+                                                    "write noise_study.png and .csv here."),
 ) -> None:
     """Run both cases of Table 2 and print Tables 2-6: paper value, our value, error %."""
     from rt_ident import reproduce as rp
@@ -70,22 +73,63 @@ def reproduce(
         if sensitivity:
             prog.update(task, description="band/amplitude sensitivity", completed=0.0)
             sens = rp.sensitivity()
+        study = None
+        if noise_study is not None:
+            from rt_ident import noise_study as ns
+
+            study = ns.run_study(progress)
     written = []
     if figures is not None:
         from rt_ident.figures import write_figures
 
         written = [str(p) for p in write_figures(result, figures)]
+    if study is not None:
+        written += _write_study(study, noise_study)
     if json_out:
         doc = result.as_json()
         if sens is not None:
             doc["sensitivity"] = sens
+        if study is not None:
+            doc["noise_study"] = study
         if written:
             doc["figures"] = written
         typer.echo(json.dumps(doc, indent=2))
         return
     _print_reproduce(result, sens)
+    if study is not None:
+        _print_study(study)
     for path in written:
         err.print(f"wrote {path}")
+
+
+def _write_study(rows, folder: Path) -> list[str]:
+    import csv
+
+    from rt_ident.noise_study import write_png
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "noise_study.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return [str(folder / "noise_study.csv"), str(write_png(rows, folder / "noise_study.png"))]
+
+
+def _print_study(rows) -> None:
+    from rt_ident.noise_study import METHODS, TORQUE_NOISE_PCT
+
+    tab = Table(title="Noise study - max |error| over I1, I2, B, K [%] (closed loop, angles only, 34 kHz)")
+    tab.add_column("encoder counts/rev")
+    tab.add_column("torque noise %", justify="right")
+    for m in METHODS:
+        tab.add_column(m, justify="right")
+    for cpr in dict.fromkeys(r["counts_per_rev"] for r in rows):
+        for noise in TORQUE_NOISE_PCT:
+            vals = {r["method"]: r["max_error_pct"] for r in rows
+                    if r["counts_per_rev"] == cpr and r["torque_noise_pct"] == noise}
+            tab.add_row("ideal" if cpr == 0 else str(cpr), f"{noise:g}",
+                        *["failed" if math.isnan(vals[m]) else _fmt(vals[m]) for m in METHODS])
+    out.print(tab)
 
 
 def _beyond_methods() -> tuple[str, ...]:

@@ -93,3 +93,16 @@ def test_consistent_methods_recover_every_parameter_within_1e_6_percent(reproduc
 def test_zoh_model_on_newmark_data_is_biased_which_shows_the_hold_matters(reproduced):
     assert all(abs(c["beyond"]["zoh (wrong hold for these data)"]["B"] / 2.1e-3 - 1) > 0.1
                for c in reproduced["cases"])
+
+
+def test_noise_study_writes_table_and_png_and_frequency_method_wins(tmp_path):
+    res = runner.invoke(app, ["reproduce", "--no-beyond", "--json", "--periods", "1",
+                              "--noise-study", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    rows = json.loads(res.stdout)["noise_study"]
+    assert (tmp_path / "noise_study.png").stat().st_size > 10_000
+    assert (tmp_path / "noise_study.csv").read_text().count("\n") == len(rows) + 1
+    bench = {r["method"]: r["max_error_pct"] for r in rows
+             if r["counts_per_rev"] == 2**17 and r["torque_noise_pct"] == 0.5}
+    assert bench["frequency"] < 1.0
+    assert not bench["tustin"] < 1.0          # equation error on quantized angles is biased (or NaN)
