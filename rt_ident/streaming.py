@@ -178,15 +178,21 @@ def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.9
     raise ConfigError("estimator.method", f"unknown streaming method {method!r}")
 
 
-def _worker_main(method: str, hold: str, lead: float, inbox, outbox) -> None:
+def _worker_main(method: str, hold: str, lead: float, inbox, outbox, min_interval: float) -> None:
+    import time
+
     while True:
         item = inbox.get()
         if item is None:
             return
+        t0 = time.monotonic()
         try:
             outbox.put(fit_snapshot(method, item, hold=hold, lead=lead))
         except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
             outbox.put(exc)
+        # duty-cycle limit: a fit takes ~25 ms; a few per second are plenty for a live view, and
+        # the CPU left over belongs to the loop (meanwhile newer snapshots replace older ones)
+        time.sleep(max(0.0, min_interval - (time.monotonic() - t0)))
 
 
 @dataclass
@@ -200,12 +206,14 @@ class FitWorker:
     method: str
     hold: str = "zoh"
     lead: float = 7.96e-4
+    min_interval: float = 0.25      # s between fits
 
     def __post_init__(self) -> None:
         ctx = mp.get_context("spawn")
         self._in = ctx.Queue(maxsize=1)
         self._out = ctx.Queue()
-        self._proc = ctx.Process(target=_worker_main, args=(self.method, self.hold, self.lead, self._in, self._out),
+        self._proc = ctx.Process(target=_worker_main, args=(self.method, self.hold, self.lead, self._in, self._out,
+                                                            self.min_interval),
                                  name="rt_ident-fit", daemon=True)
         self.skipped = 0
         self.fits = 0
@@ -215,6 +223,10 @@ class FitWorker:
     def start(self) -> "FitWorker":
         self._proc.start()
         return self
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
 
     def submit(self, snap: Any) -> None:
         if snap is None:
@@ -255,5 +267,6 @@ class FitWorker:
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(1.0)
-        self._in.cancel_join_thread()
-        self._out.cancel_join_thread()
+        for q in (self._in, self._out):
+            q.cancel_join_thread()
+            q.close()
