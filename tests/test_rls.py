@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.estimators._rls_kernels import block_nb, step_nb
+from rt_ident.estimators._rls_kernels import block_kernel, update_kernel
 from rt_ident.estimators.ls import lstsq
-from rt_ident.estimators.rls import RecursiveLeastSquares, warmup
+from rt_ident.estimators.rls import FORMS, RecursiveLeastSquares, warmup
 
 VARIANTS = ("standard", "directional", "bounded-trace")
 
@@ -83,13 +83,48 @@ def test_ud_form_agrees_with_textbook_eqs_14_to_16():
         np.testing.assert_allclose(est.P, P_ref, rtol=1e-9, atol=1e-12 * np.abs(P_ref).max())
 
 
+def test_covariance_form_agrees_with_textbook_and_ud_form_and_keeps_p_exactly_symmetric():
+    Phi, Y, _ = _data(n=300)
+    for variant, lam in (("standard", 1.0), ("standard", 0.97), ("directional", 0.97)):
+        th_ref, P_ref = _textbook_rls(Phi, Y, 100.0, lam, variant)
+        cov = RecursiveLeastSquares(5, 4, p0=100.0, forgetting=lam, variant=variant, form="covariance")
+        ud = RecursiveLeastSquares(5, 4, p0=100.0, forgetting=lam, variant=variant, form="ud")
+        for i in range(0, 300, 60):
+            cov.update_block(Phi[i:i + 60], Y[i:i + 60])
+            ud.update_block(Phi[i:i + 60], Y[i:i + 60])
+            np.testing.assert_array_equal(cov.P, cov.P.T)       # mirrored upper triangle
+        np.testing.assert_allclose(cov.theta, th_ref, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(cov.P, P_ref, rtol=1e-9, atol=1e-12 * np.abs(P_ref).max())
+        np.testing.assert_allclose(cov.theta, ud.theta, rtol=1e-10, atol=1e-12)
+
+
+def test_covariance_form_loses_definiteness_on_paper_scaled_regressors_where_ud_factors_stay_positive():
+    # Why "ud" is the default: paper-like column scales (1e-3 next to 1e2, two nearly collinear
+    # columns) with lambda = 0.999 drive cond(P) towards 1e18.
+    rng = np.random.default_rng(7)
+    m = 30_000
+    Phi = rng.standard_normal((m, 5)) * np.array([1e-3, 1e2, 1e-3, 1e2, 0.3])
+    Phi[:, 2] = Phi[:, 0] + 1e-7 * rng.standard_normal(m)
+    Y = Phi @ rng.standard_normal((5, 4)) + 1e-6 * rng.standard_normal((m, 4))
+    cov = RecursiveLeastSquares(5, 4, p0=1e6, forgetting=0.999, form="covariance")
+    ud = RecursiveLeastSquares(5, 4, p0=1e6, forgetting=0.999, form="ud")
+    indefinite = 0
+    for i in range(0, m, 1000):
+        cov.update_block(Phi[i:i + 1000], Y[i:i + 1000])
+        ud.update_block(Phi[i:i + 1000], Y[i:i + 1000])
+        indefinite += np.linalg.eigvalsh(cov.P).min() <= 0.0
+        assert np.all(ud._d > 0.0)
+    assert indefinite > 0
+
+
 # --------------------------------------------------------------------------- compiled vs plain
+@pytest.mark.parametrize("form", FORMS)
 @pytest.mark.parametrize("variant", VARIANTS)
-def test_compiled_and_plain_numpy_paths_agree_to_1e12(variant):
+def test_compiled_and_plain_numpy_paths_agree_to_1e12(variant, form):
     Phi, Y, _ = _data(n=1500, seed=4)
     Phi[300:600] = 0.0                                 # an excitation gap
     Phi[700, 2] = np.nan                               # and a rejected sample
-    kw = dict(p0=1e3, forgetting=0.995, variant=variant, history=50)
+    kw = dict(p0=1e3, forgetting=0.995, variant=variant, history=50, form=form)
     a = RecursiveLeastSquares(5, 4, compiled=True, **kw)
     b = RecursiveLeastSquares(5, 4, compiled=False, **kw)
     assert a.update_block(Phi, Y) == b.update_block(Phi, Y) == 1499
@@ -101,10 +136,11 @@ def test_compiled_and_plain_numpy_paths_agree_to_1e12(variant):
     assert np.abs(a.history - b.history).max() <= 1e-12 * scale
 
 
-def test_per_sample_update_and_block_update_give_identical_estimates():
+@pytest.mark.parametrize("form", FORMS)
+def test_per_sample_update_and_block_update_give_identical_estimates(form):
     Phi, Y, _ = _data(n=200)
-    a = RecursiveLeastSquares(5, 4, forgetting=0.99, variant="directional")
-    b = RecursiveLeastSquares(5, 4, forgetting=0.99, variant="directional")
+    a = RecursiveLeastSquares(5, 4, forgetting=0.99, variant="directional", form=form)
+    b = RecursiveLeastSquares(5, 4, forgetting=0.99, variant="directional", form=form)
     a.update_block(Phi, Y)
     for phi, y in zip(Phi, Y):
         b.update(phi, y)
@@ -112,10 +148,11 @@ def test_per_sample_update_and_block_update_give_identical_estimates():
     np.testing.assert_array_equal(a.P, b.P)
 
 
-def test_warmup_compiles_the_kernels():
-    warmup()
-    assert len(step_nb.signatures) >= 1
-    assert len(block_nb.signatures) >= 1
+def test_warmup_compiles_the_kernels_for_the_requested_shapes():
+    warmup(shapes=((3, 2),))
+    for form in FORMS:
+        assert len(update_kernel(form, 3, 2).signatures) == 1
+        assert len(block_kernel(form, 3, 2).signatures) >= 1
 
 
 # --------------------------------------------------------------------------- forgetting
@@ -145,13 +182,14 @@ def test_forgetting_0999_tracks_a_parameter_step_but_lambda_1_does_not(variant, 
     assert err_slow > 0.3                               # lambda = 1 averages both regimes (~1/3)
 
 
-def test_zero_excitation_winds_up_standard_forgetting_but_not_directional_or_bounded_trace():
+@pytest.mark.parametrize("form", FORMS)
+def test_zero_excitation_winds_up_standard_forgetting_but_not_directional_or_bounded_trace(form):
     Phi, Y, _ = _data(n=500)
     zeros = np.zeros((20000, 5))
     yz = np.zeros((20000, 4))
     traces = {}
     for variant in VARIANTS:
-        est = RecursiveLeastSquares(5, 4, p0=10.0, forgetting=0.99, variant=variant)
+        est = RecursiveLeastSquares(5, 4, p0=10.0, forgetting=0.99, variant=variant, form=form)
         est.update_block(Phi, Y)
         before = est.trace_P
         theta_before = np.array(est.theta)
@@ -168,10 +206,12 @@ def test_zero_excitation_winds_up_standard_forgetting_but_not_directional_or_bou
     assert a <= 50.0 * (1 + 1e-12)                     # default bound: trace(P0) = 5 * 10
 
 
-def test_bounded_trace_never_exceeds_max_trace():
+@pytest.mark.parametrize("form", FORMS)
+def test_bounded_trace_never_exceeds_max_trace(form):
     Phi, Y, _ = _data(n=3000, seed=2)
     Phi[1000:2500] *= 1e-4                             # weak excitation stretch
-    est = RecursiveLeastSquares(5, 4, p0=1.0, forgetting=0.95, variant="bounded-trace", max_trace=7.0)
+    est = RecursiveLeastSquares(5, 4, p0=1.0, forgetting=0.95, variant="bounded-trace", max_trace=7.0,
+                                form=form)
     for i in range(0, 3000, 100):
         est.update_block(Phi[i:i + 100], Y[i:i + 100])
         assert est.trace_P <= 7.0 * (1 + 1e-12)
@@ -294,6 +334,7 @@ def test_single_output_accepts_scalar_targets_and_vector_theta0():
         (dict(p0=np.array([[1.0, 2.0, 0], [0, 1.0, 0], [0, 0, 1.0]])), "p0"),
         (dict(theta0=np.zeros((2, 2))), "theta0"),
         (dict(history=-2), "history"),
+        (dict(form="qr"), "form"),
     ],
 )
 def test_bad_constructor_arguments_raise_config_error_naming_the_field(kwargs, field):
@@ -315,3 +356,34 @@ def test_bad_sample_shapes_raise_data_error():
     with pytest.raises(DataError, match="Y"):
         est.update_block(np.ones((5, 3)), np.ones((4, 2)))
     assert est.n_updates == 0 and est.n_rejected == 0
+
+
+def test_update_converts_lists_noncontiguous_and_readonly_inputs_to_the_same_result():
+    Phi, Y, _ = _data(n=40)
+    ref = RecursiveLeastSquares(5, 4)
+    est = RecursiveLeastSquares(5, 4)
+    for i in range(40):
+        assert ref.update(Phi[i].copy(), Y[i].copy())
+        readonly = Phi[i].copy()
+        readonly.flags.writeable = False
+        strided = np.repeat(Phi[i], 2)[::2]              # same values, not contiguous
+        assert not strided.flags.c_contiguous
+        phi = (list(Phi[i]), readonly, strided, tuple(Phi[i]))[i % 4]
+        assert est.update(phi, Y[i].copy() if i % 2 else list(Y[i]))
+    np.testing.assert_array_equal(est.theta, ref.theta)
+
+
+def test_deepcopy_and_pickle_keep_the_state_and_rebind_the_kernels():
+    import copy
+    import pickle
+
+    Phi, Y, _ = _data(n=100)
+    est = RecursiveLeastSquares(5, 4, forgetting=0.99, history=5)
+    est.update_block(Phi[:50], Y[:50])
+    for clone in (copy.deepcopy(est), pickle.loads(pickle.dumps(est))):
+        np.testing.assert_array_equal(clone.theta, est.theta)
+        clone.update_block(Phi[50:], Y[50:])
+        assert not np.shares_memory(clone.theta, est.theta)
+        assert est.n_updates == 50 and clone.n_updates == 100
+    est.update_block(Phi[50:], Y[50:])
+    np.testing.assert_array_equal(clone.theta, est.theta)
