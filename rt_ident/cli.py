@@ -340,6 +340,20 @@ def identify(
     out.print(f"trusted: {d['trusted']}")
 
 
+# --------------------------------------------------------------------------- bench
+@app.command()
+def bench(
+    json_out: bool = typer.Option(False, "--json", help="Print the results as JSON on stdout."),
+    quick: bool = typer.Option(False, "--quick", help="Short loop trials (3 s)."),
+    loop_seconds: float = typer.Option(60.0, "--loop-seconds", help="Seconds per loop trial (0 skips the loop)."),
+    repeats: int = typer.Option(5, min=1, help="Repeats per micro-benchmark (medians are reported)."),
+) -> None:
+    """Speed of our kernels vs peers (padasip, filterpy, numpy, scipy) and the loop's capacity, in one run."""
+    from rt_ident.bench import bench_main
+
+    bench_main(json_out=json_out, quick=quick, loop_seconds=loop_seconds, repeats=repeats)
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
