@@ -136,7 +136,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                                            process_noise=cfg.estimator.kalman_process_noise)
             worker = FitWorker(cfg.estimator.method, lead=truth.lead).start()
             stack.callback(worker.close)
-            _warmup(kf, est)
+            _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
             safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
                                    watchdog_ticks=cfg.safety.watchdog_ticks)
             loop = IdentificationLoop(
@@ -225,14 +225,20 @@ def _quanta(cfg: RunConfig) -> tuple[float, float]:
     return encoder_quanta(cpr, res, lead)
 
 
-def _warmup(kf, est) -> None:
-    """Compile/cache the kernels before the first tick (the clone keeps the real state untouched)."""
+def _warmup(kf, est, n: int) -> None:
+    """Compile/load every kernel before the first tick, on clones (the real state stays untouched).
+
+    ``n`` covers the warm-up periods and one completed period, so the period-completion path of the
+    streaming estimator is loaded here too, not at the first full period of the run.
+    """
     import copy
 
     z = np.zeros(8)
     copy.deepcopy(kf).filter_block(z, z)
     w = copy.deepcopy(est)
-    w.update_block(z, z, z, np.arange(8))
+    t = np.arange(n, dtype=float)
+    w.update_block(np.sin(t * 0.1), np.sin(t * 0.1), np.cos(t * 0.1), np.arange(n))
+    w.snapshot()
 
 
 def _loop_cpu() -> int | None:

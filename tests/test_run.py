@@ -96,8 +96,7 @@ def test_injected_slow_tick_is_counted_as_an_overrun():
 
     s = run(cfg(loop__duration=0.2, recording__enabled=False), tick_hook=slow)
     assert s["loop"]["overruns"] >= 1
-    assert s["loop"]["skipped_periods"] >= 4
-    assert s["loop"]["lateness_us"]["max"] > 4000
+    assert s["loop"]["skipped_periods"] >= 4     # a 5.5 ms stall skips whole 1 ms periods, never bursts
 
 
 def test_sigint_stops_safely_with_zero_torque(tmp_path):
