@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from rt_ident.errors import DataError, EstimationError
+from rt_ident.errors import EstimationError
 from rt_ident.estimators.base import Identification, IdentData
 from rt_ident.recording import read_recording
 
@@ -34,7 +34,7 @@ def identify_file(path: str | Path, method: str | None = None, *, period: int | 
     ex = meta.get("excitation") or {}
     if (meta.get("sample_period") and ex.get("period_samples") and ex.get("band") and period is None
             and not options and method == meta.get("method")):
-        from rt_ident.streaming import STREAMING_METHODS, make_streaming_estimator
+        from rt_ident.streaming import STREAMING_METHODS
 
         if method in STREAMING_METHODS and method != "paper":
             info["how"] = "replay of the loop's streaming estimator"
@@ -72,4 +72,4 @@ def _replay(rec, meta: dict[str, Any], method: str) -> Identification:
     return ident
 
 
-__all__ = ["identify_file", "DataError"]
+__all__ = ["identify_file"]
