@@ -56,6 +56,8 @@ class LoopConfig(_Section):
     duration: float = Field(10.0, gt=0)
     realtime: bool = True                      # try SCHED_FIFO, affinity, mlockall, gc.freeze
     warmup_periods: int = Field(2, ge=0)       # excitation periods discarded before estimating
+    max_sleep_us: Optional[float] = Field(100.0, gt=0)  # longest single sleep while waiting for a tick
+                                               # (short sleeps keep a VM's vCPU from halting; scheduler.py)
 
 
 class EstimatorConfig(_Section):

@@ -69,9 +69,10 @@ class IdentificationLoop:
                  on_telemetry: Callable[[dict[str, np.ndarray]], None] | None = None,
                  publish_every: int = 20, telemetry_stride: int = 34,
                  stop_event: threading.Event | None = None, clock: Callable[[], float] = time.perf_counter,
-                 tick_hook: Callable[[int], None] | None = None) -> None:
+                 tick_hook: Callable[[int], None] | None = None,
+                 max_sleep_s: float | None = 100e-6) -> None:
         self.backend = backend
-        self.ticker = Ticker(1.0 / tick_hz, clock=clock)
+        self.ticker = Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hz = tick_hz
         self.excitation = excitation
         self.kf = state_estimator
@@ -129,7 +130,10 @@ class IdentificationLoop:
         torque = block.torque
         states = self.kf.filter_block(block.theta1, block.theta2)
         if self.est.update_block(block.theta1, block.theta2, torque, block.seq) and self.worker is not None:
-            self.worker.submit(self.est.snapshot())     # the fit runs in the worker process
+            if self.worker.ready:                       # a snapshot only when the worker waits for one
+                self.worker.submit(self.est.snapshot())     # the fit runs in the worker process
+            else:
+                self.worker.skipped += 1
         if self.worker is not None and stats.ticks % 10 == 0:
             latest = self.worker.poll()
             if latest is not None:

@@ -146,7 +146,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 on_telemetry=telemetry.publish if telemetry else None,
                 publish_every=cfg.telemetry.publish_every_ticks,
                 telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
-                stop_event=stop, tick_hook=tick_hook)
+                stop_event=stop, tick_hook=tick_hook,
+                max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6)
             if telemetry is not None:
                 telemetry.wait_ready(5.0)
             helpers = [getattr(x, "pid", None) for x in (telemetry, recorder, worker, emulator) if x is not None]

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
-import queue
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,8 +34,11 @@ import numpy as np
 
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
+from rt_ident.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
+
+_WORKER_POLL_S = 0.002  # fit worker: sleep between polls of an empty inbox
 
 MAX_FILL = 64
 STREAMING_METHODS = ("frequency", "paper")
@@ -178,40 +180,58 @@ def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.9
     raise ConfigError("estimator.method", f"unknown streaming method {method!r}")
 
 
-def _worker_main(method: str, hold: str, lead: float, inbox, outbox, min_interval: float) -> None:
+def _worker_main(method: str, hold: str, lead: float, inbox: MessageRing, outbox: MessageRing,
+                 min_interval: float) -> None:
     import time
 
+    inbox.flag = 1                                   # ready for a snapshot
     while True:
-        item = inbox.get()
-        if item is None:
-            return
+        closed = inbox.writer_closed
+        if not inbox.pending_messages:
+            if closed:
+                return
+            time.sleep(_WORKER_POLL_S)
+            continue
+        inbox.flag = 0                               # busy: the loop keeps its snapshots
+        _, snap = inbox.get_object()
         t0 = time.monotonic()
         try:
-            outbox.put(fit_snapshot(method, item, hold=hold, lead=lead))
+            result: Any = fit_snapshot(method, snap, hold=hold, lead=lead)
         except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
-            outbox.put(exc)
+            result = exc
+        try:
+            ok = outbox.put_object(result)
+        except Exception as exc:  # noqa: BLE001 - e.g. an exception that does not pickle
+            ok = outbox.put_object(RuntimeError(f"{type(result).__name__}: {exc}"))
+        if not ok:
+            log.warning("fit worker: result ring full, result dropped")
         # duty-cycle limit: a fit takes ~25 ms; a few per second are plenty for a live view, and
-        # the CPU left over belongs to the loop (meanwhile newer snapshots replace older ones)
-        time.sleep(max(0.0, min_interval - (time.monotonic() - t0)))
+        # the CPU left over belongs to the loop (meanwhile the loop keeps its newer snapshots)
+        while time.monotonic() - t0 < min_interval and not inbox.writer_closed:
+            time.sleep(0.01)
+        inbox.flag = 1
 
 
 @dataclass
 class FitWorker:
     """Fits snapshots in a separate process. ``submit`` and ``poll`` never block the caller.
 
-    Only the newest snapshot matters: while a fit runs, further submissions
-    replace the pending one (``skipped`` counts them).
+    Snapshots and results travel through shared-memory rings (:mod:`rt_ident.shm_ring`: no
+    feeder thread in the loop's process). The worker says when it is ready for the next
+    snapshot; ``submit`` sends one only then, so a snapshot is pickled at most a few times
+    per second (``skipped`` counts the ones not sent because a fit was running).
     """
 
     method: str
     hold: str = "zoh"
     lead: float = 7.96e-4
     min_interval: float = 0.25      # s between fits
+    ring_bytes: int = 4 << 20       # per direction; a snapshot is a few kB
 
     def __post_init__(self) -> None:
         ctx = mp.get_context("spawn")
-        self._in = ctx.Queue(maxsize=1)
-        self._out = ctx.Queue()
+        self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
+        self._out = MessageRing(self.ring_bytes, ctx=ctx)
         self._proc = ctx.Process(target=_worker_main, args=(self.method, self.hold, self.lead, self._in, self._out,
                                                             self.min_interval),
                                  name="rt_ident-fit", daemon=True)
@@ -228,45 +248,38 @@ class FitWorker:
     def pid(self) -> int | None:
         return self._proc.pid
 
-    def submit(self, snap: Any) -> None:
+    @property
+    def ready(self) -> bool:
+        """True when the worker waits for a snapshot (and none is on its way)."""
+        return bool(self._in.flag) and not self._in.pending_messages
+
+    def submit(self, snap: Any) -> bool:
+        """Send ``snap`` if the worker is ready for it (True), else count it as skipped."""
         if snap is None:
-            return
-        try:
-            self._in.put_nowait(snap)
-        except queue.Full:
-            try:                                   # replace the pending snapshot with the newer one
-                self._in.get_nowait()
-                self.skipped += 1
-            except queue.Empty:
-                pass
-            try:
-                self._in.put_nowait(snap)
-            except queue.Full:
-                self.skipped += 1
+            return False
+        if not self.ready or not self._in.put_object(snap):
+            self.skipped += 1
+            return False
+        return True
 
     def poll(self) -> Identification | None:
+        """The newest result the worker has returned since the last poll, or None."""
+        if not self._out.pending_messages:
+            return None
         latest = None
-        while True:
-            try:
-                item = self._out.get_nowait()
-            except queue.Empty:
-                return latest
+        for msg in self._out.get():
+            item = MessageRing.unpickle(msg)
             if isinstance(item, Exception):
                 self.errors += 1
                 self.last_error = str(item)
             else:
                 self.fits += 1
                 latest = item
+        return latest
 
     def close(self, timeout: float = 5.0) -> None:
-        try:
-            self._in.put(None, timeout=1.0)
-        except queue.Full:
-            pass
+        self._in.close_writer()
         self._proc.join(timeout)
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(1.0)
-        for q in (self._in, self._out):
-            q.cancel_join_thread()
-            q.close()

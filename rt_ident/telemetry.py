@@ -1,8 +1,9 @@
 """Telemetry: a separate process that streams decimated blocks to rerun.
 
 The real-time loop calls :meth:`TelemetryProcess.publish` with a dict of arrays. ``publish``
-decimates, copies and ``put_nowait``-s it on a bounded ``multiprocessing`` queue: it never waits
-(on a full queue the block is dropped and counted). A spawned child process owns an
+decimates it and copies it into a bounded shared-memory ring (:mod:`rt_ident.shm_ring`: no
+feeder thread, no pickling, no system call in the loop's process). It never waits: on a full
+ring the block is dropped and counted. A spawned child process owns an
 ``rr.RecordingStream`` (no global rerun state), coalesces whatever is queued and logs it with
 columnar ``send_columns`` only (~70 ns/sample, vs ~30 us per ``rr.log``). Whatever the sink does
 (``connect_grpc`` to a missing viewer blocks the logging call), only the child can stall.
@@ -35,7 +36,6 @@ import logging
 import math
 import multiprocessing as mp
 import os
-import queue
 import socket
 import subprocess
 import sys
@@ -48,12 +48,15 @@ import numpy as np
 
 from rt_ident.dashboard import BLOCK_ENTITIES, ESTIMATE_KEYS, SERIES_STYLES, truth_path
 from rt_ident.errors import ConfigError, DataError
+from rt_ident.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
 
 SINKS: tuple[str, ...] = ("rrd", "spawn", "connect", "serve", "off")
 TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + ("lateness_us", "overruns"))
 _MAX_COALESCE = 256  # blocks merged into one send_columns per entity in the child
+_TRUTH = "truth:"    # key prefix of a truth message in the ring
+_POLL_S = 0.01       # child: sleep between polls of an empty ring
 
 
 def default_sink(env: Mapping[str, str] | None = None) -> str:
@@ -74,6 +77,7 @@ class TelemetryConfig:
     application_id: str = "rt_ident"
     port: int = 9876  # viewer port for "spawn", server port for "serve"
     queue_size: int = 64  # blocks buffered between the loop and the child
+    ring_bytes: int = 8 << 20  # and at most this many bytes of them
     flush_timeout: float = 2.0  # child: max wait for rerun to flush at close
 
     def __post_init__(self) -> None:
@@ -95,6 +99,8 @@ class TelemetryConfig:
             raise ConfigError("port", f"must be in 1..65535, got {self.port!r}")
         if not isinstance(self.queue_size, int) or self.queue_size < 1:
             raise ConfigError("queue_size", f"must be an integer >= 1, got {self.queue_size!r}")
+        if isinstance(self.ring_bytes, bool) or not isinstance(self.ring_bytes, int) or self.ring_bytes < 1 << 16:
+            raise ConfigError("ring_bytes", f"must be an integer >= 65536, got {self.ring_bytes!r}")
         if not self.application_id:
             raise ConfigError("application_id", "must not be empty")
         if not (math.isfinite(self.flush_timeout) and self.flush_timeout > 0):
@@ -163,8 +169,8 @@ def _send(rec: Any, rr: Any, blocks: list[dict[str, np.ndarray]], truth: dict[st
                              columns=rr.Scalars.columns(scalars=np.full(2, truth[key])))
 
 
-def _telemetry_main(cfg: TelemetryConfig, q: Any, sent: Any, ready: Any, truth: dict[str, float]) -> None:
-    """Body of the telemetry process."""
+def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: Any, truth: dict[str, float]) -> None:
+    """Body of the telemetry process: poll the ring, send what is there, stop when the writer closes."""
     os.environ.setdefault("CI", "1")  # rerun: no analytics config written under HOME
     import rerun as rr
 
@@ -174,25 +180,22 @@ def _telemetry_main(cfg: TelemetryConfig, q: Any, sent: Any, ready: Any, truth: 
         rec.log(path, rr.SeriesLines(names=name, colors=[color]), static=True)
     ready.set()
     truth = dict(truth)
-    closing = False
-    while not closing:
-        msgs = [q.get()]
-        while len(msgs) < _MAX_COALESCE and msgs[-1][0] != "close":
-            try:
-                msgs.append(q.get_nowait())
-            except queue.Empty:
-                break
+    while True:
+        closed = ring.writer_closed          # read before draining: nothing can follow a close
+        msgs = ring.get(_MAX_COALESCE)
         blocks = []
-        for kind, payload in msgs:
-            if kind == "truth":
-                truth.update(payload)
-            elif kind == "block":
-                blocks.append(payload)
+        for m in msgs:
+            if any(k.startswith(_TRUTH) for k in m):
+                truth.update({k[len(_TRUTH):]: float(v[0]) for k, v in m.items()})
             else:
-                closing = True
+                blocks.append(m)
         if blocks:
             _send(rec, rr, blocks, truth)
             sent.value += len(blocks)
+        if not msgs:
+            if closed:
+                break
+            time.sleep(_POLL_S)
     try:
         rec.flush(timeout_sec=cfg.flush_timeout)
     except Exception as e:  # noqa: BLE001 - rerun raises RuntimeError on flush timeout
@@ -204,7 +207,7 @@ class TelemetryProcess:
     """Stream blocks to rerun from a spawned child process; the caller never blocks.
 
     ``start()`` spawns the child (``__enter__`` does too); ``publish(block)`` returns False and
-    counts a drop when the queue is full (or not started); ``close(timeout)`` asks the child to
+    counts a drop when the ring is full (or not started); ``close(timeout)`` asks the child to
     flush and disconnect, and terminates it if it has not finished in ``timeout`` seconds.
     ``sent`` counts blocks the child handed to rerun, ``dropped`` blocks refused by ``publish``.
     """
@@ -212,11 +215,10 @@ class TelemetryProcess:
     def __init__(self, config: TelemetryConfig) -> None:
         self.config = config
         self._ctx = mp.get_context("spawn")
-        self._q: Any = None
+        self._ring: MessageRing | None = None
         self._proc: Any = None
         self._sent: Any = None  # mp.Value, created by start() (the constructor does no I/O)
-        self._dropped: Any = None
-        self._dropped_unstarted = 0
+        self._dropped = 0
         self._published = 0
         self._n_seen = 0  # samples seen, for decimation phase across blocks
         self._ready: Any = None
@@ -230,7 +232,7 @@ class TelemetryProcess:
 
     @property
     def dropped(self) -> int:
-        return self._dropped_unstarted + (0 if self._dropped is None else int(self._dropped.value))
+        return self._dropped
 
     @property
     def published(self) -> int:
@@ -243,16 +245,13 @@ class TelemetryProcess:
     def start(self) -> "TelemetryProcess":
         if self._proc is not None or self.config.sink == "off":
             return self
-        self._q = self._ctx.Queue(maxsize=self.config.queue_size)
-        # At interpreter exit, never wait for the feeder thread to push into a pipe nobody reads.
-        self._q.cancel_join_thread()
-        # Lock-free, one writer each (sent: the child, dropped: the parent). A child terminated
-        # while holding a lock would otherwise hang every later read.
+        self._ring = MessageRing(self.config.ring_bytes, max_messages=self.config.queue_size, ctx=self._ctx)
+        # Lock-free, one writer (the child). A child terminated while holding a lock would
+        # otherwise hang every later read.
         self._sent = self._ctx.Value("q", 0, lock=False)
-        self._dropped = self._ctx.Value("q", 0, lock=False)
         self._ready = self._ctx.Event()
         self._proc = self._ctx.Process(target=_telemetry_main, name="rt_ident-telemetry", daemon=True,
-                                       args=(self.config, self._q, self._sent, self._ready, dict(self._truth)))
+                                       args=(self.config, self._ring, self._sent, self._ready, dict(self._truth)))
         self._proc.start()
         self._truth_pending = False
         return self
@@ -260,7 +259,7 @@ class TelemetryProcess:
     def wait_ready(self, timeout: float) -> bool:
         """Wait (outside the real-time loop!) until the child has opened its sink. True if ready.
 
-        Blocks published before that only fill the queue; with a short queue they are dropped.
+        Blocks published before that only fill the ring; with a short ring they are dropped.
         """
         if self._ready is None:
             return self.config.sink == "off"
@@ -278,24 +277,22 @@ class TelemetryProcess:
         return self._push_truth()
 
     def _push_truth(self) -> bool:
-        if self._q is None:  # not started: handed to the child at start()
+        if self._ring is None:  # not started: handed to the child at start()
             return self.config.sink != "off"
-        try:
-            self._q.put_nowait(("truth", dict(self._truth)))
-        except queue.Full:
+        if self._closed or not self._ring.put({_TRUTH + k: np.array([v]) for k, v in self._truth.items()}):
             return False
         self._truth_pending = False
         return True
 
     def _prepare(self, block: Mapping[str, Any]) -> dict[str, np.ndarray]:
-        """Validate, decimate and copy a block (the caller may reuse its arrays afterwards)."""
+        """Validate and decimate a block (``publish`` copies it into the ring: the caller may reuse its arrays)."""
         if "t" not in block:
             raise DataError("publish(): block has no 't'")
         t = np.asarray(block["t"], dtype=np.float64)
         n, dec = t.shape[0], self.config.decimation
         start = (-self._n_seen) % dec
         self._n_seen += n
-        out = {"t": t[start::dec].copy()}
+        out = {"t": t[start::dec] if dec > 1 else t}
         tt = block.get("t_tick")
         if tt is not None:
             out["t_tick"] = np.array(tt, dtype=np.float64, ndmin=1)
@@ -308,11 +305,11 @@ class TelemetryProcess:
             if key in TICK_KEYS and tt is not None:
                 if a.shape != out["t_tick"].shape:
                     raise DataError(f"publish(): {key!r} has shape {a.shape}, 't_tick' {out['t_tick'].shape}")
-                out[key] = a.copy()
+                out[key] = a
             else:
                 if a.shape != t.shape:
                     raise DataError(f"publish(): {key!r} has shape {a.shape}, 't' {t.shape}")
-                out[key] = a[start::dec].copy()
+                out[key] = a[start::dec] if dec > 1 else a
         return out
 
     def publish(self, block: Mapping[str, Any]) -> bool:
@@ -322,19 +319,14 @@ class TelemetryProcess:
         """
         if self.config.sink == "off":
             return True
-        msg = ("block", self._prepare(block))
-        if self._q is None or self._closed:
-            if self._dropped is None:
-                self._dropped_unstarted += 1
-            else:
-                self._dropped.value += 1
+        msg = self._prepare(block)
+        if self._ring is None or self._closed:
+            self._dropped += 1
             return False
         if self._truth_pending:
             self._push_truth()
-        try:
-            self._q.put_nowait(msg)
-        except queue.Full:
-            self._dropped.value += 1
+        if not self._ring.put(msg):
+            self._dropped += 1
             return False
         self._published += 1
         return True
@@ -346,14 +338,7 @@ class TelemetryProcess:
         terminated = False
         if self._proc is not None and not self._closed:
             self._closed = True
-            while self._proc.is_alive():  # a dead child cannot make room: do not wait for it
-                try:
-                    self._q.put(("close", None), timeout=min(0.1, max(0.0, deadline - time.monotonic())))
-                    break
-                except queue.Full:
-                    if time.monotonic() >= deadline:
-                        log.warning("telemetry queue still full at close")
-                        break
+            self._ring.close_writer()
             self._proc.join(max(0.0, deadline - time.monotonic()))
             if self._proc.is_alive():
                 log.warning("telemetry process did not finish within %.1f s; terminating", timeout)
@@ -363,8 +348,6 @@ class TelemetryProcess:
                 if self._proc.is_alive():
                     self._proc.kill()
                     self._proc.join(0.1)
-            self._q.cancel_join_thread()  # leftover blocks are not worth hanging the caller
-            self._q.close()
         self._closed = True
         return {
             "sink": self.config.sink,

@@ -260,3 +260,38 @@ def test_model_derivatives_match_finite_differences(hold):
         Mm, Nm, _, _ = hold_model(theta - e, z, 2.5e-4, hold, derivs=False)
         assert np.allclose((Mp - Mm) / 2e-6, dM[i], rtol=1e-6, atol=1e-7 * np.abs(dM[i]).max())
         assert np.allclose((Np - Nm) / 2e-6, dN[i], rtol=1e-6, atol=1e-7 * np.abs(dN[i]).max() + 1e-300)
+
+
+# --------------------------------------------------------------------------- fit worker process
+def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy():
+    import time
+
+    from rt_ident.streaming import FitWorker, fit_snapshot, make_streaming_estimator
+
+    p, dt, N = thomson_x(), 2.5e-4, 512
+    ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
+    blk = PlantSimulator(p, dt, controller=HoldController(), seed=4).step_block(ms.periodic(5))
+    est = make_streaming_estimator("frequency", dt=dt, period=N, band=(int(ms.harmonics[0]), int(ms.harmonics[-1])),
+                                   warmup_periods=1, lead=p.lead)
+    assert est.update_block(blk.theta1, blk.theta2, blk.torque_meas, np.arange(blk.theta1.size))
+    snap = est.snapshot()
+    worker = FitWorker("frequency", lead=p.lead, min_interval=5.0).start()
+    try:
+        deadline = time.monotonic() + 30.0
+        while not worker.ready and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert worker.ready
+        assert worker.submit(snap)
+        assert not worker.submit(snap) and worker.skipped == 1     # one in flight: the next is kept back
+        got = None
+        while got is None and time.monotonic() < deadline:
+            got = worker.poll()
+            time.sleep(0.01)
+        assert got is not None and worker.fits == 1 and worker.errors == 0
+        local = fit_snapshot("frequency", snap, hold="zoh", lead=p.lead)   # the same fit, in this process
+        assert got.params == local.params
+        assert abs(got.params.K / p.K - 1.0) < 0.01
+        assert not worker.ready                   # min_interval: still resting after the fit
+    finally:
+        worker.close(timeout=5.0)
+    assert worker.pid is not None and not worker._proc.is_alive()

@@ -38,7 +38,7 @@ class FakeClock:
 
 def test_ticks_land_on_deadlines_and_sleep_stops_spin_s_early() -> None:
     clk = FakeClock()
-    tk = Ticker(P, clock=clk, sleeper=clk.sleep, spin_s=150e-6)
+    tk = Ticker(P, clock=clk, sleeper=clk.sleep, spin_s=150e-6, max_sleep_s=None)
     t0 = tk.start()
     for k in range(1, 6):
         info = tk.wait_next()
@@ -47,6 +47,25 @@ def test_ticks_land_on_deadlines_and_sleep_stops_spin_s_early() -> None:
         assert 0.0 <= info.lateness_s <= 2 * clk.step
     # every sleep ended ~150 us before its deadline, the rest was spun
     assert all(abs(s - (P - 150e-6)) < 20e-6 for s in clk.sleeps)
+
+
+def test_wait_is_cut_into_sleeps_no_longer_than_max_sleep_s() -> None:
+    clk = FakeClock()
+    tk = Ticker(P, clock=clk, sleeper=clk.sleep, spin_s=150e-6, max_sleep_s=100e-6)
+    t0 = tk.start()
+    for k in range(1, 4):
+        info = tk.wait_next()
+        assert info.deadline == t0 + k * P and 0.0 <= info.lateness_s <= 2 * clk.step
+    assert max(clk.sleeps) <= 100e-6 + 1e-12
+    # ~850 us of sleep per tick in chunks of <= 100 us: 9 sleeps per tick
+    assert 3 * 8 <= len(clk.sleeps) <= 3 * 10
+
+
+def test_max_sleep_s_must_be_positive() -> None:
+    with pytest.raises(ConfigError):
+        Ticker(1e-3, max_sleep_s=0.0)
+    with pytest.raises(ConfigError):
+        Ticker(1e-3, max_sleep_s=float("nan"))
 
 
 def test_injected_slow_tick_is_one_overrun_and_whole_periods_are_skipped() -> None:
