@@ -91,7 +91,8 @@ class IdentificationLoop:
         self.identification = None          # latest Identification (or None before the first period)
         self._next_seq = 0
         self._plan_len = int(math.ceil(2.0 / (tick_hz * backend.sample_period))) + 2
-        self._tel: list[dict[str, np.ndarray]] = []
+        if on_telemetry is not None:
+            self._telemetry_buffers()
 
     # ------------------------------------------------------------------ run
     def run(self) -> LoopStats:
@@ -109,7 +110,7 @@ class IdentificationLoop:
                 stats.skipped_periods += info.skipped
             stats.lateness.record(info.lateness_s)
             block = backend.read()
-            self._process(block)
+            self._process(block, info.lateness_s)
             self._write_plan()
             if self.tick_hook is not None:
                 self.tick_hook(stats.ticks)
@@ -117,7 +118,7 @@ class IdentificationLoop:
         return stats
 
     # --------------------------------------------------------------- pieces
-    def _process(self, block: SampleBlock) -> None:
+    def _process(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
         n = len(block)
         stats = self.stats
         if n == 0:
@@ -143,46 +144,82 @@ class IdentificationLoop:
                           abs(self.backend.last_torque) > 0.0)
         self._next_seq = int(block.seq[-1]) + 1
         if self.on_telemetry is not None:
-            self._collect_telemetry(block, states)
+            self._collect_telemetry(block, states, lateness_s)
 
     def _write_plan(self) -> None:
         start = self._next_seq
         seq = np.arange(start, start + self._plan_len)
         self.backend.write(self.excitation(seq), start_seq=start)
 
-    def _collect_telemetry(self, block: SampleBlock, states) -> None:
+    # ------------------------------------------------------------ telemetry
+    _SAMPLE_KEYS = ("t", "theta1", "theta2", "torque_meas", "torque_cmd", "torque_hat")
+
+    def _telemetry_buffers(self) -> None:
+        """Preallocated window buffers: a tick writes slices into them; nothing is concatenated."""
+        per_tick = int(math.ceil(1.0 / (self.tick_hz * self.backend.sample_period) / self.stride)) + 2
+        cap = max(64, 4 * self.publish_every * per_tick)
+        self._tel_buf = {k: np.empty(cap) for k in self._SAMPLE_KEYS}
+        self._tel_n = 0
+        self._tel_hat_ok = True
+        self._tick_t = np.empty(self.publish_every)
+        self._tick_late = np.empty(self.publish_every)
+        self._tick_n = 0
+
+    def _collect_telemetry(self, block: SampleBlock, states, lateness_s: float) -> None:
         s = slice(None, None, self.stride)
-        part = {"t": block.t[s], "theta1": block.theta1[s], "theta2": block.theta2[s],
-                "torque_meas": block.torque[s], "torque_cmd": block.torque_cmd[s]}
+        t = block.t[s]
+        m = t.shape[0]
+        buf = self._tel_buf
+        cap = buf["t"].shape[0]
+        if self._tel_n + m > cap:
+            self._flush_telemetry()               # a burst (after a stall): publish what is there first
+            if m > cap:                           # keep the newest samples of an oversized burst
+                s = slice((m - cap) * self.stride, None, self.stride)
+                t = block.t[s]
+                m = cap
+        i, j = self._tel_n, self._tel_n + m
+        buf["t"][i:j] = t
+        buf["theta1"][i:j] = block.theta1[s]
+        buf["theta2"][i:j] = block.theta2[s]
+        buf["torque_meas"][i:j] = block.torque[s]
+        buf["torque_cmd"][i:j] = block.torque_cmd[s]
         ident = self.identification
         if ident is not None:
             p = ident.params
             th, om, al = states.theta[s], states.omega[s], states.alpha[s]
             # Eq. (18), motor row: T_hat = I1 th1'' + B (th1' - th2') + K (th1 - th2)
-            part["torque_hat"] = p.I1 * al[:, 0] + p.B * (om[:, 0] - om[:, 1]) + p.K * (th[:, 0] - th[:, 1])
-        self._tel.append(part)
-        if self.stats.ticks % self.publish_every == 0:
+            buf["torque_hat"][i:j] = p.I1 * al[:, 0] + p.B * (om[:, 0] - om[:, 1]) + p.K * (th[:, 0] - th[:, 1])
+        else:
+            self._tel_hat_ok = False
+        self._tel_n = j
+        k = self._tick_n
+        self._tick_t[k] = block.t[-1]
+        self._tick_late[k] = lateness_s * 1e6
+        self._tick_n = k + 1
+        if self._tick_n == self.publish_every:
             self._flush_telemetry()
 
     def _flush_telemetry(self, force: bool = False) -> None:
-        if not self._tel or self.on_telemetry is None:
+        """Publish the window: the decimated samples, per-tick lateness and the current estimate.
+
+        ``on_telemetry`` gets views of the window buffers, valid only during the call (it copies,
+        as :meth:`rt_ident.telemetry.TelemetryProcess.publish` does into its ring).
+        """
+        if self.on_telemetry is None or (self._tel_n == 0 and self._tick_n == 0):
             return
-        keys = set().union(*(d.keys() for d in self._tel))
-        keys.discard("torque_hat")
-        out = {k: np.concatenate([d[k] for d in self._tel]) for k in keys}
-        hats = [d["torque_hat"] for d in self._tel if "torque_hat" in d]
-        if hats and len(hats) == len(self._tel):
-            out["torque_hat"] = np.concatenate(hats)
-        t_now = np.array([out["t"][-1]])
-        ident = self.identification
-        if ident is not None:
-            for k in ("I1", "I2", "B", "K"):
-                out[k] = np.array([getattr(ident.params, k)])
-            out["wn"] = np.array([ident.modal["wn"]])
-            out["zeta"] = np.array([ident.modal["zeta"]])
-        lat = self.stats.lateness.summary()
-        out["lateness_us"] = np.array([lat["p99"]])
-        out["overruns"] = np.array([float(self.stats.overruns)])
-        out["t_tick"] = t_now
-        self._tel.clear()
-        self.on_telemetry(out)
+        n, k = self._tel_n, self._tick_n
+        if n:
+            out = {key: v[:n] for key, v in self._tel_buf.items() if key != "torque_hat" or self._tel_hat_ok}
+            self.on_telemetry(out)
+        if k:
+            tick = {"t": self._tick_t[:k], "t_tick": self._tick_t[:k], "lateness_us": self._tick_late[:k],
+                    "overruns": np.full(k, float(self.stats.overruns))}
+            ident = self.identification
+            if ident is not None:
+                for key in ("I1", "I2", "B", "K"):
+                    tick[key] = np.full(k, getattr(ident.params, key))
+                tick["wn"] = np.full(k, ident.modal["wn"])
+                tick["zeta"] = np.full(k, ident.modal["zeta"])
+            self.on_telemetry(tick)
+        self._tel_n = self._tick_n = 0
+        self._tel_hat_ok = True
