@@ -25,7 +25,7 @@ from typing import Any, Callable
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT_RATES", "bench_loop", "loop_trial"]
+__all__ = ["DEFAULT_RATES", "bench_loop", "loop_trial", "soak"]
 
 #: Sample rates tried (samples/s): the paper's ~33.9 kHz, then multiples up to ~30x.
 DEFAULT_RATES: tuple[int, ...] = (34_000, 68_000, 136_000, 170_000, 250_000, 340_000, 500_000, 680_000, 1_000_000)
@@ -183,3 +183,17 @@ def bench_loop(seconds: float = 60.0, rates: tuple[int, ...] = DEFAULT_RATES, si
             "max_clean_rate": best["clean"], "max_clean_after_startup_rate": best["clean_after_startup"],
             "max_sustained_rate": best["sustained"], "trials": trials,
             "targets": {"rrd streaming: 0 overruns at >= 170 k samples/s": (best["clean"].get("rrd") or 0) >= 170_000}}
+
+
+def soak(seconds: float = 600.0, rate: float = 170_000, sink: str = "rrd",
+         method: str = "frequency") -> dict[str, Any]:
+    """One long trial (default 10 min at 170 k samples/s, streaming to an .rrd): is RSS flat?
+
+    ``rss_growth_pct`` compares the resident set at the first tick with the last sample (every
+    1000 ticks); ``rss_growth_after_10pct_pct`` starts after the first tenth of the run, when
+    every buffer has been touched. The issue's criterion is +-5 %.
+    """
+    res = loop_trial(rate, seconds, sink, method=method)
+    growth = res.get("rss_growth_pct")
+    res["rss_flat_within_5pct"] = None if growth is None else abs(growth) <= 5.0
+    return res

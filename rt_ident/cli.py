@@ -347,11 +347,48 @@ def bench(
     quick: bool = typer.Option(False, "--quick", help="Short loop trials (3 s)."),
     loop_seconds: float = typer.Option(60.0, "--loop-seconds", help="Seconds per loop trial (0 skips the loop)."),
     repeats: int = typer.Option(5, min=1, help="Repeats per micro-benchmark (medians are reported)."),
+    soak_seconds: float = typer.Option(0.0, "--soak", min=0.0,
+                                       help="Instead: one loop run this long (e.g. 600) and its memory (RSS) over time."),
+    soak_rate: float = typer.Option(170_000.0, "--soak-rate", min=1000.0, help="Samples/s of the --soak run."),
+    soak_sink: str = typer.Option("rrd", "--soak-sink", help="Telemetry of the --soak run: rrd or off."),
 ) -> None:
     """Speed of our kernels vs peers (padasip, filterpy, numpy, scipy) and the loop's capacity, in one run."""
+    if soak_seconds > 0:
+        _soak(soak_seconds, soak_rate, soak_sink, json_out)
+        return
     from rt_ident.bench import bench_main
 
     bench_main(json_out=json_out, quick=quick, loop_seconds=loop_seconds, repeats=repeats)
+
+
+def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:
+    from rt_ident.bench_loop import soak
+
+    if sink not in ("rrd", "off"):
+        raise RtIdentError(f"--soak-sink must be rrd or off, got {sink!r}")
+    err.print(f"soak: {seconds:g} s at {rate / 1e3:g} k samples/s, telemetry {sink} ...")
+    res = soak(seconds, rate, sink)
+    if json_out:
+        typer.echo(json.dumps(res, indent=2, default=_json_default))
+        return
+    if "error" in res and res["error"]:
+        raise RtIdentError(f"soak run failed: {res['error']}")
+    rss, lat = res.get("rss_kb") or {}, res.get("lateness_us") or {}
+    tab = Table(title=f"loop soak: {seconds:g} s at {rate / 1e3:g} k samples/s, telemetry {sink}")
+    tab.add_column("figure")
+    tab.add_column("value", justify="right")
+    for name, value in (("samples/s", f"{res.get('samples_per_s', 0):,.0f}"),
+                        ("overruns", res.get("overruns")), ("overruns in the first second", res.get("overruns_first_1s")),
+                        ("lateness p50 / p99 / max (us)",
+                         " / ".join(f"{lat.get(k, float('nan')):.1f}" for k in ("p50", "p99", "max"))),
+                        ("telemetry dropped", res.get("telemetry_dropped")),
+                        ("RSS at first tick (MiB)", f"{(rss.get('first_tick_kb') or 0) / 1024:.1f}"),
+                        ("RSS at last tick (MiB)", f"{(rss.get('last_tick_kb') or 0) / 1024:.1f}"),
+                        ("RSS growth (%)", f"{res.get('rss_growth_pct') or 0:+.2f}"),
+                        ("RSS growth after the first 10 % (%)", f"{res.get('rss_growth_after_10pct_pct') or 0:+.2f}"),
+                        ("RSS flat within +-5 %", res.get("rss_flat_within_5pct"))):
+        tab.add_row(name, str(value))
+    out.print(tab)
 
 
 def main() -> None:

@@ -142,3 +142,27 @@ def test_report_renders_loop_trials_and_the_largest_clean_rates(capsys):
     text = capsys.readouterr().out
     assert "4.4 @46" in text
     assert "largest rate with 0 overruns after the first second: telemetry rrd: 34 ksamples/s" in text
+
+
+def test_soak_calls_rss_flat_only_within_five_percent(monkeypatch):
+    from rt_ident import bench_loop
+
+    for growth, flat in ((4.9, True), (-4.9, True), (5.1, False), (None, None)):
+        monkeypatch.setattr(bench_loop, "loop_trial", lambda *a, g=growth, **k: {"rss_growth_pct": g, "ok": True})
+        assert bench_loop.soak(1.0, 1000, "off")["rss_flat_within_5pct"] is flat
+
+
+def test_bench_soak_command_prints_the_memory_table(monkeypatch):
+    from typer.testing import CliRunner
+
+    from rt_ident import bench_loop
+    from rt_ident.cli import app
+
+    fake = {"ok": True, "samples_per_s": 170001.0, "overruns": 0, "overruns_first_1s": 0,
+            "lateness_us": {"p50": 0.1, "p99": 9.0, "max": 300.0}, "telemetry_dropped": 0,
+            "rss_kb": {"first_tick_kb": 512000, "last_tick_kb": 513024}, "rss_growth_pct": 0.2,
+            "rss_growth_after_10pct_pct": 0.1}
+    monkeypatch.setattr(bench_loop, "loop_trial", lambda *a, **k: dict(fake))
+    res = CliRunner().invoke(app, ["bench", "--soak", "5", "--soak-rate", "170000"])
+    assert res.exit_code == 0, res.output
+    assert "RSS flat within +-5 %" in res.output and "True" in res.output and "500.0" in res.output
