@@ -1,0 +1,28 @@
+"""Shared pytest options: ``--hardware`` and ``--hardware-config``.
+
+Tests marked ``hardware`` (marker declared in pyproject.toml) are skipped unless
+``--hardware`` is given. ``--hardware-config PATH`` names a run configuration
+(TOML) whose ``[backend]`` is a real device; it may be repeated or hold several
+comma-separated paths. Nothing here runs at import time.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("hardware", "tests against real devices")
+    group.addoption("--hardware", action="store_true", default=False,
+                    help="run tests marked 'hardware' (they move a real axis)")
+    group.addoption("--hardware-config", action="append", default=[], metavar="PATH",
+                    help="run config (TOML) naming a real backend; repeat or comma-separate for several")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--hardware"):
+        return
+    skip = pytest.mark.skip(reason="real device: run with --hardware (and --hardware-config PATH)")
+    for item in items:
+        if item.get_closest_marker("hardware") is not None:
+            item.add_marker(skip)
