@@ -121,6 +121,7 @@ class EmulatedBoard:
         """Open the pty (raw, slave kept open) and start streaming."""
         if self._thread is not None:
             return self
+        self._plant.step_block(np.empty(0))     # load the compiled plant kernel now, not at the first frame
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)                 # raw before anything is written
         os.set_blocking(self._master, False)
