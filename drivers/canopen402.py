@@ -23,6 +23,7 @@ import collections
 import logging
 import math
 import struct
+import sys
 import time
 from typing import Any, Mapping
 
@@ -32,8 +33,8 @@ from drivers import canopen_profile as p402
 from drivers.base import Backend, SampleBlock
 from drivers.canopen_config import Cia402Config, validate
 from drivers.canopen_setup import NodeSetup
-from drivers.canopen_stream import SampleAssembler, SyncSender, TorquePlan
-from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError
+from drivers.canopen_stream import ECHO, SampleAssembler, SyncSender, TorquePlan
+from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +62,10 @@ class Cia402Backend(Backend):
         self._emcy: tuple[int, int] | None = None
         self._hb_time = 0.0           # monotonic time of the last heartbeat of the drive
         self._hb_state = 0
-        self._hb_not_operational = 0  # consecutive heartbeats not reporting OPERATIONAL
+        self._hb_operational = False  # a heartbeat reported OPERATIONAL since NMT start was sent
+        self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
         self.statusword = 0
+        self._switch_interval: float | None = None   # the interpreter's, while the SYNC sender runs
 
     # ----- properties -------------------------------------------------------------------
     @property
@@ -77,21 +80,31 @@ class Cia402Backend(Backend):
     def counters(self) -> dict[str, int]:
         """Stale/late/corrupt samples and frames, unchanged encoder samples, SYNC overruns, late plan values."""
         a, s = self._asm, self._sender
-        return {"stale": a.stale if a else 0, "late": a.late if a else 0, "corrupt": a.corrupt if a else 0,
+        io = self._setup.io if self._setup is not None else None
+        return {"stale": a.stale if a else 0, "ambiguous": a.ambiguous if a else 0,
+                "late": a.late if a else 0, "corrupt": a.corrupt if a else 0,
                 "unchanged": a.unchanged if a else 0, "sync_sent": s.sent if s else 0,
-                "sync_overruns": s.overruns if s else 0, "send_errors": s.send_errors if s else 0,
-                "late_plan_samples": self._plan.late,
+                "sync_echoes": a.echoes if a else 0, "sync_overruns": s.overruns if s else 0,
+                "send_errors": s.send_errors if s else 0, "late_plan_samples": self._plan.late,
+                "rx_dropped": io.dropped if io else 0,
                 "max_latency_us": int(1e6 * a.max_latency) if a else 0}
 
     # ----- light callbacks (python-can's receive thread: no work, never raise) ----------
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self._deque.append((can_id, time.monotonic(), bytes(data)))
+        self._deque.append((can_id, timestamp, bytes(data)))      # FrameIO: host monotonic arrival time
 
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         self._hb_time = time.monotonic()
         state = data[0] & 0x7F if data else 0
         self._hb_state = state
-        self._hb_not_operational = 0 if state == 5 else self._hb_not_operational + 1
+        if state == 5:
+            self._hb_operational = True
+            self._hb_not_operational = 0
+        elif self._hb_operational:
+            self._hb_not_operational += 1
+
+    def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._deque.append((ECHO, timestamp))
 
     def _on_emcy(self, entry) -> None:
         if entry.code & 0xFF00 and self._emcy is None:
@@ -106,7 +119,8 @@ class Cia402Backend(Backend):
     # ----- lifecycle hooks --------------------------------------------------------------
     def _open(self) -> None:
         cfg = self.config
-        setup = NodeSetup(cfg, on_tpdo=self._on_tpdo, on_heartbeat=self._on_heartbeat, on_emcy=self._on_emcy)
+        setup = NodeSetup(cfg, on_tpdo=self._on_tpdo, on_heartbeat=self._on_heartbeat, on_emcy=self._on_emcy,
+                          on_sync_echo=self._on_sync_echo)
         self._setup = setup
         try:
             setup.connect()
@@ -116,7 +130,7 @@ class Cia402Backend(Backend):
             self._setup = None
             raise
         self._asm = SampleAssembler(setup.tpdo_layouts, cfg.stale_limit,
-                                    cfg.stuck_torque * 1000.0 / self.rated_torque)
+                                    cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo)
         self._hb_time = time.monotonic()
 
     def _activate(self) -> None:
@@ -128,9 +142,18 @@ class Cia402Backend(Backend):
         sender.controlword = p402.CW_SHUTDOWN
         self._sender = sender
         try:
+            # Heartbeats sent before the drive saw NMT start may still be queued (python-can's cyclic
+            # sender also sends missed heartbeats in a burst after a stall, e.g. while this process
+            # was being locked in memory): only a heartbeat after one reporting OPERATIONAL counts.
+            self._hb_operational = False
+            self._hb_not_operational = 0
+            if setup.echo:          # bus order is in the socket: read it in this thread, no GIL contention
+                setup.receive_in_caller()
             setup.nmt_operational()
             self._hb_time = time.monotonic()
-            self._hb_not_operational = 0
+            if cfg.gil_switch_interval_us is not None and self._switch_interval is None:
+                self._switch_interval = sys.getswitchinterval()
+                sys.setswitchinterval(min(self._switch_interval, 1e-6 * cfg.gil_switch_interval_us))
             sender.start()
             self._enable(sender)
         except BaseException:
@@ -151,11 +174,12 @@ class Cia402Backend(Backend):
         resets, toggle_at = 0, 0.0
         hold = max(0.02, 10 * cfg.sample_period)    # each controlword long enough for several SYNCs
         while True:
+            self._setup.pump()
             asm.feed(self._deque, deliver=False)
             self._check_emcy_heartbeat(startup=True)
             sw = asm.statusword
             state = p402.decode_state(sw) if sw is not None else None
-            if state == p402.OPERATION_ENABLED:
+            if state == p402.OPERATION_ENABLED and self._hb_operational:
                 self.statusword = sw
                 log.info("canopen: node %d in OPERATION ENABLED (statusword 0x%04X)", cfg.node_id, sw)
                 return
@@ -179,6 +203,11 @@ class Cia402Backend(Backend):
                     raise DeviceTimeout(
                         f"no TPDO from node {cfg.node_id} within startup_timeout {cfg.startup_timeout:g} s after "
                         f"NMT OPERATIONAL ({sender.sent} SYNCs sent, {asm.frames_seen} TPDO frames received)")
+                if state == p402.OPERATION_ENABLED:
+                    raise DeviceTimeout(
+                        f"node {cfg.node_id} is in OPERATION ENABLED but its heartbeat did not report NMT "
+                        f"OPERATIONAL within startup_timeout {cfg.startup_timeout:g} s (last state "
+                        f"{self._hb_state})")
                 raise DeviceTimeout(
                     f"node {cfg.node_id} did not reach OPERATION ENABLED within startup_timeout "
                     f"{cfg.startup_timeout:g} s: state {state} (statusword 0x{sw:04X})")
@@ -193,16 +222,20 @@ class Cia402Backend(Backend):
         if age > cfg.consumer_ms / 1000.0:
             raise DeviceFault(f"no heartbeat from node {cfg.node_id} for {age:.3f} s (consumer time "
                               f"{cfg.consumer_ms} ms, producer {cfg.heartbeat_ms} ms)")
-        # two in a row: the heartbeat in flight when NMT OPERATIONAL was sent may still say PRE-OPERATIONAL
-        if not startup and self._hb_not_operational >= 2:
+        if not startup and self._hb_not_operational:
             raise DeviceFault(f"node {cfg.node_id} left NMT OPERATIONAL (heartbeat state {self._hb_state})")
         s = self._sender
         if s is not None and s.consecutive_errors >= 10:
             raise DeviceConnectionError(f"CAN send failing on {cfg.interface}:{cfg.channel}: {s.last_error} "
                                         f"({s.send_errors} errors)")
+        io = self._setup.io if self._setup is not None else None
+        if io is not None and io.dropped:
+            raise ProtocolError(f"{io.dropped} frames dropped by this host's receive buffer on "
+                                f"{cfg.interface}:{cfg.channel}; samples can no longer be matched to SYNCs")
 
     def _read(self) -> SampleBlock:
         asm = self._asm
+        self._setup.pump()
         self._check_emcy_heartbeat()
         asm.feed(self._deque, deliver=True)
         rows = asm.take_rows()
@@ -238,6 +271,7 @@ class Cia402Backend(Backend):
         asm = self._asm
         while True:
             try:
+                self._setup.pump()
                 asm.feed(self._deque, deliver=False)
             except DriverError:
                 pass
@@ -272,11 +306,20 @@ class Cia402Backend(Backend):
                             cfg.node_id, cfg.stop_timeout)
         finally:
             sender.stop()
+            self._restore_switch_interval()
+            self._setup.receive_in_thread()     # SDO (close) needs a receiver again
             self._deque.clear()
+
+    def _restore_switch_interval(self) -> None:
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None
 
     def _sdo_disable(self) -> None:
         """Without a running SYNC stream, write the controlword by SDO (best effort)."""
         if self._setup is not None:
+            self._restore_switch_interval()
+            self._setup.receive_in_thread()     # SDO needs a receiver
             self._setup.try_download(p402.CONTROLWORD, 0, struct.pack("<H", p402.CW_DISABLE_VOLTAGE))
 
     def _safe_stop(self) -> None:
@@ -285,6 +328,7 @@ class Cia402Backend(Backend):
     def _close(self) -> None:
         if self._sender is not None:
             self._sender.stop()
+        self._restore_switch_interval()
         if self._setup is not None:
             self._setup.teardown(drive_consumer_off=True)
             self._setup = None

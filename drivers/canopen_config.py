@@ -65,6 +65,9 @@ class Cia402Config(BaseModel):
     #                                                       of torque_limit
     startup_timeout: float = Field(2.0, gt=0, le=60)  # s from NMT OPERATIONAL to OPERATION ENABLED
     stop_timeout: float = Field(0.2, gt=0, le=5)    # s per safe-stop step (quick stop, disable)
+    # the SYNC sender thread waits for the GIL at each deadline for up to the interpreter's switch
+    # interval; while active the backend lowers it to this (restored when the SYNCs stop); None: untouched
+    gil_switch_interval_us: Optional[float] = Field(50.0, ge=5, le=5000)
 
     @model_validator(mode="after")
     def _consistent(self) -> "Cia402Config":

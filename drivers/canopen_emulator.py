@@ -4,8 +4,9 @@
 * :func:`start_emulator_for` - build and start an :class:`~drivers.emulated_drive.EmulatedCia402Drive`
   from a run configuration (the ``[backend]``, ``[emulator]`` and ``[axis]`` tables), as the
   loop does when ``[backend] emulate = true``;
-* :func:`main` - ``python -m drivers.emulated_drive --config configs/canopen-virtual.toml``
-  runs the drive alone (use ``--interface udp_multicast`` to reach it from another process).
+* :func:`main` - ``python -m drivers.emulated_drive --config configs/canopen-virtual.toml --port N``
+  runs the drive alone, reachable from other processes on ``udp_multicast`` (the loop starts
+  it in a child process itself: :class:`rt_ident.emulation.EmulatorProcess`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import random
 import signal
 import sys
 import threading
@@ -31,6 +33,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# COB-IDs no predefined-connection-set service uses (0x100 is TIME, 0x080-0x0FF SYNC/EMCY)
+_GARBAGE_IDS = tuple(range(0x101, 0x180)) + tuple(range(0x500, 0x580))
 _INT_FAULTS = frozenset({"drop_tpdo_every", "tpdo_faults_from_sample", "corrupt_tpdo_every", "emcy_at_sample",
                          "emcy_code", "stuck_encoder_at_sample", "garbage_frames_per_sync", "seed"})
 
@@ -74,6 +78,26 @@ class FaultConfig:
         if not 0 < self.emcy_code <= 0xFFFF:
             raise ConfigError("emulator.faults.emcy_code", f"must be 0x0001..0xFFFF, got {self.emcy_code!r}")
 
+    # ----- applied by the drive (drivers.emulated_drive) ---------------------------------
+    def tpdo_frames(self, frames: list[tuple[int, bytes]], sample: int, enabled: bool) -> list[tuple[int, bytes]]:
+        """The ``(cob, data)`` TPDO frames of ``sample`` after the drop and corrupt faults."""
+        if not enabled or sample < self.tpdo_faults_from_sample:
+            return frames
+        if self.drop_tpdo_every and sample % self.drop_tpdo_every == 0:
+            return []
+        if self.corrupt_tpdo_every and sample % self.corrupt_tpdo_every == 0:
+            return [(cob, data[:-2]) for cob, data in frames]
+        return frames
+
+    def tpdo_delay(self, sample: int, enabled: bool) -> float:
+        """How much later than normal the TPDOs of ``sample`` leave [s]."""
+        return self.delay_tpdo_s if enabled and sample >= self.tpdo_faults_from_sample else 0.0
+
+    def garbage(self, rng: random.Random) -> list[tuple[int, bytes]]:
+        """Random frames for one SYNC on COB-IDs no predefined-connection-set service uses."""
+        return [(rng.choice(_GARBAGE_IDS), bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 8))))
+                for _ in range(self.garbage_frames_per_sync)]
+
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any] | None) -> "FaultConfig":
         data = dict(data or {})
@@ -101,6 +125,8 @@ class EmulatorConfig(BaseModel):
     torque_limit: Optional[float] = Field(None, gt=0)  # N m peak of the power stage; None: backend's limit
     travel: Optional[tuple[float, float]] = (-0.05, 0.05)  # m on the scale; outside -> fault 0x8612
     integrator: Literal["zoh", "newmark"] = "zoh"
+    poll_us: Optional[float] = Field(None, ge=0)   # receive poll period; None: 100 us on udp_multicast,
+    #                                                blocking in-process (see drivers.canopen_frames.FrameIO)
     seed: int = 0
     faults: dict[str, Any] = Field(default_factory=dict)
 
@@ -152,7 +178,8 @@ def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
                                FaultConfig.from_mapping(emu.faults), counts_per_rev=cfg.counts_per_rev,
                                scale_resolution=cfg.scale_resolution, scale_index=cfg.scale_index,
                                scale_subindex=cfg.scale_subindex,
-                               rated_torque=emu.rated_torque or cfg.rated_torque)
+                               rated_torque=emu.rated_torque or cfg.rated_torque,
+                               poll_s="auto" if emu.poll_us is None else 1e-6 * emu.poll_us)
 
 
 def start_emulator_for(config: Any) -> "EmulatedCia402Drive":
@@ -197,7 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"READY node {drive.node_id} on {backend.get('interface')}:{backend.get('channel')}", flush=True)
+    where = f"{backend.get('interface')}:{backend.get('channel')}" + (f" port {backend['port']}"
+                                                                      if backend.get("port") else "")
+    print(f"READY node {drive.node_id} on {where}", flush=True)
     try:
         while not stop.wait(0.2):
             pass

@@ -5,6 +5,12 @@ canopen's blocking SDO helpers are fine at start-up and must stay out of the loo
 Errors: no answer -> :class:`DeviceConnectionError` (node id and time waited); an
 object missing from the EDS or refused by the drive -> :class:`ProtocolError` naming
 the object; an SDO timeout in the middle of the set-up -> :class:`DeviceTimeout`.
+
+Frames are received by :class:`~drivers.canopen_frames.FrameIO` (shared with the emulated drive), not by
+canopen's ``Network.connect()`` notifier: on ``udp_multicast`` it reads the socket
+itself at about a quarter of python-can's cost per frame, and this host's own SYNCs
+come back in bus order - the sample assembly uses them as window markers (see
+:mod:`drivers.canopen_stream`).
 """
 
 from __future__ import annotations
@@ -20,24 +26,25 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from drivers import canopen_profile as p402
 from drivers.canopen_config import Cia402Config
+from drivers.canopen_frames import FrameIO, stop_periodic
 from drivers.errors import DeviceConnectionError, DeviceTimeout, ProtocolError
 from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
-
-_NOTIFIER_CYCLE = 0.05   # s; python-can's receive thread wakes this often (stop() waits at most this)
 
 
 class NodeSetup:
     """Owns the bus, the ``canopen.Network`` and the ``RemoteNode`` of one drive."""
 
     def __init__(self, cfg: Cia402Config, *, on_tpdo: Callable, on_heartbeat: Callable,
-                 on_emcy: Callable) -> None:
+                 on_emcy: Callable, on_sync_echo: Callable | None = None) -> None:
         self.cfg = cfg
         self._on_tpdo = on_tpdo
         self._on_heartbeat = on_heartbeat
         self._on_emcy = on_emcy
+        self._on_sync_echo = on_sync_echo
         self.network: canopen.Network | None = None
+        self.io: FrameIO | None = None
         self.node: canopen.RemoteNode | None = None
         self._hb_task: Any = None
         self.rpdo_cob = 0x200 + cfg.node_id
@@ -108,12 +115,42 @@ class NodeSetup:
             log.warning("canopen: writing 0x%04X:%02X failed: %s", index, subindex, exc)
         return False
 
+    @property
+    def echo(self) -> bool:
+        """True when this host's own frames come back in bus order (``udp_multicast``): then the
+        echoed SYNCs, not the sender's clock, mark the sample windows."""
+        return self.io is not None and self.io.udp and self._on_sync_echo is not None
+
     def send(self, cob_id: int, data: bytes) -> None:
-        """Send one frame (thread-safe; half the cost of ``Network.send_message``, used per SYNC)."""
-        net = self.network
-        msg = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False)
-        with net.send_lock:
-            net.bus.send(msg)
+        """Send one frame (thread-safe; a fraction of the cost of ``Network.send_message``, used per SYNC)."""
+        self.io.send(cob_id, data)
+
+    def _dispatch(self, frames: list) -> None:
+        notify = self.network.notify
+        for cob, data, t in frames:
+            notify(cob, data, t)
+
+    def receive_in_caller(self) -> None:
+        """Stop the receive thread: from now on the caller reads the bus with :meth:`pump` (echo mode)."""
+        self.io.stop()
+
+    def receive_in_thread(self) -> None:
+        """Read the bus in a thread again (SDO needs it); a no-op if it runs. Never raises (stop paths)."""
+        if self.io is not None and not self.io.running:
+            try:
+                self.io.start()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("canopen: receive thread not restarted: %s", exc)
+
+    def pump(self) -> None:
+        """Read and dispatch every frame waiting now (only while the receive thread is stopped)."""
+        io = self.io
+        if io is not None and not io.running:
+            try:
+                io.pump()
+            except Exception as exc:  # noqa: BLE001 - python-can / socket errors
+                raise DeviceConnectionError(f"reading CAN interface {self.cfg.interface!r} channel "
+                                            f"{self.cfg.channel!r} failed: {type(exc).__name__}: {exc}") from exc
 
     # ----- start-up ---------------------------------------------------------------------
     def connect(self) -> None:
@@ -131,9 +168,11 @@ class NodeSetup:
             raise DeviceConnectionError(f"cannot open CAN interface {cfg.interface!r} channel {cfg.channel!r}: "
                                         f"{type(exc).__name__}: {exc}") from exc
         net = canopen.Network(bus)
-        net.NOTIFIER_CYCLE = _NOTIFIER_CYCLE
         self.network = net
-        net.connect()
+        self.io = FrameIO(bus, self._dispatch, bus_kwargs=cfg.bus_kwargs(), send_lock=net.send_lock,
+                          name=f"canopen-rx-{cfg.node_id}").start()
+        if self.echo:
+            net.subscribe(0x80, self._on_sync_echo)
         node = canopen.RemoteNode(cfg.node_id, self._od)
         net.add_node(node)
         node.sdo.RESPONSE_TIMEOUT = cfg.sdo_timeout
@@ -249,15 +288,18 @@ class NodeSetup:
         net, node = self.network, self.node
         if net is None:
             return
+        self.receive_in_thread()
         if drive_consumer_off and node is not None:
             self.try_download(p402.CONSUMER_HEARTBEAT, 1, struct.pack("<I", 0))
         for step in (lambda: node.nmt.send_command(0x80) if node is not None else None,
-                     lambda: self._hb_task.stop() if self._hb_task is not None else None,
+                     lambda: stop_periodic(self._hb_task),
+                     lambda: self.io.close() if self.io is not None else None,
                      net.disconnect):
             try:
                 step()
             except Exception as exc:  # noqa: BLE001
                 log.warning("canopen: teardown step failed: %s", exc)
         self._hb_task = None
+        self.io = None
         self.network = None
         self.node = None

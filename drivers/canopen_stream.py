@@ -7,27 +7,42 @@ Threads and hand-offs:
   ``(MARK, k, t, torque)`` to the shared deque, then sends RPDO1 (controlword +
   target torque) and the SYNC. The drive applies RPDO data at the next SYNC
   (synchronous RPDO) and answers with its TPDOs;
-* python-can's **receive thread** runs a light callback that only appends
-  ``(cob_id, t_received, bytes)`` to the same deque (``deque.append`` is atomic);
+* the frame reader (:class:`drivers.canopen_frames.FrameIO`) runs a light callback that
+  only appends ``(cob_id, t_arrival, bytes)`` to the same deque (``deque.append`` is
+  atomic). It is a receive thread, except with ``echo`` while the backend is active:
+  then the loop thread reads the bus itself at the start of ``read()`` (no thread
+  competes with the loop for the GIL; the socket keeps the frames in bus order);
 * the **loop thread** drains the deque in ``read()`` through :class:`SampleAssembler`.
 
-Because the marker of SYNC ``k`` enters the deque before SYNC ``k`` is on the bus,
-every TPDO answering SYNC ``k`` follows marker ``k``: the frames between two
-markers form the window of one sample (CiA 301's synchronous window, here one
-SYNC period). A window without a valid frame of every TPDO is *stale* (the
-sample is dropped; ``SampleBlock.lost`` shows the gap); extra frames in a window
-are *late* (the newest is used); frames of the wrong length are *corrupt*.
+The frames between two window markers form the window of one sample (CiA 301's
+synchronous window, here one SYNC period). A window without a valid frame of every
+TPDO is *stale* (the sample is dropped; ``SampleBlock.lost`` shows the gap); extra
+frames in a window are *late* (the newest is used); frames of the wrong length are
+*corrupt*. The window markers are:
 
-Limitation: TPDOs carry no SYNC counter, so a frame is attributed by its arrival
-window. On a real bus the answer comes ~0.1 ms after the SYNC; a drive (or an
-emulator on a loaded host) answering later than one period for several periods
-in a row shifts the data by one sample during that episode (counted in ``late``).
+* with ``echo`` (``udp_multicast``: the bus hands this host's own frames back, in bus
+  order): the **echo of SYNC k** ``(ECHO, t)``. The sender's marker only records
+  ``k``, time and torque. Attribution is then exact whatever the host's scheduling:
+  a TPDO read after SYNC k's echo and before SYNC k+1's was on the bus between them;
+* otherwise the sender's marker itself: it enters the deque before SYNC ``k`` is on the
+  bus, so every TPDO answering SYNC ``k`` follows it, but a TPDO the receive thread
+  handles after the sender's *next* marker (a late receive thread, not a late drive)
+  lands in the next window.
+
+TPDOs carry no SYNC counter. A drive does not send an answer once the next SYNC has
+arrived (CiA 301 synchronous window; the emulated drive checks), but an answer sent just
+as the next SYNC goes on the bus lands in the next window. So a window holding a single
+answer right after a window without one is *ambiguous* (it may be the late answer) and
+dropped (counted in ``stale`` and ``ambiguous``); two answers in a window mean the drive
+caught up, and the newest is this SYNC's. A drive late by a whole period for several
+periods in a row would still shift its data by one sample.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
+import os
 import struct
 import threading
 import time
@@ -39,7 +54,10 @@ from drivers.errors import ProtocolError, WatchdogTrip
 
 log = logging.getLogger(__name__)
 
-MARK = -1                      # first element of a SYNC marker in the deque
+MARK = -1                      # first element of a SYNC marker in the deque: (MARK, k, t_sent, torque)
+ECHO = -2                      # this host's SYNC read back from the bus: (ECHO, t_arrival)
+CANCEL = -3                    # SYNC k was not sent after all (bus error): (CANCEL, k)
+_MAX_PENDING = 4096            # SYNC records waiting for their echo before echoes count as missing
 _RPDO = struct.Struct("<Hh")   # controlword (UNSIGNED16), target torque (INTEGER16, per mille)
 
 
@@ -115,6 +133,8 @@ class SyncSender:
     ``send(cob_id, data)`` must be thread-safe (``canopen.Network.send_message`` is).
     ``controlword`` is read every cycle; ``torque_to_permille(T) -> (int, T_quantized)``.
     On overrun whole periods are skipped (counted in ``overruns``), never sent in a burst.
+    The thread needs the GIL at each deadline: its jitter is bounded by the interpreter's
+    switch interval while the loop thread computes (``sys.setswitchinterval``).
     Send errors are counted and kept in ``last_error``, never raised in the thread.
     """
 
@@ -159,6 +179,7 @@ class SyncSender:
             self._thread = None
 
     def _run(self) -> None:
+        _preempt_creator()
         period, clock, stop = self.period, self._clock, self._stop
         deadline = clock()
         k = self.next_index
@@ -181,12 +202,28 @@ class SyncSender:
                 self.sent += 1
                 self.consecutive_errors = 0
             except Exception as exc:  # noqa: BLE001 - a sender thread must not die on a bus error
+                self._sink.append((CANCEL, k))
                 self.send_errors += 1
                 self.consecutive_errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
             k += 1
             self.next_index = k
             deadline += period
+
+
+def _preempt_creator() -> None:
+    """Under SCHED_FIFO (inherited from the loop thread that activated the backend), run one step above it.
+
+    Threads of equal FIFO priority on one CPU do not preempt each other: the SYNC would wait
+    for the loop's spin and computation. One step higher, it waits at most for the GIL.
+    """
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            prio = os.sched_getparam(0).sched_priority
+            if prio < os.sched_get_priority_max(os.SCHED_FIFO):
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio + 1))
+    except (AttributeError, OSError) as exc:
+        log.debug("SYNC sender keeps its priority: %s", exc)
 
 
 class SampleAssembler:
@@ -200,21 +237,26 @@ class SampleAssembler:
     in a row - only when ``deliver`` is true.
     """
 
-    def __init__(self, layouts: list[tuple[int, struct.Struct]], stale_limit: int, stuck_permille: float) -> None:
+    def __init__(self, layouts: list[tuple[int, struct.Struct]], stale_limit: int, stuck_permille: float,
+                 echo: bool = False) -> None:
         self.layouts = layouts
         self.stale_limit = stale_limit
         self.stuck_permille = stuck_permille
+        self.echo = echo
+        self._records: collections.deque = collections.deque()   # echo mode: SYNCs sent, echo not yet read
+        self.echoes = 0
         self._marker: tuple | None = None
         self._frames: dict[int, list[tuple]] = {}     # cob -> [(cob, t_received, data)]
         self.statusword: int | None = None   # latest valid statusword
         self.first_k = 0                      # SYNC index of the first sample to deliver
         self.frames_seen = 0
         self.stale = 0
+        self.ambiguous = 0                   # stale because attribution was ambiguous (in ``stale`` too)
         self.late = 0
         self.corrupt = 0
         self.unchanged = 0
         self.max_latency = 0.0               # s, SYNC sent -> TPDO received (host clock)
-        self._prev_complete = False
+        self._prev_complete = True           # no earlier SYNC whose answer could still come
         self._bad_run = 0
         self._bad_corrupt = False
         self._last_corrupt = ""
@@ -226,7 +268,7 @@ class SampleAssembler:
         self.rows: dict[str, list] = {k: [] for k in ("k", "t", "sw", "pos", "tq", "scale", "cmd")}
 
     def reset_counters(self) -> None:
-        self.stale = self.late = self.corrupt = self.unchanged = 0
+        self.stale = self.ambiguous = self.late = self.corrupt = self.unchanged = 0
         self.max_latency = 0.0
         self._bad_run = self._stuck_run = 0
         self._bad_corrupt = False
@@ -246,9 +288,27 @@ class SampleAssembler:
         for the next SYNC.
         """
         pop = dq.popleft
+        echo = self.echo
         for _ in range(len(dq)):
             item = pop()
-            if item[0] == MARK:
+            kind = item[0]
+            if kind == MARK and echo:
+                self._records.append(item)
+                if len(self._records) > _MAX_PENDING:
+                    raise ProtocolError(f"{len(self._records)} SYNCs sent without reading them back from the "
+                                        f"bus ({self.echoes} read so far); window markers are missing")
+            elif kind == ECHO:
+                if not self._records:          # a SYNC of an earlier session
+                    continue
+                self.echoes += 1
+                if self._marker is not None:
+                    self._close(deliver)
+                self._marker = self._records.popleft()
+                self._frames = {}
+            elif kind == CANCEL:
+                if echo and self._records and self._records[-1][1] == item[1]:
+                    self._records.pop()        # never on the bus: no echo will come
+            elif kind == MARK:
                 if self._marker is not None:
                     self._close(deliver)
                 self._marker = item
@@ -268,6 +328,7 @@ class SampleAssembler:
         _, k, t, cmd = self._marker
         values: list = []
         bad = None
+        lone = True                      # exactly one valid frame of every TPDO
         for cob, st in self.layouts:
             frames = self._frames.get(cob)
             if not frames:
@@ -283,11 +344,19 @@ class SampleAssembler:
             if not good:
                 bad = "corrupt"
                 continue
+            lone = lone and len(good) == 1
             latency = good[-1][1] - t
             if latency > self.max_latency:
                 self.max_latency = latency
             values.extend(st.unpack(good[-1][2]))
-        self._prev_complete = bad is None
+        if bad is None and lone and not self._prev_complete:
+            # One answer right after a window without one: it may be the previous SYNC's answer,
+            # sent just as this SYNC went on the bus (the drive cannot see that race). Dropped.
+            bad = "ambiguous"
+            self.ambiguous += 1
+            sw = values[0]
+            self.statusword = sw
+        self._prev_complete = bad is None or bad == "ambiguous"
         if bad is not None:
             self.stale += 1
             self._bad_run += 1

@@ -9,16 +9,26 @@ advances one sample with the last target torque if OPERATION ENABLED, else with 
 TPDOs carry the measurement taken at that SYNC (the plant measures at the start of
 the sample) and the torque applied from that SYNC on.
 
-Threads: python-can's receive thread runs the SDO server, stores RPDO data and does
-the per-SYNC work (like a drive's SYNC interrupt: the shortest answer latency); a
-worker thread sends delayed frames and watches heartbeats. One lock guards the state.
+Threads: the receive thread (:class:`drivers.canopen_frames.FrameIO`) runs the SDO
+server, stores RPDO data and does the per-SYNC work (like a drive's SYNC interrupt: the
+shortest answer latency); housekeeping (delayed frames, heartbeat watch) runs every 2 ms,
+in a worker thread or - when the receive thread polls - between its polls. One lock
+guards the state. On ``udp_multicast`` the receive thread polls every ``poll_s`` (100 us)
+instead of blocking: see :class:`~drivers.canopen_frames.FrameIO`.
+
+Synchronous window (CiA 301): TPDOs answering a SYNC are sent only if no later SYNC
+was read with it - a late answer would land in the next SYNC's window and be taken
+for that sample. The plant still advances; the master sees a stale sample
+(:attr:`late_syncs` counts them).
 
 Works on the ``virtual`` bus (in-process) and ``udp_multicast`` (across processes;
-needs msgpack). CLI: ``python -m drivers.emulated_drive --config configs/canopen-virtual.toml``.
+needs msgpack). CLI: ``python -m drivers.emulated_drive --config configs/canopen-virtual.toml``;
+:class:`rt_ident.emulation.EmulatorProcess` runs it in a child process.
 """
 
 from __future__ import annotations
 
+import collections
 import heapq
 import logging
 import math
@@ -27,7 +37,7 @@ import struct
 import threading
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
 
 import can
 import canopen
@@ -35,16 +45,21 @@ import numpy as np
 
 from drivers import canopen_profile as p402
 from drivers.canopen_localpdo import PdoLayout, check_mapping_write, od_value, pdo_layouts
+from drivers.canopen_frames import FrameIO, stop_periodic
 from drivers.canopen_emulator import FaultConfig, main, start_emulator_for
 from rt_ident.plant import PlantSimulator
 
 log = logging.getLogger(__name__)
 
-# COB-IDs no predefined-connection-set service uses (0x100 is TIME, 0x080-0x0FF SYNC/EMCY)
-_GARBAGE_IDS = tuple(range(0x101, 0x180)) + tuple(range(0x500, 0x580))
 _QUICK_STOP_OPTION = 0x605A
+_ANSWER_BINS_US = (100, 200, 300, 500, 1000, 2000, float("inf"))   # upper edges of the answer-time bins
 _PROCESS = (p402.CONTROLWORD, p402.TARGET_TORQUE, p402.MAX_TORQUE, p402.MODES_OF_OPERATION, 0x60B2,
             _QUICK_STOP_OPTION)
+
+
+def _count(hist: list[int], seconds: float) -> None:
+    us = 1e6 * seconds
+    hist[next(i for i, edge in enumerate(_ANSWER_BINS_US) if us < edge)] += 1
 
 
 def _int32(v: int) -> int:
@@ -59,6 +74,8 @@ class EmulatedCia402Drive:
     """A CiA 402 drive in cyclic synchronous torque mode around a simulated axis.
 
     ``bus``: ``can.Bus`` keyword arguments (``interface``, ``channel``, ``bitrate``, ``port``...).
+    ``poll_s``: receive-thread poll period (:class:`~drivers.canopen_frames.FrameIO`); ``"auto"``:
+    100 us on ``udp_multicast``, blocking otherwise.
     Constructing does no I/O; :meth:`start` goes on the bus, :meth:`stop` leaves it
     (also a context manager). For tests: :attr:`state` (402 state name),
     :attr:`applied_torque` [N m], :attr:`enabled`, :attr:`samples` (SYNCs in OPERATION ENABLED),
@@ -68,7 +85,7 @@ class EmulatedCia402Drive:
     def __init__(self, node_id: int, eds_path: str | Path, bus: Mapping[str, Any], plant: PlantSimulator,
                  faults: FaultConfig = FaultConfig(), *, counts_per_rev: int = 2**17,
                  scale_resolution: float = 1e-7, scale_index: int = 0x60E4, scale_subindex: int = 1,
-                 rated_torque: float | None = None) -> None:
+                 rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto") -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node_id must be 1..127, got {node_id!r}")
         self.node_id = int(node_id)
@@ -82,6 +99,14 @@ class EmulatedCia402Drive:
         self._rated_override = rated_torque
         self.rated_torque = rated_torque or 0.0
         self._controller = plant.controller
+        # receive thread: poll on udp_multicast (another process: keep its vCPU awake), block in-process
+        if poll_s == "auto":
+            poll_s = 1e-4 if self.bus_kwargs.get("interface") == "udp_multicast" else None
+        self.poll_s: float | None = poll_s
+        self._io: FrameIO | None = None
+        self._in_window = True        # the SYNC being handled is the last one read (its answer is on time)
+        self._pending: collections.deque = collections.deque()   # frames read, not yet handled
+        self._next_housekeeping = 0.0
         self._net: canopen.Network | None = None
         self._node: canopen.LocalNode | None = None
         self._lock = threading.RLock()
@@ -112,6 +137,10 @@ class EmulatedCia402Drive:
         self.frames_sent = 0
         self.garbage_frames = 0
         self.rpdo_length_errors = 0
+        self.late_syncs = 0           # SYNCs answered by no TPDO: a later SYNC had already arrived
+        self._sync_t = 0.0            # arrival time of the SYNC being handled
+        self.answer_us = [0] * len(_ANSWER_BINS_US)   # SYNC arrival -> TPDOs sent, histogram
+        self.pickup_us = [0] * len(_ANSWER_BINS_US)   # SYNC arrival -> its handling starts, histogram
 
     # ----- public view ------------------------------------------------------------------
     @property
@@ -126,6 +155,17 @@ class EmulatedCia402Drive:
     def nmt_state(self) -> str:
         return self._node.nmt.state if self._node is not None else "INITIALISING"
 
+    def stats(self) -> dict[str, Any]:
+        """State and counters for a report: 402 state, applied torque, samples, late SYNCs, answer times
+        (SYNC arrival -> TPDOs sent)."""
+        edges = [f"<{e:g}us" for e in _ANSWER_BINS_US[:-1]] + [f">={_ANSWER_BINS_US[-2]:g}us"]
+        with self._lock:
+            return {"state": self._state, "enabled": self.enabled, "applied_torque": self.applied_torque,
+                    "nmt_state": self.nmt_state, "samples": self.samples, "syncs": self._syncs,
+                    "late_syncs": self.late_syncs, "frames_sent": self.frames_sent,
+                    "emcy_codes": list(self.emcy_codes), "pickup_time": dict(zip(edges, self.pickup_us)),
+                    "answer_time": dict(zip(edges, self.answer_us))}
+
     # ----- lifecycle --------------------------------------------------------------------
     def start(self) -> "EmulatedCia402Drive":
         if self._net is not None:
@@ -134,7 +174,6 @@ class EmulatedCia402Drive:
         od = canopen.import_od(str(self.eds_path), self.node_id)
         bus = can.Bus(**self.bus_kwargs)
         net = canopen.Network(bus)
-        net.NOTIFIER_CYCLE = 0.05
         node = canopen.LocalNode(self.node_id, od)
         if self._rated_override:
             node.data_store.setdefault(p402.RATED_TORQUE, {})[0] = struct.pack(
@@ -151,12 +190,18 @@ class EmulatedCia402Drive:
         self._node = node
         self._net = net
         net.add_node(node)
-        net.connect()
+        polling = self.poll_s is not None            # then the receive thread also does the housekeeping
+        self._io = FrameIO(bus, self._on_frames, bus_kwargs=self.bus_kwargs, poll_s=self.poll_s,
+                           send_lock=net.send_lock, name=f"emulated-drive-rx-{self.node_id}",
+                           on_idle=self._idle if polling else None)
         net.subscribe(0x80, self._on_sync)
         self._set_state(p402.SWITCH_ON_DISABLED)          # transition 1 after initialisation
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name=f"emulated-drive-{self.node_id}", daemon=True)
-        self._thread.start()
+        self._io.start()
+        if not polling:
+            self._thread = threading.Thread(target=self._run, name=f"emulated-drive-{self.node_id}",
+                                            daemon=True)
+            self._thread.start()
         node.nmt.send_command(0x81)                       # reset: boot-up message
         node.nmt.send_command(0x80)                       # PRE-OPERATIONAL
         log.info("emulated drive: node %d on %s", self.node_id, self.bus_kwargs)
@@ -170,8 +215,11 @@ class EmulatedCia402Drive:
             self._thread = None
         if self._net is not None:
             try:
+                task = getattr(self._node.nmt, "_send_task", None)
                 self._node.nmt.stop_heartbeat()
-                self._net.disconnect()                    # no more callbacks after this
+                stop_periodic(task)
+                self._io.close()                          # no more callbacks after this
+                self._net.disconnect()
             except Exception as exc:  # noqa: BLE001
                 log.warning("emulated drive: disconnect failed: %s", exc)
             self._net = None
@@ -235,7 +283,28 @@ class EmulatedCia402Drive:
         self._pdo_dirty = False
 
     # ----- receive-thread callbacks (light) ---------------------------------------------
+    def _on_frames(self, frames: list) -> None:
+        """Frames read in one go, in bus order; a SYNC followed by another one is answered late."""
+        notify, pending = self._net.notify, self._pending
+        pending.extend(frames)
+        while pending:
+            cob, data, t = pending.popleft()
+            if cob == 0x80:
+                self._in_window = not any(f[0] == 0x80 for f in pending)
+            notify(cob, data, t)
+
+    def _still_in_window(self) -> bool:
+        """Last look before answering a SYNC: has the next one arrived meanwhile? (receive thread only)"""
+        if not self._in_window:
+            return False
+        new = self._io.read_now()
+        self._pending.extend(new)
+        self._in_window = not any(f[0] == 0x80 for f in new)
+        return self._in_window
+
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._sync_t = timestamp
+        _count(self.pickup_us, time.monotonic() - timestamp)
         with self._lock:
             try:
                 self._on_sync_work()
@@ -249,6 +318,15 @@ class EmulatedCia402Drive:
         self._master_hb = time.monotonic()
 
     # ----- worker -----------------------------------------------------------------------
+    def _idle(self) -> None:
+        """Housekeeping from the polling receive thread: every 2 ms, or when a delayed frame is due."""
+        now = time.monotonic()
+        if now < self._next_housekeeping and not (self._delayed and self._delayed[0][0] <= now):
+            return
+        self._next_housekeeping = now + 0.002
+        with self._lock:
+            self._housekeeping()
+
     def _run(self) -> None:
         while not self._stop.is_set():
             timeout = 0.002
@@ -383,30 +461,26 @@ class EmulatedCia402Drive:
         f, v = self.faults, self._values
         frames = [(lay.cob, lay.struct.pack(*(v.get(k, 0) for k in lay.keys))) for lay in self._tpdos
                   if lay.trans_type <= 240 and self._syncs % max(lay.trans_type, 1) == 0]
-        faulty = enabled and n >= f.tpdo_faults_from_sample
-        if faulty and f.drop_tpdo_every and n % f.drop_tpdo_every == 0:
-            frames = []
-        if faulty and f.corrupt_tpdo_every and n % f.corrupt_tpdo_every == 0:
-            frames = [(cob, data[:-2]) for cob, data in frames]
-        if faulty and f.delay_tpdo_s > 0:
-            due = time.monotonic() + f.delay_tpdo_s
+        if not self._still_in_window():                   # outside the synchronous window: not sent
+            self.late_syncs += 1
+            return
+        frames = f.tpdo_frames(frames, n, enabled)
+        delay = f.tpdo_delay(n, enabled)
+        if delay > 0:
             for cob, data in frames:
                 self._delay_n += 1
-                heapq.heappush(self._delayed, (due, self._delay_n, cob, data))
+                heapq.heappush(self._delayed, (time.monotonic() + delay, self._delay_n, cob, data))
         else:
             for cob, data in frames:
                 self._send(cob, data)
-        for _ in range(f.garbage_frames_per_sync):
-            data = bytes(self._rng.getrandbits(8) for _ in range(self._rng.randint(0, 8)))
-            self._send(self._rng.choice(_GARBAGE_IDS), data)
+            _count(self.answer_us, time.monotonic() - self._sync_t)
+        for cob, data in f.garbage(self._rng):
+            self._send(cob, data)
             self.garbage_frames += 1
 
     def _send(self, cob: int, data: bytes) -> None:
-        net = self._net
         try:
-            msg = can.Message(arbitration_id=cob, data=data, is_extended_id=False)
-            with net.send_lock:
-                net.bus.send(msg)
+            self._io.send(cob, data)
             self.frames_sent += 1
         except Exception as exc:  # noqa: BLE001 - the bus may be closing
             log.debug("emulated drive: send 0x%03X failed: %s", cob, exc)

@@ -155,10 +155,11 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
             stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
             summary["realtime"] = _realtime(cfg)
-            # the queues' feeder threads share this process's GIL: hand it back within 0.2 ms, not 5 ms
+            # a backend's I/O threads (python-can's receiver, a SYNC sender) share this process's GIL:
+            # hand it back within 50 us, not 5 ms (the hand-offs to helper processes use no thread: rt_ident.shm_ring)
             switch_interval = sys.getswitchinterval()
             stack.callback(sys.setswitchinterval, switch_interval)
-            sys.setswitchinterval(2e-4)
+            sys.setswitchinterval(5e-5)
             backend.activate()
             loop.run()
             backend.safe_stop()                      # zero torque before the (slower) final fit
@@ -186,6 +187,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         summary["files"] = files
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set(),
                        "final_torque": backend.last_torque, "backend_state": backend.state.value}
+    summary["backend_counters"] = _backend_counters(backend)
     if loop is not None:
         summary["loop"] = loop.stats.as_dict()
         ident = loop.identification
@@ -251,23 +253,51 @@ def _loop_cpu() -> int | None:
     return cpus[-1] if len(cpus) >= 2 else None
 
 
-def _keep_off_loop_cpu(pids: list[int], realtime: bool) -> dict[str, Any]:
-    """Recorder, telemetry, fit worker and emulator: lower priority, and off the loop's CPU."""
-    loop_cpu = _loop_cpu() if realtime else None
-    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None}
-    for pid in pids:
+def _backend_counters(backend) -> dict[str, Any] | None:
+    """The link-health counters a backend keeps (CANopen: ``counters``; serial board: ``stats()``)."""
+    for name in ("counters", "stats"):
+        value = getattr(backend, name, None)
         try:
-            os.setpriority(os.PRIO_PROCESS, pid, 10)
-        except OSError:
-            report["niced"] = False
-        if loop_cpu is not None:
+            value = value() if callable(value) else value
+        except Exception:  # noqa: BLE001 - a summary must not fail on a closed device
+            continue
+        if isinstance(value, dict):
+            return value
+    return None
+
+
+def _threads(pid: int) -> list[int]:
+    """Every thread of a process (Linux: priority and affinity calls on a pid reach one thread only)."""
+    try:
+        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        return [pid]
+
+
+def _keep_off_loop_cpu(pids: list[int], realtime: bool) -> dict[str, Any]:
+    """Recorder, telemetry, fit worker and emulator: lower priority, and off the loop's CPU.
+
+    Applied to every thread each process has started so far (rerun's and pyarrow's threads
+    exist by now); threads started later inherit it from the thread that creates them.
+    A thread under a real-time policy (the emulated drive places itself) keeps its priority.
+    """
+    loop_cpu = _loop_cpu() if realtime else None
+    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None, "threads": 0}
+    for pid in pids:
+        for tid in _threads(pid):
+            report["threads"] += 1
             try:
-                others = set(os.sched_getaffinity(pid)) - {loop_cpu}
-                if others:
-                    os.sched_setaffinity(pid, others)
-                    report["cpus"] = sorted(others)
+                os.setpriority(os.PRIO_PROCESS, tid, 10)
             except OSError:
-                pass
+                report["niced"] = False
+            if loop_cpu is not None:
+                try:
+                    others = set(os.sched_getaffinity(tid)) - {loop_cpu}
+                    if others:
+                        os.sched_setaffinity(tid, others)
+                        report["cpus"] = sorted(others)
+                except OSError:
+                    pass
     return report
 
 

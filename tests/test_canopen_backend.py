@@ -7,7 +7,9 @@ fault tests inject faults that exceed it by far.
 
 from __future__ import annotations
 
+import collections
 import math
+import struct
 import time
 import uuid
 from contextlib import contextmanager
@@ -20,7 +22,7 @@ from drivers import make_backend
 from drivers.canopen402 import Cia402Backend
 from drivers.canopen_config import bus_budget, validate
 from drivers.canopen_profile import OPERATION_ENABLED, SWITCH_ON_DISABLED, decode_state, frame_bits
-from drivers.canopen_stream import TorquePlan
+from drivers.canopen_stream import CANCEL, ECHO, MARK, SampleAssembler, TorquePlan
 from drivers.emulated_drive import start_emulator_for
 from drivers.errors import (DeviceConnectionError, DeviceFault, ProtocolError, WatchdogTrip)
 from rt_ident.errors import ConfigError
@@ -136,6 +138,81 @@ def test_torque_plan_follows_the_base_class_semantics():
     plan.plan(np.array([1.0, 1.0, 1.0, 1.0]), start=12)
     plan.plan(np.array([5.0]), start=14)             # a newer plan replaces the rest of the older
     assert [plan.take(k) for k in (12, 13, 14, 15)] == [1.0, 1.0, 5.0, 5.0]
+
+
+# ----- window assembly with echoed SYNCs (udp_multicast) ---------------------------------------
+TPDO1, TPDO2 = struct.Struct("<Hih"), struct.Struct("<i")
+SW_ENABLED = 0x0237
+
+
+def _answer(dq: collections.deque, pos: int) -> None:
+    dq.append((0x185, 0.0, TPDO1.pack(SW_ENABLED, pos, 0)))
+    dq.append((0x285, 0.0, TPDO2.pack(pos)))
+
+
+def _echo_assembler() -> tuple[SampleAssembler, collections.deque]:
+    """An assembler in echo mode after one complete window (SYNC -1, before the first delivered sample)."""
+    asm = SampleAssembler([(0x185, TPDO1), (0x285, TPDO2)], stale_limit=10, stuck_permille=0.0, echo=True)
+    dq: collections.deque = collections.deque([(MARK, -1, -1.0, 0.0), (ECHO, 0.0)])
+    _answer(dq, 99)
+    return asm, dq
+
+
+def test_echoed_sync_not_sender_marker_opens_the_window():
+    asm, dq = _echo_assembler()
+    for k in range(3):                              # the sender runs ahead of the bus: three markers queued
+        dq.append((MARK, k, float(k), 0.1 * k))
+    for k in range(3):                              # bus order: SYNC k, then its answer
+        dq.append((ECHO, 0.0))
+        _answer(dq, 100 + k)
+    dq.append((ECHO, 0.0))                          # SYNC 3 on the bus closes window 2 (no marker for it: ignored)
+    asm.feed(dq, deliver=True)
+    rows = asm.take_rows()
+    assert rows["k"] == [0, 1, 2] and rows["pos"] == [100, 101, 102]
+    assert rows["cmd"] == pytest.approx([0.0, 0.1, 0.2]) and asm.stale == 0 and asm.echoes == 4   # with SYNC -1
+
+
+def test_lone_answer_after_a_missing_one_is_dropped_as_ambiguous():
+    asm, dq = _echo_assembler()
+    for k in range(6):
+        dq.append((MARK, k, float(k), 0.0))
+    answers = {0: [100], 1: [], 2: [102], 3: [], 4: [103, 104], 5: [105]}   # 2: maybe SYNC 1's late answer
+    for k in range(6):
+        dq.append((ECHO, 0.0))
+        for pos in answers[k]:
+            _answer(dq, pos)
+    dq.append((MARK, 6, 6.0, 0.0))
+    dq.append((ECHO, 0.0))
+    asm.feed(dq, deliver=True)
+    rows = asm.take_rows()
+    # two answers in window 4: the drive caught up, the newest is SYNC 4's
+    assert rows["k"] == [0, 4, 5] and rows["pos"] == [100, 104, 105]
+    assert asm.stale == 3 and asm.ambiguous == 1 and asm.late == 2
+
+
+def test_cancelled_sync_has_no_window():
+    asm, dq = _echo_assembler()
+    dq.extend([(MARK, 0, 0.0, 0.0), (ECHO, 0.0)])
+    _answer(dq, 100)
+    dq.extend([(MARK, 1, 1.0, 0.0), (CANCEL, 1), (MARK, 2, 2.0, 0.0), (ECHO, 0.0)])
+    _answer(dq, 102)
+    dq.extend([(MARK, 3, 3.0, 0.0), (ECHO, 0.0)])
+    asm.feed(dq, deliver=True)
+    assert asm.take_rows()["k"] == [0, 2] and asm.stale == 0
+
+
+def test_stale_preoperational_heartbeats_after_nmt_start_do_not_trip():
+    """Issue #5 (a): heartbeats sent before the drive saw NMT start, read after it (python-can's cyclic
+    sender bursts after a stall, e.g. while the loop's process is locked in memory), are not a fault."""
+    be = Cia402Backend(backend_cfg("never-opened"))
+    be._hb_time = time.monotonic()
+    for _ in range(3):                              # queued PRE-OPERATIONAL heartbeats
+        be._on_heartbeat(0x705, bytearray([0x7F]), 0.0)
+    be._check_emcy_heartbeat()                      # no fault
+    be._on_heartbeat(0x705, bytearray([0x05]), 0.0)
+    be._on_heartbeat(0x705, bytearray([0x7F]), 0.0)  # after OPERATIONAL: the drive really left it
+    with pytest.raises(DeviceFault, match="left NMT OPERATIONAL"):
+        be._check_emcy_heartbeat()
 
 
 # ----- start-up and streaming ------------------------------------------------------------

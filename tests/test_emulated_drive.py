@@ -122,6 +122,33 @@ def test_emulator_config_errors_name_the_field():
     assert err.value.field == "emulator.eds"
 
 
+def test_drive_does_not_answer_a_sync_once_the_next_one_has_arrived():
+    """CiA 301 synchronous window: an answer sent after the next SYNC would be taken for that SYNC's."""
+    channel = f"w-{uuid.uuid4().hex[:8]}"
+    backend = {"interface": "virtual", "channel": channel, "node_id": 5, "sync_rate_hz": 1000, "torque_limit": 1.0,
+               "rated_torque": 0.64, "counts_per_rev": 131072, "scale_resolution": 1e-7, "heartbeat_ms": 50,
+               "stale_limit": 50, "startup_timeout": 3.0}
+    drive = start_emulator_for({"backend": backend, "emulator": {"position_hold": True}})
+    try:
+        with Cia402Backend(backend) as be:
+            be.activate()
+            be._sender.stop()                          # the test plays the SYNC producer now
+            drive._io.stop()                           # ... and the drive's receive thread
+            drive._io.read_now()                       # frames still queued
+            rpdo = (be._setup.rpdo_cob, bytes([0x0F, 0, 0, 0]), time.monotonic())
+            sync = (0x80, b"", time.monotonic())
+            samples, sent, late = drive.samples, drive.frames_sent, drive.late_syncs
+            drive._on_frames([rpdo, sync, rpdo, sync])  # read together: the first SYNC's answer is late
+            assert drive.samples == samples + 2        # the axis moved on both SYNCs
+            assert drive.late_syncs == late + 1 and drive.frames_sent == sent + 2   # one TPDO1 + TPDO2 set
+            drive._on_frames([rpdo, sync])
+            assert drive.late_syncs == late + 1 and drive.frames_sent == sent + 4
+            drive._io.start()                          # SDO for the stop
+        assert drive.applied_torque == 0.0 and not drive.enabled
+    finally:
+        drive.stop()
+
+
 # ----- across processes on udp_multicast ---------------------------------------------------
 def test_cli_drive_over_udp_multicast_serves_a_backend_in_another_process(tmp_path):
     port = 41000 + os.getpid() % 20000

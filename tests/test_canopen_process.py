@@ -1,0 +1,196 @@
+"""The emulated CiA 402 drive in its own process on python-can's udp_multicast bus (issue #5).
+
+The whole product (``rt_ident.run.run``) runs briefly against
+``configs/canopen-virtual.toml`` with its drive in a child process
+(:class:`rt_ident.emulation.EmulatorProcess`); each test gets a free UDP port. The
+drive's state is read from the report its process sends when it is closed - taken
+before the drive leaves the bus, i.e. as the host left it. The runs are real-time like
+the product (SCHED_FIFO where permitted; the test process's scheduling, memory locking
+and GC are restored afterwards). Thresholds are loose on purpose (a loaded 2-core
+machine): the assertions are about data arriving, safe stops and no orphan processes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+import rt_ident.run as run_mod
+from drivers import canopen_profile as p402
+from drivers.canopen_frames import FrameIO
+from rt_ident.config import load
+from rt_ident.emulation import EmulatorProcess, free_udp_port
+from rt_ident.errors import RtIdentError
+from rt_ident.params import CONFIG_DIR
+
+CONFIG = CONFIG_DIR / "canopen-virtual.toml"
+ROOT = Path(__file__).resolve().parent.parent
+GROUP = "239.74.163.2"
+_ALL_CPUS = os.sched_getaffinity(0)
+
+
+def _config(**over):
+    base = {"loop.duration": 2.0, "telemetry.sink": "off", "recording.enabled": False,
+            "backend.stale_limit": 200}           # a loaded test machine must not trip the watchdog
+    return load(CONFIG, **{**base, **over})
+
+
+@pytest.fixture(autouse=True)
+def _restore_scheduling():
+    """rt_ident.run makes the calling thread real-time (SCHED_FIFO, one CPU, mlockall, GC frozen): undo it."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    cpus = os.sched_getaffinity(0)
+    yield
+    try:
+        os.sched_setscheduler(0, policy, param)
+    except OSError:
+        pass
+    os.sched_setaffinity(0, cpus)
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    libc.munlockall()
+    gc.unfreeze()
+    gc.enable()
+
+
+def _gone(pid: int, timeout: float = 5.0) -> bool:
+    """The process has exited (a zombie counts as exited)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                if fh.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    return True
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.fixture
+def emulators(monkeypatch) -> list:
+    """The emulators the run starts (handles kept for the checks after the run)."""
+    started: list = []
+    original = run_mod.start_emulator
+
+    def start(cfg):
+        dev = original(cfg)
+        started.append(dev)
+        return dev
+
+    monkeypatch.setattr(run_mod, "start_emulator", start)
+    return started
+
+
+def _assert_drive_left_safe(emu: EmulatorProcess) -> None:
+    assert emu.stats is not None, "the emulator did not report"
+    assert emu.stats["applied_torque"] == 0.0 and not emu.stats["enabled"]
+    assert emu.stats["state"] in (p402.SWITCH_ON_DISABLED, p402.FAULT)
+    assert not emu.alive and _gone(emu.pid)
+
+
+# ----- frames on the wire ------------------------------------------------------------------------
+def test_frameio_speaks_python_cans_udp_format_and_sees_its_own_frames_in_bus_order():
+    kw = {"interface": "udp_multicast", "channel": GROUP, "port": free_udp_port(), "hop_limit": 0}
+    got: list = []
+    other, mine = can.Bus(**kw), can.Bus(**kw)
+    io = FrameIO(mine, got.extend, bus_kwargs=kw).open()
+    try:
+        io.send(0x80, b"")
+        other.send(can.Message(arbitration_id=0x185, data=b"\x01\x02\x03", is_extended_id=False))
+        io.send(0x205, b"\x0f\x00\x10\x00")
+        msg = other.recv(1.0)                       # python-can decodes what FrameIO sent
+        while msg is not None and msg.arbitration_id == 0x185:   # (its own frame comes back too)
+            msg = other.recv(1.0)
+        assert msg.arbitration_id == 0x80 and msg.dlc == 0 and not msg.is_extended_id
+        end = time.monotonic() + 2.0
+        while len(got) < 3 and time.monotonic() < end:
+            io.pump()
+        assert [(cob, bytes(data)) for cob, data, _ in got] == [
+            (0x80, b""), (0x185, b"\x01\x02\x03"), (0x205, b"\x0f\x00\x10\x00")]
+        assert got[0][2] <= got[1][2] <= got[2][2] <= time.monotonic()   # kernel arrival times, monotonic
+        assert io.dropped == 0 and io.malformed == 0
+    finally:
+        io.close()
+        other.shutdown()
+        mine.shutdown()
+
+
+# ----- the whole product ---------------------------------------------------------------------------
+def test_run_against_the_drive_process_streams_and_stops_at_zero_torque_disabled(emulators):
+    summary = run_mod.run(_config())
+    assert summary["stop"]["cause"] is None, summary["stop"]
+    assert summary["stop"]["final_torque"] == 0.0 and summary["stop"]["backend_state"] == "closed"
+    loop = summary["loop"]
+    assert loop["samples"] > 2000                  # 2 s at 2 kHz = 4000 SYNCs
+    assert loop["lost_samples"] < 0.25 * (loop["samples"] + loop["lost_samples"])
+    (emu,) = emulators
+    assert isinstance(emu, EmulatorProcess)
+    cpus = sorted(_ALL_CPUS)
+    if len(cpus) >= 2:                              # the drive stays off the loop's CPU (the last one)
+        assert emu.placement["cpus"] == cpus[:-1]
+    assert emu.stats["samples"] >= loop["samples"] and emu.stats["nmt_state"] == "PRE-OPERATIONAL"
+    _assert_drive_left_safe(emu)
+    assert emu.stats["state"] == p402.SWITCH_ON_DISABLED
+
+
+def test_drive_fault_in_the_drive_process_stops_the_run_safely(emulators):
+    cfg = _config(**{"emulator.faults": {"emcy_at_sample": 600, "emcy_code": 0x2310}})
+    summary = run_mod.run(cfg)
+    assert summary["stop"]["cause"] == "device-fault" and "0x2310" in summary["stop"]["message"]
+    assert summary["stop"]["final_torque"] == 0.0 and summary["stop"]["backend_state"] == "closed"
+    (emu,) = emulators
+    _assert_drive_left_safe(emu)
+    assert emu.stats["state"] == p402.FAULT and emu.stats["emcy_codes"] == [0x2310]
+
+
+def test_exception_in_the_loop_leaves_no_emulator_process(emulators):
+    def boom(tick: int) -> None:
+        if tick == 100:
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        run_mod.run(_config(), tick_hook=boom)
+    (emu,) = emulators
+    _assert_drive_left_safe(emu)
+
+
+def test_emulator_process_exits_when_its_parent_is_killed(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import sys, time\n"
+        "from rt_ident.config import load\n"
+        "from rt_ident.emulation import start_emulator\n"
+        "if __name__ == '__main__':\n"
+        f"    emu = start_emulator(load({str(CONFIG)!r}, **{{'loop.realtime': False}}))\n"
+        "    print(emu.pid, flush=True)\n"
+        "    time.sleep(60)\n")
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        line = parent.stdout.readline()
+        assert line.strip().isdigit(), f"parent printed {line!r} (exit code {parent.poll()})"
+        child = int(line)
+        assert not _gone(child, timeout=0.2)
+    finally:
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+    assert _gone(child, timeout=5.0), f"emulator {child} outlived its parent"
+
+
+def test_emulator_process_reports_a_start_failure_and_exits():
+    bad = {"backend": {"interface": "udp_multicast", "channel": GROUP, "port": free_udp_port(), "node_id": 5,
+                       "torque_limit": 1.0, "counts_per_rev": 4096, "scale_resolution": 1e-6},
+           "emulator": {"eds": "missing.eds"}}
+    with pytest.raises(RtIdentError, match=r"failed to start: ConfigError.*missing\.eds"):
+        EmulatorProcess("drivers.emulated_drive", bad)
+    assert not [p for p in multiprocessing.active_children() if "emulator" in p.name]
