@@ -16,7 +16,10 @@ Every method applied to this linear model is a linear recursion
 ``z[k+1] = S z[k] + G0 u[k] + G1 u[k+1]``. Each class writes its textbook step
 once (``_step``, the reference path ``compiled=False``); the step matrices are
 obtained by applying that step to unit vectors and the loop runs in the numba
-kernel :func:`rt_ident.kernels_sim.linear_recursion` (``compiled=True``).
+kernel :func:`rt_ident.kernels_sim.trajectory_recursion` (``compiled=True``), which
+also fills every field of the :class:`Trajectory` (times, angles, velocities, the
+Eq. (6) accelerations, the torque copy) and checks the torque in the same pass.
+``simulate(..., out=trajectory)`` reuses the arrays of an earlier result.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import numpy as np
 import scipy.linalg
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.kernels_sim import linear_recursion
+from rt_ident.kernels_sim import trajectory_recursion
 from rt_ident.model import damping_matrix, mass_matrix, state_space, stiffness_matrix
 from rt_ident.params import AxisParams
 
@@ -53,8 +56,11 @@ class Trajectory:
     torque: np.ndarray  # (n,)
 
     def states(self) -> np.ndarray:
-        """(n, 4) states in Eq. (8) order [theta1, omega1, theta2, omega2]."""
-        return np.column_stack([self.theta[:, 0], self.omega[:, 0], self.theta[:, 1], self.omega[:, 1]])
+        """(n, 4) states in Eq. (8) order [theta1, omega1, theta2, omega2] (a new array)."""
+        x = np.empty((self.theta.shape[0], 4), dtype=np.result_type(self.theta, self.omega))
+        x[:, 0::2] = self.theta
+        x[:, 1::2] = self.omega
+        return x
 
 
 @runtime_checkable
@@ -100,14 +106,54 @@ def check_x0(x0: np.ndarray | None) -> np.ndarray:
     return x.copy()
 
 
-def _check_torque(torque: np.ndarray) -> np.ndarray:
+def _as_torque(torque: np.ndarray) -> np.ndarray:
+    """The torque as a contiguous float 1-D non-empty array (no copy if it already is one)."""
     u = np.ascontiguousarray(torque, dtype=float)
     if u.ndim != 1 or u.size == 0:
         raise DataError(f"torque: must be a non-empty 1-D array, got shape {u.shape}")
-    bad = np.flatnonzero(~np.isfinite(u))
-    if bad.size:
-        raise DataError(f"torque: non-finite value at sample {int(bad[0])} ({bad.size} in total)")
     return u
+
+
+def _check_finite(part: np.ndarray, u: np.ndarray) -> None:
+    """If ``part`` of the torque ``u`` is not finite: DataError naming u's first bad sample and count."""
+    if not np.isfinite(part).all():
+        bad = np.flatnonzero(~np.isfinite(u))
+        raise DataError(f"torque: non-finite value at sample {int(bad[0])} ({bad.size} in total)")
+
+
+_FIELDS = ("t", "theta", "omega", "alpha", "torque")
+
+
+def _outputs(out: Trajectory | None, n: int, u: np.ndarray) -> Trajectory:
+    """New output arrays for ``n`` samples, or ``out``'s after checking them (float64, C order,
+    writeable, no overlap; out.torque may be the torque array itself)."""
+    if out is None:
+        return Trajectory(np.empty(n), np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2)), np.empty(n))
+    if not isinstance(out, Trajectory):
+        raise ConfigError("out", f"must be a Trajectory, got {type(out).__name__}")
+    arrays = [getattr(out, f) for f in _FIELDS]
+    for i, (f, a) in enumerate(zip(_FIELDS, arrays)):
+        shape = (n,) if f in ("t", "torque") else (n, 2)
+        if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == shape
+                and a.flags.c_contiguous and a.flags.writeable):
+            got = f"{a.dtype} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
+            raise ConfigError("out", f"out.{f} must be a writeable C-contiguous float64 array of shape {shape}, "
+                                     f"got {got}")
+        if np.may_share_memory(a, u) and not (f == "torque" and a is u):
+            raise ConfigError("out", f"out.{f} overlaps the torque")
+        if any(np.may_share_memory(a, b) for b in arrays[:i]):
+            raise ConfigError("out", f"out.{f} overlaps another field of out")
+    return out
+
+
+def _fill(tr: Trajectory, p: AxisParams, X: np.ndarray, u: np.ndarray, dt: float) -> None:
+    """Samples 0 .. len(X)-1 of ``tr`` from states X (m, 4) in Eq. (8) order and torques u (m,)."""
+    m = X.shape[0]
+    tr.t[:m] = np.arange(m) * dt
+    tr.theta[:m] = X[:, _Q]
+    tr.omega[:m] = X[:, _V]
+    tr.alpha[:m] = equilibrium_acceleration(p, X, u)
+    tr.torque[:m] = u
 
 
 def _accel(ctx: _Ctx, q: np.ndarray, v: np.ndarray, u: float) -> np.ndarray:
@@ -159,32 +205,40 @@ class _OneStep:
         return _probe(lambda z, a, b: self._step(ctx, z, a, b), self.nz)
 
     def simulate(self, p: AxisParams, torque: np.ndarray, dt: float,
-                 x0: np.ndarray | None = None, *, compiled: bool = True) -> Trajectory:
-        """Simulate the response to ``torque`` sampled every ``dt`` from ``x0``."""
+                 x0: np.ndarray | None = None, *, compiled: bool = True,
+                 out: Trajectory | None = None) -> Trajectory:
+        """Simulate the response to ``torque`` sampled every ``dt`` from ``x0``.
+
+        ``out``: a :class:`Trajectory` of ``len(torque)`` samples (e.g. an earlier result) whose
+        arrays are overwritten and returned instead of new ones (saves allocating and
+        page-faulting 64 bytes per sample when simulating repeatedly); if a non-finite torque
+        sample raises DataError, their contents are unspecified.
+        """
         dt = check_dt(dt)
-        u = _check_torque(torque)
+        u = _as_torque(torque)
+        n = u.size
+        _check_finite(u[:3] if compiled else u, u)  # the start-up uses <= 3 samples; the kernel checks the rest
         x = check_x0(x0)
+        tr = _outputs(out, n, u)
         ctx = self._setup(p, dt)
         head = self._start(ctx, x, u)
-        n = u.size
         m = min(head.shape[0], n)
-        Z = np.empty((n, self.nz))
-        Z[:m] = head[:m]
-        if m < n:
-            if compiled:
-                S, G0, G1 = _probe(lambda z, a, b: self._step(ctx, z, a, b), self.nz)
-                linear_recursion(S, G0, G1, u, Z, m - 1)
-            else:
-                for k in range(m - 1, n - 1):
-                    Z[k + 1] = self._step(ctx, Z[k], u[k], u[k + 1])
-        X = Z[:, :4]
-        return Trajectory(
-            t=np.arange(n) * dt,
-            theta=np.ascontiguousarray(X[:, _Q]),
-            omega=np.ascontiguousarray(X[:, _V]),
-            alpha=equilibrium_acceleration(p, X, u),
-            torque=u.copy(),
-        )
+        if not compiled:  # reference path: the textbook step in the interpreter, then post-processing
+            Z = np.empty((n, self.nz))
+            Z[:m] = head[:m]
+            for k in range(m - 1, n - 1):
+                Z[k + 1] = self._step(ctx, Z[k], u[k], u[k + 1])
+            _fill(tr, p, Z[:, :4], u, dt)
+            return tr
+        _fill(tr, p, head[:m, :4], u[:m], dt)  # samples 0 .. m-1: the start-up
+        if m < n:  # samples m .. n-1: recursion and post-processing in one compiled pass
+            S, G0, G1 = _probe(lambda z, a, b: self._step(ctx, z, a, b), self.nz)
+            par = np.array([p.B, p.K, p.I1, p.I2])
+            bad = trajectory_recursion(S, G0, G1, u, np.ascontiguousarray(head[m - 1]), m - 1, dt, par,
+                                       tr.t, tr.theta, tr.omega, tr.alpha, tr.torque)
+            if bad >= 0:
+                _check_finite(u[bad:bad + 1], u)
+        return tr
 
 
 # --------------------------------------------------------------------------- Newmark

@@ -5,7 +5,8 @@ run by the interpreter) and compiled with ``numba.njit(cache=True)`` (the fast
 path). Both see exactly the same source, so they differ only by the
 floating-point contraction numba may choose; tests check agreement to 1e-12.
 
-No kernel allocates: callers pass every output array.
+No kernel allocates an output: callers pass every output array (trajectory_recursion
+keeps two (nz,) scratch vectors for the state).
 """
 
 from __future__ import annotations
@@ -59,6 +60,81 @@ def linear_recursion(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.ndarra
                      Z: np.ndarray, k0: int) -> None:
     """Compiled :func:`linear_recursion_py` (same source, state size specialised)."""
     _linear_recursion_nb(S.shape[0])(S, G0, G1, u, Z, k0)
+
+
+def _trajectory_recursion_for(nz: int) -> Callable[..., int]:
+    """The loop of :func:`trajectory_recursion_py` with the state size ``nz`` fixed (see above)."""
+    def trajectory_recursion_fixed(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.ndarray,
+                                   z0: np.ndarray, k0: int, dt: float, par: np.ndarray, t: np.ndarray,
+                                   theta: np.ndarray, omega: np.ndarray, alpha: np.ndarray,
+                                   torque: np.ndarray) -> int:
+        n = u.shape[0]
+        B = par[0]
+        K = par[1]
+        I1 = par[2]
+        I2 = par[3]
+        zc = np.empty(nz)
+        zn = np.empty(nz)
+        for j in range(nz):
+            zc[j] = z0[j]
+        for k in range(k0, n - 1):
+            uk = u[k]
+            uk1 = u[k + 1]
+            if not math.isfinite(uk1):
+                return k + 1
+            # same arithmetic, in the same order, as linear_recursion_py
+            for i in range(nz):
+                acc = G0[i] * uk + G1[i] * uk1
+                for j in range(nz):
+                    acc += S[i, j] * zc[j]
+                zn[i] = acc
+            r = k + 1
+            th1 = zn[0]
+            w1 = zn[1]
+            th2 = zn[2]
+            w2 = zn[3]
+            theta[r, 0] = th1
+            theta[r, 1] = th2
+            omega[r, 0] = w1
+            omega[r, 1] = w2
+            # Eq. (6) solved for the accelerations, as rt_ident.integrators.equilibrium_acceleration
+            coupling = B * (w1 - w2) + K * (th1 - th2)
+            alpha[r, 0] = (uk1 - coupling) / I1
+            alpha[r, 1] = coupling / I2
+            t[r] = r * dt
+            torque[r] = uk1
+            zc, zn = zn, zc
+        return -1
+    return trajectory_recursion_fixed
+
+
+def trajectory_recursion_py(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.ndarray,
+                            z0: np.ndarray, k0: int, dt: float, par: np.ndarray, t: np.ndarray,
+                            theta: np.ndarray, omega: np.ndarray, alpha: np.ndarray,
+                            torque: np.ndarray) -> int:
+    """:func:`linear_recursion_py` fused with the post-processing of a trajectory, in one pass.
+
+    ``z0`` (nz,) is the extended state at sample ``k0``; rows ``k0+1 .. n-1`` of the outputs are
+    filled: ``t[k] = k dt``, ``theta[k] = [z1, z3]``, ``omega[k] = [z2, z4]`` (Eq. 8 order),
+    ``alpha[k]`` from the equilibrium Eq. (6) with ``u[k]`` (``par = [B, K, I1, I2]``) and
+    ``torque[k] = u[k]``. No (n, nz) state history is kept: only the outputs are written.
+    Stops at the first non-finite ``u[k]`` (``k > k0``) and returns ``k``; returns -1 when done.
+    """
+    return _trajectory_recursion_for(S.shape[0])(S, G0, G1, u, z0, k0, dt, par, t, theta, omega, alpha, torque)
+
+
+@functools.lru_cache(maxsize=None)
+def _trajectory_recursion_nb(nz: int) -> Callable[..., int]:
+    """Compiled :func:`_trajectory_recursion_for` (memoised per nz)."""
+    return numba.njit(cache=True)(_trajectory_recursion_for(nz))
+
+
+def trajectory_recursion(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.ndarray,
+                         z0: np.ndarray, k0: int, dt: float, par: np.ndarray, t: np.ndarray,
+                         theta: np.ndarray, omega: np.ndarray, alpha: np.ndarray,
+                         torque: np.ndarray) -> int:
+    """Compiled :func:`trajectory_recursion_py` (same source, state size specialised)."""
+    return _trajectory_recursion_nb(S.shape[0])(S, G0, G1, u, z0, k0, dt, par, t, theta, omega, alpha, torque)
 
 
 def plant_block_py(Phi: np.ndarray, Gam: np.ndarray, x: np.ndarray, ctrl: np.ndarray,

@@ -19,8 +19,14 @@ from rt_ident.integrators import (
     Trajectory,
     WilsonTheta,
     ZeroOrderHold,
+    equilibrium_acceleration,
     get_integrator,
     zoh_matrices,
+)
+from rt_ident.kernels_sim import (
+    linear_recursion,
+    trajectory_recursion,
+    trajectory_recursion_py,
 )
 from rt_ident.model import natural_frequency, state_space
 from rt_ident.params import AxisParams, thomson_x
@@ -56,6 +62,104 @@ def test_compiled_kernel_matches_python_reference(name: str) -> None:
     fast = integ.simulate(P, u, DT_CASE1, X0).states()
     ref = integ.simulate(P, u, DT_CASE1, X0, compiled=False).states()
     assert _rel_err_per_state(fast, ref) < 1e-12
+
+
+def _two_pass_simulate(integ, p: AxisParams, u: np.ndarray, dt: float, x0: np.ndarray) -> Trajectory:
+    """The previous compiled path, kept as a reference: (n, nz) state history from the bare
+    recursion, then numpy post-processing (copies, Eq. 6 accelerations, times)."""
+    ctx = integ._setup(p, dt)
+    head = integ._start(ctx, x0, u)
+    n = u.size
+    m = min(head.shape[0], n)
+    Z = np.empty((n, integ.nz))
+    Z[:m] = head[:m]
+    if m < n:
+        S, G0, G1 = integ.recursion_matrices(p, dt)
+        linear_recursion(S, G0, G1, u, Z, m - 1)
+    X = Z[:, :4]
+    return Trajectory(t=np.arange(n) * dt, theta=np.ascontiguousarray(X[:, [0, 2]]),
+                      omega=np.ascontiguousarray(X[:, [1, 3]]), alpha=equilibrium_acceleration(p, X, u),
+                      torque=u.copy())
+
+
+_FIELDS = ("t", "theta", "omega", "alpha", "torque")
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+def test_fused_simulate_is_bit_identical_to_the_two_pass_reference(name: str) -> None:
+    integ = get_integrator(name)
+    for n, x0, dt in ((3000, X0, DT_CASE1), (3000, np.zeros(4), 1e-4), (2, X0, DT_CASE1), (4, X0, DT_CASE1)):
+        u = _multisine(n, dt, seed=n)
+        new, ref = integ.simulate(P, u, dt, x0), _two_pass_simulate(integ, P, u, dt, x0)
+        for f in _FIELDS:
+            a = getattr(new, f)
+            assert np.array_equal(a, getattr(ref, f)), (name, n, f)
+            assert a.flags.c_contiguous and a.flags.owndata
+        assert np.array_equal(new.states(), ref.states())
+
+
+def test_trajectory_kernel_compiled_matches_its_interpreted_source() -> None:
+    n, integ = 400, Newmark()
+    u = _multisine(n, DT_CASE1)
+    S, G0, G1 = integ.recursion_matrices(P, DT_CASE1)
+    z0 = np.array([*X0, 3.0, -2.0])
+    par = np.array([P.B, P.K, P.I1, P.I2])
+    outs = []
+    for kernel in (trajectory_recursion, trajectory_recursion_py):
+        tr = Trajectory(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n))
+        assert kernel(S, G0, G1, u, z0, 5, DT_CASE1, par, tr.t, tr.theta, tr.omega, tr.alpha, tr.torque) == -1
+        assert np.all(tr.theta[:6] == 0.0) and np.all(tr.theta[6:] != 0.0)  # rows after k0 only
+        outs.append(tr)
+    for f in _FIELDS:
+        assert _rel_err_per_state(getattr(outs[0], f)[6:], getattr(outs[1], f)[6:]) < 1e-12
+    assert outs[0].t[6] == 6 * DT_CASE1 and np.array_equal(outs[0].torque[6:], u[6:])
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_simulate_out_overwrites_and_returns_the_given_arrays(compiled: bool) -> None:
+    u = _multisine(300, DT_CASE1)
+    integ = Houbolt()
+    out = integ.simulate(P, np.zeros(300), DT_CASE1)
+    arrays = [getattr(out, f) for f in _FIELDS]
+    res = integ.simulate(P, u, DT_CASE1, X0, compiled=compiled, out=out)
+    assert res is out and all(getattr(res, f) is a for f, a in zip(_FIELDS, arrays))
+    fresh = integ.simulate(P, u, DT_CASE1, X0, compiled=compiled)
+    for f in _FIELDS:
+        assert np.array_equal(getattr(res, f), getattr(fresh, f))
+    # the torque array itself may serve as out.torque
+    tr = Trajectory(np.empty(300), np.empty((300, 2)), np.empty((300, 2)), np.empty((300, 2)), u)
+    assert np.array_equal(integ.simulate(P, u, DT_CASE1, X0, compiled=compiled, out=tr).theta, fresh.theta)
+
+
+def test_simulate_out_rejects_wrong_shape_dtype_and_overlap() -> None:
+    u, n = np.zeros(10), 10
+    good = {"t": np.empty(n), "theta": np.empty((n, 2)), "omega": np.empty((n, 2)), "alpha": np.empty((n, 2)),
+            "torque": np.empty(n)}
+    shared = np.empty((n, 2))
+    bad = [{**good, "theta": np.empty((n + 1, 2))}, {**good, "alpha": np.empty((n, 2), dtype=np.float32)},
+           {**good, "omega": np.empty((2, n)).T}, {**good, "t": u}, {**good, "theta": shared, "omega": shared}]
+    for kw in bad:
+        with pytest.raises(ConfigError) as info:
+            ZeroOrderHold().simulate(P, u, 1e-4, out=Trajectory(**kw))
+        assert info.value.field == "out"
+    with pytest.raises(ConfigError):
+        ZeroOrderHold().simulate(P, u, 1e-4, out=np.empty((n, 4)))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+def test_nonfinite_torque_anywhere_names_first_sample_and_count(name: str) -> None:
+    for bad_at in ((1500, 1700), (1, 2999), (2, 3)):
+        u = _multisine(3000, DT_CASE1)
+        u[bad_at[0]], u[bad_at[1]] = np.nan, -np.inf
+        with pytest.raises(DataError, match=rf"sample {bad_at[0]} \(2 in total\)"):
+            get_integrator(name).simulate(P, u, DT_CASE1)
+
+
+def test_states_matches_column_stack_and_is_a_new_array() -> None:
+    tr = Newmark().simulate(P, _multisine(50, DT_CASE1), DT_CASE1, X0)
+    x = tr.states()
+    assert np.array_equal(x, np.column_stack([tr.theta[:, 0], tr.omega[:, 0], tr.theta[:, 1], tr.omega[:, 1]]))
+    assert not np.shares_memory(x, tr.theta) and x.flags.c_contiguous
 
 
 # --------------------------------------------------------------------------- accuracy
