@@ -118,6 +118,7 @@ def loop_trial(rate: float, seconds: float, sink: str, *, method: str = "frequen
             "overruns": loop.get("overruns"), "ticks": loop.get("ticks"), "samples": loop.get("samples"),
             "samples_per_s": (loop.get("samples") or 0) / seconds, "lost_samples": loop.get("lost_samples"),
             "lateness_us": loop.get("lateness_us"), "stop_cause": (res.get("stop") or {}).get("cause"),
+            "host_steal_ms": (loop.get("host") or {}).get("steal_ms"),
             "telemetry_dropped": (res.get("telemetry") or {}).get("dropped"), "rrd_bytes": rrd_bytes,
             "realtime": res.get("realtime"), "rss_kb": rss, "stop_message": (res.get("stop") or {}).get("message"),
             "long_gaps_ms": res.get("long_gaps_ms"), "n_long_gaps": res.get("n_long_gaps"),

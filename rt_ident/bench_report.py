@@ -95,7 +95,7 @@ def print_report(result: dict[str, Any]) -> None:
         t = Table(title=f"Loop end to end: sim backend, 1 kHz tick, {loop['seconds']:g} s trials, "
                         f"method {loop['method']}, SCHED_FIFO, one subprocess per trial")
         for col in ("telemetry", "samples/s", "0 overruns", "overruns (1st s)", "lateness p50/p99/max us",
-                    "longest gap ms @tick", "lost", "tel. dropped", "RSS 1st/last tick MB", "RSS growth (after 10 %)"):
+                    "longest gap ms @tick", "host steal ms", "lost", "tel. dropped", "RSS 1st/last tick MB", "RSS growth (after 10 %)"):
             t.add_column(col, justify="right")
         for r in loop["trials"]:
             lat = r.get("lateness_us") or {}
@@ -109,7 +109,9 @@ def print_report(result: dict[str, Any]) -> None:
                       f"{r.get('overruns', '-')} ({r.get('overruns_first_1s', '-')})",
                       "/".join(f"{lat.get(k, float('nan')):.3g}" for k in ("p50", "p99", "max")) if lat else
                       str(r.get("error", r.get("stop_cause", "-")))[:60],
-                      "-" if gap is None else f"{gap[1]:.1f} @{gap[0]}", str(r.get("lost_samples", "-")),
+                      "-" if gap is None else f"{gap[1]:.1f} @{gap[0]}",
+                      "-" if r.get("host_steal_ms") is None else f"{r['host_steal_ms']:g}",
+                      str(r.get("lost_samples", "-")),
                       str(r.get("telemetry_dropped", "-")), rss_s,
                       "-" if r.get("rss_growth_pct") is None else f"{r['rss_growth_pct']:+.1f} %"
                       + ("" if r.get("rss_growth_after_10pct_pct") is None

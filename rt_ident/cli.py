@@ -382,6 +382,7 @@ def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:
                         ("lateness p50 / p99 / max (us)",
                          " / ".join(f"{lat.get(k, float('nan')):.1f}" for k in ("p50", "p99", "max"))),
                         ("telemetry dropped", res.get("telemetry_dropped")),
+                        ("host steal on the loop CPU (ms)", res.get("host_steal_ms")),
                         ("RSS at first tick (MiB)", f"{(rss.get('first_tick_kb') or 0) / 1024:.1f}"),
                         ("RSS at last tick (MiB)", f"{(rss.get('last_tick_kb') or 0) / 1024:.1f}"),
                         ("RSS growth (%)", f"{res.get('rss_growth_pct') or 0:+.2f}"),

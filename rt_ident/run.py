@@ -105,6 +105,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     backend = make_backend(cfg.backend.name, opts)
     ex = cfg.excitation
     summary: dict[str, Any] = {"backend": cfg.backend.name, "config": cfg.source, "method": cfg.estimator.method}
+    host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None}   # filled around loop.run()
     stop_cause = None
     stop_message = None
     loop = None
@@ -161,7 +162,11 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
             backend.activate()
-            loop.run()
+            steal = _HostSteal()
+            try:
+                loop.run()
+            finally:
+                host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
             backend.safe_stop()                      # zero torque before the (slower) final fit
             summary["final_fit_error"] = _final_fit(loop, est)
     except RtIdentError as exc:
@@ -189,7 +194,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                        "final_torque": backend.last_torque, "backend_state": backend.state.value}
     summary["backend_counters"] = _backend_counters(backend)
     if loop is not None:
-        summary["loop"] = loop.stats.as_dict()
+        summary["loop"] = {**loop.stats.as_dict(), "host": host}
         ident = loop.identification
         if ident is not None:
             summary.update(_ident_summary(ident))
@@ -251,6 +256,41 @@ def _loop_cpu() -> int | None:
     except (AttributeError, OSError):
         return None
     return cpus[-1] if len(cpus) >= 2 else None
+
+
+class _HostSteal:
+    """Time the hypervisor ran something else while this guest's loop CPU wanted to run.
+
+    ``/proc/stat``'s steal column (USER_HZ ticks, usually 10 ms) for the CPU the loop is pinned
+    to (the whole machine when it is not pinned). On a VM, a late tick with no context switch
+    and no page fault in the loop thread, while steal grows, was the host's doing.
+    """
+
+    def __init__(self) -> None:
+        try:
+            cpus = os.sched_getaffinity(0)
+        except (AttributeError, OSError):
+            cpus = set()
+        self.cpu: int | None = next(iter(cpus)) if len(cpus) == 1 else None
+        self._start = self._read()
+
+    def _read(self) -> int | None:
+        key = "cpu" if self.cpu is None else f"cpu{self.cpu}"
+        try:
+            with open("/proc/stat") as fh:
+                for line in fh:
+                    fields = line.split()
+                    if fields and fields[0] == key and len(fields) > 8:
+                        return int(fields[8])
+        except OSError:
+            pass
+        return None
+
+    def elapsed_ms(self) -> float | None:
+        end = self._read()
+        if end is None or self._start is None:
+            return None
+        return (end - self._start) * 1000.0 / os.sysconf("SC_CLK_TCK")
 
 
 def _backend_counters(backend) -> dict[str, Any] | None:

@@ -43,6 +43,14 @@ def test_loop_identifies_the_quantized_closed_loop_plant_within_2_percent(record
         assert abs(s["error_pct"][k]) < 2.0, (k, s["error_pct"][k])
 
 
+def test_summary_reports_host_steal_time_around_the_loop(recorded):
+    s, _, _ = recorded
+    host = s["loop"]["host"]
+    assert set(host) == {"steal_ms", "steal_cpu"}
+    if os.path.exists("/proc/stat"):
+        assert host["steal_ms"] is not None and host["steal_ms"] >= 0.0
+
+
 def test_loop_final_estimate_equals_identify_on_its_own_recording(recorded):
     s, rec, _ = recorded
     ident, info = identify_file(rec)
