@@ -334,11 +334,13 @@ def bench_ls(periods: int = 40, repeats: int = 7) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- main
-def bench_main(json_out: bool, quick: bool, loop_seconds: float, repeats: int) -> dict[str, Any]:
+def bench_main(json_out: bool, quick: bool, loop_seconds: float, repeats: int,
+               loop_rates: tuple[int, ...] | None = None) -> dict[str, Any]:
     """Run every benchmark, print a rich table (or JSON with ``json_out``) on stdout, return the dict.
 
     ``quick``: smaller data and loop trials of at most 3 s (CI-like). ``loop_seconds`` <= 0 skips
-    the end-to-end loop search. Progress goes to stderr.
+    the end-to-end loop search; ``loop_rates`` replaces the rates it tries (samples/s, ascending).
+    Progress goes to stderr.
     """
     from rt_ident.bench_loop import bench_loop
     from rt_ident.bench_report import print_report, to_json
@@ -365,7 +367,8 @@ def bench_main(json_out: bool, quick: bool, loop_seconds: float, repeats: int) -
         stage("batch LS vs numpy", 2)
         out["ls"] = bench_ls(repeats=max(repeats, 5))
         if trial > 0:
-            out["loop"] = bench_loop(trial, progress=lambda desc, frac: stage(desc, 3 + frac))
+            out["loop"] = bench_loop(trial, **({"rates": tuple(loop_rates)} if loop_rates else {}),
+                                     progress=lambda desc, frac: stage(desc, 3 + frac))
         else:
             out["loop"] = {"skipped": True}
     if json_out:

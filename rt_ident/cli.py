@@ -347,6 +347,8 @@ def bench(
     quick: bool = typer.Option(False, "--quick", help="Short loop trials (3 s)."),
     loop_seconds: float = typer.Option(60.0, "--loop-seconds", help="Seconds per loop trial (0 skips the loop)."),
     repeats: int = typer.Option(5, min=1, help="Repeats per micro-benchmark (medians are reported)."),
+    loop_rates: str = typer.Option("", "--loop-rates",
+                                   help="Comma-separated sample rates the loop search tries, e.g. 34000,170000."),
     soak_seconds: float = typer.Option(0.0, "--soak", min=0.0,
                                        help="Instead: one loop run this long (e.g. 600) and its memory (RSS) over time."),
     soak_rate: float = typer.Option(170_000.0, "--soak-rate", min=1000.0, help="Samples/s of the --soak run."),
@@ -358,7 +360,13 @@ def bench(
         return
     from rt_ident.bench import bench_main
 
-    bench_main(json_out=json_out, quick=quick, loop_seconds=loop_seconds, repeats=repeats)
+    try:
+        rates = tuple(sorted(int(float(r)) for r in loop_rates.split(",") if r.strip())) or None
+    except ValueError:
+        raise RtIdentError(f"--loop-rates: not a comma-separated list of numbers: {loop_rates!r}") from None
+    if rates is not None and min(rates) <= 0:
+        raise RtIdentError(f"--loop-rates: rates must be > 0, got {loop_rates!r}")
+    bench_main(json_out=json_out, quick=quick, loop_seconds=loop_seconds, repeats=repeats, loop_rates=rates)
 
 
 def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:

@@ -166,3 +166,19 @@ def test_bench_soak_command_prints_the_memory_table(monkeypatch):
     res = CliRunner().invoke(app, ["bench", "--soak", "5", "--soak-rate", "170000"])
     assert res.exit_code == 0, res.output
     assert "RSS flat within +-5 %" in res.output and "True" in res.output and "500.0" in res.output
+
+
+def test_bench_loop_rates_option_is_parsed_sorted_and_bad_values_are_refused(monkeypatch):
+    from typer.testing import CliRunner
+
+    from rt_ident import bench as bench_mod
+    from rt_ident.cli import app
+
+    seen = {}
+    monkeypatch.setattr(bench_mod, "bench_main", lambda **kw: seen.update(kw))
+    res = CliRunner().invoke(app, ["bench", "--loop-rates", "170000, 34000"])
+    assert res.exit_code == 0, res.output
+    assert seen["loop_rates"] == (34000, 170000)
+    for bad in ("fast", "0,170000"):
+        res = CliRunner().invoke(app, ["bench", "--loop-rates", bad])
+        assert res.exit_code != 0 and "--loop-rates" in res.output + str(res.exception)
