@@ -151,8 +151,10 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6)
             if telemetry is not None:
                 telemetry.wait_ready(5.0)
-            helpers = [getattr(x, "pid", None) for x in (telemetry, recorder, worker, emulator) if x is not None]
-            summary["helper_processes"] = _keep_off_loop_cpu([p for p in helpers if p], cfg.loop.realtime)
+            helpers = [getattr(x, "pid", None) for x in (telemetry, recorder, worker) if x is not None]
+            device = getattr(emulator, "pid", None)
+            summary["helper_processes"] = _keep_off_loop_cpu([p for p in helpers if p], cfg.loop.realtime,
+                                                             device=device)
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
             stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
             summary["realtime"] = _realtime(cfg)
@@ -314,22 +316,25 @@ def _threads(pid: int) -> list[int]:
         return [pid]
 
 
-def _keep_off_loop_cpu(pids: list[int], realtime: bool) -> dict[str, Any]:
-    """Recorder, telemetry, fit worker and emulator: lower priority, and off the loop's CPU.
+def _keep_off_loop_cpu(pids: list[int], realtime: bool, *, device: int | None = None) -> dict[str, Any]:
+    """Recorder, telemetry and fit worker: lower priority, and off the loop's CPU.
 
     Applied to every thread each process has started so far (rerun's and pyarrow's threads
     exist by now); threads started later inherit it from the thread that creates them.
-    A thread under a real-time policy (the emulated drive places itself) keeps its priority.
+    An emulated ``device`` (its pid) only leaves the loop's CPU: it stands for hardware that
+    runs on its own, so it keeps its priority (niced next to the fit worker's 90 ms bursts, the
+    serial board missed the host's 20-tick watchdog).
     """
     loop_cpu = _loop_cpu() if realtime else None
-    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None, "threads": 0}
-    for pid in pids:
+    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None, "threads": 0, "device_pid": device}
+    for pid in pids + ([device] if device else []):
         for tid in _threads(pid):
             report["threads"] += 1
-            try:
-                os.setpriority(os.PRIO_PROCESS, tid, 10)
-            except OSError:
-                report["niced"] = False
+            if pid != device:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, 10)
+                except OSError:
+                    report["niced"] = False
             if loop_cpu is not None:
                 try:
                     others = set(os.sched_getaffinity(tid)) - {loop_cpu}

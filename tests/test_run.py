@@ -164,3 +164,28 @@ def test_kill_9_mid_run_leaves_a_readable_recording(tmp_path):
     assert len(r) > 1000
     assert np.all(np.diff(r.seq) == 1) and r.seq[0] == 0
     assert np.all(np.isfinite(r.theta1))
+
+
+def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_priority():
+    import subprocess
+    import sys
+
+    from rt_ident.run import _keep_off_loop_cpu
+
+    code = "import threading, time\nfor _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\ntime.sleep(30)"
+    helper = subprocess.Popen([sys.executable, "-c", code])
+    device = subprocess.Popen([sys.executable, "-c", code])
+    try:
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and any(len(os.listdir(f"/proc/{p.pid}/task")) < 3 for p in (helper, device)):
+            time.sleep(0.05)
+        report = _keep_off_loop_cpu([helper.pid], realtime=False, device=device.pid)
+        assert report["threads"] == 6 and report["device_pid"] == device.pid
+        for tid in os.listdir(f"/proc/{helper.pid}/task"):
+            assert os.getpriority(os.PRIO_PROCESS, int(tid)) == 10
+        for tid in os.listdir(f"/proc/{device.pid}/task"):     # as started: this process's nice value
+            assert os.getpriority(os.PRIO_PROCESS, int(tid)) == os.getpriority(os.PRIO_PROCESS, 0)
+    finally:
+        for p in (helper, device):
+            p.kill()
+            p.wait()
