@@ -235,7 +235,10 @@ class SerialBoardBackend(Backend):
                                               write_timeout=cfg.write_timeout)
         except (serial.SerialException, OSError, ValueError) as exc:
             self._stop_emulator()
-            raise DeviceConnectionError(f"cannot open serial port {self.port!r}: {exc}") from exc
+            hint = ""
+            if getattr(exc, "errno", None) == 13 or "Permission denied" in str(exc):
+                hint = " (no permission: add your user to the group that owns the port, e.g. dialout, and log in again)"
+            raise DeviceConnectionError(f"cannot open serial port {self.port!r}: {exc}{hint}") from exc
         try:
             self._send(sp.encode_disable())          # a known, de-energized state
             got = self._wait_for(lambda s: 0, cfg.startup_timeout)

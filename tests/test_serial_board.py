@@ -98,6 +98,19 @@ def test_missing_port_raises_device_connection_error_naming_it():
         be.open()
 
 
+def test_a_port_without_permission_raises_device_connection_error_with_a_hint(monkeypatch):
+    import serial
+
+    def refuse(url, **kwargs):
+        raise serial.SerialException(13, f"could not open port {url}: [Errno 13] Permission denied: {url!r}")
+
+    monkeypatch.setattr(serial, "serial_for_url", refuse)
+    be = SerialBoardBackend({"port": "/dev/ttyACM7"})
+    with pytest.raises(DeviceConnectionError, match="ttyACM7.*Permission denied.*dialout"):
+        be.open()
+    assert be.state.value == "created"      # nothing opened, nothing to stop
+
+
 def test_a_port_with_no_board_behind_it_times_out_at_open():
     master, slave = os.openpty()
     tty.setraw(slave)
