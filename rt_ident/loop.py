@@ -114,7 +114,7 @@ class IdentificationLoop:
             self._write_plan()
             if self.tick_hook is not None:
                 self.tick_hook(stats.ticks)
-        self._flush_telemetry(force=True)
+        self._flush_telemetry()
         return stats
 
     # --------------------------------------------------------------- pieces
@@ -199,7 +199,7 @@ class IdentificationLoop:
         if self._tick_n == self.publish_every:
             self._flush_telemetry()
 
-    def _flush_telemetry(self, force: bool = False) -> None:
+    def _flush_telemetry(self) -> None:
         """Publish the window: the decimated samples, per-tick lateness and the current estimate.
 
         ``on_telemetry`` gets views of the window buffers, valid only during the call (it copies,
