@@ -152,6 +152,13 @@ class EmulatedBoard:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def stats(self) -> dict[str, Any]:
+        """State and counters for a report (what the emulator process sends its parent at close)."""
+        with self._lock:
+            return {"enabled": self.enabled, "applied_torque": self.applied_torque, "status": self.status,
+                    "samples": self._k, "frames_sent": self.frames_sent, "frames_dropped": self.frames_dropped,
+                    "frames_corrupted": self.frames_corrupted, "host_frames": self.host_frames}
+
     # ----- one-shot faults -----------------------------------------------------------------
     def drop_next(self, n: int) -> None:
         """Do not send the next ``n`` frames (their sequence numbers are skipped)."""
