@@ -1,4 +1,4 @@
-"""Shared pytest options: ``--hardware`` and ``--hardware-config``.
+"""Shared pytest options (``--hardware``, ``--hardware-config``) and the ``emulators`` fixture.
 
 Tests marked ``hardware`` (marker declared in pyproject.toml) are skipped unless
 ``--hardware`` is given. ``--hardware-config PATH`` names a run configuration
@@ -26,3 +26,20 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if item.get_closest_marker("hardware") is not None:
             item.add_marker(skip)
+
+
+@pytest.fixture
+def emulators(monkeypatch) -> list:
+    """The emulators ``rt_ident.run.run`` starts (handles kept for the checks after the run)."""
+    from rt_ident import run as run_mod
+
+    started: list = []
+    original = run_mod.start_emulator
+
+    def start(cfg):
+        dev = original(cfg)
+        started.append(dev)
+        return dev
+
+    monkeypatch.setattr(run_mod, "start_emulator", start)
+    return started

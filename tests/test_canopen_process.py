@@ -77,21 +77,6 @@ def _gone(pid: int, timeout: float = 5.0) -> bool:
     return False
 
 
-@pytest.fixture
-def emulators(monkeypatch) -> list:
-    """The emulators the run starts (handles kept for the checks after the run)."""
-    started: list = []
-    original = run_mod.start_emulator
-
-    def start(cfg):
-        dev = original(cfg)
-        started.append(dev)
-        return dev
-
-    monkeypatch.setattr(run_mod, "start_emulator", start)
-    return started
-
-
 def _assert_drive_left_safe(emu: EmulatorProcess) -> None:
     assert emu.stats is not None, "the emulator did not report"
     assert emu.stats["applied_torque"] == 0.0 and not emu.stats["enabled"]

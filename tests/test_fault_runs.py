@@ -19,20 +19,6 @@ from rt_ident.recording import read_recording
 COLUMNS = {"t", "seq", "theta1", "theta2", "torque_cmd", "torque_meas"}
 
 
-@pytest.fixture
-def emulators(monkeypatch) -> list:
-    started: list = []
-    original = run_mod.start_emulator
-
-    def start(cfg):
-        dev = original(cfg)
-        started.append(dev)
-        return dev
-
-    monkeypatch.setattr(run_mod, "start_emulator", start)
-    return started
-
-
 def _check_recording(path, samples: int) -> None:
     table = pq.read_table(path)
     assert COLUMNS <= set(table.column_names)
