@@ -14,8 +14,8 @@ from drivers.errors import BackendNotFound, DriverError
 
 BACKENDS: dict[str, str] = {
     "sim": "drivers.sim:SimBackend",
-    "canopen": "drivers.canopen402:Cia402Backend",
-    "serial": "drivers.serial_board:SerialBoardBackend",
+    "canopen": "drivers.cia402.drive:Cia402Backend",
+    "serial": "drivers.encoder_board.board:SerialBoardBackend",
 }
 
 

@@ -1,4 +1,4 @@
-"""The simulated axis as a backend: :class:`rt_ident.plant.PlantSimulator` behind the :class:`Backend` contract.
+"""The simulated axis as a backend: :class:`rt_ident.axis.plant.PlantSimulator` behind the :class:`Backend` contract.
 
 Two modes:
 
@@ -31,9 +31,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from drivers.base import Backend, SampleBlock
 from drivers.errors import DriverError, TravelLimitTrip
+from rt_ident.axis.params import AxisParams, thomson_x
+from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError
-from rt_ident.params import AxisParams, thomson_x
-from rt_ident.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig
 
 log = logging.getLogger(__name__)
 

@@ -58,7 +58,7 @@ def reproduce(
                                                     "write noise_study.png and .csv here."),
 ) -> None:
     """Run both cases of Table 2 and print Tables 2-6: paper value, our value, error %."""
-    from rt_ident import reproduce as rp
+    from rt_ident.reports import reproduce as rp
 
     methods = _beyond_methods() if beyond else ()
     with _progress() as prog:
@@ -75,12 +75,12 @@ def reproduce(
             sens = rp.sensitivity()
         study = None
         if noise_study is not None:
-            from rt_ident import noise_study as ns
+            from rt_ident.reports import noise_study as ns
 
             study = ns.run_study(progress)
     written = []
     if figures is not None:
-        from rt_ident.figures import write_figures
+        from rt_ident.reports.figures import write_figures
 
         written = [str(p) for p in write_figures(result, figures)]
     if study is not None:
@@ -105,7 +105,7 @@ def reproduce(
 def _write_study(rows, folder: Path) -> list[str]:
     import csv
 
-    from rt_ident.noise_study import write_png
+    from rt_ident.reports.noise_study import write_png
 
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / "noise_study.csv", "w", newline="") as fh:
@@ -116,7 +116,7 @@ def _write_study(rows, folder: Path) -> list[str]:
 
 
 def _print_study(rows) -> None:
-    from rt_ident.noise_study import METHODS, TORQUE_NOISE_PCT
+    from rt_ident.reports.noise_study import METHODS, TORQUE_NOISE_PCT
 
     tab = Table(title="Noise study - max |error| over I1, I2, B, K [%] (closed loop, angles only, 34 kHz)")
     tab.add_column("encoder counts/rev")
@@ -133,14 +133,14 @@ def _print_study(rows) -> None:
 
 
 def _beyond_methods() -> tuple[str, ...]:
-    from rt_ident.reproduce import BEYOND
+    from rt_ident.reports.reproduce import BEYOND
 
     return tuple(BEYOND)
 
 
 def _print_reproduce(result, sens) -> None:
-    from rt_ident import paper_tables
-    from rt_ident.reproduce import ALL_KEYS, MODAL_KEYS, PARAM_KEYS, error_pct
+    from rt_ident.reports import paper_tables
+    from rt_ident.reports.reproduce import ALL_KEYS, MODAL_KEYS, PARAM_KEYS, error_pct
 
     t2 = Table(title="Table 2 - time step  Dt = 2 pi k / (N wn),  w0 = wn / k")
     for col in ("N", "k", "wn paper", "wn ours", "w0 paper", "w0 ours", "Dt paper [s]", "Dt ours [s]", "Dt diff %"):
@@ -226,7 +226,8 @@ def run(
 ) -> None:
     """Run the real-time identification loop (sim by default) with a live dashboard and a recording."""
     from rt_ident import config as cfgmod
-    from rt_ident.run import exit_code, run as run_loop
+    from rt_ident.runtime.run import exit_code
+    from rt_ident.runtime.run import run as run_loop
 
     sink = "off" if no_telemetry else "spawn" if spawn else "connect" if connect else "serve" if serve else None
     overrides = {"loop.duration": duration, "estimator.method": method}
@@ -322,7 +323,7 @@ def identify(
         return
     if file is None:
         raise typer.BadParameter("give a recording FILE (or --methods)")
-    from rt_ident.identify import identify_file
+    from rt_ident.reports.identify import identify_file
 
     ident, info = identify_file(file, method, period=period)
     d = ident.as_dict()
@@ -358,7 +359,7 @@ def bench(
     if soak_seconds > 0:
         _soak(soak_seconds, soak_rate, soak_sink, json_out)
         return
-    from rt_ident.bench import bench_main
+    from rt_ident.reports.bench import bench_main
 
     try:
         rates = tuple(sorted(int(float(r)) for r in loop_rates.split(",") if r.strip())) or None
@@ -370,7 +371,7 @@ def bench(
 
 
 def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:
-    from rt_ident.bench_loop import soak
+    from rt_ident.reports.bench_loop import soak
 
     if sink not in ("rrd", "off"):
         raise RtIdentError(f"--soak-sink must be rrd or off, got {sink!r}")

@@ -16,8 +16,8 @@ from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
-from rt_ident.params import CONFIG_DIR, AxisParams, thomson_x
 
 
 class _Section(BaseModel):

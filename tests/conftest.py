@@ -30,8 +30,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 @pytest.fixture
 def emulators(monkeypatch) -> list:
-    """The emulators ``rt_ident.run.run`` starts (handles kept for the checks after the run)."""
-    from rt_ident import run as run_mod
+    """The emulators ``rt_ident.runtime.run.run`` starts (handles kept for the checks after the run)."""
+    from rt_ident.runtime import run as run_mod
 
     started: list = []
     original = run_mod.start_emulator

@@ -35,7 +35,7 @@ import pytest
 from drivers import make_backend
 from drivers.base import Backend, SampleBlock, State
 from drivers.errors import BackendStateError, DriverError
-from rt_ident.params import CONFIG_DIR
+from rt_ident.axis.params import CONFIG_DIR
 
 CONTRACT_LIMIT = 0.05   # N m: host torque limit during the contract run
 FRACTION = 0.4          # test commands are this fraction of the limit
@@ -105,8 +105,8 @@ def _sim_rig(stack: ExitStack) -> Rig:
 
 
 def _canopen_rig(stack: ExitStack) -> Rig:
-    from drivers import canopen_profile as p402
-    from drivers.canopen_emulator import start_emulator_for
+    from drivers.cia402 import profile as p402
+    from drivers.cia402.emulator import start_emulator_for
 
     data = _toml("canopen-virtual.toml")
     backend = {k: v for k, v in data["backend"].items() if k not in ("emulate", "port", "bus_options")}
@@ -126,9 +126,9 @@ def _canopen_rig(stack: ExitStack) -> Rig:
 
 
 def _serial_rig(stack: ExitStack) -> Rig:
-    from drivers.emulated_board import board_for
-    from drivers.serial_board import parse_emulator, parse_serial
-    from rt_ident.params import AxisParams
+    from drivers.encoder_board.config import parse_emulator, parse_serial
+    from drivers.encoder_board.emulator import board_for
+    from rt_ident.axis.params import AxisParams
 
     data = _toml("serial-virtual.toml")
     backend = {k: v for k, v in data["backend"].items() if k not in ("name", "emulate", "port")}
@@ -183,7 +183,7 @@ def _start_config_emulator(path: str, devices: dict[str, Any]) -> None:
     if not path or path in devices:
         return
     from rt_ident.config import load
-    from rt_ident.emulation import start_emulator
+    from rt_ident.runtime.emulation import start_emulator
 
     cfg = load(path)
     if cfg.backend.emulate:

@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 
 from drivers import make_backend
-from drivers.canopen402 import Cia402Backend
-from drivers.canopen_config import bus_budget, validate
-from drivers.canopen_profile import OPERATION_ENABLED, SWITCH_ON_DISABLED, decode_state, frame_bits
-from drivers.canopen_stream import CANCEL, ECHO, MARK, SampleAssembler, TorquePlan
-from drivers.emulated_drive import start_emulator_for
-from drivers.errors import (DeviceConnectionError, DeviceFault, ProtocolError, WatchdogTrip)
+from drivers.cia402.config import bus_budget, validate
+from drivers.cia402.drive import Cia402Backend
+from drivers.cia402.emulator import start_emulator_for
+from drivers.cia402.profile import OPERATION_ENABLED, SWITCH_ON_DISABLED, decode_state, frame_bits
+from drivers.cia402.stream import CANCEL, ECHO, MARK, SampleAssembler, TorquePlan
+from drivers.errors import DeviceConnectionError, DeviceFault, ProtocolError, WatchdogTrip
+from rt_ident.axis.params import CONFIG_DIR
+from rt_ident.axis.plant import DEFAULT_KP
 from rt_ident.errors import ConfigError
-from rt_ident.params import CONFIG_DIR
-from rt_ident.plant import DEFAULT_KP
 
 EDS = CONFIG_DIR / "cia402_generic.eds"
 RATED = 0.64

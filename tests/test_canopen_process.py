@@ -1,8 +1,8 @@
 """The emulated CiA 402 drive in its own process on python-can's udp_multicast bus (issue #5).
 
-The whole product (``rt_ident.run.run``) runs briefly against
+The whole product (``rt_ident.runtime.run.run``) runs briefly against
 ``configs/canopen-virtual.toml`` with its drive in a child process
-(:class:`rt_ident.emulation.EmulatorProcess`); each test gets a free UDP port. The
+(:class:`rt_ident.runtime.emulation.EmulatorProcess`); each test gets a free UDP port. The
 drive's state is read from the report its process sends when it is closed - taken
 before the drive leaves the bus, i.e. as the host left it. The runs are real-time like
 the product (SCHED_FIFO where permitted; the test process's scheduling, memory locking
@@ -26,13 +26,13 @@ from pathlib import Path
 import can
 import pytest
 
-import rt_ident.run as run_mod
-from drivers import canopen_profile as p402
-from drivers.canopen_frames import FrameIO
+import rt_ident.runtime.run as run_mod
+from drivers.cia402 import profile as p402
+from drivers.cia402.frames import FrameIO
+from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.config import load
-from rt_ident.emulation import EmulatorProcess, free_udp_port
 from rt_ident.errors import RtIdentError
-from rt_ident.params import CONFIG_DIR
+from rt_ident.runtime.emulation import EmulatorProcess, free_udp_port
 
 CONFIG = CONFIG_DIR / "canopen-virtual.toml"
 ROOT = Path(__file__).resolve().parent.parent
@@ -48,7 +48,7 @@ def _config(**over):
 
 @pytest.fixture(autouse=True)
 def _restore_scheduling():
-    """rt_ident.run makes the calling thread real-time (SCHED_FIFO, one CPU, mlockall, GC frozen): undo it."""
+    """rt_ident.runtime.run makes the calling thread real-time (SCHED_FIFO, one CPU, mlockall, GC frozen): undo it."""
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     cpus = os.sched_getaffinity(0)
     yield
@@ -155,7 +155,7 @@ def test_emulator_process_exits_when_its_parent_is_killed(tmp_path):
     script.write_text(
         "import sys, time\n"
         "from rt_ident.config import load\n"
-        "from rt_ident.emulation import start_emulator\n"
+        "from rt_ident.runtime.emulation import start_emulator\n"
         "if __name__ == '__main__':\n"
         f"    emu = start_emulator(load({str(CONFIG)!r}, **{{'loop.realtime': False}}))\n"
         "    print(emu.pid, flush=True)\n"
@@ -177,5 +177,5 @@ def test_emulator_process_reports_a_start_failure_and_exits():
                        "torque_limit": 1.0, "counts_per_rev": 4096, "scale_resolution": 1e-6},
            "emulator": {"eds": "missing.eds"}}
     with pytest.raises(RtIdentError, match=r"failed to start: ConfigError.*missing\.eds"):
-        EmulatorProcess("drivers.emulated_drive", bad)
+        EmulatorProcess("drivers.cia402.emulator", bad)
     assert not [p for p in multiprocessing.active_children() if "emulator" in p.name]

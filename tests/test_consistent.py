@@ -6,14 +6,20 @@ import numpy as np
 import pytest
 import scipy.linalg
 
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.integrators import Newmark, ZeroOrderHold
+from rt_ident.axis.model import state_space
+from rt_ident.axis.params import thomson_x
 from rt_ident.errors import DataError, EstimationError
-from rt_ident.estimators.consistent import (continuous_from_tustin, continuous_from_zoh, fit_tustin_angles,
-                                            fit_tustin_map, fit_tustin_states, fit_zoh,
-                                            physical_from_continuous)
-from rt_ident.excitation import schroeder_multisine
-from rt_ident.integrators import Newmark, ZeroOrderHold
-from rt_ident.model import state_space
-from rt_ident.params import thomson_x
+from rt_ident.estimators.consistent import (
+    continuous_from_tustin,
+    continuous_from_zoh,
+    fit_tustin_angles,
+    fit_tustin_map,
+    fit_tustin_states,
+    fit_zoh,
+    physical_from_continuous,
+)
 
 # Table 2 of the paper: (N, k, Dt)
 TABLE2 = [(512, 10, 2.9481e-5), (2048, 146, 1.0761e-4)]

@@ -14,14 +14,15 @@ import numpy as np
 import pytest
 from canopen.sdo import SdoAbortedError
 
-from drivers import canopen_profile as p402
-from drivers.canopen402 import Cia402Backend
-from drivers.canopen_emulator import FaultConfig, build_emulator_for
-from drivers.emulated_drive import EmulatedCia402Drive, start_emulator_for
+from drivers.cia402 import profile as p402
+from drivers.cia402.drive import Cia402Backend
+from drivers.cia402.emulated_drive import EmulatedCia402Drive
+from drivers.cia402.emulator import build_emulator_for, start_emulator_for
+from drivers.cia402.faults import FaultConfig
 from rt_ident import config as run_config
+from rt_ident.axis.params import CONFIG_DIR, thomson_x
+from rt_ident.axis.plant import PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError
-from rt_ident.params import CONFIG_DIR, thomson_x
-from rt_ident.plant import PlantSimulator, SensorConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 EDS = CONFIG_DIR / "cia402_generic.eds"
@@ -173,7 +174,7 @@ position_hold = true
 """)
     import tomllib
     backend_cfg = tomllib.loads(toml.read_text())["backend"]
-    child = subprocess.Popen([sys.executable, "-m", "drivers.emulated_drive", "--config", str(toml)],
+    child = subprocess.Popen([sys.executable, "-m", "drivers.cia402.emulator", "--config", str(toml)],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         ready = child.stdout.readline()

@@ -1,4 +1,4 @@
-"""Tests for rt_ident.excitation: multisines, PRBS, chirp, factory and validation."""
+"""Tests for rt_ident.axis.excitation: multisines, PRBS, chirp, factory and validation."""
 
 from __future__ import annotations
 
@@ -7,8 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rt_ident.errors import ConfigError
-from rt_ident.excitation import (
+from rt_ident.axis.excitation import (
     EXCITATION_KINDS,
     PRBS_TAPS,
     Multisine,
@@ -20,6 +19,7 @@ from rt_ident.excitation import (
     schroeder_multisine,
     schroeder_phases,
 )
+from rt_ident.errors import ConfigError
 
 
 # ----------------------------------------------------------------------------- multisine

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import scipy.linalg
 
+from rt_ident.axis.model import state_space
+from rt_ident.axis.params import thomson_x
 from rt_ident.errors import DataError
-from rt_ident.excitation_id import fit_percent, nrmse, reconstruct_torque
-from rt_ident.model import state_space
-from rt_ident.params import thomson_x
+from rt_ident.estimators.excitation_id import fit_percent, nrmse, reconstruct_torque
 
 DT = 2.9481e-5
 

@@ -17,16 +17,15 @@ import math
 import numpy as np
 import pytest
 
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.integrators import Newmark, ZeroOrderHold
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.axis.params import AxisParams, thomson_x
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError, DataError, EstimationError
 from rt_ident.estimators.consistent import fit_tustin_angles
 from rt_ident.estimators.frequency import compute_spectra, detect_period, fit_frequency
-from rt_ident.estimators.frequency_stream import (StreamingFrequencyEstimator, rdft_accumulate,
-                                                  rdft_accumulate_py)
-from rt_ident.excitation import schroeder_multisine
-from rt_ident.integrators import Newmark, ZeroOrderHold
-from rt_ident.modal import modal_parameters
-from rt_ident.params import AxisParams, thomson_x
-from rt_ident.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator, rdft_accumulate, rdft_accumulate_py
 
 FAST, SLOW = (2.9481e-5, 4096), (2.5e-4, 1024)    # (dt, period N) at 34 kHz and 4 kHz
 
@@ -234,6 +233,7 @@ def test_streaming_rejects_bad_configuration():
 # --------------------------------------------------------------------------- sampled model
 def test_small_expm_and_frechet_derivatives_match_scipy():
     import scipy.linalg
+
     from rt_ident.estimators.sampled_model import expm_frechet_small
     rng = np.random.default_rng(0)
     for size in (0.1, 1.0, 10.0):
@@ -266,12 +266,13 @@ def test_model_derivatives_match_finite_differences(hold):
 def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy():
     import time
 
-    from rt_ident.streaming import FitWorker, fit_snapshot, make_streaming_estimator
+    from rt_ident.estimators.streaming import fit_snapshot, make_streaming
+    from rt_ident.runtime.fit_worker import FitWorker
 
     p, dt, N = thomson_x(), 2.5e-4, 512
     ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
     blk = PlantSimulator(p, dt, controller=HoldController(), seed=4).step_block(ms.periodic(5))
-    est = make_streaming_estimator("frequency", dt=dt, period=N, band=(int(ms.harmonics[0]), int(ms.harmonics[-1])),
+    est = make_streaming("frequency", dt=dt, period=N, band=(int(ms.harmonics[0]), int(ms.harmonics[-1])),
                                    warmup_periods=1, lead=p.lead)
     assert est.update_block(blk.theta1, blk.theta2, blk.torque_meas, np.arange(blk.theta1.size))
     snap = est.snapshot()

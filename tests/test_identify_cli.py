@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.axis.params import thomson_x
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.cli import app
-from rt_ident.excitation import schroeder_multisine
-from rt_ident.modal import modal_parameters
-from rt_ident.params import thomson_x
-from rt_ident.plant import HoldController, PlantSimulator, SensorConfig
 
 runner = CliRunner()
 

@@ -1,4 +1,4 @@
-"""Tests of rt_ident.integrators: accuracy orders, Newmark's period error, conservation laws, API."""
+"""Tests of rt_ident.axis.integrators: accuracy orders, Newmark's period error, conservation laws, API."""
 
 from __future__ import annotations
 
@@ -10,8 +10,7 @@ import pytest
 import scipy.integrate
 import scipy.linalg
 
-from rt_ident.errors import ConfigError, DataError
-from rt_ident.integrators import (
+from rt_ident.axis.integrators import (
     INTEGRATORS,
     Houbolt,
     Newmark,
@@ -23,13 +22,14 @@ from rt_ident.integrators import (
     get_integrator,
     zoh_matrices,
 )
-from rt_ident.kernels_sim import (
+from rt_ident.axis.kernels import (
     linear_recursion,
     trajectory_recursion,
     trajectory_recursion_py,
 )
-from rt_ident.model import natural_frequency, state_space
-from rt_ident.params import AxisParams, thomson_x
+from rt_ident.axis.model import natural_frequency, state_space
+from rt_ident.axis.params import AxisParams, thomson_x
+from rt_ident.errors import ConfigError, DataError
 
 P = thomson_x()
 DT_CASE1 = 2.9481e-5  # Table 2, N = 512, k = 10
@@ -316,7 +316,7 @@ def test_newmark_rejects_bad_parameters(kw: dict, field: str) -> None:
 
 
 def test_newmark_warns_only_when_not_unconditionally_stable(caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.WARNING, logger="rt_ident.integrators"):
+    with caplog.at_level(logging.WARNING, logger="rt_ident.axis.integrators"):
         Newmark()
         Newmark(alpha=0.3025, delta=0.6)
         assert not caplog.records

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
+from rt_ident.axis.modal import modal_analysis, modal_parameters
+from rt_ident.axis.model import damping_ratio, natural_frequency, state_space
+from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.errors import EstimationError
-from rt_ident.modal import modal_analysis, modal_parameters
-from rt_ident.model import natural_frequency, damping_ratio, state_space
-from rt_ident.params import AxisParams, thomson_x
 
 
 def test_table1_modal_parameters_to_four_digits():

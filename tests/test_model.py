@@ -1,8 +1,14 @@
 import numpy as np
 
-from rt_ident.model import (damping_matrix, mass_matrix, natural_frequency, damping_ratio, state_space,
-                            stiffness_matrix)
-from rt_ident.params import thomson_x
+from rt_ident.axis.model import (
+    damping_matrix,
+    damping_ratio,
+    mass_matrix,
+    natural_frequency,
+    state_space,
+    stiffness_matrix,
+)
+from rt_ident.axis.params import thomson_x
 
 
 def test_second_order_matrices_match_eq3():

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rt_ident.axis.model import state_space
+from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.errors import ConfigError, DataError, EstimationError
 from rt_ident.estimators.paper import (
     euler_phi,
@@ -15,8 +17,6 @@ from rt_ident.estimators.paper import (
     recover_values,
     state_matrix_from_phi,
 )
-from rt_ident.model import state_space
-from rt_ident.params import AxisParams, thomson_x
 
 DT = 2.9481e-5  # Table 2, N = 512, k = 10
 

@@ -2,8 +2,8 @@ import math
 
 import pytest
 
+from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.errors import ConfigError
-from rt_ident.params import AxisParams, thomson_x
 
 
 def test_thomson_x_matches_table1():

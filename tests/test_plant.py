@@ -1,4 +1,4 @@
-"""Tests of rt_ident.plant: determinism, sensors, saturation, hold loop, travel, reference path."""
+"""Tests of rt_ident.axis.plant: determinism, sensors, saturation, hold loop, travel, reference path."""
 
 from __future__ import annotations
 
@@ -7,11 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from rt_ident.errors import ConfigError, DataError
-from rt_ident.integrators import ZeroOrderHold
-from rt_ident.model import state_space
-from rt_ident.params import thomson_x
-from rt_ident.plant import (
+from rt_ident.axis.integrators import ZeroOrderHold
+from rt_ident.axis.model import state_space
+from rt_ident.axis.params import thomson_x
+from rt_ident.axis.plant import (
     DEFAULT_KD,
     DEFAULT_KP,
     HoldController,
@@ -19,6 +18,7 @@ from rt_ident.plant import (
     PlantSimulator,
     SensorConfig,
 )
+from rt_ident.errors import ConfigError, DataError
 
 P = thomson_x()
 DT1 = 2.9481e-5   # Table 2 case 1

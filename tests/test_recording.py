@@ -12,9 +12,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from drivers.base import SampleBlock
+from rt_ident.axis.params import thomson_x
 from rt_ident.errors import ConfigError, DataError, RtIdentError
-from rt_ident.params import thomson_x
-from rt_ident.recording import (
+from rt_ident.runtime.recording import (
     Recorder,
     RecorderProcess,
     journal_path,

@@ -8,14 +8,13 @@ import math
 import numpy as np
 import pytest
 
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.integrators import Newmark, ZeroOrderHold
+from rt_ident.axis.params import thomson_x
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.registry import (DEFAULT_METHOD, METHODS, IdentData, MethodInfo, identify,
-                                          list_methods)
-from rt_ident.excitation import schroeder_multisine
-from rt_ident.integrators import Newmark, ZeroOrderHold
-from rt_ident.params import thomson_x
-from rt_ident.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.estimators.registry import DEFAULT_METHOD, METHODS, IdentData, MethodInfo, identify, list_methods
 
 
 def _bench_record() -> tuple[IdentData, int]:

@@ -3,9 +3,9 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from rt_ident import paper_tables
 from rt_ident.cli import app
-from rt_ident.reproduce import run_reproduce, sensitivity
+from rt_ident.reports import paper_tables
+from rt_ident.reports.reproduce import run_reproduce, sensitivity
 
 runner = CliRunner()
 

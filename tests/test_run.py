@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rt_ident import config
-from rt_ident.identify import identify_file
-from rt_ident.recording import read_recording
-from rt_ident.run import run
+from rt_ident.reports.identify import identify_file
+from rt_ident.runtime.recording import read_recording
+from rt_ident.runtime.run import run
 
 PARAMS = ("I1", "I2", "B", "K", "wn", "wd", "zeta")
 
@@ -170,7 +170,7 @@ def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_prio
     import subprocess
     import sys
 
-    from rt_ident.run import _keep_off_loop_cpu
+    from rt_ident.runtime.run import _keep_off_loop_cpu
 
     code = "import threading, time\nfor _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\ntime.sleep(30)"
     helper = subprocess.Popen([sys.executable, "-c", code])

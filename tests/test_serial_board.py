@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from drivers import make_backend
-from drivers import serial_protocol as sp
-from drivers.emulated_board import EmulatedBoard, start_emulator_for
+from drivers.encoder_board import protocol as sp
+from drivers.encoder_board.board import SerialBoardBackend
+from drivers.encoder_board.emulator import EmulatedBoard, start_emulator_for
 from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
-from drivers.serial_board import SerialBoardBackend
+from rt_ident.axis.params import thomson_x
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
-from rt_ident.params import thomson_x
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

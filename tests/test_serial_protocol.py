@@ -11,7 +11,7 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers import serial_protocol as sp
+from drivers.encoder_board import protocol as sp
 
 
 def _data_block(n: int, seq0: int = 0, t0: int = 0) -> bytes:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.shm_ring import MessageRing
+from rt_ident.runtime.shm_ring import MessageRing
 
 
 def _msg(i: int, n: int) -> dict[str, np.ndarray]:

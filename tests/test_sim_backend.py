@@ -11,8 +11,8 @@ import drivers
 from drivers.base import State
 from drivers.errors import BackendStateError, TravelLimitTrip
 from drivers.sim import PAPER_DT, SimBackend
+from rt_ident.axis.params import thomson_x
 from rt_ident.errors import ConfigError
-from rt_ident.params import thomson_x
 
 FREE = {"paced": False, "position_hold": False, "samples_per_read": 10}
 

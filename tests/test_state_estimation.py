@@ -1,4 +1,4 @@
-"""Tests for rt_ident.state_estimation: steady-state Kalman velocity/acceleration from quantized angles."""
+"""Tests for rt_ident.estimators.state_estimation: steady-state Kalman velocity/acceleration from quantized angles."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from filterpy.common import Q_continuous_white_noise
 from filterpy.kalman import KalmanFilter
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.state_estimation import (
+from rt_ident.estimators.state_estimation import (
     AxisStateEstimator,
     SteadyStateKalman,
     encoder_quanta,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rt_ident.errors import DataError
-from rt_ident.streaming import _GapFiller
+from rt_ident.estimators.streaming import _GapFiller
 
 
 def test_contiguous_blocks_pass_through_unchanged_and_a_gap_is_interpolated_and_counted():

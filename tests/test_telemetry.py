@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rt_ident import dashboard
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.telemetry import TelemetryConfig, TelemetryProcess, default_sink, viewer_command
+from rt_ident.runtime import dashboard
+from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess, default_sink, viewer_command
 
 
 def _free_port() -> int:

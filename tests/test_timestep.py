@@ -1,4 +1,4 @@
-"""Tests for rt_ident.timestep: Table 2 of the paper and the k search."""
+"""Tests for rt_ident.axis.timestep: Table 2 of the paper and the k search."""
 
 from __future__ import annotations
 
@@ -7,11 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from rt_ident.errors import ConfigError, EstimationError
-from rt_ident.excitation import schroeder_multisine
-from rt_ident.modal import modal_parameters
-from rt_ident.params import thomson_x
-from rt_ident.timestep import (
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.axis.params import thomson_x
+from rt_ident.axis.timestep import (
     TABLE2_PAPER,
     KSearchResult,
     TimeStepCase,
@@ -20,6 +19,7 @@ from rt_ident.timestep import (
     search_k,
     table2_cases,
 )
+from rt_ident.errors import ConfigError, EstimationError
 
 
 @pytest.fixture(scope="module")

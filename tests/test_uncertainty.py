@@ -7,15 +7,23 @@ import math
 import numpy as np
 import pytest
 
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.integrators import Newmark
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.axis.params import thomson_x
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.estimators.consistent import fit_tustin_angles
 from rt_ident.estimators.frequency import Spectra, fit_frequency, transfer
-from rt_ident.estimators.uncertainty import (MAX_REL_HALFWIDTH, MIN_EIG, Z95, covariance_from_jacobian,
-                                             excitation_report, intervals, log_params, modal_jacobian)
-from rt_ident.excitation import schroeder_multisine
-from rt_ident.integrators import Newmark
-from rt_ident.modal import modal_parameters
-from rt_ident.params import thomson_x
-from rt_ident.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.estimators.uncertainty import (
+    MAX_REL_HALFWIDTH,
+    MIN_EIG,
+    Z95,
+    covariance_from_jacobian,
+    excitation_report,
+    intervals,
+    log_params,
+    modal_jacobian,
+)
 
 
 def _periodic_zoh_response(N: int, dt: float, harmonics: np.ndarray, amplitude: float, seed: int):

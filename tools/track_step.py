@@ -16,10 +16,10 @@ import json
 
 import numpy as np
 
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.params import thomson_x
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator
-from rt_ident.excitation import schroeder_multisine
-from rt_ident.params import thomson_x
-from rt_ident.plant import HoldController, PlantSimulator, SensorConfig
 
 
 def track(forgetting: float, step: float, band: float, before: int = 20, after: int = 60, seed: int = 3) -> dict:

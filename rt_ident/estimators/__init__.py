@@ -1,7 +1,8 @@
 """Estimators: batch LS (Eq. 10), recursive LS (Eqs. 14-16) and the paper's Euler regression.
 
-Other estimators live in sibling modules (consistent, frequency, uncertainty, registry) and
-are imported from there directly.
+Other estimators live in sibling modules (consistent, frequency, uncertainty, registry, the
+state estimator, excitation identification) and are imported from there directly.
+:func:`make_streaming` builds the per-sample estimator the real-time loop feeds.
 """
 
 from rt_ident.estimators.ls import LSResult, lstsq
@@ -16,6 +17,7 @@ from rt_ident.estimators.paper import (
     state_matrix_from_phi,
 )
 from rt_ident.estimators.rls import RecursiveLeastSquares, warmup
+from rt_ident.estimators.streaming import make_streaming
 
 __all__ = [
     "LSResult",
@@ -26,6 +28,7 @@ __all__ = [
     "fit_paper_ls",
     "fit_paper_rls",
     "lstsq",
+    "make_streaming",
     "recover_physical",
     "recover_values",
     "state_matrix_from_phi",

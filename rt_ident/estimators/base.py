@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from rt_ident.axis.params import AxisParams
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.params import AxisParams
 
 #: Keys of :attr:`Identification.ci95` and of ``as_dict()["parameters"]``.
 PARAM_KEYS: tuple[str, ...] = ("I1", "I2", "B", "K")

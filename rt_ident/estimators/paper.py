@@ -15,7 +15,7 @@ Columns of the true phi (next theta1, omega1, theta2, omega2)::
 
 The paper prints the T-row entry of the omega1 column as ``Dt``; it must be ``Dt/I1``
 (typo in Eq. 9). It also prints the input column of Eq. (8) as -1/I1; we use +1/I1
-(see :func:`rt_ident.model.state_space`).
+(see :func:`rt_ident.axis.model.state_space`).
 """
 
 from __future__ import annotations
@@ -26,11 +26,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rt_ident.axis.model import state_space
+from rt_ident.axis.params import AxisParams
 from rt_ident.errors import ConfigError, DataError, EstimationError
 from rt_ident.estimators.ls import lstsq
 from rt_ident.estimators.rls import RecursiveLeastSquares
-from rt_ident.model import state_space
-from rt_ident.params import AxisParams
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ X of the Eq. (8) state over one window and the DFT T of the torque samples:
 * ``"tustin"``: trapezoidal rule = Newmark average acceleration (Eqs. 4-6) with the load
   at both ends (the paper's simulations): M = (z-1)I - (dt/2)(z+1)A, N = (dt/2)(z+1)b;
 * ``"tustin_held"``: Newmark with the torque held over the step
-  (rt_ident.plant ``integrator="newmark"``): N = dt b.
+  (rt_ident.axis.plant ``integrator="newmark"``): N = dt b.
 
 ``c`` (real 4-vector) is the exact leakage of a window that is not periodic: the DFT
 of x_k+1 over a window of N samples is z (X + x_N - x_0).

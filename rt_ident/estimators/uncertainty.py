@@ -7,7 +7,7 @@ parameters ``theta = log [I1, I2, B, K]``. Intervals are log-normal,
 ``value * exp(+-1.96 sigma_log)``: they never cross zero and coincide with the
 usual ``value +- 1.96 sigma`` when the relative error is small. Modal parameters
 (wn, wd, zeta) get theirs by propagating the covariance through the Jacobian of
-:func:`rt_ident.modal.modal_parameters`, taken by central differences in log space.
+:func:`rt_ident.axis.modal.modal_parameters`, taken by central differences in log space.
 
 Persistence of excitation
 -------------------------
@@ -41,10 +41,10 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.axis.params import AxisParams
 from rt_ident.errors import EstimationError
 from rt_ident.estimators.base import MODAL_KEYS, PARAM_KEYS, Identification
-from rt_ident.modal import modal_parameters
-from rt_ident.params import AxisParams
 
 logger = logging.getLogger(__name__)
 

@@ -1,0 +1,168 @@
+"""Options of the ``canopen`` backend, validated, and the CAN bus budget check.
+
+The ``[backend]`` table of a run configuration (``name`` and ``emulate`` are
+accepted and ignored). Every error is a :class:`~rt_ident.errors.ConfigError`
+naming the field, e.g. ``backend.sync_rate_hz: 10000 Hz needs ...``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.cia402.profile import frame_bits
+from rt_ident.axis.params import CONFIG_DIR
+from rt_ident.errors import ConfigError
+
+#: Data bytes of the PDOs this backend maps (see drivers.cia402.drive): RPDO1 = controlword (2) +
+#: target torque (2); TPDO1 = statusword (2) + position actual (4) + torque actual (2);
+#: TPDO2 = the 32-bit table scale object (4). The SYNC carries no counter (0 bytes).
+SYNC_BYTES = 0
+RPDO_BYTES = (4,)
+TPDO_BYTES = (8, 4)
+HEARTBEAT_BYTES = 1
+
+
+class Cia402Config(BaseModel):
+    """Options of :class:`drivers.cia402.drive.Cia402Backend` (units in the comments)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: Optional[str] = None                      # registry name, ignored here
+    emulate: bool = False                           # read by the loop, ignored here
+    # python-can bus (python-can's own option names)
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int = Field(1_000_000, gt=0, le=1_000_000)    # bit/s (CAN 2.0: at most 1 Mbit/s)
+    port: Optional[int] = Field(None, ge=1, le=65535)      # udp_multicast only
+    bus_options: dict[str, Any] = Field(default_factory=dict)  # further can.Bus keyword arguments
+    # CANopen
+    node_id: int = Field(..., ge=1, le=127)
+    master_node_id: int = Field(127, ge=1, le=127)  # node id of this host's heartbeat (0x700 + id)
+    eds: str = "cia402_generic.eds"                  # path; a bare relative name is also looked up in configs/
+    sync_rate_hz: float = Field(1000.0, gt=0)       # SYNC rate = sample rate
+    max_bus_load: float = Field(0.8, gt=0, le=0.95)  # refuse rates whose worst-case load exceeds this
+    # torque
+    torque_limit: float = Field(..., gt=0)          # N m, host-side clamp (drivers.base)
+    rated_torque: Optional[float] = Field(None, gt=0)  # N m; None: read 0x6076 (mN m) from the drive
+    max_torque_permille: Optional[int] = Field(None, ge=1, le=65535)  # 0x6072; None: from torque_limit
+    # positions
+    counts_per_rev: int = Field(..., gt=0)          # motor encoder (0x6064) counts per revolution
+    scale_index: int = Field(0x60E4, ge=0x1000, le=0xFFFF)  # table linear scale object
+    scale_subindex: int = Field(1, ge=0, le=255)
+    scale_resolution: float = Field(..., gt=0)      # m per scale count
+    lead: float = Field(7.96e-4, gt=0)              # m/rad: theta2 = x / lead
+    # supervision
+    heartbeat_ms: int = Field(100, ge=1, le=65535)  # producer time of the drive (0x1017) and of this host
+    heartbeat_consumer_ms: Optional[int] = Field(None, ge=1, le=65535)  # None: 3 x heartbeat_ms
+    sdo_timeout: float = Field(0.5, gt=0, le=10)    # s per SDO request
+    stale_limit: int = Field(10, ge=1)              # consecutive samples without fresh TPDO data tolerated
+    stuck_torque_min: Optional[float] = Field(None, ge=0)  # N m applied + frozen encoder = stuck; None: 5 %
+    #                                                       of torque_limit
+    startup_timeout: float = Field(2.0, gt=0, le=60)  # s from NMT OPERATIONAL to OPERATION ENABLED
+    stop_timeout: float = Field(0.2, gt=0, le=5)    # s per safe-stop step (quick stop, disable)
+    # the SYNC sender thread waits for the GIL at each deadline for up to the interpreter's switch
+    # interval; while active the backend lowers it to this (restored when the SYNCs stop); None: untouched
+    gil_switch_interval_us: Optional[float] = Field(50.0, ge=5, le=5000)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "Cia402Config":
+        if not math.isfinite(self.torque_limit):
+            raise ValueError("torque_limit must be finite for a CANopen drive")
+        if self.scale_index == 0x60E4 and self.scale_subindex == 0:
+            raise ValueError("scale_subindex 0 of 0x60E4 is the entry count, not a position")
+        if self.heartbeat_consumer_ms is not None and self.heartbeat_consumer_ms <= self.heartbeat_ms:
+            raise ValueError("heartbeat_consumer_ms must exceed heartbeat_ms")
+        return self
+
+    # -- derived values ------------------------------------------------------------------
+    @property
+    def consumer_ms(self) -> int:
+        return self.heartbeat_consumer_ms or 3 * self.heartbeat_ms
+
+    @property
+    def sample_period(self) -> float:
+        return 1.0 / self.sync_rate_hz
+
+    @property
+    def stuck_torque(self) -> float:
+        return self.stuck_torque_min if self.stuck_torque_min is not None else 0.05 * self.torque_limit
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for ``can.Bus``."""
+        kw: dict[str, Any] = {"interface": self.interface, "channel": self.channel, "bitrate": self.bitrate}
+        if self.port is not None:
+            kw["port"] = self.port
+        kw.update(self.bus_options)
+        return kw
+
+    def eds_path(self) -> Path:
+        """The EDS file; a relative path that does not exist is looked up in ``configs/``."""
+        p = Path(self.eds)
+        if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p).is_file():
+            p = CONFIG_DIR / p
+        if not p.is_file():
+            raise ConfigError("backend.eds", f"EDS file not found: {self.eds} (also looked in {CONFIG_DIR})")
+        return p
+
+
+@dataclass(frozen=True)
+class BusBudget:
+    """Worst-case CAN load of the cyclic traffic at a SYNC rate."""
+
+    frames_per_sync: int
+    bits_per_sync: int          # worst case, bit stuffing included
+    background_bps: float       # heartbeats
+    required_bps: float
+    bitrate: int
+
+    @property
+    def load(self) -> float:
+        return self.required_bps / self.bitrate
+
+    def max_rate(self, max_load: float) -> float:
+        return max(0.0, (max_load * self.bitrate - self.background_bps) / self.bits_per_sync)
+
+
+def bus_budget(sync_rate_hz: float, bitrate: int, heartbeat_ms: int = 100) -> BusBudget:
+    """Load of SYNC + RPDO1 + TPDO1 + TPDO2 per SYNC plus two heartbeats per ``heartbeat_ms``."""
+    sizes = (SYNC_BYTES, *RPDO_BYTES, *TPDO_BYTES)
+    bits = sum(frame_bits(n) for n in sizes)
+    background = 2 * frame_bits(HEARTBEAT_BYTES) * 1000.0 / heartbeat_ms
+    return BusBudget(len(sizes), bits, background, bits * sync_rate_hz + background, bitrate)
+
+
+def check_bus_budget(cfg: Cia402Config) -> BusBudget:
+    """Refuse a SYNC rate the bit rate cannot carry (worst-case stuffing, with the ``max_bus_load`` margin)."""
+    b = bus_budget(cfg.sync_rate_hz, cfg.bitrate, cfg.heartbeat_ms)
+    if b.load > cfg.max_bus_load:
+        raise ConfigError(
+            "backend.sync_rate_hz",
+            f"{cfg.sync_rate_hz:g} Hz needs {b.required_bps:,.0f} bit/s = {100 * b.load:.1f} % of the "
+            f"{cfg.bitrate:,} bit/s bus ({b.frames_per_sync} frames per SYNC, {b.bits_per_sync} bits worst "
+            f"case with bit stuffing, plus heartbeats); the limit is {100 * cfg.max_bus_load:.0f} % "
+            f"(max_bus_load), i.e. at most {b.max_rate(cfg.max_bus_load):.0f} Hz at this bit rate")
+    return b
+
+
+def validate(config: Mapping[str, Any] | None) -> Cia402Config:
+    """Validate the ``[backend]`` options and the bus budget; errors name the field."""
+    try:
+        cfg = Cia402Config.model_validate(dict(config or {}))
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
+        msg = err["msg"].removeprefix("Value error, ")
+        raise ConfigError(f"backend.{loc}" if loc else "backend", msg) from None
+    if cfg.torque_limit > 32.767 * (cfg.rated_torque or math.inf):
+        raise ConfigError("backend.torque_limit", f"{cfg.torque_limit} N m exceeds the int16 per-mille range "
+                          f"of 0x6071 (32.767 x rated_torque = {32.767 * cfg.rated_torque:g} N m)")
+    check_bus_budget(cfg)
+    return cfg
+
+
+__all__ = ["Cia402Config", "BusBudget", "bus_budget", "check_bus_budget", "validate"]

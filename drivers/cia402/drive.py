@@ -1,0 +1,337 @@
+"""CiA 402 servo drive over CANopen in cyclic synchronous torque mode (registry name ``"canopen"``).
+
+Start-up (``open()``): python-can bus + ``canopen.Network``, a ``RemoteNode`` with the
+EDS, NMT PRE-OPERATIONAL, probe 0x1000 (no answer -> :class:`DeviceConnectionError`),
+PDO mapping by SDO (RPDO1 = controlword 0x6040 + target torque 0x6071; TPDO1 =
+statusword 0x6041 + position actual 0x6064 + torque actual 0x6077; TPDO2 = the table
+scale object, default 0x60E4:01; transmission type 1 = every SYNC), modes of operation
+0x6060 = 10 verified on 0x6061, drive torque limit 0x6072, heartbeats 0x1017/0x1016.
+``activate()``: NMT OPERATIONAL, SYNC sender running, controlword walks the 402 state
+machine to OPERATION ENABLED, confirmed by the statusword within ``startup_timeout``.
+
+Every ``read()`` returns the samples of the SYNCs since the last call (see
+:mod:`drivers.cia402.stream`), after checking EMCY, heartbeat age and the sender.
+Units: theta1 = counts 2 pi / counts_per_rev; theta2 = (scale counts * scale_resolution)
+/ lead; torques per mille of the rated torque. ``t`` is the host's monotonic time of the
+SYNC that sampled the data, relative to the first delivered sample (the drive has no
+clock in its PDOs); ``seq`` counts SYNC periods from 0 at activation.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import struct
+import sys
+import time
+from typing import Any, Mapping
+
+import numpy as np
+
+from drivers.base import Backend, SampleBlock
+from drivers.cia402 import profile as p402
+from drivers.cia402.config import Cia402Config, validate
+from drivers.cia402.setup import NodeSetup
+from drivers.cia402.stream import ECHO, SampleAssembler, SyncSender, TorquePlan
+from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
+
+log = logging.getLogger(__name__)
+
+_TWO_PI = 2.0 * math.pi
+
+
+class Cia402Backend(Backend):
+    """A CiA 402 drive streaming motor encoder, table scale and torque at the SYNC rate."""
+
+    name = "canopen"
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        cfg: Cia402Config = validate(config)
+        super().__init__({"torque_limit": cfg.torque_limit})
+        self.config = cfg
+        self._setup: NodeSetup | None = None
+        self._deque: collections.deque = collections.deque(maxlen=max(8192, int(8 * cfg.sync_rate_hz)))
+        self._plan = TorquePlan()
+        self._sender: SyncSender | None = None
+        self._asm: SampleAssembler | None = None
+        self.rated_torque = cfg.rated_torque or math.nan
+        self._k0 = 0                  # SYNC index of seq 0
+        self._t0 = 0.0
+        self._next_seq = 0            # seq expected next (for the lost count)
+        self._emcy: tuple[int, int] | None = None
+        self._hb_time = 0.0           # monotonic time of the last heartbeat of the drive
+        self._hb_state = 0
+        self._hb_operational = False  # a heartbeat reported OPERATIONAL since NMT start was sent
+        self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
+        self.statusword = 0
+        self._switch_interval: float | None = None   # the interpreter's, while the SYNC sender runs
+
+    # ----- properties -------------------------------------------------------------------
+    @property
+    def sample_period(self) -> float:
+        return self.config.sample_period
+
+    @property
+    def has_measured_torque(self) -> bool:
+        return True
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Stale/late/corrupt samples and frames, unchanged encoder samples, SYNC overruns, late plan values."""
+        a, s = self._asm, self._sender
+        io = self._setup.io if self._setup is not None else None
+        return {"stale": a.stale if a else 0, "ambiguous": a.ambiguous if a else 0,
+                "late": a.late if a else 0, "corrupt": a.corrupt if a else 0,
+                "unchanged": a.unchanged if a else 0, "sync_sent": s.sent if s else 0,
+                "sync_echoes": a.echoes if a else 0, "sync_overruns": s.overruns if s else 0,
+                "send_errors": s.send_errors if s else 0, "late_plan_samples": self._plan.late,
+                "rx_dropped": io.dropped if io else 0,
+                "max_latency_us": int(1e6 * a.max_latency) if a else 0}
+
+    # ----- light callbacks (python-can's receive thread: no work, never raise) ----------
+    def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._deque.append((can_id, timestamp, bytes(data)))      # FrameIO: host monotonic arrival time
+
+    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._hb_time = time.monotonic()
+        state = data[0] & 0x7F if data else 0
+        self._hb_state = state
+        if state == 5:
+            self._hb_operational = True
+            self._hb_not_operational = 0
+        elif self._hb_operational:
+            self._hb_not_operational += 1
+
+    def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._deque.append((ECHO, timestamp))
+
+    def _on_emcy(self, entry) -> None:
+        if entry.code & 0xFF00 and self._emcy is None:
+            self._emcy = (entry.code, entry.register)
+
+    # ----- unit conversions -------------------------------------------------------------
+    def _torque_to_permille(self, torque: float) -> tuple[int, float]:
+        pm = int(round(torque * 1000.0 / self.rated_torque))
+        pm = max(-32768, min(32767, pm))
+        return pm, pm * self.rated_torque / 1000.0
+
+    # ----- lifecycle hooks --------------------------------------------------------------
+    def _open(self) -> None:
+        cfg = self.config
+        setup = NodeSetup(cfg, on_tpdo=self._on_tpdo, on_heartbeat=self._on_heartbeat, on_emcy=self._on_emcy,
+                          on_sync_echo=self._on_sync_echo)
+        self._setup = setup
+        try:
+            setup.connect()
+            self.rated_torque = setup.configure()
+        except BaseException:
+            setup.teardown(drive_consumer_off=False)
+            self._setup = None
+            raise
+        self._asm = SampleAssembler(setup.tpdo_layouts, cfg.stale_limit,
+                                    cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo)
+        self._hb_time = time.monotonic()
+
+    def _activate(self) -> None:
+        cfg, setup = self.config, self._setup
+        assert setup is not None and self._asm is not None
+        self._plan.hold(0.0)
+        sender = SyncSender(setup.send, cfg.sample_period, self._deque, self._plan, self._torque_to_permille,
+                            rpdo_cob=setup.rpdo_cob)
+        sender.controlword = p402.CW_SHUTDOWN
+        self._sender = sender
+        try:
+            # Heartbeats sent before the drive saw NMT start may still be queued (python-can's cyclic
+            # sender also sends missed heartbeats in a burst after a stall, e.g. while this process
+            # was being locked in memory): only a heartbeat after one reporting OPERATIONAL counts.
+            self._hb_operational = False
+            self._hb_not_operational = 0
+            if setup.echo:          # bus order is in the socket: read it in this thread, no GIL contention
+                setup.receive_in_caller()
+            setup.nmt_operational()
+            self._hb_time = time.monotonic()
+            if cfg.gil_switch_interval_us is not None and self._switch_interval is None:
+                self._switch_interval = sys.getswitchinterval()
+                sys.setswitchinterval(min(self._switch_interval, 1e-6 * cfg.gil_switch_interval_us))
+            sender.start()
+            self._enable(sender)
+        except BaseException:
+            self._stop_drive()
+            raise
+        # samples from here on are delivered; seq 0 is the next SYNC
+        self._asm.reset_counters()
+        self._asm.take_rows()
+        self._k0 = sender.next_index
+        self._asm.first_k = self._k0
+        self._next_seq = 0
+        self._t0 = time.monotonic()
+
+    def _enable(self, sender: SyncSender) -> None:
+        """Walk the 402 state machine by controlword until the statusword says OPERATION ENABLED."""
+        cfg, asm = self.config, self._asm
+        deadline = time.monotonic() + cfg.startup_timeout
+        resets, toggle_at = 0, 0.0
+        hold = max(0.02, 10 * cfg.sample_period)    # each controlword long enough for several SYNCs
+        while True:
+            self._setup.pump()
+            asm.feed(self._deque, deliver=False)
+            self._check_emcy_heartbeat(startup=True)
+            sw = asm.statusword
+            state = p402.decode_state(sw) if sw is not None else None
+            if state == p402.OPERATION_ENABLED and self._hb_operational:
+                self.statusword = sw
+                log.info("canopen: node %d in OPERATION ENABLED (statusword 0x%04X)", cfg.node_id, sw)
+                return
+            if state == p402.FAULT:
+                # fault reset = rising edge of bit 7: hold 0x80, then 0x00, each for `hold` seconds
+                if time.monotonic() >= toggle_at:
+                    toggle_at = time.monotonic() + hold
+                    if sender.controlword & p402.CW_FAULT_RESET:
+                        sender.controlword = p402.CW_DISABLE_VOLTAGE
+                    else:
+                        resets += 1
+                        if resets > 3:
+                            raise DeviceFault(f"node {cfg.node_id} stays in FAULT after {resets - 1} fault resets "
+                                              f"(statusword 0x{sw:04X})")
+                        log.warning("canopen: node %d in FAULT at start-up; sending fault reset", cfg.node_id)
+                        sender.controlword = p402.CW_FAULT_RESET
+            elif state is not None:
+                sender.controlword = p402.next_controlword(state, sender.controlword)
+            if time.monotonic() > deadline:
+                if sw is None:
+                    raise DeviceTimeout(
+                        f"no TPDO from node {cfg.node_id} within startup_timeout {cfg.startup_timeout:g} s after "
+                        f"NMT OPERATIONAL ({sender.sent} SYNCs sent, {asm.frames_seen} TPDO frames received)")
+                if state == p402.OPERATION_ENABLED:
+                    raise DeviceTimeout(
+                        f"node {cfg.node_id} is in OPERATION ENABLED but its heartbeat did not report NMT "
+                        f"OPERATIONAL within startup_timeout {cfg.startup_timeout:g} s (last state "
+                        f"{self._hb_state})")
+                raise DeviceTimeout(
+                    f"node {cfg.node_id} did not reach OPERATION ENABLED within startup_timeout "
+                    f"{cfg.startup_timeout:g} s: state {state} (statusword 0x{sw:04X})")
+            time.sleep(cfg.sample_period)
+
+    def _check_emcy_heartbeat(self, startup: bool = False) -> None:
+        cfg = self.config
+        if self._emcy is not None:
+            code, reg = self._emcy
+            raise DeviceFault(f"node {cfg.node_id} sent {p402.emcy_text(code)}, error register 0x{reg:02X}")
+        age = time.monotonic() - self._hb_time
+        if age > cfg.consumer_ms / 1000.0:
+            raise DeviceFault(f"no heartbeat from node {cfg.node_id} for {age:.3f} s (consumer time "
+                              f"{cfg.consumer_ms} ms, producer {cfg.heartbeat_ms} ms)")
+        if not startup and self._hb_not_operational:
+            raise DeviceFault(f"node {cfg.node_id} left NMT OPERATIONAL (heartbeat state {self._hb_state})")
+        s = self._sender
+        if s is not None and s.consecutive_errors >= 10:
+            raise DeviceConnectionError(f"CAN send failing on {cfg.interface}:{cfg.channel}: {s.last_error} "
+                                        f"({s.send_errors} errors)")
+        io = self._setup.io if self._setup is not None else None
+        if io is not None and io.dropped:
+            raise ProtocolError(f"{io.dropped} frames dropped by this host's receive buffer on "
+                                f"{cfg.interface}:{cfg.channel}; samples can no longer be matched to SYNCs")
+
+    def _read(self) -> SampleBlock:
+        asm = self._asm
+        self._setup.pump()
+        self._check_emcy_heartbeat()
+        asm.feed(self._deque, deliver=True)
+        rows = asm.take_rows()
+        n = len(rows["k"])
+        if n == 0:
+            return SampleBlock.empty(with_measured=True)
+        sw = rows["sw"]
+        for i, word in enumerate(sw):
+            if p402.decode_state(word) != p402.OPERATION_ENABLED:
+                self.statusword = word
+                raise DeviceFault(f"node {self.config.node_id} left OPERATION ENABLED: state "
+                                  f"{p402.decode_state(word)} (statusword 0x{word:04X})")
+        self.statusword = sw[-1]
+        cfg = self.config
+        seq = np.asarray(rows["k"], dtype=np.int64) - self._k0
+        lost = int(seq[-1] - self._next_seq + 1 - n)
+        self._next_seq = int(seq[-1]) + 1
+        theta1 = np.asarray(rows["pos"], dtype=float) * (_TWO_PI / cfg.counts_per_rev)
+        theta2 = np.asarray(rows["scale"], dtype=float) * (cfg.scale_resolution / cfg.lead)
+        tq = np.asarray(rows["tq"], dtype=float) * (self.rated_torque / 1000.0)
+        t = np.asarray(rows["t"]) - self._t0
+        return SampleBlock(t, seq, theta1, theta2, np.asarray(rows["cmd"], dtype=float), tq, lost=max(lost, 0))
+
+    def _write_hold(self, torque: float) -> None:
+        self._plan.hold(torque)
+
+    def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
+        self._plan.plan(torques, start_seq + self._k0)
+
+    def _wait_state(self, accept: tuple[str, ...], timeout: float) -> bool:
+        """Poll the TPDO stream (not delivering samples) until the drive reports one of ``accept``."""
+        end = time.monotonic() + timeout
+        asm = self._asm
+        while True:
+            try:
+                self._setup.pump()
+                asm.feed(self._deque, deliver=False)
+            except DriverError:
+                pass
+            sw = asm.statusword
+            if sw is not None and p402.decode_state(sw) in accept:
+                self.statusword = sw
+                return True
+            if time.monotonic() > end:
+                return False
+            time.sleep(self.config.sample_period)
+
+    def _stop_drive(self) -> None:
+        """Quick stop, torque 0, disable voltage, stop SYNC. Bounded in time; never raises."""
+        cfg, sender = self.config, self._sender
+        self._plan.hold(0.0)
+        if sender is None:          # never activated: the drive was not enabled by us
+            return
+        if not sender.running:
+            self._sdo_disable()
+            return
+        try:
+            asm = self._asm
+            asm.statusword = None       # only answers to the stop commands count
+            sender.controlword = p402.CW_QUICK_STOP
+            if not self._wait_state((p402.QUICK_STOP_ACTIVE, p402.SWITCH_ON_DISABLED, p402.FAULT),
+                                    cfg.stop_timeout):
+                log.warning("canopen: node %d did not confirm quick stop within %.3f s",
+                            cfg.node_id, cfg.stop_timeout)
+            sender.controlword = p402.CW_DISABLE_VOLTAGE
+            if not self._wait_state((p402.SWITCH_ON_DISABLED, p402.FAULT), cfg.stop_timeout):
+                log.warning("canopen: node %d did not confirm disable voltage within %.3f s",
+                            cfg.node_id, cfg.stop_timeout)
+        finally:
+            sender.stop()
+            self._restore_switch_interval()
+            self._setup.receive_in_thread()     # SDO (close) needs a receiver again
+            self._deque.clear()
+
+    def _restore_switch_interval(self) -> None:
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None
+
+    def _sdo_disable(self) -> None:
+        """Without a running SYNC stream, write the controlword by SDO (best effort)."""
+        if self._setup is not None:
+            self._restore_switch_interval()
+            self._setup.receive_in_thread()     # SDO needs a receiver
+            self._setup.try_download(p402.CONTROLWORD, 0, struct.pack("<H", p402.CW_DISABLE_VOLTAGE))
+
+    def _safe_stop(self) -> None:
+        self._stop_drive()
+
+    def _close(self) -> None:
+        if self._sender is not None:
+            self._sender.stop()
+        self._restore_switch_interval()
+        if self._setup is not None:
+            self._setup.teardown(drive_consumer_off=True)
+            self._setup = None
+
+
+__all__ = ["Cia402Backend"]

@@ -1,0 +1,489 @@
+"""An emulated CiA 402 servo drive on a python-can bus, built on ``canopen.LocalNode``.
+
+The drive answers SDO and NMT through ``LocalNode``; everything ``LocalNode`` does
+not do is done here: the 402 power state machine driven by the controlword,
+synchronous RPDOs applied at each SYNC, TPDOs sent on SYNC, the heartbeat consumer
+(loss of the master's heartbeat -> fault, torque 0, EMCY 0x8130) and EMCY on faults.
+On each SYNC in NMT OPERATIONAL the plant (:class:`rt_ident.axis.plant.PlantSimulator`)
+advances one sample with the last target torque if OPERATION ENABLED, else with zero.
+TPDOs carry the measurement taken at that SYNC (the plant measures at the start of
+the sample) and the torque applied from that SYNC on.
+
+Threads: the receive thread (:class:`drivers.cia402.frames.FrameIO`) runs the SDO
+server, stores RPDO data and does the per-SYNC work (like a drive's SYNC interrupt: the
+shortest answer latency); housekeeping (delayed frames, heartbeat watch) runs every 2 ms,
+in a worker thread or - when the receive thread polls - between its polls. One lock
+guards the state. On ``udp_multicast`` the receive thread polls every ``poll_s`` (100 us)
+instead of blocking: see :class:`~drivers.cia402.frames.FrameIO`.
+
+Synchronous window (CiA 301): TPDOs answering a SYNC are sent only if no later SYNC
+was read with it - a late answer would land in the next SYNC's window and be taken
+for that sample. The plant still advances; the master sees a stale sample
+(:attr:`late_syncs` counts them).
+
+Works on the ``virtual`` bus (in-process) and ``udp_multicast`` (across processes;
+needs msgpack). CLI: ``python -m drivers.cia402.emulator --config configs/canopen-virtual.toml``;
+:class:`rt_ident.runtime.emulation.EmulatorProcess` runs it in a child process.
+"""
+
+from __future__ import annotations
+
+import collections
+import heapq
+import logging
+import math
+import random
+import struct
+import threading
+import time
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import can
+import canopen
+import numpy as np
+
+from drivers.cia402 import profile as p402
+from drivers.cia402.faults import FaultConfig
+from drivers.cia402.frames import FrameIO, stop_periodic
+from drivers.cia402.local_pdo import PdoLayout, check_mapping_write, od_value, pdo_layouts
+from rt_ident.axis.plant import PlantSimulator
+
+log = logging.getLogger(__name__)
+
+_QUICK_STOP_OPTION = 0x605A
+_ANSWER_BINS_US = (100, 200, 300, 500, 1000, 2000, float("inf"))   # upper edges of the answer-time bins
+_PROCESS = (p402.CONTROLWORD, p402.TARGET_TORQUE, p402.MAX_TORQUE, p402.MODES_OF_OPERATION, 0x60B2,
+            _QUICK_STOP_OPTION)
+
+
+def _count(hist: list[int], seconds: float) -> None:
+    us = 1e6 * seconds
+    hist[next(i for i, edge in enumerate(_ANSWER_BINS_US) if us < edge)] += 1
+
+
+def _int32(v: int) -> int:
+    return ((v + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+
+
+def _int16(v: float) -> int:
+    return max(-32768, min(32767, int(round(v))))
+
+
+class EmulatedCia402Drive:
+    """A CiA 402 drive in cyclic synchronous torque mode around a simulated axis.
+
+    ``bus``: ``can.Bus`` keyword arguments (``interface``, ``channel``, ``bitrate``, ``port``...).
+    ``poll_s``: receive-thread poll period (:class:`~drivers.cia402.frames.FrameIO`); ``"auto"``:
+    100 us on ``udp_multicast``, blocking otherwise.
+    Constructing does no I/O; :meth:`start` goes on the bus, :meth:`stop` leaves it
+    (also a context manager). For tests: :attr:`state` (402 state name),
+    :attr:`applied_torque` [N m], :attr:`enabled`, :attr:`samples` (SYNCs in OPERATION ENABLED),
+    :attr:`emcy_codes` (EMCYs sent).
+    """
+
+    def __init__(self, node_id: int, eds_path: str | Path, bus: Mapping[str, Any], plant: PlantSimulator,
+                 faults: FaultConfig = FaultConfig(), *, counts_per_rev: int = 2**17,
+                 scale_resolution: float = 1e-7, scale_index: int = 0x60E4, scale_subindex: int = 1,
+                 rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto") -> None:
+        if not 1 <= int(node_id) <= 127:
+            raise ValueError(f"node_id must be 1..127, got {node_id!r}")
+        self.node_id = int(node_id)
+        self.eds_path = Path(eds_path)
+        self.bus_kwargs = dict(bus)
+        self.plant = plant
+        self.faults = faults
+        self.counts_per_rev = int(counts_per_rev)
+        self.scale_resolution = float(scale_resolution)
+        self.scale_key = (int(scale_index), int(scale_subindex))
+        self._rated_override = rated_torque
+        self.rated_torque = rated_torque or 0.0
+        self._controller = plant.controller
+        # receive thread: poll on udp_multicast (another process: keep its vCPU awake), block in-process
+        if poll_s == "auto":
+            poll_s = 1e-4 if self.bus_kwargs.get("interface") == "udp_multicast" else None
+        self.poll_s: float | None = poll_s
+        self._io: FrameIO | None = None
+        self._in_window = True        # the SYNC being handled is the last one read (its answer is on time)
+        self._pending: collections.deque = collections.deque()   # frames read, not yet handled
+        self._next_housekeeping = 0.0
+        self._net: canopen.Network | None = None
+        self._node: canopen.LocalNode | None = None
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._rng = random.Random(faults.seed)
+        # drive state (guarded by _lock: the receive thread and the worker both touch it)
+        self._state = p402.NOT_READY
+        self._prev_cw = 0
+        self._values: dict[tuple[int, int], int] = {}
+        self._rpdo_data: dict[int, bytes] = {}
+        self._rpdos: list[PdoLayout] = []
+        self._tpdos: list[PdoLayout] = []
+        self._pdo_dirty = True
+        self._syncs = 0
+        self._qs_samples = 0
+        self._delayed: list[tuple[float, int, int, bytes]] = []
+        self._delay_n = 0
+        self._stuck_counts: int | None = None
+        self._t_enabled: float | None = None
+        self._hb_stopped = False
+        self._master: tuple[int, int] = (0, 0)    # (node id, consumer time ms)
+        self._master_hb: float | None = None
+        self._master_lost = False
+        self.applied_torque = 0.0
+        self.samples = 0
+        self.emcy_codes: list[int] = []
+        self.frames_sent = 0
+        self.garbage_frames = 0
+        self.rpdo_length_errors = 0
+        self.late_syncs = 0           # SYNCs answered by no TPDO: a later SYNC had already arrived
+        self._sync_t = 0.0            # arrival time of the SYNC being handled
+        self.answer_us = [0] * len(_ANSWER_BINS_US)   # SYNC arrival -> TPDOs sent, histogram
+        self.pickup_us = [0] * len(_ANSWER_BINS_US)   # SYNC arrival -> its handling starts, histogram
+
+    # ----- public view ------------------------------------------------------------------
+    @property
+    def state(self) -> str:
+        return self._state
+
+    @property
+    def enabled(self) -> bool:
+        return self._state == p402.OPERATION_ENABLED
+
+    @property
+    def nmt_state(self) -> str:
+        return self._node.nmt.state if self._node is not None else "INITIALISING"
+
+    def stats(self) -> dict[str, Any]:
+        """State and counters for a report: 402 state, applied torque, samples, late SYNCs, answer times
+        (SYNC arrival -> TPDOs sent)."""
+        edges = [f"<{e:g}us" for e in _ANSWER_BINS_US[:-1]] + [f">={_ANSWER_BINS_US[-2]:g}us"]
+        with self._lock:
+            return {"state": self._state, "enabled": self.enabled, "applied_torque": self.applied_torque,
+                    "nmt_state": self.nmt_state, "samples": self.samples, "syncs": self._syncs,
+                    "late_syncs": self.late_syncs, "frames_sent": self.frames_sent,
+                    "emcy_codes": list(self.emcy_codes), "pickup_time": dict(zip(edges, self.pickup_us)),
+                    "answer_time": dict(zip(edges, self.answer_us))}
+
+    # ----- lifecycle --------------------------------------------------------------------
+    def start(self) -> "EmulatedCia402Drive":
+        if self._net is not None:
+            return self
+        self.plant.step_block(np.empty(0))            # compile the plant kernel before going on the bus
+        od = canopen.import_od(str(self.eds_path), self.node_id)
+        bus = can.Bus(**self.bus_kwargs)
+        net = canopen.Network(bus)
+        node = canopen.LocalNode(self.node_id, od)
+        if self._rated_override:
+            node.data_store.setdefault(p402.RATED_TORQUE, {})[0] = struct.pack(
+                "<I", int(round(self._rated_override * 1000)))
+        self.rated_torque = od_value(node, p402.RATED_TORQUE) / 1000.0
+        self._supported = od_value(node, p402.SUPPORTED_MODES)
+        for key in ((p402.MAX_TORQUE, 0), (p402.MODES_OF_OPERATION, 0), (_QUICK_STOP_OPTION, 0)):
+            self._values[key] = od_value(node, *key)
+        self._values.update({(p402.CONTROLWORD, 0): 0, (p402.TARGET_TORQUE, 0): 0, (0x60B2, 0): 0,
+                             (p402.MODES_DISPLAY, 0): 0, (p402.ERROR_CODE, 0): 0, (p402.ERROR_REGISTER, 0): 0,
+                             (p402.POSITION_ACTUAL, 0): 0, (p402.TORQUE_ACTUAL, 0): 0, self.scale_key: 0})
+        node.add_write_callback(self._on_write)
+        node.add_read_callback(self._on_read)
+        self._node = node
+        self._net = net
+        net.add_node(node)
+        polling = self.poll_s is not None            # then the receive thread also does the housekeeping
+        self._io = FrameIO(bus, self._on_frames, bus_kwargs=self.bus_kwargs, poll_s=self.poll_s,
+                           send_lock=net.send_lock, name=f"emulated-drive-rx-{self.node_id}",
+                           on_idle=self._idle if polling else None)
+        net.subscribe(0x80, self._on_sync)
+        self._set_state(p402.SWITCH_ON_DISABLED)          # transition 1 after initialisation
+        self._stop.clear()
+        self._io.start()
+        if not polling:
+            self._thread = threading.Thread(target=self._run, name=f"emulated-drive-{self.node_id}",
+                                            daemon=True)
+            self._thread.start()
+        node.nmt.send_command(0x81)                       # reset: boot-up message
+        node.nmt.send_command(0x80)                       # PRE-OPERATIONAL
+        log.info("emulated drive: node %d on %s", self.node_id, self.bus_kwargs)
+        return self
+
+    def stop(self) -> None:
+        """Leave the bus: worker stopped, heartbeat off, network down, torque 0, disabled. Idempotent."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+            self._thread = None
+        if self._net is not None:
+            try:
+                task = getattr(self._node.nmt, "_send_task", None)
+                self._node.nmt.stop_heartbeat()
+                stop_periodic(task)
+                self._io.close()                          # no more callbacks after this
+                self._net.disconnect()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("emulated drive: disconnect failed: %s", exc)
+            self._net = None
+        with self._lock:
+            self.applied_torque = 0.0
+            if self._state in (p402.OPERATION_ENABLED, p402.QUICK_STOP_ACTIVE, p402.SWITCHED_ON):
+                self._set_state(p402.SWITCH_ON_DISABLED)
+
+    def __enter__(self) -> "EmulatedCia402Drive":
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+    # ----- object dictionary ------------------------------------------------------------
+    def _on_read(self, index: int, subindex: int, od: Any) -> int | None:
+        return self._values.get((index, subindex))
+
+    def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        """SDO writes (receive thread): refuse bad PDO mappings, track process values."""
+        with self._lock:
+            self._written(index, subindex, od.decode_raw(data))
+
+    def _written(self, index: int, subindex: int, value: int) -> None:
+        if 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00:
+            check_mapping_write(self._node, index, subindex, value)
+        if 0x1400 <= index < 0x1C00:
+            self._pdo_dirty = True
+        elif index == p402.MODES_OF_OPERATION:
+            self._values[(index, 0)] = value
+            bit = p402.MODE_BITS.get(value)
+            if bit is not None and self._supported >> bit & 1:
+                self._values[(p402.MODES_DISPLAY, 0)] = value
+            else:
+                log.warning("emulated drive: mode %d not supported (0x6502 = 0x%08X); display unchanged",
+                            value, self._supported)
+        elif index == p402.CONSUMER_HEARTBEAT and subindex == 1:
+            self._set_consumer((value >> 16) & 0x7F, value & 0xFFFF)
+        elif index in _PROCESS:
+            self._values[(index, subindex)] = value
+
+    def _set_consumer(self, master_id: int, ms: int) -> None:
+        old = self._master[0]
+        if old and old != master_id:
+            try:
+                self._net.unsubscribe(0x700 + old, self._on_master_heartbeat)
+            except (KeyError, ValueError):
+                pass
+        self._master = (master_id, ms)
+        self._master_hb = None
+        if master_id and ms:
+            self._net.subscribe(0x700 + master_id, self._on_master_heartbeat)
+
+    def _rebuild_pdos(self) -> None:
+        rpdos, tpdos = pdo_layouts(self._node)
+        for lay in self._rpdos:
+            self._net.unsubscribe(lay.cob, self._on_rpdo)
+        for lay in rpdos:
+            self._net.subscribe(lay.cob, self._on_rpdo)
+        self._rpdos, self._tpdos = rpdos, tpdos
+        self._pdo_dirty = False
+
+    # ----- receive-thread callbacks (light) ---------------------------------------------
+    def _on_frames(self, frames: list) -> None:
+        """Frames read in one go, in bus order; a SYNC followed by another one is answered late."""
+        notify, pending = self._net.notify, self._pending
+        pending.extend(frames)
+        while pending:
+            cob, data, t = pending.popleft()
+            if cob == 0x80:
+                self._in_window = not any(f[0] == 0x80 for f in pending)
+            notify(cob, data, t)
+
+    def _still_in_window(self) -> bool:
+        """Last look before answering a SYNC: has the next one arrived meanwhile? (receive thread only)"""
+        if not self._in_window:
+            return False
+        new = self._io.read_now()
+        self._pending.extend(new)
+        self._in_window = not any(f[0] == 0x80 for f in new)
+        return self._in_window
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._sync_t = timestamp
+        _count(self.pickup_us, time.monotonic() - timestamp)
+        with self._lock:
+            try:
+                self._on_sync_work()
+            except Exception:  # noqa: BLE001 - an emulator must survive its own bugs, visibly
+                log.exception("emulated drive: SYNC processing failed")
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._rpdo_data[can_id] = bytes(data)
+
+    def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._master_hb = time.monotonic()
+
+    # ----- worker -----------------------------------------------------------------------
+    def _idle(self) -> None:
+        """Housekeeping from the polling receive thread: every 2 ms, or when a delayed frame is due."""
+        now = time.monotonic()
+        if now < self._next_housekeeping and not (self._delayed and self._delayed[0][0] <= now):
+            return
+        self._next_housekeeping = now + 0.002
+        with self._lock:
+            self._housekeeping()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            timeout = 0.002
+            with self._lock:
+                if self._delayed:
+                    timeout = min(timeout, max(0.0, self._delayed[0][0] - time.monotonic()))
+            if self._stop.wait(timeout):
+                break
+            with self._lock:
+                try:
+                    self._housekeeping()
+                except Exception:  # noqa: BLE001
+                    log.exception("emulated drive: housekeeping failed")
+
+    def _set_state(self, state: str) -> None:
+        if state != self._state:
+            log.debug("emulated drive %d: %s -> %s", self.node_id, self._state, state)
+            if self._state == p402.FAULT and self._node is not None:
+                self._values[(p402.ERROR_CODE, 0)] = 0
+                self._values[(p402.ERROR_REGISTER, 0)] = 0
+                self._node.emcy.reset()
+            if state == p402.QUICK_STOP_ACTIVE:
+                self._qs_samples = 0
+            if state == p402.OPERATION_ENABLED and self._t_enabled is None:
+                self._t_enabled = time.monotonic()
+            self._state = state
+        self._values[(p402.STATUSWORD, 0)] = p402.STATUSWORD_OF[state]
+        if state != p402.OPERATION_ENABLED:
+            self.applied_torque = 0.0
+
+    def _fault(self, code: int, reason: str) -> None:
+        if self._state == p402.FAULT:
+            return
+        log.warning("emulated drive %d: fault %s: %s", self.node_id, p402.emcy_text(code), reason)
+        register = 0x01 | (0x10 if code & 0xFF00 == 0x8100 else 0x02 if code & 0xF000 == 0x2000 else 0)
+        self._values[(p402.ERROR_CODE, 0)] = code
+        self._values[(p402.ERROR_REGISTER, 0)] = register
+        self._set_state(p402.FAULT)
+        self.emcy_codes.append(code)
+        try:
+            self._node.emcy.send(code, register)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("emulated drive: EMCY send failed: %s", exc)
+
+    def _housekeeping(self) -> None:
+        now = time.monotonic()
+        while self._delayed and self._delayed[0][0] <= now:
+            _, _, cob, data = heapq.heappop(self._delayed)
+            self._send(cob, data)
+        master, ms = self._master
+        if master and ms and self._master_hb is not None and not self._master_lost:
+            if now - self._master_hb > ms / 1000.0:
+                self._master_lost = True
+                self._fault(0x8130, f"no heartbeat from node {master} for {now - self._master_hb:.3f} s")
+        elif self._master_lost and self._master_hb is not None and now - self._master_hb < ms / 1000.0:
+            self._master_lost = False
+        f = self.faults
+        if (f.heartbeat_stop_at_s is not None and not self._hb_stopped and self._t_enabled is not None
+                and now - self._t_enabled >= f.heartbeat_stop_at_s):
+            self._hb_stopped = True
+            self._node.nmt.stop_heartbeat()
+            log.warning("emulated drive %d: heartbeat stopped (fault injection)", self.node_id)
+        if self._node.nmt.state != "OPERATIONAL" and self._state in (
+                p402.OPERATION_ENABLED, p402.QUICK_STOP_ACTIVE, p402.SWITCHED_ON):
+            self._set_state(p402.SWITCH_ON_DISABLED)      # communication ended: power stage off
+
+    def _on_sync_work(self) -> None:
+        if self._node.nmt.state != "OPERATIONAL":
+            return
+        if self._pdo_dirty:
+            self._rebuild_pdos()
+        self._syncs += 1
+        v = self._values
+        for lay in self._rpdos:                           # synchronous RPDOs take effect now
+            data = self._rpdo_data.pop(lay.cob, None)
+            if data is None:
+                continue
+            if len(data) != lay.struct.size:
+                self.rpdo_length_errors += 1
+                continue
+            for key, value in zip(lay.keys, lay.struct.unpack(data)):
+                v[key] = value
+        self._step_state_machine(v[(p402.CONTROLWORD, 0)])
+        enabled = self._state == p402.OPERATION_ENABLED
+        torque = 0.0
+        if enabled:
+            limit = v[(p402.MAX_TORQUE, 0)]
+            permille = max(-limit, min(limit, v[(p402.TARGET_TORQUE, 0)] + v[(0x60B2, 0)]))
+            torque = permille * self.rated_torque / 1000.0
+            self.samples += 1
+        self._use_controller(enabled)
+        blk = self.plant.step_block(np.array([torque]))
+        self.applied_torque = float(blk.torque_applied[0]) if enabled else 0.0
+        counts = int(math.floor(float(blk.theta1[0]) * self.counts_per_rev / (2.0 * math.pi) + 0.5))
+        f, n = self.faults, self.samples
+        if f.stuck_encoder_at_sample is not None and n >= f.stuck_encoder_at_sample:
+            if self._stuck_counts is None:
+                self._stuck_counts = v[(p402.POSITION_ACTUAL, 0)]
+            counts = self._stuck_counts
+        x = float(blk.theta2[0]) * self.plant.params.lead
+        v[(p402.POSITION_ACTUAL, 0)] = _int32(counts)
+        v[self.scale_key] = _int32(int(math.floor(x / self.scale_resolution + 0.5)))
+        meas = float(blk.torque_meas[0]) if enabled else 0.0
+        v[(p402.TORQUE_ACTUAL, 0)] = _int16(meas * 1000.0 / self.rated_torque)
+        if enabled and f.emcy_at_sample is not None and n == f.emcy_at_sample:
+            self._fault(f.emcy_code, f"injected at sample {n}")
+        if enabled and self.plant.travel_exceeded:
+            self._fault(0x8612, "table outside its travel")
+        self._set_state(self._state)                      # refresh the statusword
+        self._send_tpdos(enabled, n)
+
+    def _step_state_machine(self, controlword: int) -> None:
+        state = self._state
+        if state == p402.QUICK_STOP_ACTIVE:
+            self._qs_samples += 1
+            if self._qs_samples > 1 and self._values[(_QUICK_STOP_OPTION, 0)] in (0, 1, 2, 3, 4):
+                state = p402.SWITCH_ON_DISABLED           # 12: quick stop done (torque already 0)
+        new = p402.drive_transition(state, controlword, self._prev_cw, self._values[(_QUICK_STOP_OPTION, 0)])
+        self._prev_cw = controlword
+        self._set_state(new)
+
+    def _use_controller(self, enabled: bool) -> None:
+        """The drive's own position loop (if the plant has one) runs only when enabled."""
+        want = self._controller if enabled else None
+        if self.plant.controller is not want:
+            p = self.plant
+            self.plant = PlantSimulator(p.params, p.dt, sensors=p.sensors, controller=want,
+                                        torque_limit=p.torque_limit, travel=p.travel, integrator=p.integrator,
+                                        seed=p.seed + p.sample_index, x0=p.state)
+
+    def _send_tpdos(self, enabled: bool, n: int) -> None:
+        f, v = self.faults, self._values
+        frames = [(lay.cob, lay.struct.pack(*(v.get(k, 0) for k in lay.keys))) for lay in self._tpdos
+                  if lay.trans_type <= 240 and self._syncs % max(lay.trans_type, 1) == 0]
+        if not self._still_in_window():                   # outside the synchronous window: not sent
+            self.late_syncs += 1
+            return
+        frames = f.tpdo_frames(frames, n, enabled)
+        delay = f.tpdo_delay(n, enabled)
+        if delay > 0:
+            for cob, data in frames:
+                self._delay_n += 1
+                heapq.heappush(self._delayed, (time.monotonic() + delay, self._delay_n, cob, data))
+        else:
+            for cob, data in frames:
+                self._send(cob, data)
+            _count(self.answer_us, time.monotonic() - self._sync_t)
+        for cob, data in f.garbage(self._rng):
+            self._send(cob, data)
+            self.garbage_frames += 1
+
+    def _send(self, cob: int, data: bytes) -> None:
+        try:
+            self._io.send(cob, data)
+            self.frames_sent += 1
+        except Exception as exc:  # noqa: BLE001 - the bus may be closing
+            log.debug("emulated drive: send 0x%03X failed: %s", cob, exc)
+
+
+__all__ = ["EmulatedCia402Drive"]

@@ -1,0 +1,163 @@
+"""Configuration and start-up of the emulated CiA 402 drive.
+
+* :class:`EmulatorConfig` - the ``[emulator]`` table; its faults are
+  :class:`drivers.cia402.faults.FaultConfig` (``[emulator.faults]``);
+* :func:`start_emulator_for` - build and start an
+  :class:`~drivers.cia402.emulated_drive.EmulatedCia402Drive`
+  from a run configuration (the ``[backend]``, ``[emulator]`` and ``[axis]`` tables), as the
+  loop does when ``[backend] emulate = true``;
+* :func:`main` - ``python -m drivers.cia402.emulator --config configs/canopen-virtual.toml --port N``
+  runs the drive alone, reachable from other processes on ``udp_multicast`` (the loop starts
+  it in a child process itself: :class:`rt_ident.runtime.emulation.EmulatorProcess`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import tomllib
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from drivers.cia402.emulated_drive import EmulatedCia402Drive
+from drivers.cia402.faults import FaultConfig
+from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
+from rt_ident.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+class EmulatorConfig(BaseModel):
+    """The ``[emulator]`` table (plant and drive options not shared with the backend)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    eds: Optional[str] = None                      # the drive's own EDS; None: the backend's
+    node_id: Optional[int] = Field(None, ge=1, le=127)  # None: the backend's
+    rated_torque: Optional[float] = Field(None, gt=0)   # N m (0x6076); None: backend's or the EDS default
+    position_hold: bool = False                    # a drive-side position loop under the CST torque
+    kp: Optional[float] = Field(None, ge=0)
+    kd: Optional[float] = Field(None, ge=0)
+    angle_noise: float = Field(0.0, ge=0)          # rad rms
+    torque_meas_noise: float = Field(0.0, ge=0)    # N m rms on 0x6077
+    torque_process_noise: float = Field(0.0, ge=0)  # N m rms on the applied torque
+    torque_limit: Optional[float] = Field(None, gt=0)  # N m peak of the power stage; None: backend's limit
+    travel: Optional[tuple[float, float]] = (-0.05, 0.05)  # m on the scale; outside -> fault 0x8612
+    integrator: Literal["zoh", "newmark"] = "zoh"
+    poll_us: Optional[float] = Field(None, ge=0)   # receive poll period; None: 100 us on udp_multicast,
+    #                                                blocking in-process (see drivers.cia402.frames.FrameIO)
+    seed: int = 0
+    faults: dict[str, Any] = Field(default_factory=dict)
+
+
+def _sections(config: Any) -> tuple[dict, dict, AxisParams]:
+    if hasattr(config, "backend") and hasattr(config.backend, "options"):      # rt_ident.config.RunConfig
+        return dict(config.backend.options()), dict(config.emulator), config.axis_params()
+    backend = dict(config.get("backend") or {})
+    axis = config.get("axis")
+    return backend, dict(config.get("emulator") or {}), (
+        AxisParams.from_mapping(axis, where="axis") if axis else thomson_x())
+
+
+def _eds_path(name: str) -> Path:
+    p = Path(name)
+    if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p).is_file():
+        p = CONFIG_DIR / p
+    if not p.is_file():
+        raise ConfigError("emulator.eds", f"EDS file not found: {name}")
+    return p
+
+
+def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
+    """Construct (not start) the emulated drive a run configuration describes."""
+    from drivers.cia402.config import validate
+    from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig
+
+    backend, emulator, axis = _sections(config)
+    cfg = validate(backend)
+    try:
+        emu = EmulatorConfig.model_validate(emulator)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
+        raise ConfigError(f"emulator.{loc}" if loc else "emulator", err["msg"]) from None
+    if abs(axis.lead - cfg.lead) > 1e-12 * axis.lead:
+        log.warning("emulator: axis lead %g differs from backend.lead %g", axis.lead, cfg.lead)
+    sensors = SensorConfig(counts_per_rev=cfg.counts_per_rev, scale_resolution=cfg.scale_resolution,
+                           angle_noise=emu.angle_noise, torque_meas_noise=emu.torque_meas_noise,
+                           torque_process_noise=emu.torque_process_noise)
+    controller = (HoldController(kp=DEFAULT_KP if emu.kp is None else emu.kp,
+                                 kd=DEFAULT_KD if emu.kd is None else emu.kd) if emu.position_hold else None)
+    plant = PlantSimulator(axis, cfg.sample_period, sensors=sensors, controller=controller,
+                           torque_limit=emu.torque_limit or cfg.torque_limit, travel=emu.travel,
+                           integrator=emu.integrator, seed=emu.seed)
+    bus = cfg.bus_kwargs()
+    return EmulatedCia402Drive(emu.node_id or cfg.node_id, _eds_path(emu.eds or cfg.eds), bus, plant,
+                               FaultConfig.from_mapping(emu.faults), counts_per_rev=cfg.counts_per_rev,
+                               scale_resolution=cfg.scale_resolution, scale_index=cfg.scale_index,
+                               scale_subindex=cfg.scale_subindex,
+                               rated_torque=emu.rated_torque or cfg.rated_torque,
+                               poll_s="auto" if emu.poll_us is None else 1e-6 * emu.poll_us)
+
+
+def start_emulator_for(config: Any) -> "EmulatedCia402Drive":
+    """Build and start the emulated drive for a run configuration.
+
+    ``config``: a mapping with ``backend`` (the canopen backend options), optional
+    ``emulator`` (:class:`EmulatorConfig`) and ``axis`` tables, or an
+    :class:`rt_ident.config.RunConfig`. The caller stops it (``drive.stop()``).
+    """
+    return build_emulator_for(config).start()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run an emulated drive until SIGINT/SIGTERM. Prints ``READY node <id>`` once on the bus."""
+    ap = argparse.ArgumentParser(prog="python -m drivers.cia402.emulator", description=__doc__.split("\n")[0])
+    ap.add_argument("--config", required=True, help="run configuration (TOML) with [backend] and [emulator]")
+    ap.add_argument("--interface", help="override backend.interface (e.g. udp_multicast)")
+    ap.add_argument("--channel", help="override backend.channel (e.g. 239.74.163.2)")
+    ap.add_argument("--port", type=int, help="override backend.port (udp_multicast)")
+    ap.add_argument("--log-level", default="WARNING")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    path = Path(args.config)
+    if not path.is_file() and (CONFIG_DIR / path.name).is_file():
+        path = CONFIG_DIR / path.name
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        print(f"error: cannot read {args.config}: {exc}", file=sys.stderr)
+        return 2
+    backend = data.setdefault("backend", {})
+    for key in ("interface", "channel", "port"):
+        if getattr(args, key) is not None:
+            backend[key] = getattr(args, key)
+    if backend.get("interface") == "virtual":
+        log.warning("the virtual bus is in-process only: nothing outside this process can reach this drive")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        drive = start_emulator_for(data)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    where = f"{backend.get('interface')}:{backend.get('channel')}" + (f" port {backend['port']}"
+                                                                      if backend.get("port") else "")
+    print(f"READY node {drive.node_id} on {where}", flush=True)
+    try:
+        while not stop.wait(0.2):
+            pass
+    finally:
+        drive.stop()
+    return 0
+
+
+__all__ = ["EmulatorConfig", "build_emulator_for", "start_emulator_for", "main"]
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,88 @@
+"""Faults the emulated CiA 402 drive injects (the ``[emulator.faults]`` table).
+
+Shared by the drive (:mod:`drivers.cia402.emulated_drive`, which applies them) and its
+launcher (:mod:`drivers.cia402.emulator`, which reads them from a run configuration).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass, fields
+from typing import Any, Mapping, Optional
+
+from rt_ident.errors import ConfigError
+
+# COB-IDs no predefined-connection-set service uses (0x100 is TIME, 0x080-0x0FF SYNC/EMCY)
+_GARBAGE_IDS = tuple(range(0x101, 0x180)) + tuple(range(0x500, 0x580))
+_INT_FAULTS = frozenset({"drop_tpdo_every", "tpdo_faults_from_sample", "corrupt_tpdo_every", "emcy_at_sample",
+                         "emcy_code", "stuck_encoder_at_sample", "garbage_frames_per_sync", "seed"})
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """Faults injected by the emulated drive. Sample numbers count SYNCs in OPERATION ENABLED (from 1).
+
+    tpdo_faults_from_sample: the three TPDO faults below start at this sample (so that the
+        master can see OPERATION ENABLED first).
+    drop_tpdo_every: all TPDOs of every n-th sample are not sent (0: never).
+    delay_tpdo_s: TPDOs leave this much later.
+    corrupt_tpdo_every: every n-th sample's TPDOs lose their last 2 bytes (wrong DLC: the only
+        corruption a receiver sees; CAN's CRC rejects bit errors).
+    emcy_at_sample / emcy_code: the drive faults (EMCY, FAULT state, torque 0) at that sample (once).
+    heartbeat_stop_at_s: the drive stops its heartbeat this long after first OPERATION ENABLED.
+    stuck_encoder_at_sample: the motor encoder 0x6064 freezes from that sample on.
+    garbage_frames_per_sync: random frames on COB-IDs no node uses, after each SYNC.
+    """
+
+    tpdo_faults_from_sample: int = 1
+    drop_tpdo_every: int = 0
+    delay_tpdo_s: float = 0.0
+    corrupt_tpdo_every: int = 0
+    emcy_at_sample: Optional[int] = None
+    emcy_code: int = 0x2310
+    heartbeat_stop_at_s: Optional[float] = None
+    stuck_encoder_at_sample: Optional[int] = None
+    garbage_frames_per_sync: int = 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is None and f.default is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"emulator.faults.{f.name}", f"must be a finite number >= 0, got {v!r}")
+            if f.name in _INT_FAULTS and not isinstance(v, int):
+                raise ConfigError(f"emulator.faults.{f.name}", f"must be an integer, got {v!r}")
+        if not 0 < self.emcy_code <= 0xFFFF:
+            raise ConfigError("emulator.faults.emcy_code", f"must be 0x0001..0xFFFF, got {self.emcy_code!r}")
+
+    # ----- applied by the drive (drivers.cia402.emulated_drive) ---------------------------------
+    def tpdo_frames(self, frames: list[tuple[int, bytes]], sample: int, enabled: bool) -> list[tuple[int, bytes]]:
+        """The ``(cob, data)`` TPDO frames of ``sample`` after the drop and corrupt faults."""
+        if not enabled or sample < self.tpdo_faults_from_sample:
+            return frames
+        if self.drop_tpdo_every and sample % self.drop_tpdo_every == 0:
+            return []
+        if self.corrupt_tpdo_every and sample % self.corrupt_tpdo_every == 0:
+            return [(cob, data[:-2]) for cob, data in frames]
+        return frames
+
+    def tpdo_delay(self, sample: int, enabled: bool) -> float:
+        """How much later than normal the TPDOs of ``sample`` leave [s]."""
+        return self.delay_tpdo_s if enabled and sample >= self.tpdo_faults_from_sample else 0.0
+
+    def garbage(self, rng: random.Random) -> list[tuple[int, bytes]]:
+        """Random frames for one SYNC on COB-IDs no predefined-connection-set service uses."""
+        return [(rng.choice(_GARBAGE_IDS), bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 8))))
+                for _ in range(self.garbage_frames_per_sync)]
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any] | None) -> "FaultConfig":
+        data = dict(data or {})
+        known = {f.name for f in fields(cls)}
+        for key in data:
+            if key not in known:
+                raise ConfigError(f"emulator.faults.{key}", f"unknown fault (expected {sorted(known)})")
+        return cls(**data)

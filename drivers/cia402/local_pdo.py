@@ -1,0 +1,81 @@
+"""PDO tables of a ``canopen.LocalNode`` (the emulated drive's side of CiA 301 PDO mapping).
+
+``LocalNode`` stores whatever an SDO client writes; a real device refuses a mapping
+that names a missing object (abort 0x06020000), an object that is not PDO-mappable
+or mapped with the wrong length (0x06040041), or too many bits (0x06040042).
+:func:`check_mapping_write` does that; :func:`pdo_layouts` reads the valid PDOs and
+their mappings as ``struct`` layouts.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import canopen
+from canopen.sdo import SdoAbortedError
+
+from drivers.cia402 import profile as p402
+
+
+def od_value(node: canopen.LocalNode, index: int, subindex: int = 0) -> int:
+    """Current value of an object of the local node (written, read callback, or EDS default)."""
+    var = node.object_dictionary.get_variable(index, subindex)
+    return var.decode_raw(node.get_data(index, subindex))
+
+
+def check_mapping_write(node: canopen.LocalNode, index: int, subindex: int, value: int) -> None:
+    """Refuse a write to an RPDO (0x16xx) / TPDO (0x1Axx) mapping parameter the way a device would."""
+    if subindex == 0:
+        bits = sum(p402.split_mapping_entry(od_value(node, index, s))[2] for s in range(1, value + 1))
+        if bits > 64:
+            raise SdoAbortedError(0x06040042)
+        return
+    if value == 0:
+        return
+    obj, sub, bits = p402.split_mapping_entry(value)
+    var = node.object_dictionary.get_variable(obj, sub)
+    if var is None:
+        raise SdoAbortedError(0x06020000)
+    rpdo = index < 0x1800
+    if (not var.pdo_mappable or bits != len(var) or (rpdo and not var.writable)
+            or (not rpdo and not var.readable)):
+        raise SdoAbortedError(0x06040041)
+
+
+@dataclass(frozen=True)
+class PdoLayout:
+    """One valid PDO: 11-bit COB-ID, transmission type, packing, mapped (index, subindex) keys."""
+
+    cob: int
+    trans_type: int
+    struct: struct.Struct
+    keys: tuple[tuple[int, int], ...]
+
+
+def _layout(node: canopen.LocalNode, comm: int, mapping: int) -> PdoLayout | None:
+    cob = od_value(node, comm, 1)
+    if cob & p402.PDO_INVALID:
+        return None
+    keys = tuple(p402.split_mapping_entry(od_value(node, mapping, s))[:2]
+                 for s in range(1, od_value(node, mapping, 0) + 1))
+    od = node.object_dictionary
+    st = p402.pdo_struct([od.get_variable(i, s).data_type for i, s in keys])
+    return PdoLayout(cob & 0x7FF, od_value(node, comm, 2), st, keys)
+
+
+def pdo_layouts(node: canopen.LocalNode) -> tuple[list[PdoLayout], list[PdoLayout]]:
+    """(RPDOs, TPDOs) currently valid on the node."""
+    od = node.object_dictionary
+    rpdos: list[PdoLayout] = []
+    tpdos: list[PdoLayout] = []
+    for n in range(512):
+        rx = od.get_variable(0x1400 + n, 1) is not None
+        tx = od.get_variable(0x1800 + n, 1) is not None
+        if not (rx or tx):
+            break
+        if rx and (lay := _layout(node, 0x1400 + n, 0x1600 + n)):
+            rpdos.append(lay)
+        if tx and (lay := _layout(node, 0x1800 + n, 0x1A00 + n)):
+            tpdos.append(lay)
+    return rpdos, tpdos

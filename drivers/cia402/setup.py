@@ -1,0 +1,305 @@
+"""Connection and SDO configuration of one CiA 402 node (the blocking, non-cyclic part of the backend).
+
+Everything here runs in ``open()``/``activate()``/``close()``, never in ``read()``:
+canopen's blocking SDO helpers are fine at start-up and must stay out of the loop.
+Errors: no answer -> :class:`DeviceConnectionError` (node id and time waited); an
+object missing from the EDS or refused by the drive -> :class:`ProtocolError` naming
+the object; an SDO timeout in the middle of the set-up -> :class:`DeviceTimeout`.
+
+Frames are received by :class:`~drivers.cia402.frames.FrameIO` (shared with the emulated drive), not by
+canopen's ``Network.connect()`` notifier: on ``udp_multicast`` it reads the socket
+itself at about a quarter of python-can's cost per frame, and this host's own SYNCs
+come back in bus order - the sample assembly uses them as window markers (see
+:mod:`drivers.cia402.stream`).
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from typing import Any, Callable
+
+import can
+import canopen
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from drivers.cia402 import profile as p402
+from drivers.cia402.config import Cia402Config
+from drivers.cia402.frames import FrameIO, stop_periodic
+from drivers.errors import DeviceConnectionError, DeviceTimeout, ProtocolError
+from rt_ident.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+class NodeSetup:
+    """Owns the bus, the ``canopen.Network`` and the ``RemoteNode`` of one drive."""
+
+    def __init__(self, cfg: Cia402Config, *, on_tpdo: Callable, on_heartbeat: Callable,
+                 on_emcy: Callable, on_sync_echo: Callable | None = None) -> None:
+        self.cfg = cfg
+        self._on_tpdo = on_tpdo
+        self._on_heartbeat = on_heartbeat
+        self._on_emcy = on_emcy
+        self._on_sync_echo = on_sync_echo
+        self.network: canopen.Network | None = None
+        self.io: FrameIO | None = None
+        self.node: canopen.RemoteNode | None = None
+        self._hb_task: Any = None
+        self.rpdo_cob = 0x200 + cfg.node_id
+        self.tpdo_cobs: list[int] = []
+        self.tpdo_layouts: list[tuple[int, struct.Struct]] = []
+        self._od: canopen.ObjectDictionary | None = None
+
+    # ----- objects ----------------------------------------------------------------------
+    def _var(self, index: int, subindex: int = 0):
+        var = self._od.get_variable(index, subindex)
+        if var is None:
+            raise ProtocolError(f"EDS {self.cfg.eds_path().name} lacks {p402.object_label(index, subindex or None)}; "
+                                f"the backend needs it for a CiA 402 drive in CST mode")
+        return var
+
+    def _check_od(self) -> None:
+        cfg = self.cfg
+        mapped = [(p402.CONTROLWORD, 0), (p402.TARGET_TORQUE, 0), (p402.STATUSWORD, 0),
+                  (p402.POSITION_ACTUAL, 0), (p402.TORQUE_ACTUAL, 0), (cfg.scale_index, cfg.scale_subindex)]
+        for index, sub in mapped:
+            if not self._var(index, sub).pdo_mappable:
+                raise ProtocolError(f"EDS {cfg.eds_path().name} marks {p402.object_label(index, sub)} as not "
+                                    f"PDO-mappable")
+        for index, sub in [(p402.MODES_OF_OPERATION, 0), (p402.MODES_DISPLAY, 0), (p402.MAX_TORQUE, 0),
+                           (p402.PRODUCER_HEARTBEAT, 0), (p402.CONSUMER_HEARTBEAT, 1), (0x1400, 1),
+                           (0x1600, 1), (0x1800, 1), (0x1801, 1), (0x1A00, 1), (0x1A01, 1)]:
+            self._var(index, sub)
+        scale = self._var(cfg.scale_index, cfg.scale_subindex)
+        if scale.data_type not in (0x04, 0x07):
+            raise ProtocolError(f"table scale object {p402.object_label(cfg.scale_index, cfg.scale_subindex)} "
+                                f"has data type 0x{scale.data_type:04X}; a 32-bit integer is required")
+
+    # ----- SDO with errors that name the object -----------------------------------------
+    def upload(self, index: int, subindex: int, what: str = "") -> int:
+        var = self._var(index, subindex)
+        try:
+            data = self.node.sdo.upload(index, subindex)
+        except SdoAbortedError as exc:
+            raise ProtocolError(f"node {self.cfg.node_id} refused reading {p402.object_label(index, subindex)}"
+                                f"{what}: {p402.abort_text(exc.code)}") from exc
+        except SdoCommunicationError as exc:
+            raise DeviceTimeout(f"node {self.cfg.node_id} did not answer reading "
+                                f"{p402.object_label(index, subindex)} within sdo_timeout "
+                                f"{self.cfg.sdo_timeout:g} s") from exc
+        st = struct.Struct("<" + p402.STRUCT_CODE[var.data_type])
+        return st.unpack_from(bytes(data).ljust(st.size, b"\0"))[0]
+
+    def download(self, index: int, subindex: int, value: int, what: str = "") -> None:
+        var = self._var(index, subindex)
+        data = struct.pack("<" + p402.STRUCT_CODE[var.data_type], value)
+        try:
+            self.node.sdo.download(index, subindex, data)
+        except SdoAbortedError as exc:
+            raise ProtocolError(f"node {self.cfg.node_id} refused writing {p402.object_label(index, subindex)} "
+                                f"= 0x{value & 0xFFFFFFFF:X}{what}: {p402.abort_text(exc.code)}") from exc
+        except SdoCommunicationError as exc:
+            raise DeviceTimeout(f"node {self.cfg.node_id} did not answer writing "
+                                f"{p402.object_label(index, subindex)} within sdo_timeout "
+                                f"{self.cfg.sdo_timeout:g} s") from exc
+
+    def try_download(self, index: int, subindex: int, data: bytes) -> bool:
+        """Best effort (stop paths): log failures, never raise."""
+        try:
+            if self.node is not None and self.network is not None and self.network.bus is not None:
+                self.node.sdo.download(index, subindex, data)
+                return True
+        except Exception as exc:  # noqa: BLE001
+            log.warning("canopen: writing 0x%04X:%02X failed: %s", index, subindex, exc)
+        return False
+
+    @property
+    def echo(self) -> bool:
+        """True when this host's own frames come back in bus order (``udp_multicast``): then the
+        echoed SYNCs, not the sender's clock, mark the sample windows."""
+        return self.io is not None and self.io.udp and self._on_sync_echo is not None
+
+    def send(self, cob_id: int, data: bytes) -> None:
+        """Send one frame (thread-safe; a fraction of the cost of ``Network.send_message``, used per SYNC)."""
+        self.io.send(cob_id, data)
+
+    def _dispatch(self, frames: list) -> None:
+        notify = self.network.notify
+        for cob, data, t in frames:
+            notify(cob, data, t)
+
+    def receive_in_caller(self) -> None:
+        """Stop the receive thread: from now on the caller reads the bus with :meth:`pump` (echo mode)."""
+        self.io.stop()
+
+    def receive_in_thread(self) -> None:
+        """Read the bus in a thread again (SDO needs it); a no-op if it runs. Never raises (stop paths)."""
+        if self.io is not None and not self.io.running:
+            try:
+                self.io.start()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("canopen: receive thread not restarted: %s", exc)
+
+    def pump(self) -> None:
+        """Read and dispatch every frame waiting now (only while the receive thread is stopped)."""
+        io = self.io
+        if io is not None and not io.running:
+            try:
+                io.pump()
+            except Exception as exc:  # noqa: BLE001 - python-can / socket errors
+                raise DeviceConnectionError(f"reading CAN interface {self.cfg.interface!r} channel "
+                                            f"{self.cfg.channel!r} failed: {type(exc).__name__}: {exc}") from exc
+
+    # ----- start-up ---------------------------------------------------------------------
+    def connect(self) -> None:
+        """Bus, network, node, heartbeat producer, NMT PRE-OPERATIONAL, probe of 0x1000."""
+        cfg = self.cfg
+        path = cfg.eds_path()
+        try:
+            self._od = canopen.import_od(str(path), cfg.node_id)
+        except Exception as exc:  # noqa: BLE001 - any parse failure is a config error
+            raise ConfigError("backend.eds", f"cannot read EDS {path}: {exc}") from exc
+        self._check_od()
+        try:
+            bus = can.Bus(**cfg.bus_kwargs())
+        except Exception as exc:  # noqa: BLE001 - python-can raises many types here
+            raise DeviceConnectionError(f"cannot open CAN interface {cfg.interface!r} channel {cfg.channel!r}: "
+                                        f"{type(exc).__name__}: {exc}") from exc
+        net = canopen.Network(bus)
+        self.network = net
+        self.io = FrameIO(bus, self._dispatch, bus_kwargs=cfg.bus_kwargs(), send_lock=net.send_lock,
+                          name=f"canopen-rx-{cfg.node_id}").start()
+        if self.echo:
+            net.subscribe(0x80, self._on_sync_echo)
+        node = canopen.RemoteNode(cfg.node_id, self._od)
+        net.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = cfg.sdo_timeout
+        self.node = node
+        net.subscribe(0x700 + cfg.node_id, self._on_heartbeat)
+        node.emcy.add_callback(self._on_emcy)
+        self._hb_task = net.send_periodic(0x700 + cfg.master_node_id, bytes([0x05]), cfg.heartbeat_ms / 1000.0)
+        node.nmt.send_command(0x80)                       # PRE-OPERATIONAL: SDO on, PDOs off
+        t0 = time.monotonic()
+        try:
+            device_type = node.sdo.upload(p402.DEVICE_TYPE, 0)
+        except SdoCommunicationError:
+            raise DeviceConnectionError(
+                f"no answer from CANopen node {cfg.node_id} on {cfg.interface}:{cfg.channel} within "
+                f"{time.monotonic() - t0:.2f} s (SDO read of 0x1000 device type, sdo_timeout "
+                f"{cfg.sdo_timeout:g} s)") from None
+        except SdoAbortedError as exc:
+            raise ProtocolError(f"node {cfg.node_id} refused reading 0x1000 device type: "
+                                f"{p402.abort_text(exc.code)}") from exc
+        profile = struct.unpack_from("<I", bytes(device_type).ljust(4, b"\0"))[0] & 0xFFFF
+        if profile != 402:
+            raise ProtocolError(f"node {cfg.node_id} reports device profile {profile} in 0x1000, not 402 (drive)")
+
+    def configure(self) -> float:
+        """PDO mapping, mode 10 verified, torque limit, cycle period, heartbeats. Returns the rated torque [N m]."""
+        cfg = self.cfg
+        rated = self._rated_torque()
+        # RPDO1: controlword + target torque, applied at each SYNC
+        self.rpdo_cob = self._map_pdo(0x1400, 0x1600, [(p402.CONTROLWORD, 0), (p402.TARGET_TORQUE, 0)],
+                                      0x200 + cfg.node_id, "RPDO1")
+        tpdo1 = [(p402.STATUSWORD, 0), (p402.POSITION_ACTUAL, 0), (p402.TORQUE_ACTUAL, 0)]
+        tpdo2 = [(cfg.scale_index, cfg.scale_subindex)]
+        cob1 = self._map_pdo(0x1800, 0x1A00, tpdo1, 0x180 + cfg.node_id, "TPDO1")
+        cob2 = self._map_pdo(0x1801, 0x1A01, tpdo2, 0x280 + cfg.node_id, "TPDO2")
+        self._disable_unused(0x1400, used=1)
+        self._disable_unused(0x1800, used=2)
+        self.tpdo_cobs = [cob1, cob2]
+        self.tpdo_layouts = [(cob1, p402.pdo_struct([self._var(i, s).data_type for i, s in tpdo1])),
+                             (cob2, p402.pdo_struct([self._var(i, s).data_type for i, s in tpdo2]))]
+        for cob in self.tpdo_cobs:
+            self.network.subscribe(cob, self._on_tpdo)
+        if self._od.get_variable(p402.CYCLE_PERIOD) is not None:
+            self.download(p402.CYCLE_PERIOD, 0, int(round(1e6 / cfg.sync_rate_hz)), " (SYNC period in us)")
+        self._set_mode_cst()
+        permille = cfg.max_torque_permille or min(65535, int(round(cfg.torque_limit * 1000.0 / rated)))
+        self.download(p402.MAX_TORQUE, 0, permille, " (drive-side torque limit, per mille of rated torque)")
+        self.download(p402.PRODUCER_HEARTBEAT, 0, cfg.heartbeat_ms)
+        self.download(p402.CONSUMER_HEARTBEAT, 1, (cfg.master_node_id << 16) | cfg.consumer_ms)
+        return rated
+
+    def _rated_torque(self) -> float:
+        cfg = self.cfg
+        drive = None
+        if self._od.get_variable(p402.RATED_TORQUE) is not None:
+            drive = self.upload(p402.RATED_TORQUE, 0) / 1000.0          # mN m -> N m
+        if cfg.rated_torque is None:
+            if not drive:
+                raise ConfigError("backend.rated_torque", f"not given and node {cfg.node_id} reports no "
+                                  f"motor rated torque (0x6076)")
+            return drive
+        if drive and abs(drive - cfg.rated_torque) > 0.01 * drive:
+            raise ConfigError("backend.rated_torque", f"{cfg.rated_torque:g} N m in the config but node "
+                              f"{cfg.node_id} reports {drive:g} N m in 0x6076; torques would be scaled wrongly")
+        return cfg.rated_torque
+
+    def _map_pdo(self, comm: int, mapping: int, entries: list[tuple[int, int]], default_cob: int,
+                 label: str) -> int:
+        """CiA 301 sequence: invalidate, transmission type 1, count 0, entries, count, validate."""
+        cob = self.upload(comm, 1) & 0x7FF or default_cob
+        self.download(comm, 1, cob | p402.PDO_INVALID, f" (disable {label} to map it)")
+        self.download(comm, 2, p402.TRANS_SYNC_EVERY, f" ({label} transmission type: every SYNC)")
+        self.download(mapping, 0, 0, f" (clear {label} mapping)")
+        for i, (index, sub) in enumerate(entries, start=1):
+            bits = len(self._var(index, sub))
+            self.download(mapping, i, p402.mapping_entry(index, sub, bits),
+                          f" (mapping {p402.object_label(index, sub)} into {label})")
+        self.download(mapping, 0, len(entries), f" ({label} mapping count)")
+        self.download(comm, 1, cob, f" (enable {label})")
+        return cob
+
+    def _disable_unused(self, comm_base: int, used: int) -> None:
+        n = used
+        while n < 512 and self._od.get_variable(comm_base + n, 1) is not None:
+            try:
+                cob = self.upload(comm_base + n, 1)
+                if not cob & p402.PDO_INVALID:
+                    self.download(comm_base + n, 1, cob | p402.PDO_INVALID)
+            except ProtocolError as exc:
+                log.warning("canopen: cannot disable unused PDO 0x%04X: %s", comm_base + n, exc)
+            n += 1
+
+    def _set_mode_cst(self) -> None:
+        """0x6060 = 10 and check 0x6061 ourselves (canopen's op_mode setter only warns)."""
+        cfg = self.cfg
+        self.download(p402.MODES_OF_OPERATION, 0, p402.MODE_CST, " (cyclic synchronous torque)")
+        deadline = time.monotonic() + max(cfg.sdo_timeout, 0.1)
+        while True:
+            shown = self.upload(p402.MODES_DISPLAY, 0)
+            if shown == p402.MODE_CST:
+                return
+            if time.monotonic() > deadline:
+                raise ProtocolError(f"node {cfg.node_id}: 0x6061 (modes of operation display) reads {shown} after "
+                                    f"writing 0x6060 = 10; the drive does not run cyclic synchronous torque")
+            time.sleep(0.01)
+
+    def nmt_operational(self) -> None:
+        self.node.nmt.send_command(0x01)
+
+    # ----- shutdown ---------------------------------------------------------------------
+    def teardown(self, drive_consumer_off: bool) -> None:
+        """Consumer heartbeat off (so the drive does not fault when ours stops), NMT PRE-OPERATIONAL,
+        heartbeat producer off, network down. Idempotent; never raises."""
+        net, node = self.network, self.node
+        if net is None:
+            return
+        self.receive_in_thread()
+        if drive_consumer_off and node is not None:
+            self.try_download(p402.CONSUMER_HEARTBEAT, 1, struct.pack("<I", 0))
+        for step in (lambda: node.nmt.send_command(0x80) if node is not None else None,
+                     lambda: stop_periodic(self._hb_task),
+                     lambda: self.io.close() if self.io is not None else None,
+                     net.disconnect):
+            try:
+                step()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("canopen: teardown step failed: %s", exc)
+        self._hb_task = None
+        self.io = None
+        self.network = None
+        self.node = None

@@ -1,0 +1,406 @@
+"""The cyclic part of the CANopen backend: per-sample torque plan, SYNC sender, sample assembly.
+
+Threads and hand-offs:
+
+* the **SYNC sender** (own thread, absolute deadlines at ``sync_rate_hz``) takes the
+  torque for SYNC index ``k`` from the :class:`TorquePlan`, appends a marker
+  ``(MARK, k, t, torque)`` to the shared deque, then sends RPDO1 (controlword +
+  target torque) and the SYNC. The drive applies RPDO data at the next SYNC
+  (synchronous RPDO) and answers with its TPDOs;
+* the frame reader (:class:`drivers.cia402.frames.FrameIO`) runs a light callback that
+  only appends ``(cob_id, t_arrival, bytes)`` to the same deque (``deque.append`` is
+  atomic). It is a receive thread, except with ``echo`` while the backend is active:
+  then the loop thread reads the bus itself at the start of ``read()`` (no thread
+  competes with the loop for the GIL; the socket keeps the frames in bus order);
+* the **loop thread** drains the deque in ``read()`` through :class:`SampleAssembler`.
+
+The frames between two window markers form the window of one sample (CiA 301's
+synchronous window, here one SYNC period). A window without a valid frame of every
+TPDO is *stale* (the sample is dropped; ``SampleBlock.lost`` shows the gap); extra
+frames in a window are *late* (the newest is used); frames of the wrong length are
+*corrupt*. The window markers are:
+
+* with ``echo`` (``udp_multicast``: the bus hands this host's own frames back, in bus
+  order): the **echo of SYNC k** ``(ECHO, t)``. The sender's marker only records
+  ``k``, time and torque. Attribution is then exact whatever the host's scheduling:
+  a TPDO read after SYNC k's echo and before SYNC k+1's was on the bus between them;
+* otherwise the sender's marker itself: it enters the deque before SYNC ``k`` is on the
+  bus, so every TPDO answering SYNC ``k`` follows it, but a TPDO the receive thread
+  handles after the sender's *next* marker (a late receive thread, not a late drive)
+  lands in the next window.
+
+TPDOs carry no SYNC counter. A drive does not send an answer once the next SYNC has
+arrived (CiA 301 synchronous window; the emulated drive checks), but an answer sent just
+as the next SYNC goes on the bus lands in the next window. So a window holding a single
+answer right after a window without one is *ambiguous* (it may be the late answer) and
+dropped (counted in ``stale`` and ``ambiguous``); two answers in a window mean the drive
+caught up, and the newest is this SYNC's. A drive late by a whole period for several
+periods in a row would still shift its data by one sample.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import struct
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from drivers.errors import ProtocolError, WatchdogTrip
+
+log = logging.getLogger(__name__)
+
+MARK = -1                      # first element of a SYNC marker in the deque: (MARK, k, t_sent, torque)
+ECHO = -2                      # this host's SYNC read back from the bus: (ECHO, t_arrival)
+CANCEL = -3                    # SYNC k was not sent after all (bus error): (CANCEL, k)
+_MAX_PENDING = 4096            # SYNC records waiting for their echo before echoes count as missing
+_RPDO = struct.Struct("<Hh")   # controlword (UNSIGNED16), target torque (INTEGER16, per mille)
+
+
+def wrap32(delta: int) -> int:
+    """A difference of two INTEGER32 readings, wrapped into [-2^31, 2^31)."""
+    return ((delta + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+
+
+class TorquePlan:
+    """Per-sample torque commands keyed by SYNC index; written by the loop, read by the sender.
+
+    Semantics of :mod:`drivers.base`: ``hold(v)`` holds ``v`` from now on; ``plan(values, k0)``
+    asks for ``values[i]`` at SYNC ``k0 + i`` and replaces the rest of an older plan; indices not
+    covered hold the last value taken. Values for SYNCs already sent are counted in ``late``.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._values = np.empty(0)
+        self._start = 0
+        self._last = 0.0
+        self._next = 0            # the next SYNC index the sender will take
+        self.late = 0
+
+    def hold(self, torque: float) -> None:
+        with self._lock:
+            self._values = self._values[:0]
+            self._last = float(torque)
+
+    def plan(self, values: np.ndarray, start: int) -> None:
+        vals = np.asarray(values, dtype=float)
+        if vals.size == 0:
+            return
+        with self._lock:
+            nxt = self._next
+            if start < nxt:
+                late = min(nxt - start, vals.size)
+                self.late += late
+                if late == vals.size:
+                    self._values = self._values[:0]
+                    self._last = float(vals[-1])
+                    return
+                vals, start = vals[late:], nxt
+            old, os_ = self._values, self._start
+            if old.size and os_ < start:
+                keep = old[: max(0, min(old.size, start - os_))]
+                gap = start - (os_ + keep.size)
+                self._values = np.concatenate((keep, np.full(gap, old[-1]), vals))
+            else:
+                self._values, os_ = vals.copy(), start
+            self._start = os_
+
+    def take(self, k: int) -> float:
+        """The torque for SYNC ``k`` (called by the sender, with increasing ``k``)."""
+        with self._lock:
+            self._next = k + 1
+            v = self._values
+            if v.size:
+                i = k - self._start
+                if i >= v.size:
+                    self._last = float(v[-1])
+                    self._values = v[:0]
+                elif i >= 0:
+                    self._last = float(v[i])
+                    self._values = v[i + 1:]
+                    self._start = k + 1
+            return self._last
+
+
+class SyncSender:
+    """Sends RPDO1 then SYNC every ``period`` seconds on absolute deadlines, in its own thread.
+
+    ``send(cob_id, data)`` must be thread-safe (``canopen.Network.send_message`` is).
+    ``controlword`` is read every cycle; ``torque_to_permille(T) -> (int, T_quantized)``.
+    On overrun whole periods are skipped (counted in ``overruns``), never sent in a burst.
+    The thread needs the GIL at each deadline: its jitter is bounded by the interpreter's
+    switch interval while the loop thread computes (``sys.setswitchinterval``).
+    Send errors are counted and kept in ``last_error``, never raised in the thread.
+    """
+
+    def __init__(self, send: Callable[[int, bytes], None], period: float, sink: collections.deque,
+                 plan: TorquePlan, torque_to_permille: Callable[[float], tuple[int, float]],
+                 rpdo_cob: int, sync_cob: int = 0x80, clock: Callable[[], float] = time.monotonic) -> None:
+        self._send = send
+        self.period = float(period)
+        self._sink = sink
+        self._plan = plan
+        self._encode = torque_to_permille
+        self._rpdo_cob = rpdo_cob
+        self._sync_cob = sync_cob
+        self._clock = clock
+        self.controlword = 0
+        self.next_index = 0          # SYNC index of the next cycle
+        self.sent = 0
+        self.overruns = 0
+        self.send_errors = 0
+        self.consecutive_errors = 0
+        self.last_error: str | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        if self.running:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="canopen-sync", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 1.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.error("SYNC sender thread did not stop within %.2f s", timeout)
+            self._thread = None
+
+    def _run(self) -> None:
+        _preempt_creator()
+        period, clock, stop = self.period, self._clock, self._stop
+        deadline = clock()
+        k = self.next_index
+        while not stop.is_set():
+            now = clock()
+            if now < deadline:
+                stop.wait(deadline - now)
+                continue
+            late = now - deadline
+            if late >= period:                      # overrun: skip whole periods, never burst
+                skip = int(late // period)
+                k += skip
+                deadline += skip * period
+                self.overruns += skip
+            permille, torque = self._encode(self._plan.take(k))
+            self._sink.append((MARK, k, clock(), torque))
+            try:
+                self._send(self._rpdo_cob, _RPDO.pack(self.controlword & 0xFFFF, permille))
+                self._send(self._sync_cob, b"")
+                self.sent += 1
+                self.consecutive_errors = 0
+            except Exception as exc:  # noqa: BLE001 - a sender thread must not die on a bus error
+                self._sink.append((CANCEL, k))
+                self.send_errors += 1
+                self.consecutive_errors += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"
+            k += 1
+            self.next_index = k
+            deadline += period
+
+
+def _preempt_creator() -> None:
+    """Under SCHED_FIFO (inherited from the loop thread that activated the backend), run one step above it.
+
+    Threads of equal FIFO priority on one CPU do not preempt each other: the SYNC would wait
+    for the loop's spin and computation. One step higher, it waits at most for the GIL.
+    """
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            prio = os.sched_getparam(0).sched_priority
+            if prio < os.sched_get_priority_max(os.SCHED_FIFO):
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio + 1))
+    except (AttributeError, OSError) as exc:
+        log.debug("SYNC sender keeps its priority: %s", exc)
+
+
+class SampleAssembler:
+    """Turns the deque items into samples: one window of TPDO frames per SYNC marker.
+
+    ``layouts``: ``(cob_id, struct)`` of TPDO1 = (statusword, position counts, torque per mille)
+    and TPDO2 = (scale counts,). Positions are unwrapped across INTEGER32 overflow.
+    Raises :class:`WatchdogTrip` (missing data, or a motor encoder frozen while the drive
+    reports at least ``stuck_permille`` of torque: a free-free axis must move) or
+    :class:`ProtocolError` (wrong-length frames) after more than ``stale_limit`` bad samples
+    in a row - only when ``deliver`` is true.
+    """
+
+    def __init__(self, layouts: list[tuple[int, struct.Struct]], stale_limit: int, stuck_permille: float,
+                 echo: bool = False) -> None:
+        self.layouts = layouts
+        self.stale_limit = stale_limit
+        self.stuck_permille = stuck_permille
+        self.echo = echo
+        self._records: collections.deque = collections.deque()   # echo mode: SYNCs sent, echo not yet read
+        self.echoes = 0
+        self._marker: tuple | None = None
+        self._frames: dict[int, list[tuple]] = {}     # cob -> [(cob, t_received, data)]
+        self.statusword: int | None = None   # latest valid statusword
+        self.first_k = 0                      # SYNC index of the first sample to deliver
+        self.frames_seen = 0
+        self.stale = 0
+        self.ambiguous = 0                   # stale because attribution was ambiguous (in ``stale`` too)
+        self.late = 0
+        self.corrupt = 0
+        self.unchanged = 0
+        self.max_latency = 0.0               # s, SYNC sent -> TPDO received (host clock)
+        self._prev_complete = True           # no earlier SYNC whose answer could still come
+        self._bad_run = 0
+        self._bad_corrupt = False
+        self._last_corrupt = ""
+        self._pos: int | None = None
+        self._pos_raw = 0
+        self._scale: int | None = None
+        self._scale_raw = 0
+        self._stuck_run = 0
+        self.rows: dict[str, list] = {k: [] for k in ("k", "t", "sw", "pos", "tq", "scale", "cmd")}
+
+    def reset_counters(self) -> None:
+        self.stale = self.ambiguous = self.late = self.corrupt = self.unchanged = 0
+        self.max_latency = 0.0
+        self._bad_run = self._stuck_run = 0
+        self._bad_corrupt = False
+
+    def take_rows(self) -> dict[str, list]:
+        rows = self.rows
+        self.rows = {k: [] for k in rows}
+        return rows
+
+    def feed(self, dq: collections.deque, deliver: bool) -> None:
+        """Consume every item now in ``dq``; rows of delivered samples accumulate in ``rows``.
+
+        A window closes at the next marker, taking the newest valid frame of each TPDO (so a
+        frame one period late next to the on-time one is attributed right). It closes early,
+        as soon as it is complete, only when the previous window was complete: then no frame
+        of an older SYNC can still be on its way, and the sample is delivered without waiting
+        for the next SYNC.
+        """
+        pop = dq.popleft
+        echo = self.echo
+        for _ in range(len(dq)):
+            item = pop()
+            kind = item[0]
+            if kind == MARK and echo:
+                self._records.append(item)
+                if len(self._records) > _MAX_PENDING:
+                    raise ProtocolError(f"{len(self._records)} SYNCs sent without reading them back from the "
+                                        f"bus ({self.echoes} read so far); window markers are missing")
+            elif kind == ECHO:
+                if not self._records:          # a SYNC of an earlier session
+                    continue
+                self.echoes += 1
+                if self._marker is not None:
+                    self._close(deliver)
+                self._marker = self._records.popleft()
+                self._frames = {}
+            elif kind == CANCEL:
+                if echo and self._records and self._records[-1][1] == item[1]:
+                    self._records.pop()        # never on the bus: no echo will come
+            elif kind == MARK:
+                if self._marker is not None:
+                    self._close(deliver)
+                self._marker = item
+                self._frames = {}
+            else:
+                self.frames_seen += 1
+                if self._marker is None:      # after an early close: a frame answering an older SYNC
+                    self.late += 1
+                    continue
+                self._frames.setdefault(item[0], []).append(item)
+        if self._marker is not None and self._prev_complete and all(
+                any(len(f[2]) == st.size for f in self._frames.get(cob, ())) for cob, st in self.layouts):
+            self._close(deliver)
+            self._marker = None
+
+    def _close(self, deliver: bool) -> None:
+        _, k, t, cmd = self._marker
+        values: list = []
+        bad = None
+        lone = True                      # exactly one valid frame of every TPDO
+        for cob, st in self.layouts:
+            frames = self._frames.get(cob)
+            if not frames:
+                bad = bad or "missing"
+                continue
+            if len(frames) > 1:
+                self.late += len(frames) - 1
+            good = [f for f in frames if len(f[2]) == st.size]
+            if len(good) < len(frames):
+                self.corrupt += len(frames) - len(good)
+                self._last_corrupt = (f"TPDO 0x{cob:03X} with {len(frames[-1][2])} bytes, "
+                                      f"{st.size} mapped")
+            if not good:
+                bad = "corrupt"
+                continue
+            lone = lone and len(good) == 1
+            latency = good[-1][1] - t
+            if latency > self.max_latency:
+                self.max_latency = latency
+            values.extend(st.unpack(good[-1][2]))
+        if bad is None and lone and not self._prev_complete:
+            # One answer right after a window without one: it may be the previous SYNC's answer,
+            # sent just as this SYNC went on the bus (the drive cannot see that race). Dropped.
+            bad = "ambiguous"
+            self.ambiguous += 1
+            sw = values[0]
+            self.statusword = sw
+        self._prev_complete = bad is None or bad == "ambiguous"
+        if bad is not None:
+            self.stale += 1
+            self._bad_run += 1
+            self._bad_corrupt = self._bad_corrupt or bad == "corrupt"
+            if deliver and self._bad_run > self.stale_limit:
+                if self._bad_corrupt:
+                    raise ProtocolError(f"{self._bad_run} samples in a row without a valid TPDO set "
+                                        f"(last bad frame: {self._last_corrupt}); {self.corrupt} corrupt "
+                                        f"frames in total")
+                raise WatchdogTrip(f"no fresh TPDO data for {self._bad_run} SYNCs in a row "
+                                   f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total)")
+            return
+        self._bad_run = 0
+        self._bad_corrupt = False
+        sw, pos_raw, tq, scale_raw = values
+        self.statusword = sw
+        if self._pos is None:
+            self._pos, self._scale = pos_raw, scale_raw
+            moved = True
+        else:
+            moved = pos_raw != self._pos_raw
+            self._pos += wrap32(pos_raw - self._pos_raw)
+            self._scale += wrap32(scale_raw - self._scale_raw)
+        self._pos_raw, self._scale_raw = pos_raw, scale_raw
+        if not deliver or k < self.first_k:
+            return
+        # watchdog: a free-free axis must move under applied torque (the drive's torque actual,
+        # not the command: a drive-side position loop may cancel the command at standstill).
+        # Count the samples with torque since the encoder last changed; standstill without
+        # torque does not count, any movement resets.
+        if moved:
+            self._stuck_run = 0
+        elif abs(tq) >= self.stuck_permille > 0.0:
+            self.unchanged += 1
+            self._stuck_run += 1
+            if self._stuck_run > self.stale_limit:
+                raise WatchdogTrip(f"motor encoder 0x6064 unchanged at {pos_raw} counts through {self._stuck_run} "
+                                   f"samples with torque applied (last {tq} per mille of rated torque; "
+                                   f"stale_limit {self.stale_limit}): stuck encoder or frozen drive data")
+        r = self.rows
+        r["k"].append(k)
+        r["t"].append(t)
+        r["sw"].append(sw)
+        r["pos"].append(self._pos)
+        r["tq"].append(tq)
+        r["scale"].append(self._scale)
+        r["cmd"].append(cmd)

@@ -1,0 +1,284 @@
+"""Backend for the serial encoder board (``docs/serial-protocol.md``), registry name ``"serial"``.
+
+The board streams one numbered, time-stamped data frame per sample (default
+20 kHz); :meth:`SerialBoardBackend.read` drains whatever arrived (``in_waiting``
+bytes, never a blocking ``read(n)``), decodes it with
+:class:`drivers.encoder_board.protocol.FrameDecoder` and returns one
+:class:`~drivers.base.SampleBlock`. Torque goes out as hold or sequence-tagged
+plan frames; a heartbeat is sent whenever nothing else was sent for
+``heartbeat_period``. Any fatal condition (CRC storm, silence, board fault,
+encoder mismatch) first sends quick-stop / zero-torque / disable frames, then
+raises the matching :class:`~drivers.errors.DriverError`.
+
+With ``emulate = true`` the backend starts its own
+:class:`drivers.encoder_board.emulator.EmulatedBoard` on a pty in ``open()`` and stops
+it in ``close()``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import serial
+
+from drivers.base import Backend, SampleBlock
+from drivers.encoder_board import protocol as sp
+from drivers.encoder_board.config import EmulatorConfig, parse_emulator, parse_serial
+from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
+
+log = logging.getLogger(__name__)
+
+_MAX_READ = 1 << 16  # bytes drained per read() at most (~109 ms of frames at 20 kHz)
+
+
+class SerialBoardBackend(Backend):
+    """The serial encoder board. Constructor validates only (no I/O)."""
+
+    name = "serial"
+
+    def __init__(self, config: Mapping[str, Any] | None = None, *,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.config = cfg = parse_serial(config or {})
+        super().__init__({"torque_limit": cfg.torque_limit})
+        self.emulator_config: EmulatorConfig | None = None
+        if cfg.emulate:
+            self.emulator_config = parse_emulator(cfg.emulator, where="backend.emulator")
+        self.clock = clock
+        self.emulator: Any = None
+        self.port: str | None = cfg.port
+        self._ser: Any = None
+        self._decoder = sp.FrameDecoder()
+        self._unwrap = sp.StreamUnwrapper()
+        self._pending = np.empty(0, dtype=sp.DATA_DTYPE)
+        self._rad_per_count = 2.0 * math.pi / cfg.counts_per_rev
+        self._rad_per_scale = cfg.scale_resolution / cfg.lead
+        self._nm_per_ma = cfg.torque_constant * 1e-3
+        self._last_frame = 0.0
+        self._last_tx = -math.inf
+        self._heartbeats = 0
+        self._twist0: float | None = None
+        self._last_seq: int | None = None
+        self.bytes_read = 0
+        self.plan_late = 0
+        self.torque_limited = 0
+        self.tx_overflow = 0
+
+    # ----- properties ---------------------------------------------------------------------
+    @property
+    def sample_period(self) -> float:
+        return 1.0 / self.config.sample_rate_hz
+
+    @property
+    def has_measured_torque(self) -> bool:
+        return True
+
+    def stats(self) -> dict[str, int]:
+        """Link health counters (cumulative)."""
+        d = self._decoder
+        return {"frames": d.frames, "crc_errors": d.crc_errors, "header_errors": d.header_errors,
+                "garbage_bytes": d.garbage_bytes, "resyncs": d.resyncs, "lost": self._unwrap.lost,
+                "backsteps": self._unwrap.backsteps, "bytes_read": self.bytes_read,
+                "heartbeats": self._heartbeats, "plan_late": self.plan_late,
+                "torque_limited": self.torque_limited, "tx_overflow": self.tx_overflow,
+                "clamped": self.clamped}
+
+    # ----- I/O helpers --------------------------------------------------------------------
+    def _send(self, data: bytes) -> None:
+        try:
+            self._ser.write(data)
+        except serial.SerialTimeoutException as exc:
+            raise DeviceTimeout(f"serial port {self.port!r}: write timed out after "
+                                f"{self.config.write_timeout} s") from exc
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceConnectionError(f"serial port {self.port!r}: write failed: {exc}") from exc
+        self._last_tx = self.clock()
+
+    def _recv(self) -> bytes:
+        """Everything that has arrived (the kernel hands a pty/tty over in <= 4 KiB pieces)."""
+        try:
+            data = self._ser.read(self._ser.in_waiting or 1)
+            while data and len(data) < _MAX_READ and (more := self._ser.in_waiting):
+                data += self._ser.read(more)
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceConnectionError(f"serial port {self.port!r}: read failed: {exc}") from exc
+        self.bytes_read += len(data)
+        return data
+
+    def _stop_frames(self) -> None:
+        """Quick stop, zero torque, disable: best effort, never raises."""
+        if self._ser is None:
+            return
+        for frame in (sp.encode_quick_stop(), sp.encode_torque_hold(0.0), sp.encode_disable()):
+            try:
+                self._send(frame)
+            except Exception:  # noqa: BLE001 - a stop path must not raise
+                log.warning("serial: could not send a stop frame to %s", self.port, exc_info=True)
+                return
+
+    def _fail(self, exc: DriverError) -> DriverError:
+        """De-energize first, then hand the error back to be raised."""
+        log.error("serial board %s: %s", self.port, exc)
+        self._stop_frames()
+        return exc
+
+    def _wait_for(self, predicate: Callable[[np.ndarray], int], timeout: float) -> np.ndarray | None:
+        """Read until ``predicate(samples)`` gives an index >= 0; return the samples from there."""
+        deadline = self.clock() + timeout
+        while True:
+            samples, _ = self._decoder.feed_samples(self._recv())
+            if samples.shape[0]:
+                self._last_frame = self.clock()
+                i = predicate(samples)
+                if i >= 0:
+                    return samples[i:]
+            if self.clock() >= deadline:
+                return None
+
+    # ----- lifecycle hooks -----------------------------------------------------------------
+    def _open(self) -> None:
+        cfg = self.config
+        if cfg.emulate:
+            from drivers.encoder_board.emulator import board_for
+            self.emulator = board_for(cfg, self.emulator_config).start()
+            self.port = self.emulator.port
+        try:
+            self._ser = serial.serial_for_url(self.port, baudrate=cfg.baudrate, timeout=cfg.poll_timeout,
+                                              write_timeout=cfg.write_timeout)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            self._stop_emulator()
+            hint = ""
+            if getattr(exc, "errno", None) == 13 or "Permission denied" in str(exc):
+                hint = " (no permission: add your user to the group that owns the port, e.g. dialout, and log in again)"
+            raise DeviceConnectionError(f"cannot open serial port {self.port!r}: {exc}{hint}") from exc
+        try:
+            self._send(sp.encode_disable())          # a known, de-energized state
+            got = self._wait_for(lambda s: 0, cfg.startup_timeout)
+        except DriverError:
+            self._close()
+            raise
+        if got is None:
+            d = self._decoder
+            self._close()
+            raise DeviceTimeout(f"serial port {self.port!r}: no valid data frame within "
+                                f"{cfg.startup_timeout} s ({self.bytes_read} bytes, {d.crc_errors} CRC errors, "
+                                f"{d.garbage_bytes} garbage bytes)")
+        log.info("serial board on %s: streaming (seq %d)", self.port, int(got["seq"][0]))
+
+    def _activate(self) -> None:
+        self._send(sp.encode_enable())
+        got = self._wait_for(lambda s: int(np.argmax((s["status"] & sp.ST_ENABLED) != 0))
+                             if np.any(s["status"] & sp.ST_ENABLED) else -1, self.config.startup_timeout)
+        if got is None:
+            raise self._fail(DeviceTimeout(f"serial port {self.port!r}: board did not report enabled "
+                                           f"within {self.config.startup_timeout} s"))
+        self._pending = got            # the stream starts at the first enabled sample
+        self._unwrap = sp.StreamUnwrapper()
+        self._twist0 = None
+
+    def _read(self) -> SampleBlock:
+        cfg = self.config
+        now = self.clock()
+        if now - self._last_tx >= cfg.heartbeat_period:
+            self._send(sp.encode_heartbeat(self._heartbeats))
+            self._heartbeats += 1
+        d = self._decoder
+        crc0, hdr0, garbage0 = d.crc_errors, d.header_errors, d.garbage_bytes
+        samples, _ = d.feed_samples(self._recv())
+        if self._pending.shape[0]:
+            samples = np.concatenate([self._pending, samples]) if samples.shape[0] else self._pending
+            self._pending = np.empty(0, dtype=sp.DATA_DTYPE)
+        errors = (d.crc_errors - crc0) + (d.header_errors - hdr0)
+        if errors > cfg.crc_storm_limit:
+            raise self._fail(ProtocolError(f"serial port {self.port!r}: CRC storm: {errors} bad frames in one "
+                                           f"read (crc_storm_limit={cfg.crc_storm_limit})"))
+        if d.garbage_bytes - garbage0 > cfg.garbage_storm_limit:
+            raise self._fail(ProtocolError(f"serial port {self.port!r}: {d.garbage_bytes - garbage0} garbage "
+                                           f"bytes in one read (garbage_storm_limit={cfg.garbage_storm_limit})"))
+        if samples.shape[0] == 0:
+            if now - self._last_frame > cfg.read_timeout:
+                raise self._fail(DeviceTimeout(f"serial port {self.port!r}: no valid frame for "
+                                               f"{now - self._last_frame:.3f} s (read_timeout={cfg.read_timeout})"))
+            return SampleBlock.empty(with_measured=True)
+        self._last_frame = now
+        u = self._unwrap.update(samples)
+        if u.backsteps:
+            raise self._fail(DeviceFault(f"serial port {self.port!r}: sequence number repeated or went back "
+                                         f"({u.backsteps} frames): board restarted?"))
+        status = samples["status"]
+        any_set = int(np.bitwise_or.reduce(status))
+        if not int(np.bitwise_and.reduce(status)) & sp.ST_ENABLED or any_set & sp.ST_FAULT:
+            bad = ((status & sp.ST_ENABLED) == 0) | ((status & sp.ST_FAULT) != 0)
+            i = int(np.argmax(bad))
+            raise self._fail(DeviceFault(f"serial port {self.port!r}: board reported "
+                                         f"{sp.status_text(int(status[i]))} at seq {int(u.seq[i])}"))
+        theta1 = u.enc * self._rad_per_count
+        theta2 = u.scale * self._rad_per_scale           # x / lead
+        if self.config.encoder_mismatch_limit is not None:
+            self._check_encoders(theta1, theta2, u.seq)
+        if any_set & (sp.ST_PLAN_LATE | sp.ST_TORQUE_LIMITED | sp.ST_TX_OVERFLOW):
+            self.plan_late += int(np.count_nonzero(status & sp.ST_PLAN_LATE))
+            self.torque_limited += int(np.count_nonzero(status & sp.ST_TORQUE_LIMITED))
+            self.tx_overflow += int(np.count_nonzero(status & sp.ST_TX_OVERFLOW))
+        self._last_seq = int(u.seq[-1])
+        return SampleBlock(t=u.t, seq=u.seq, theta1=theta1, theta2=theta2,
+                           torque_cmd=samples["cmd"].astype(np.float64),
+                           torque_meas=samples["current"] * self._nm_per_ma, lost=u.lost)
+
+    def _check_encoders(self, theta1: np.ndarray, theta2: np.ndarray, seq: np.ndarray) -> None:
+        """The shaft twist theta1 - theta2 is physically small (|T|/K): a drift means a bad sensor."""
+        limit = self.config.encoder_mismatch_limit
+        twist = theta1 - theta2
+        if self._twist0 is None:
+            self._twist0 = float(twist[0])
+        if twist.max() - self._twist0 > limit or self._twist0 - twist.min() > limit:
+            drift = np.abs(twist - self._twist0)
+            i = int(np.argmax(drift > limit))
+            raise self._fail(DeviceFault(
+                f"serial port {self.port!r}: motor encoder and linear scale disagree by {drift[i]:.3f} rad "
+                f"at seq {int(seq[i])} (encoder_mismatch_limit={limit}): encoder stuck or slipping?"))
+
+    def _write_hold(self, torque: float) -> None:
+        self._send(sp.encode_torque_hold(torque))
+
+    def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
+        n = int(torques.size)
+        if n == 0:
+            return
+        cap = self.config.plan_capacity
+        ahead = start_seq + n - (self._last_seq if self._last_seq is not None else start_seq)
+        if ahead > cap:
+            raise DriverError(f"torques: plan reaches {ahead} samples past the last one read; "
+                              f"the board queues at most plan_capacity={cap}")
+        self._send(sp.encode_torque_plan(start_seq, torques))
+
+    def _safe_stop(self) -> None:
+        self._stop_frames()
+        if self._ser is None or self.config.stop_timeout <= 0:
+            return
+        try:
+            got = self._wait_for(lambda s: int(np.argmax((s["status"] & sp.ST_ENABLED) == 0))
+                                 if np.any((s["status"] & sp.ST_ENABLED) == 0) else -1,
+                                 self.config.stop_timeout)
+        except Exception:  # noqa: BLE001
+            got = None
+        if got is None:
+            log.warning("serial board %s: disable not confirmed within %.3f s", self.port,
+                        self.config.stop_timeout)
+
+    def _close(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # noqa: BLE001
+                log.warning("serial: closing %s failed", self.port, exc_info=True)
+        self._stop_emulator()
+
+    def _stop_emulator(self) -> None:
+        emu, self.emulator = self.emulator, None
+        if emu is not None:
+            emu.stop()

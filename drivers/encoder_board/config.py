@@ -1,0 +1,98 @@
+"""The serial encoder board's configuration: the ``[backend]`` keys and the emulator's ``[emulator]`` keys.
+
+Shared by the backend (:mod:`drivers.encoder_board.board`) and the emulated board
+(:mod:`drivers.encoder_board.emulator`), so that neither imports the other for it.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.encoder_board import protocol as sp
+from rt_ident.errors import ConfigError
+
+_LINK_MARGIN = 1.1   # the link must carry 10 % more than the frame stream
+
+
+class SerialBoardConfig(BaseModel):
+    """The ``[backend]`` keys of the serial board (units in the field comments)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: Optional[str] = None                  # registry name, ignored here
+    port: Optional[str] = None                  # device path or pyserial URL; required unless emulate
+    baudrate: int = Field(12_000_000, gt=0)     # 8N1; ignored by USB CDC devices but checked
+    sample_rate_hz: float = Field(20000.0, gt=0, le=200_000)
+    counts_per_rev: int = Field(131072, gt=0)   # motor encoder counts per revolution
+    scale_resolution: float = Field(1e-7, gt=0)  # linear scale [m/count]
+    lead: float = Field(7.96e-4, gt=0)          # spindle lead [m/rad]: theta2 = x / lead
+    torque_constant: float = Field(0.1, gt=0)   # [N m/A]: measured torque = kt * current
+    torque_limit: float = Field(1.0, gt=0)      # [N m] clamp on the host
+    read_timeout: float = Field(0.05, gt=0)     # [s] without a valid frame -> DeviceTimeout
+    startup_timeout: float = Field(1.0, gt=0)   # [s] for the first frame (open) / enable ack
+    poll_timeout: float = Field(0.0002, ge=0)   # [s] a read() waits at most this for a first byte
+    write_timeout: float = Field(0.05, gt=0)    # [s] per write before DeviceTimeout
+    heartbeat_period: float = Field(0.02, gt=0)  # [s] heartbeat if nothing else was sent
+    stop_timeout: float = Field(0.1, ge=0)      # [s] safe_stop waits this long for the disable ack
+    crc_storm_limit: int = Field(20, ge=0)      # CRC + header errors per read above which ProtocolError
+    garbage_storm_limit: int = Field(4096, ge=0)  # discarded bytes per read above which ProtocolError
+    encoder_mismatch_limit: Optional[float] = Field(0.2, gt=0)  # [rad] |twist drift|; None: off
+    plan_capacity: int = Field(4096, ge=1)      # samples the board can queue ahead
+    emulate: bool = False                       # start an EmulatedBoard on a pty in open()
+    emulator: dict[str, Any] = Field(default_factory=dict)  # EmulatorConfig keys
+
+    @model_validator(mode="after")
+    def _checks(self) -> "SerialBoardConfig":
+        if self.port is None and not self.emulate:
+            raise ValueError("port: required unless emulate = true")
+        need = self.sample_rate_hz * sp.DATA_FRAME_SIZE * 10 * _LINK_MARGIN
+        if self.baudrate < need:
+            raise ValueError(f"baudrate: {self.baudrate} baud carries {self.baudrate / 300:.0f} frames/s; "
+                             f"sample_rate_hz={self.sample_rate_hz:g} needs >= {need:.3g} baud")
+        return self
+
+
+def _validate(model: type[BaseModel], data: Mapping[str, Any], where: str) -> Any:
+    try:
+        return model.model_validate(dict(data))
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        if not loc and ": " in msg:
+            loc, msg = msg.split(": ", 1)
+        raise ConfigError(f"{where}.{loc}" if loc else where, msg) from None
+
+
+def parse_serial(data: Mapping[str, Any], where: str = "backend") -> SerialBoardConfig:
+    """Validate a ``[backend]`` mapping; errors are ConfigError naming ``backend.<field>``."""
+    return _validate(SerialBoardConfig, data, where)
+
+
+class EmulatorConfig(BaseModel):
+    """The ``[emulator]`` keys of the emulated board (faults may also be changed at run time)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    seed: int = 0
+    hold: bool = True                          # the drive's position loop holds theta1 while enabled
+    heartbeat_timeout: float = Field(0.1, gt=0)  # [s] without a host frame -> disable + fault
+    burst_period: float = Field(0.001, gt=0, le=0.1)  # [s] between bursts of frames
+    angle_noise: float = Field(0.0, ge=0)      # [rad] rms before quantization
+    torque_meas_noise: float = Field(0.0, ge=0)  # [N m] rms on the reported current
+    torque_process_noise: float = Field(0.0, ge=0)  # [N m] rms on the applied torque
+    travel: Optional[tuple[float, float]] = None  # [m] table travel; outside -> limit-switch fault
+    tx_buffer: int = Field(65536, ge=sp.DATA_FRAME_SIZE)  # [bytes] transmit FIFO; full -> frames dropped
+    seq0: int = Field(0, ge=0, lt=2**32)       # first sequence number (test wrap-around)
+    t0_us: int = Field(0, ge=0, lt=2**32)      # first time stamp [us]
+    drop_probability: float = Field(0.0, ge=0, le=1)
+    corrupt_probability: float = Field(0.0, ge=0, le=1)
+    garbage_probability: float = Field(0.0, ge=0, le=1)
+    stuck_encoder: bool = False
+    silent: bool = False
+    deaf: bool = False
+
+
+def parse_emulator(data: Mapping[str, Any], where: str = "emulator") -> EmulatorConfig:
+    """Validate ``[emulator]``; errors are ConfigError naming ``<where>.<field>``."""
+    return _validate(EmulatorConfig, data, where)

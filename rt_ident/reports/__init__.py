@@ -1,0 +1,5 @@
+"""What a user asks for after (or instead of) a run: the paper's tables and figures, the noise
+study, offline identification of a recording, and the benchmarks.
+
+May import everything below it (axis, estimators, runtime, drivers).
+"""

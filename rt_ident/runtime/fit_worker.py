@@ -1,0 +1,127 @@
+"""The process that fits streaming-estimator snapshots, so that no fit ever runs in the tick.
+
+The per-sample halves (:mod:`rt_ident.estimators.streaming`) run in the loop and hand over a
+small snapshot now and then; :class:`FitWorker` fits it with
+:func:`rt_ident.estimators.streaming.fit_snapshot` in its own process and hands the result back,
+both ways through shared-memory rings (:mod:`rt_ident.runtime.shm_ring`).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+from dataclasses import dataclass
+from typing import Any
+
+from rt_ident.estimators.base import Identification
+from rt_ident.estimators.streaming import fit_snapshot
+from rt_ident.runtime.shm_ring import MessageRing
+
+log = logging.getLogger(__name__)
+
+_WORKER_POLL_S = 0.002  # fit worker: sleep between polls of an empty inbox
+
+
+def _worker_main(method: str, hold: str, lead: float, inbox: MessageRing, outbox: MessageRing,
+                 min_interval: float) -> None:
+    import time
+
+    inbox.flag = 1                                   # ready for a snapshot
+    while True:
+        closed = inbox.writer_closed
+        if not inbox.pending_messages:
+            if closed:
+                return
+            time.sleep(_WORKER_POLL_S)
+            continue
+        inbox.flag = 0                               # busy: the loop keeps its snapshots
+        _, snap = inbox.get_object()
+        t0 = time.monotonic()
+        try:
+            result: Any = fit_snapshot(method, snap, hold=hold, lead=lead)
+        except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
+            result = exc
+        try:
+            ok = outbox.put_object(result)
+        except Exception as exc:  # noqa: BLE001 - e.g. an exception that does not pickle
+            ok = outbox.put_object(RuntimeError(f"{type(result).__name__}: {exc}"))
+        if not ok:
+            log.warning("fit worker: result ring full, result dropped")
+        # duty-cycle limit: a fit takes ~25 ms; a few per second are plenty for a live view, and
+        # the CPU left over belongs to the loop (meanwhile the loop keeps its newer snapshots)
+        while time.monotonic() - t0 < min_interval and not inbox.writer_closed:
+            time.sleep(0.01)
+        inbox.flag = 1
+
+
+@dataclass
+class FitWorker:
+    """Fits snapshots in a separate process. ``submit`` and ``poll`` never block the caller.
+
+    Snapshots and results travel through shared-memory rings (:mod:`rt_ident.runtime.shm_ring`: no
+    feeder thread in the loop's process). The worker says when it is ready for the next
+    snapshot; ``submit`` sends one only then, so a snapshot is pickled at most a few times
+    per second (``skipped`` counts the ones not sent because a fit was running).
+    """
+
+    method: str
+    hold: str = "zoh"
+    lead: float = 7.96e-4
+    min_interval: float = 0.25      # s between fits
+    ring_bytes: int = 4 << 20       # per direction; a snapshot is a few kB
+
+    def __post_init__(self) -> None:
+        ctx = mp.get_context("spawn")
+        self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
+        self._out = MessageRing(self.ring_bytes, ctx=ctx)
+        self._proc = ctx.Process(target=_worker_main, args=(self.method, self.hold, self.lead, self._in, self._out,
+                                                            self.min_interval),
+                                 name="rt_ident-fit", daemon=True)
+        self.skipped = 0
+        self.fits = 0
+        self.errors = 0
+        self.last_error: str | None = None
+
+    def start(self) -> "FitWorker":
+        self._proc.start()
+        return self
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    @property
+    def ready(self) -> bool:
+        """True when the worker waits for a snapshot (and none is on its way)."""
+        return bool(self._in.flag) and not self._in.pending_messages
+
+    def submit(self, snap: Any) -> bool:
+        """Send ``snap`` if the worker is ready for it (True), else count it as skipped."""
+        if snap is None:
+            return False
+        if not self.ready or not self._in.put_object(snap):
+            self.skipped += 1
+            return False
+        return True
+
+    def poll(self) -> Identification | None:
+        """The newest result the worker has returned since the last poll, or None."""
+        if not self._out.pending_messages:
+            return None
+        latest = None
+        for msg in self._out.get():
+            item = MessageRing.unpickle(msg)
+            if isinstance(item, Exception):
+                self.errors += 1
+                self.last_error = str(item)
+            else:
+                self.fits += 1
+                latest = item
+        return latest
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._in.close_writer()
+        self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(1.0)

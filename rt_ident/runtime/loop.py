@@ -1,0 +1,225 @@
+"""The real-time identification loop: read -> estimate -> write, on absolute deadlines.
+
+Each tick (default 1 kHz):
+
+1. ``backend.read()`` returns every sample since the previous tick;
+2. the steady-state Kalman filter turns the angles into omega and alpha
+   (for the safety monitor and the Eq. 18 torque reconstruction);
+3. the streaming estimator takes every sample (the default "frequency"
+   method updates its per-harmonic DFT sums sample by sample); when a full
+   excitation period completes, a snapshot goes to the fit worker process
+   and the newest fit it returned becomes the current estimate;
+4. the safety monitor checks watchdog, stuck encoder and the stopping window;
+5. the excitation plan for the next two ticks is written, keyed by sample
+   sequence number, so the excitation is exact at the backend's sample rate;
+6. raw samples go to the recorder process and, every few ticks, a decimated
+   block to the telemetry process — both through non-blocking hand-offs.
+
+Nothing else runs here: no rerun call, no file write, no per-tick logging.
+Any exception, a safety trip, SIGINT or SIGTERM ends the loop; the backend's
+context manager then stops it (zero torque, drive disabled).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from drivers.base import Backend, SampleBlock
+from rt_ident.runtime.safety import SafetyMonitor
+from rt_ident.runtime.scheduler import LatenessHistogram, Ticker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LoopStats:
+    ticks: int = 0
+    samples: int = 0
+    lost_samples: int = 0
+    overruns: int = 0
+    skipped_periods: int = 0
+    estimates: int = 0
+    lateness: LatenessHistogram = field(default_factory=LatenessHistogram)
+
+    def as_dict(self) -> dict[str, Any]:
+        lat = self.lateness.summary()
+        return {"ticks": self.ticks, "samples": self.samples, "lost_samples": self.lost_samples,
+                "overruns": self.overruns, "skipped_periods": self.skipped_periods,
+                "estimates": self.estimates,
+                "lateness_us": {"p50": lat["p50"], "p99": lat["p99"], "max": lat["max"]}}
+
+
+class IdentificationLoop:
+    """Joins a backend, a state estimator, a streaming estimator and the hand-offs.
+
+    Everything is constructed and warmed up by the caller (:mod:`rt_ident.runtime.run`);
+    :meth:`run` only ticks.
+    """
+
+    def __init__(self, backend: Backend, *, tick_hz: float, excitation: Callable[[np.ndarray], np.ndarray],
+                 state_estimator, estimator, safety: SafetyMonitor, duration: float, fit_worker=None,
+                 on_block: Callable[[SampleBlock], None] | None = None,
+                 on_telemetry: Callable[[dict[str, np.ndarray]], None] | None = None,
+                 publish_every: int = 20, telemetry_stride: int = 34,
+                 stop_event: threading.Event | None = None, clock: Callable[[], float] = time.perf_counter,
+                 tick_hook: Callable[[int], None] | None = None,
+                 max_sleep_s: float | None = 100e-6) -> None:
+        self.backend = backend
+        self.ticker = Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
+        self.tick_hz = tick_hz
+        self.excitation = excitation
+        self.kf = state_estimator
+        self.est = estimator
+        self.worker = fit_worker
+        self.safety = safety
+        self.duration = duration
+        self.on_block = on_block
+        self.on_telemetry = on_telemetry
+        self.publish_every = max(1, publish_every)
+        self.stride = max(1, telemetry_stride)
+        self.stop_event = stop_event or threading.Event()
+        self.clock = clock
+        self.tick_hook = tick_hook          # test seam: e.g. inject a slow tick
+        self.stats = LoopStats()
+        self.identification = None          # latest Identification (or None before the first period)
+        self._next_seq = 0
+        self._plan_len = int(math.ceil(2.0 / (tick_hz * backend.sample_period))) + 2
+        if on_telemetry is not None:
+            self._telemetry_buffers()
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> LoopStats:
+        backend, stats = self.backend, self.stats
+        self._write_plan()
+        n_ticks = int(round(self.duration * self.tick_hz))
+        self.ticker.start()
+        for _ in range(n_ticks):
+            if self.stop_event.is_set():
+                break
+            info = self.ticker.wait_next()
+            stats.ticks += 1
+            if info.skipped:
+                stats.overruns += 1
+                stats.skipped_periods += info.skipped
+            stats.lateness.record(info.lateness_s)
+            block = backend.read()
+            self._process(block, info.lateness_s)
+            self._write_plan()
+            if self.tick_hook is not None:
+                self.tick_hook(stats.ticks)
+        self._flush_telemetry()
+        return stats
+
+    # --------------------------------------------------------------- pieces
+    def _process(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
+        n = len(block)
+        stats = self.stats
+        if n == 0:
+            self.safety.check(0, 0.0, 0.0, 0.0, True)
+            return
+        stats.samples += n
+        stats.lost_samples += block.lost
+        if self.on_block is not None:               # record first: a block that trips a check is kept
+            self.on_block(block)
+        torque = block.torque
+        states = self.kf.filter_block(block.theta1, block.theta2)
+        if self.est.update_block(block.theta1, block.theta2, torque, block.seq) and self.worker is not None:
+            if self.worker.ready:                       # a snapshot only when the worker waits for one
+                self.worker.submit(self.est.snapshot())     # the fit runs in the worker process
+            else:
+                self.worker.skipped += 1
+        if self.worker is not None and stats.ticks % 10 == 0:
+            latest = self.worker.poll()
+            if latest is not None:
+                self.identification = latest
+                stats.estimates += 1
+        self.safety.check(n, float(block.theta1[-1]), float(block.theta2[-1]), float(states.omega[-1, 1]),
+                          abs(self.backend.last_torque) > 0.0)
+        self._next_seq = int(block.seq[-1]) + 1
+        if self.on_telemetry is not None:
+            self._collect_telemetry(block, states, lateness_s)
+
+    def _write_plan(self) -> None:
+        start = self._next_seq
+        seq = np.arange(start, start + self._plan_len)
+        self.backend.write(self.excitation(seq), start_seq=start)
+
+    # ------------------------------------------------------------ telemetry
+    _SAMPLE_KEYS = ("t", "theta1", "theta2", "torque_meas", "torque_cmd", "torque_hat")
+
+    def _telemetry_buffers(self) -> None:
+        """Preallocated window buffers: a tick writes slices into them; nothing is concatenated."""
+        per_tick = int(math.ceil(1.0 / (self.tick_hz * self.backend.sample_period) / self.stride)) + 2
+        cap = max(64, 4 * self.publish_every * per_tick)
+        self._tel_buf = {k: np.empty(cap) for k in self._SAMPLE_KEYS}
+        self._tel_n = 0
+        self._tel_hat_ok = True
+        self._tick_t = np.empty(self.publish_every)
+        self._tick_late = np.empty(self.publish_every)
+        self._tick_n = 0
+
+    def _collect_telemetry(self, block: SampleBlock, states, lateness_s: float) -> None:
+        s = slice(None, None, self.stride)
+        t = block.t[s]
+        m = t.shape[0]
+        buf = self._tel_buf
+        cap = buf["t"].shape[0]
+        if self._tel_n + m > cap:
+            self._flush_telemetry()               # a burst (after a stall): publish what is there first
+            if m > cap:                           # keep the newest samples of an oversized burst
+                s = slice((m - cap) * self.stride, None, self.stride)
+                t = block.t[s]
+                m = cap
+        i, j = self._tel_n, self._tel_n + m
+        buf["t"][i:j] = t
+        buf["theta1"][i:j] = block.theta1[s]
+        buf["theta2"][i:j] = block.theta2[s]
+        buf["torque_meas"][i:j] = block.torque[s]
+        buf["torque_cmd"][i:j] = block.torque_cmd[s]
+        ident = self.identification
+        if ident is not None:
+            p = ident.params
+            th, om, al = states.theta[s], states.omega[s], states.alpha[s]
+            # Eq. (18), motor row: T_hat = I1 th1'' + B (th1' - th2') + K (th1 - th2)
+            buf["torque_hat"][i:j] = p.I1 * al[:, 0] + p.B * (om[:, 0] - om[:, 1]) + p.K * (th[:, 0] - th[:, 1])
+        else:
+            self._tel_hat_ok = False
+        self._tel_n = j
+        k = self._tick_n
+        self._tick_t[k] = block.t[-1]
+        self._tick_late[k] = lateness_s * 1e6
+        self._tick_n = k + 1
+        if self._tick_n == self.publish_every:
+            self._flush_telemetry()
+
+    def _flush_telemetry(self) -> None:
+        """Publish the window: the decimated samples, per-tick lateness and the current estimate.
+
+        ``on_telemetry`` gets views of the window buffers, valid only during the call (it copies,
+        as :meth:`rt_ident.runtime.telemetry.TelemetryProcess.publish` does into its ring).
+        """
+        if self.on_telemetry is None or (self._tel_n == 0 and self._tick_n == 0):
+            return
+        n, k = self._tel_n, self._tick_n
+        if n:
+            out = {key: v[:n] for key, v in self._tel_buf.items() if key != "torque_hat" or self._tel_hat_ok}
+            self.on_telemetry(out)
+        if k:
+            tick = {"t": self._tick_t[:k], "t_tick": self._tick_t[:k], "lateness_us": self._tick_late[:k],
+                    "overruns": np.full(k, float(self.stats.overruns))}
+            ident = self.identification
+            if ident is not None:
+                for key in ("I1", "I2", "B", "K"):
+                    tick[key] = np.full(k, getattr(ident.params, key))
+                tick["wn"] = np.full(k, ident.modal["wn"])
+                tick["zeta"] = np.full(k, ident.modal["zeta"])
+            self.on_telemetry(tick)
+        self._tel_n = self._tick_n = 0
+        self._tel_hat_ok = True

@@ -1,0 +1,251 @@
+"""Read a recording back: a closed Parquet file, a crashed recorder's journal, or a CSV.
+
+The on-disk format is described in :mod:`rt_ident.runtime.recording` (which re-exports
+:class:`Recording` and :func:`read_recording`). The format constants live here so that the reader
+does not depend on the writer.
+
+CSV input: a header row naming at least ``t, theta1, theta2, torque`` (SI units: s, rad, rad,
+N m), optionally ``omega1, omega2`` [rad/s]; any column order; other columns are ignored; ``#``
+starts a comment. A CSV carries no metadata (``metadata == {}``) and its ``torque`` is taken as
+both the applied and the commanded torque.
+
+Torque used for identification (:attr:`Recording.torque`): ``torque_meas`` where it is present and
+finite, else ``torque_cmd`` (per sample; a mix is logged as a warning).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rt_ident.errors import DataError
+
+log = logging.getLogger(__name__)
+
+COLUMNS: tuple[str, ...] = ("t", "seq", "theta1", "theta2", "torque_cmd", "torque_meas")
+METADATA_KEY = b"rt_ident.metadata"
+FORMAT_KEY = b"rt_ident.format"
+FORMAT_VERSION = b"1"
+JOURNAL_SUFFIX = ".arrows"
+PART_SUFFIX = ".part"
+MIN_ROWS = 10
+CSV_REQUIRED: tuple[str, ...] = ("t", "theta1", "theta2", "torque")
+CSV_OPTIONAL: tuple[str, ...] = ("omega1", "omega2")
+
+
+def journal_path(path: str | os.PathLike[str]) -> Path:
+    """The crash-safe Arrow IPC journal that belongs to recording ``path``."""
+    return Path(str(path) + JOURNAL_SUFFIX)
+
+
+def part_path(path: str | os.PathLike[str]) -> Path:
+    """The in-progress Parquet file (no footer yet) that belongs to recording ``path``."""
+    return Path(str(path) + PART_SUFFIX)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Samples ready for identification. Arrays share one length; units SI.
+
+    ``torque`` is the signal to identify with (see module docstring). ``source`` is ``"parquet"``
+    (a closed recording), ``"journal"`` (recovered after a crash, up to the last flush) or
+    ``"csv"``.
+    """
+
+    t: np.ndarray
+    theta1: np.ndarray
+    theta2: np.ndarray
+    torque: np.ndarray
+    torque_cmd: np.ndarray
+    torque_meas: np.ndarray | None
+    omega1: np.ndarray | None
+    omega2: np.ndarray | None
+    seq: np.ndarray | None
+    metadata: dict[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+def _decode_metadata(schema_metadata: dict[bytes, bytes] | None, where: Path) -> dict[str, Any]:
+    raw = (schema_metadata or {}).get(METADATA_KEY)
+    if raw is None:
+        return {}
+    try:
+        meta = json.loads(raw)
+    except ValueError as e:
+        raise DataError(f"{where}: metadata is not valid JSON ({e})") from e
+    return meta if isinstance(meta, dict) else {"value": meta}
+
+
+def _check_finite(name: str, x: np.ndarray, where: Path) -> None:
+    bad = np.flatnonzero(~np.isfinite(x))
+    if bad.size:
+        raise DataError(f"{where}: column {name!r} has a non-finite value {x[bad[0]]!r} at data row {bad[0] + 1}")
+
+
+def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, where: Path) -> Recording:
+    """Validate columns (names, length, finiteness, monotonic t) and pick the torque signal."""
+    has_torque = any(k in cols for k in ("torque", "torque_cmd", "torque_meas"))
+    missing = [k for k in ("t", "theta1", "theta2") if k not in cols] + ([] if has_torque else ["torque"])
+    if missing:
+        raise DataError(f"{where}: missing column(s) {', '.join(missing)} (found: {', '.join(cols) or 'none'})")
+    t = np.asarray(cols["t"], dtype=np.float64)
+    n = t.shape[0]
+    if n < MIN_ROWS:
+        raise DataError(f"{where}: only {n} data rows; at least {MIN_ROWS} are needed")
+    get = {k: np.asarray(v, dtype=np.float64) for k, v in cols.items() if k != "seq"}
+    meas = get.get("torque_meas")
+    if "torque" in get:
+        torque = cmd = get["torque"]
+        meas = None
+    else:
+        cmd = get.get("torque_cmd", meas)
+        finite = np.isfinite(meas) if meas is not None else None
+        if meas is None or not finite.any():
+            torque, meas = cmd, None
+        else:
+            if not finite.all():
+                log.warning("%s: torque_meas missing for %d samples; using torque_cmd there",
+                            where, int(n - finite.sum()))
+            torque = np.where(finite, meas, cmd)
+    for name, x in (("t", t), ("theta1", get["theta1"]), ("theta2", get["theta2"]), ("torque", torque)):
+        _check_finite(name, x, where)
+    for name in CSV_OPTIONAL:
+        if name in get:
+            _check_finite(name, get[name], where)
+    steps = np.flatnonzero(np.diff(t) <= 0.0)
+    if steps.size:
+        i = int(steps[0]) + 1
+        raise DataError(
+            f"{where}: t is not strictly increasing at data row {i + 1} (t={t[i]!r} after {t[i - 1]!r})"
+        )
+    seq = cols.get("seq")
+    return Recording(
+        t=t, theta1=get["theta1"], theta2=get["theta2"], torque=torque, torque_cmd=cmd,
+        torque_meas=meas, omega1=get.get("omega1"), omega2=get.get("omega2"),
+        seq=None if seq is None else np.asarray(seq, dtype=np.int64),
+        metadata=metadata, source=source,
+    )
+
+
+def _table_columns(table: Any) -> dict[str, np.ndarray]:
+    return {name: table.column(name).to_numpy() for name in table.column_names}
+
+
+def _read_journal(path: Path) -> tuple[Any, dict[str, Any]]:
+    """All complete batches of an Arrow IPC journal; a torn last batch is dropped whole."""
+    import pyarrow as pa
+    import pyarrow.ipc as ipc
+
+    batches = []
+    try:
+        with pa.OSFile(str(path)) as f:
+            reader = ipc.open_stream(f)
+            schema = reader.schema
+            while True:
+                try:
+                    batches.append(reader.read_next_batch())
+                except StopIteration:
+                    break
+                except (OSError, pa.ArrowInvalid) as e:
+                    log.warning("%s: ignoring a truncated final batch (%s)", path, e)
+                    break
+    except (OSError, pa.ArrowInvalid) as e:
+        raise DataError(f"{path}: journal holds no complete data ({e})") from e
+    return pa.Table.from_batches(batches, schema=schema), _decode_metadata(schema.metadata, path)
+
+
+def _read_parquet(path: Path) -> tuple[Any, dict[str, Any]]:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        table = pq.read_table(path)
+    except (OSError, pa.ArrowInvalid) as e:
+        raise DataError(f"{path}: not a readable Parquet file ({e})") from e
+    return table, _decode_metadata(table.schema.metadata, path)
+
+
+def _csv_scan(path: Path, names: list[str], idx: list[int]) -> np.ndarray:
+    """Slow path: parse row by row, naming the first malformed row."""
+    out = []
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        next(reader)
+        row_no = 0
+        for row in reader:
+            if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+                continue
+            row_no += 1
+            vals = []
+            for name, i in zip(names, idx):
+                if i >= len(row):
+                    raise DataError(f"{path}: data row {row_no} (line {reader.line_num}) has no {name!r} value")
+                try:
+                    vals.append(float(row[i]))
+                except ValueError:
+                    raise DataError(
+                        f"{path}: non-numeric {name!r} value {row[i]!r} at data row {row_no} (line {reader.line_num})"
+                    ) from None
+            out.append(vals)
+    return np.array(out, dtype=np.float64).reshape(-1, len(names))
+
+
+def _read_csv(path: Path) -> dict[str, np.ndarray]:
+    with open(path, newline="") as f:
+        header = next(csv.reader(f), None)
+    if not header:
+        raise DataError(f"{path}: empty CSV (no header row)")
+    header = [h.strip() for h in header]
+    missing = [c for c in CSV_REQUIRED if c not in header]
+    if missing:
+        raise DataError(f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(header)})")
+    names = [c for c in CSV_REQUIRED + CSV_OPTIONAL if c in header]
+    idx = [header.index(c) for c in names]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported below
+            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=idx, ndmin=2, dtype=np.float64, comments="#")
+    except ValueError:
+        data = _csv_scan(path, names, idx)  # names the bad row, or parses what loadtxt could not
+    return {name: data[:, k] for k, name in enumerate(names)}
+
+
+def read_recording(path: str | os.PathLike[str]) -> Recording:
+    """Read ``.parquet`` (closed, or recovered from its journal after a crash), ``.arrows``, ``.csv``.
+
+    Raises :class:`DataError` naming the problem: missing file, unknown extension, missing columns,
+    non-numeric values (with the row), non-finite or non-monotonic ``t``, fewer than 10 rows.
+    """
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext == ".csv":
+        if not p.is_file():
+            raise DataError(f"{p}: no such file")
+        return _build(_read_csv(p), {}, "csv", p)
+    if ext == ".parquet":
+        journal = journal_path(p)
+        if p.is_file():
+            table, meta = _read_parquet(p)
+            return _build(_table_columns(table), meta, "parquet", p)
+        if journal.is_file():
+            log.warning("%s was not closed; recovering up to the last flush from %s", p, journal.name)
+            table, meta = _read_journal(journal)
+            return _build(_table_columns(table), meta, "journal", p)
+        raise DataError(f"{p}: no such file (and no journal {journal.name} to recover from)")
+    if ext == JOURNAL_SUFFIX:
+        if not p.is_file():
+            raise DataError(f"{p}: no such file")
+        table, meta = _read_journal(p)
+        return _build(_table_columns(table), meta, "journal", p)
+    raise DataError(f"{p}: unknown extension {p.suffix!r} (expected .parquet, .arrows or .csv)")

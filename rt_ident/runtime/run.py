@@ -1,0 +1,362 @@
+"""``rt-ident run``: build everything from a config, run the loop, always stop safely.
+
+Order matters: the recorder and telemetry processes are spawned first (so
+they do not inherit real-time scheduling), compiled kernels are warmed up,
+then real-time treatment is requested for this process, the backend is
+activated and the loop ticks. Whatever ends the loop (duration, Ctrl-C,
+SIGTERM, a safety trip, a device fault, any exception) the backend's context
+manager stops it: zero torque, drive disabled. Files are then closed and a
+summary is returned.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import logging
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers import make_backend
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.config import RunConfig
+from rt_ident.errors import RtIdentError
+from rt_ident.estimators import make_streaming
+from rt_ident.estimators.state_estimation import AxisStateEstimator, encoder_quanta
+from rt_ident.runtime.emulation import start_emulator
+from rt_ident.runtime.fit_worker import FitWorker
+from rt_ident.runtime.loop import IdentificationLoop
+from rt_ident.runtime.safety import SafetyMonitor
+
+log = logging.getLogger(__name__)
+
+
+def default_paths(stamp: str | None = None) -> tuple[Path, Path]:
+    stamp = stamp or _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    base = Path("runs") / f"run-{stamp}"
+    return base.with_suffix(".rrd"), base.with_suffix(".parquet")
+
+
+def backend_options(cfg: RunConfig) -> dict[str, Any]:
+    opts = cfg.backend.options()
+    if cfg.backend.name == "sim":
+        opts.setdefault("axis", cfg.axis_params().as_dict())
+    return opts
+
+
+def _excitation(cfg: RunConfig):
+    ex = cfg.excitation
+    if ex.kind == "none":
+        return lambda seq: np.zeros(seq.shape)
+    if ex.kind not in ("schroeder", "random"):
+        raise RtIdentError(f"excitation.kind: the loop needs a periodic multisine ('schroeder' or 'random'), "
+                           f"got {ex.kind!r}")
+    ms = schroeder_multisine(ex.period_samples, ex.band, peak=ex.peak,
+                             phases="schroeder" if ex.kind == "schroeder" else "random", seed=ex.seed)
+    return ms.at
+
+
+def _install_signals(stop: threading.Event) -> dict:
+    old = {}
+    if threading.current_thread() is not threading.main_thread():
+        return old
+
+    def handler(signum, frame):  # noqa: ARG001
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        old[sig] = signal.signal(sig, handler)
+    return old
+
+
+def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
+        connect_url: str | None = None, stop_event: threading.Event | None = None,
+        tick_hook=None) -> dict[str, Any]:
+    """Run the loop described by ``cfg``; returns the summary (also on a safety stop).
+
+    ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached or Ctrl-C/SIGTERM)
+    and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise.
+    """
+    from rt_ident.runtime.recording import RecorderProcess
+    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+
+    stop = stop_event or threading.Event()
+    truth = cfg.axis_params()
+    rrd_default, rec_default = default_paths()
+    sink = sink or cfg.telemetry.sink
+    rrd_path = rrd or cfg.telemetry.rrd or (str(rrd_default) if sink == "rrd" else None)
+    rec_path = record or cfg.recording.path or (str(rec_default) if cfg.recording.enabled else None)
+    for p in (rrd_path, rec_path):
+        if p:
+            Path(p).parent.mkdir(parents=True, exist_ok=True)
+
+    emulator = None
+    opts = backend_options(cfg)
+    if cfg.backend.emulate:
+        emulator = start_emulator(cfg)
+        if getattr(emulator, "port", None):          # serial: the board's pseudo-terminal
+            opts["port"] = emulator.port
+    backend = make_backend(cfg.backend.name, opts)
+    ex = cfg.excitation
+    summary: dict[str, Any] = {"backend": cfg.backend.name, "config": cfg.source, "method": cfg.estimator.method}
+    host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None}   # filled around loop.run()
+    stop_cause = None
+    stop_message = None
+    loop = None
+    telemetry = recorder = None
+    old_signals = _install_signals(stop)
+    try:
+        with contextlib.ExitStack() as stack:
+            if emulator is not None:
+                stack.callback(getattr(emulator, "close", None) or emulator.stop)
+            if sink != "off":
+                telemetry = TelemetryProcess(TelemetryConfig(sink=sink, rrd_path=rrd_path, connect_url=connect_url
+                                                             or cfg.telemetry.connect_url,
+                                                             bind_ip=cfg.telemetry.bind_ip))
+                telemetry.start()
+                if cfg.backend.name == "sim":
+                    telemetry.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
+                                         **{k: v for k, v in modal_parameters(truth).items() if k != "wd"}})
+            dt = backend.sample_period                 # known from the config, before any I/O
+            meta = {"backend": cfg.backend.name, "sample_period": dt, "axis": truth.as_dict(),
+                    "excitation": ex.model_dump(), "method": cfg.estimator.method,
+                    "warmup_periods": cfg.loop.warmup_periods, "forgetting": cfg.estimator.forgetting}
+            if rec_path:
+                recorder = RecorderProcess(rec_path, meta, overwrite=True).start()
+            q1, q2 = _quanta(cfg)
+            kf = AxisStateEstimator(dt, q1, q2, cfg.estimator.kalman_process_noise)
+            est = make_streaming(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
+                                           warmup_periods=cfg.loop.warmup_periods,
+                                           forgetting=cfg.estimator.forgetting, lead=truth.lead, quanta=(q1, q2),
+                                           process_noise=cfg.estimator.kalman_process_noise)
+            worker = FitWorker(cfg.estimator.method, lead=truth.lead).start()
+            stack.callback(worker.close)
+            _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
+            safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
+                                   watchdog_ticks=cfg.safety.watchdog_ticks)
+            loop = IdentificationLoop(
+                backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf, estimator=est,
+                safety=safety, duration=cfg.loop.duration, fit_worker=worker,
+                on_block=recorder.put if recorder else None,
+                on_telemetry=telemetry.publish if telemetry else None,
+                publish_every=cfg.telemetry.publish_every_ticks,
+                telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
+                stop_event=stop, tick_hook=tick_hook,
+                max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6)
+            if telemetry is not None:
+                telemetry.wait_ready(5.0)
+            helpers = [getattr(x, "pid", None) for x in (telemetry, recorder, worker) if x is not None]
+            device = getattr(emulator, "pid", None)
+            summary["helper_processes"] = _keep_off_loop_cpu([p for p in helpers if p], cfg.loop.realtime,
+                                                             device=device)
+            # open as late as possible: a device streams from open() on and nobody reads it until the loop
+            stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
+            summary["realtime"] = _realtime(cfg)
+            # a backend's I/O threads (python-can's receiver, a SYNC sender) share this process's GIL:
+            # hand it back within 50 us, not 5 ms (the hand-offs to helper processes use no thread: rt_ident.runtime.shm_ring)
+            switch_interval = sys.getswitchinterval()
+            stack.callback(sys.setswitchinterval, switch_interval)
+            sys.setswitchinterval(5e-5)
+            backend.activate()
+            steal = _HostSteal()
+            try:
+                loop.run()
+            finally:
+                host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
+            backend.safe_stop()                      # zero torque before the (slower) final fit
+            summary["final_fit_error"] = _final_fit(loop, est)
+    except RtIdentError as exc:
+        stop_cause = getattr(exc, "cause", "error")
+        stop_message = str(exc)
+        log.error("run stopped: %s", exc)
+        if loop is not None:                         # nothing lost: still fit what was measured
+            summary["final_fit_error"] = _final_fit(loop, loop.est)
+    finally:
+        for sig, handler in old_signals.items():
+            signal.signal(sig, handler)
+        import gc
+
+        gc.enable()
+        files = {"rrd": rrd_path if sink == "rrd" else None, "recording": rec_path}
+        if recorder is not None:
+            summary["recording"] = recorder.close()
+        if telemetry is not None:
+            tel = telemetry.close()
+            summary["telemetry"] = {"dropped": telemetry.dropped, "sent": telemetry.sent, **tel}
+        else:
+            summary["telemetry"] = {"dropped": 0, "sent": 0, "sink": "off"}
+        summary["files"] = files
+    summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set(),
+                       "final_torque": backend.last_torque, "backend_state": backend.state.value}
+    summary["backend_counters"] = _backend_counters(backend)
+    if loop is not None:
+        summary["loop"] = {**loop.stats.as_dict(), "host": host}
+        ident = loop.identification
+        if ident is not None:
+            summary.update(_ident_summary(ident))
+    summary.setdefault("parameters", None)
+    if cfg.backend.name == "sim" or cfg.backend.emulate:
+        tr = {"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K, **modal_parameters(truth)}
+        summary["truth"] = tr
+        if summary["parameters"]:
+            summary["error_pct"] = {k: 100.0 * (summary["parameters"][k] - v) / v for k, v in tr.items()}
+    return summary
+
+
+def _final_fit(loop: IdentificationLoop, est) -> str | None:
+    """Cold fit of everything seen (what `identify` replays); an error is reported, not raised."""
+    try:
+        final = est.final()
+    except RtIdentError as exc:
+        log.warning("final fit failed: %s", exc)
+        return str(exc)
+    if final is not None:
+        loop.identification = final
+    return None
+
+
+def _ident_summary(ident) -> dict[str, Any]:
+    d = ident.as_dict()
+    return {"parameters": d["parameters"], "ci95": d.get("ci95"), "trusted": d.get("trusted"),
+            "method": d.get("method")}
+
+
+def _quanta(cfg: RunConfig) -> tuple[float, float]:
+    opts = cfg.backend.options()
+    lead = cfg.axis_params().lead
+    cpr = int(opts.get("counts_per_rev", 2**17) or 2**17)
+    res = float(opts.get("scale_resolution", 1e-7) or 1e-7)
+    return encoder_quanta(cpr, res, lead)
+
+
+def _warmup(kf, est, n: int) -> None:
+    """Compile/load every kernel before the first tick, on clones (the real state stays untouched).
+
+    ``n`` covers the warm-up periods and one completed period, so the period-completion path of the
+    streaming estimator is loaded here too, not at the first full period of the run.
+    """
+    import copy
+
+    z = np.zeros(8)
+    copy.deepcopy(kf).filter_block(z, z)
+    w = copy.deepcopy(est)
+    t = np.arange(n, dtype=float)
+    w.update_block(np.sin(t * 0.1), np.sin(t * 0.1), np.cos(t * 0.1), np.arange(n))
+    w.snapshot()
+
+
+def _loop_cpu() -> int | None:
+    """The CPU the loop gets to itself: the last one, when there are at least two."""
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return None
+    return cpus[-1] if len(cpus) >= 2 else None
+
+
+class _HostSteal:
+    """Time the hypervisor ran something else while this guest's loop CPU wanted to run.
+
+    ``/proc/stat``'s steal column (USER_HZ ticks, usually 10 ms) for the CPU the loop is pinned
+    to (the whole machine when it is not pinned). On a VM, a late tick with no context switch
+    and no page fault in the loop thread, while steal grows, was the host's doing.
+    """
+
+    def __init__(self) -> None:
+        try:
+            cpus = os.sched_getaffinity(0)
+        except (AttributeError, OSError):
+            cpus = set()
+        self.cpu: int | None = next(iter(cpus)) if len(cpus) == 1 else None
+        self._start = self._read()
+
+    def _read(self) -> int | None:
+        key = "cpu" if self.cpu is None else f"cpu{self.cpu}"
+        try:
+            with open("/proc/stat") as fh:
+                for line in fh:
+                    fields = line.split()
+                    if fields and fields[0] == key and len(fields) > 8:
+                        return int(fields[8])
+        except OSError:
+            pass
+        return None
+
+    def elapsed_ms(self) -> float | None:
+        end = self._read()
+        if end is None or self._start is None:
+            return None
+        return (end - self._start) * 1000.0 / os.sysconf("SC_CLK_TCK")
+
+
+def _backend_counters(backend) -> dict[str, Any] | None:
+    """The link-health counters a backend keeps (CANopen: ``counters``; serial board: ``stats()``)."""
+    for name in ("counters", "stats"):
+        value = getattr(backend, name, None)
+        try:
+            value = value() if callable(value) else value
+        except Exception:  # noqa: BLE001 - a summary must not fail on a closed device
+            continue
+        if isinstance(value, dict):
+            return value
+    return None
+
+
+def _threads(pid: int) -> list[int]:
+    """Every thread of a process (Linux: priority and affinity calls on a pid reach one thread only)."""
+    try:
+        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        return [pid]
+
+
+def _keep_off_loop_cpu(pids: list[int], realtime: bool, *, device: int | None = None) -> dict[str, Any]:
+    """Recorder, telemetry and fit worker: lower priority, and off the loop's CPU.
+
+    Applied to every thread each process has started so far (rerun's and pyarrow's threads
+    exist by now); threads started later inherit it from the thread that creates them.
+    An emulated ``device`` (its pid) only leaves the loop's CPU: it stands for hardware that
+    runs on its own, so it keeps its priority (niced next to the fit worker's 90 ms bursts, the
+    serial board missed the host's 20-tick watchdog).
+    """
+    loop_cpu = _loop_cpu() if realtime else None
+    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None, "threads": 0, "device_pid": device}
+    for pid in pids + ([device] if device else []):
+        for tid in _threads(pid):
+            report["threads"] += 1
+            if pid != device:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, 10)
+                except OSError:
+                    report["niced"] = False
+            if loop_cpu is not None:
+                try:
+                    others = set(os.sched_getaffinity(tid)) - {loop_cpu}
+                    if others:
+                        os.sched_setaffinity(tid, others)
+                        report["cpus"] = sorted(others)
+                except OSError:
+                    pass
+    return report
+
+
+def _realtime(cfg: RunConfig) -> dict[str, Any]:
+    if not cfg.loop.realtime:
+        return {"requested": False}
+    from rt_ident.runtime.scheduler import apply_realtime
+
+    cpu = _loop_cpu()
+    return apply_realtime(priority=50, cpus=None if cpu is None else [cpu], lock_memory=True, freeze_gc=True)
+
+
+def exit_code(summary: dict[str, Any]) -> int:
+    return 0 if summary["stop"]["cause"] is None else 3
+
+

@@ -1,0 +1,37 @@
+"""The folder layout's import directions (README "Layout"), checked by import-linter's contracts in pyproject.toml."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from importlinter.cli import lint_imports
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_import_contracts_hold_downward_only_and_no_circles(monkeypatch):
+    monkeypatch.chdir(ROOT)
+    assert lint_imports(config_filename=str(ROOT / "pyproject.toml"), no_cache=True) == 0, \
+        "an import breaks the layout's contracts (see the report above)"
+
+
+def test_every_rt_ident_folder_has_a_layer_in_the_contract():
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    layered = {m.strip() for c in cfg["contracts"] if c["type"] == "layers"
+               for layer in c["layers"] for m in layer.split("|")}
+    folders = {f"rt_ident.{p.name}" for p in (ROOT / "rt_ident").iterdir()
+               if p.is_dir() and (p / "__init__.py").is_file()}
+    assert folders, "no sub-packages found under rt_ident/"
+    missing = sorted(folders - layered)
+    assert not missing, f"folders with no place in the layers contract: {missing}"
+
+
+def test_no_module_left_at_the_top_of_rt_ident_but_the_face():
+    top = sorted(p.name for p in (ROOT / "rt_ident").glob("*.py"))
+    assert top == ["__init__.py", "__main__.py", "cli.py", "config.py", "errors.py"], top
+
+
+def test_drivers_top_holds_only_the_contract_and_sim():
+    top = sorted(p.name for p in (ROOT / "drivers").glob("*.py"))
+    assert top == ["__init__.py", "base.py", "errors.py", "sim.py"], top
