@@ -21,6 +21,7 @@ hold loop off) and raises :class:`~drivers.errors.TravelLimitTrip`.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -32,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from drivers.base import Backend, SampleBlock
 from drivers.errors import DriverError, TravelLimitTrip
 from rt_ident.axis.params import AxisParams, thomson_x
-from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig
+from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantBlock, PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -58,7 +59,7 @@ class SimConfig(BaseModel):
     torque_process_noise: float = Field(0.0, ge=0)
     torque_limit: float = Field(1.0, gt=0)          # N m
     travel: Optional[tuple[float, float]] = (-0.05, 0.05)  # m on the linear scale
-    position_hold: bool = True
+    position_hold: bool = False                     # a drive-side hold loop (identification-only runs)
     kp: Optional[float] = Field(None, ge=0)
     kd: Optional[float] = Field(None, ge=0)
     integrator: Literal["zoh", "newmark"] = "zoh"
@@ -66,6 +67,7 @@ class SimConfig(BaseModel):
     paced: bool = True
     samples_per_read: Optional[int] = Field(None, ge=1)
     has_measured_torque: bool = True
+    changes: list[dict[str, float]] = Field(default_factory=list)  # [{at: s, I1/I2/B/K: factor}], see _changes()
 
     @field_validator("travel")
     @classmethod
@@ -108,6 +110,8 @@ class SimBackend(Backend):
                                           kd=DEFAULT_KD if cfg.kd is None else cfg.kd)
                            if cfg.position_hold else None)
         self.plant = self._make_plant(self.controller, x0=None)
+        self._changes = _changes(cfg.changes, self.true_params, self._dt)
+        self.applied_changes: list[tuple[int, AxisParams]] = []   # (seq, params) applied so far
         self._clock = clock
         self._t_activate = 0.0
         self._produced = 0                # samples produced = seq of the next sample
@@ -122,9 +126,15 @@ class SimBackend(Backend):
 
     def _make_plant(self, controller: HoldController | None, x0: np.ndarray | None) -> PlantSimulator:
         cfg = self.config
-        return PlantSimulator(self.true_params, self._dt, sensors=self.sensors, controller=controller,
+        params = self.plant.params if hasattr(self, "plant") else self.true_params
+        return PlantSimulator(params, self._dt, sensors=self.sensors, controller=controller,
                               torque_limit=cfg.torque_limit, travel=cfg.travel,
                               integrator=cfg.integrator, seed=cfg.seed, x0=x0)
+
+    @property
+    def current_params(self) -> AxisParams:
+        """The plant's parameters now (after the changes applied so far)."""
+        return self.plant.params
 
     # ----- properties -----------------------------------------------------
     @property
@@ -193,8 +203,8 @@ class SimBackend(Backend):
         if n == 0:
             return SampleBlock.empty(self.has_measured_torque)
         cmd = self._commands(n)
-        blk = self.plant.step_block(cmd)
         p = self._produced
+        blk = self._step(cmd, p)
         seq = np.arange(p, p + n, dtype=np.int64)
         self._produced = p + n
         self.applied_torque = float(blk.torque_applied[-1])
@@ -207,6 +217,25 @@ class SimBackend(Backend):
             self._disable()
             raise TravelLimitTrip(f"sim: {self.tripped}; torque stopped")
         return out
+
+    def _step(self, cmd: np.ndarray, p: int) -> PlantBlock:
+        """Step the plant over seq [p, p + len(cmd)), applying each due change at its exact sample."""
+        due = self._changes
+        if not due or due[0][0] >= p + cmd.shape[0]:
+            return self.plant.step_block(cmd)
+        parts, k = [], 0
+        while due and due[0][0] < p + cmd.shape[0]:
+            seq, params = due.pop(0)
+            cut = max(seq - p, k)
+            if cut > k:
+                parts.append(self.plant.step_block(cmd[k:cut]))
+                k = cut
+            self.plant.set_params(params)
+            self.applied_changes.append((max(seq, p), params))
+            log.info("sim: plant changed at seq %d: %s", max(seq, p), params)
+        parts.append(self.plant.step_block(cmd[k:]))
+        return PlantBlock(*(np.concatenate([getattr(b, f.name) for b in parts])
+                            for f in dataclasses.fields(PlantBlock)))
 
     def _refuse_if_disabled(self) -> None:
         if self.tripped is not None:
@@ -260,5 +289,29 @@ class SimBackend(Backend):
     def _close(self) -> None:
         self._disable()
 
+
+def _changes(entries: list[dict[str, float]], base: AxisParams, dt: float) -> list[tuple[int, AxisParams]]:
+    """``[[plant.change]]`` entries -> (first sample, parameters), sorted. Factors scale the configured
+    axis (they do not compound: ``I2 = 3`` twice is still 3 x the configured I2)."""
+    out = []
+    for i, entry in enumerate(entries):
+        where = f"plant.change[{i}]"
+        unknown = set(entry) - {"at", *_CHANGE_KEYS}
+        if unknown:
+            raise ConfigError(f"{where}.{sorted(unknown)[0]}", f"unknown key (expected at, {', '.join(_CHANGE_KEYS)})")
+        at = entry.get("at")
+        if isinstance(at, bool) or not isinstance(at, (int, float)) or not math.isfinite(at) or at < 0:
+            raise ConfigError(f"{where}.at", f"must be a time >= 0 in seconds, got {at!r}")
+        scaled = {}
+        for k in _CHANGE_KEYS:
+            f = entry.get(k, 1.0)
+            if isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f) or f <= 0:
+                raise ConfigError(f"{where}.{k}", f"must be a factor > 0, got {f!r}")
+            scaled[k] = getattr(base, k) * float(f)
+        out.append((int(math.ceil(at / dt - 1e-9)), AxisParams(**scaled, lead=base.lead)))
+    return sorted(out, key=lambda c: c[0])
+
+
+_CHANGE_KEYS = ("I1", "I2", "B", "K")
 
 __all__ = ["SimBackend", "SimConfig", "PAPER_DT"]

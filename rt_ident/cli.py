@@ -221,6 +221,9 @@ def run(
     serve: bool = typer.Option(False, "--serve", help="Serve telemetry over gRPC on 127.0.0.1."),
     no_telemetry: bool = typer.Option(False, "--no-telemetry", help="No rerun streaming."),
     method: Optional[str] = typer.Option(None, "--method", help="Streaming estimator (frequency, paper)."),
+    control: Optional[str] = typer.Option(None, "--control",
+                                          help="Host position loop: adaptive, fixed (nominal design) or off "
+                                               "(excitation only; needs a drive-side hold)."),
     no_realtime: bool = typer.Option(False, "--no-realtime", help="Do not ask for SCHED_FIFO/mlockall."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
@@ -230,7 +233,9 @@ def run(
     from rt_ident.runtime.run import run as run_loop
 
     sink = "off" if no_telemetry else "spawn" if spawn else "connect" if connect else "serve" if serve else None
-    overrides = {"loop.duration": duration, "estimator.method": method}
+    if control is not None and control not in ("adaptive", "fixed", "off"):
+        raise typer.BadParameter(f"--control must be adaptive, fixed or off, got {control!r}")
+    overrides = {"loop.duration": duration, "estimator.method": method, "control.mode": control}
     if no_realtime:
         overrides["loop.realtime"] = False
     cfg = cfgmod.load(config, **overrides)
@@ -253,6 +258,10 @@ def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     return str(o)
+
+
+def _um(v):
+    return None if v is None else 1e6 * v
 
 
 def _print_run(s: dict) -> None:
@@ -283,6 +292,25 @@ def _print_run(s: dict) -> None:
               f"{loop.get('overruns', 0)} overruns, lateness p50 {_fmt(lat.get('p50'))} us, "
               f"p99 {_fmt(lat.get('p99'))} us, max {_fmt(lat.get('max'))} us; "
               f"telemetry dropped {s['telemetry'].get('dropped', 0)}")
+    ctl = s.get("control") or {}
+    if ctl.get("mode") not in (None, "off"):
+        rd = ctl.get("redesigns") or {}
+        line = (f"control: {ctl['mode']}, table error rms {_fmt(_um(ctl.get('rms_error_m')))} um, "
+                f"max {_fmt(_um(ctl.get('max_error_m')))} um")
+        if ctl.get("rms_error_after_change_m") is not None:
+            line += f", rms after the plant change {_fmt(_um(ctl['rms_error_after_change_m']))} um"
+        line += (f"; redesigns accepted {rd.get('accepted', 0)}, rejected {rd.get('rejected', 0)}; "
+                 f"fallbacks {ctl.get('fallbacks', 0)}; running the {ctl.get('controller')} controller")
+        out.print(line)
+        for reason in rd.get("rejected_reasons") or []:
+            out.print(f"  rejected: {reason}")
+    elif ctl:
+        out.print("control: off (the host sends the excitation only; the drive must hold the axis)")
+    work = loop.get("work_us") or {}
+    if work:
+        out.print(f"tick work: p50 {_fmt(work.get('p50'))} us, p99 {_fmt(work.get('p99'))} us, "
+                  f"max {_fmt(work.get('max'))} us; overruns from work {loop.get('overruns_work', 0)}, "
+                  f"from a late start {loop.get('overruns_late_start', 0)}")
     rt = s.get("realtime") or {}
     if rt:
         out.print("real-time: " + ", ".join(f"{k}={'yes' if v is True else v}" for k, v in rt.items()))
@@ -354,8 +382,15 @@ def bench(
                                        help="Instead: one loop run this long (e.g. 600) and its memory (RSS) over time."),
     soak_rate: float = typer.Option(170_000.0, "--soak-rate", min=1000.0, help="Samples/s of the --soak run."),
     soak_sink: str = typer.Option("rrd", "--soak-sink", help="Telemetry of the --soak run: rrd or off."),
+    control: bool = typer.Option(False, "--control",
+                                 help="Instead: fixed vs adaptive vs oracle control after load changes, and the "
+                                      "nominal design on 100 random plants."),
+    figure: Optional[Path] = typer.Option(None, "--figure", help="With --control: write the comparison as a PNG."),
 ) -> None:
     """Speed of our kernels vs peers (padasip, filterpy, numpy, scipy) and the loop's capacity, in one run."""
+    if control:
+        _bench_control(json_out, quick, figure)
+        return
     if soak_seconds > 0:
         _soak(soak_seconds, soak_rate, soak_sink, json_out)
         return
@@ -368,6 +403,37 @@ def bench(
     if rates is not None and min(rates) <= 0:
         raise RtIdentError(f"--loop-rates: rates must be > 0, got {loop_rates!r}")
     bench_main(json_out=json_out, quick=quick, loop_seconds=loop_seconds, repeats=repeats, loop_rates=rates)
+
+
+def _bench_control(json_out: bool, quick: bool, figure: Optional[Path]) -> None:
+    from rt_ident.reports.control_bench import control_bench, targets
+
+    res = control_bench(quick=quick, progress=lambda s: err.print(f"control bench: {s}", highlight=False))
+    if figure is not None:
+        from rt_ident.reports.control_bench import control_comparison
+
+        control_comparison(res, figure)
+    if json_out:
+        typer.echo(json.dumps(res, indent=2, default=_json_default))
+        return
+    tab = Table(title="table tracking error after the plant change [um]: RMS / max")
+    for col in ("scenario", "fixed", "adaptive", "oracle", "adaptive / oracle", "adaptive / fixed"):
+        tab.add_column(col, justify="right")
+    for r in res["control"]["scenarios"]:
+        cells = []
+        for m in ("fixed", "adaptive", "oracle"):
+            e = r[m]
+            cell = f"{_fmt(_um(e['rms_error_m']))} / {_fmt(_um(e['max_error_m']))}"
+            cells.append(cell + (" (stopped)" if e.get("stop") else ""))
+        tab.add_row(r["name"], *cells, _fmt(r.get("adaptive_over_oracle")), _fmt(r.get("adaptive_over_fixed")))
+    out.print(tab)
+    rp = res["control"]["random_plants"]
+    out.print(f"random plants (I1, I2, B, K each x 0.5..2, seed {rp['seed']}): {rp['unstable']} of {rp['n']} unstable "
+              f"with the nominal design; worst overshoot {100 * rp['worst_overshoot']:.1f} %")
+    for name, ok, fig in targets(res):
+        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
+    if figure is not None:
+        out.print(f"figure: {figure}")
 
 
 def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:

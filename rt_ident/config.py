@@ -66,6 +66,41 @@ class EstimatorConfig(_Section):
     kalman_process_noise: float = Field(1e9, gt=0)  # rad^2/s^5 (jerk spectral density) for the velocity filter
 
 
+class ControlConfig(_Section):
+    """The host's position loop (:mod:`rt_ident.control`)."""
+
+    mode: Literal["adaptive", "fixed", "off"] = "adaptive"  # off: excitation only (needs a drive-side hold)
+    bandwidth_hz: float = Field(20.0, gt=0)           # model controller (LQR on the identified model)
+    effort: float = Field(1.0, gt=0)                  # torque weight multiplier: larger is gentler
+    conservative_bandwidth_hz: float = Field(10.0, gt=0)  # rigid-body controller from [axis] I1 + I2
+    gain_margin_db: float = Field(6.0, ge=0)
+    phase_margin_deg: float = Field(40.0, ge=0, lt=90)
+    family_factors: tuple[float, ...] = (0.7, 1.3)    # each parameter x these must keep the margins
+    redesign_interval_s: float = Field(0.25, gt=0)
+    min_change: float = Field(0.02, ge=0)             # relative change of the estimate that asks for a redesign
+    max_error_m: float = Field(2e-4, gt=0)            # tracking error bound -> conservative fallback
+    fallback_timeout_s: float = Field(0.5, gt=0)      # fallback not recovered by then -> safe stop
+    feedforward: bool = True                          # inertia feedforward from the reference acceleration
+    trust_tolerance: float = Field(0.05, gt=0)        # per-sample estimate vs frequency fit: trusted when within
+    probe_scale_trusted: float = Field(1.0, gt=0, le=1)  # probing amplitude x this while the estimate is trusted
+    delay_ticks: int = Field(1, ge=1, le=5)           # ticks from the newest sample until the torque lands
+
+    def settings(self):
+        from rt_ident.control.adaptation import ControlSettings
+
+        return ControlSettings(**{k: v for k, v in self.model_dump().items()
+                                  if k in ControlSettings.__dataclass_fields__})
+
+
+class PlantConfig(_Section):
+    """Scenario changes of the simulated plant (sim backend only): ``[[plant.change]]``."""
+
+    change: list[dict[str, float]] = Field(default_factory=list)  # {at = s, I1/I2/B/K = factor}
+
+    def last_change_s(self) -> float | None:
+        return max((float(c.get("at", 0.0)) for c in self.change), default=None)
+
+
 class SafetyConfig(_Section):
     window: tuple[float, float] = (-0.04, 0.04)  # table position window [m] on the scale
     max_decel: float = Field(2.0e4, gt=0)        # rad/s^2 the motor can brake at (stopping distance)
@@ -94,6 +129,9 @@ class RunConfig(_Section):
     loop: LoopConfig = LoopConfig()
     estimator: EstimatorConfig = EstimatorConfig()
     safety: SafetyConfig = SafetyConfig()
+    control: ControlConfig = ControlConfig()
+    reference: dict[str, Any] = Field(default_factory=lambda: {"kind": "hold"})
+    plant: PlantConfig = PlantConfig()
     telemetry: TelemetryConfig = TelemetryConfig()
     recording: RecordingConfig = RecordingConfig()
     source: Optional[str] = None

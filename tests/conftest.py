@@ -8,6 +8,11 @@ comma-separated paths. Nothing here runs at import time.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
+import os
+
 import pytest
 
 
@@ -43,3 +48,21 @@ def emulators(monkeypatch) -> list:
 
     monkeypatch.setattr(run_mod, "start_emulator", start)
     return started
+
+
+@pytest.fixture
+def restore_scheduling():
+    """``rt_ident.runtime.run`` with ``loop.realtime`` makes the calling thread real-time (SCHED_FIFO,
+    one CPU, mlockall, GC frozen): undo it after the test."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    cpus = os.sched_getaffinity(0)
+    yield
+    try:
+        os.sched_setscheduler(0, policy, param)
+    except OSError:
+        pass
+    os.sched_setaffinity(0, cpus)
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    libc.munlockall()
+    gc.unfreeze()
+    gc.enable()

@@ -12,9 +12,6 @@ machine): the assertions are about data arriving, safe stops and no orphan proce
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import gc
 import multiprocessing
 import os
 import signal
@@ -47,20 +44,9 @@ def _config(**over):
 
 
 @pytest.fixture(autouse=True)
-def _restore_scheduling():
-    """rt_ident.runtime.run makes the calling thread real-time (SCHED_FIFO, one CPU, mlockall, GC frozen): undo it."""
-    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    cpus = os.sched_getaffinity(0)
+def _restore_scheduling(restore_scheduling):
+    """Every test here may run the loop real-time (conftest's ``restore_scheduling`` undoes it)."""
     yield
-    try:
-        os.sched_setscheduler(0, policy, param)
-    except OSError:
-        pass
-    os.sched_setaffinity(0, cpus)
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-    libc.munlockall()
-    gc.unfreeze()
-    gc.enable()
 
 
 def _gone(pid: int, timeout: float = 5.0) -> bool:

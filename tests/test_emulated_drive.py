@@ -99,13 +99,14 @@ def test_drive_answers_sdo_and_refuses_unmappable_objects():
     assert drive.nmt_state == "PRE-OPERATIONAL"
 
 
-def test_start_emulator_for_accepts_a_run_config():
+def test_start_emulator_for_accepts_a_run_config_and_holds_nothing_in_torque_mode():
     cfg = run_config.load(CONFIG_DIR / "canopen-virtual.toml")
     assert cfg.backend.name == "canopen" and cfg.backend.emulate
     drive = start_emulator_for(cfg)
     try:
         assert drive.node_id == 5 and drive.state == p402.SWITCH_ON_DISABLED
-        assert drive.plant.dt == pytest.approx(1 / 2000) and drive.plant.controller is not None
+        # a real drive in cyclic torque mode closes no position loop: the host does (issue 12)
+        assert drive.plant.dt == pytest.approx(1 / 2000) and drive.plant.controller is None
         assert drive.rated_torque == pytest.approx(0.64)
     finally:
         drive.stop()

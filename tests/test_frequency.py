@@ -267,7 +267,7 @@ def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy
     import time
 
     from rt_ident.estimators.streaming import fit_snapshot, make_streaming
-    from rt_ident.runtime.fit_worker import FitWorker
+    from rt_ident.runtime.fit_worker import make_fit_worker
 
     p, dt, N = thomson_x(), 2.5e-4, 512
     ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
@@ -276,7 +276,7 @@ def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy
                                    warmup_periods=1, lead=p.lead)
     assert est.update_block(blk.theta1, blk.theta2, blk.torque_meas, np.arange(blk.theta1.size))
     snap = est.snapshot()
-    worker = FitWorker("frequency", lead=p.lead, min_interval=5.0).start()
+    worker = make_fit_worker("frequency", lead=p.lead, min_interval=5.0).start()
     try:
         deadline = time.monotonic() + 30.0
         while not worker.ready and time.monotonic() < deadline:

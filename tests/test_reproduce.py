@@ -5,7 +5,7 @@ from typer.testing import CliRunner
 
 from rt_ident.cli import app
 from rt_ident.reports import paper_tables
-from rt_ident.reports.reproduce import run_reproduce, sensitivity
+from rt_ident.reports.reproduce import sensitivity
 
 runner = CliRunner()
 

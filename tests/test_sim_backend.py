@@ -157,7 +157,7 @@ def test_travel_trip_cause_reaches_the_context_manager() -> None:
 
 
 def test_position_hold_loop_acts_on_the_reported_torque() -> None:
-    with SimBackend({"paced": False, "kp": 2.0}) as b:
+    with SimBackend({"paced": False, "kp": 2.0, "position_hold": True}) as b:
         b.activate()
         b.write(0.05)
         blocks = [b.read() for _ in range(300)]   # 0.3 s
@@ -166,6 +166,19 @@ def test_position_hold_loop_acts_on_the_reported_torque() -> None:
         # the hold loop balances the command: reported torque ~ 0, motor angle ~ 0.05 / kp
         assert abs(last.torque_meas[-1]) < 5e-3
         assert last.theta1[-1] == pytest.approx(0.05 / 2.0, rel=0.05)
+
+
+def test_torque_mode_holds_nothing_by_default_so_a_constant_torque_accelerates_the_axis() -> None:
+    with SimBackend({"paced": False}) as b:
+        b.activate()
+        b.write(0.001)
+        blocks = [b.read() for _ in range(100)]   # 0.1 s
+        th = np.concatenate([blk.theta1 for blk in blocks])
+        w = np.diff(th)
+        # no hold loop balances it: the reported torque is the command and the axis keeps speeding up
+        assert blocks[-1].torque_meas[-1] == pytest.approx(0.001, abs=5e-5)
+        mid = w[len(w) // 2 - 50:len(w) // 2 + 50].mean()
+        assert mid > 0 and w[-100:].mean() > 1.5 * mid      # constant acceleration: twice the speed at 2t
 
 
 def test_lifecycle_errors() -> None:

@@ -172,7 +172,9 @@ def test_blueprint_has_a_view_for_every_entity() -> None:
     bp = dashboard.default_blueprint()
     grid = bp.root_container
     origins = [str(v.origin) for v in grid.contents]
-    assert len(origins) == 10
-    for path in list(dashboard.BLOCK_ENTITIES.values()) + [dashboard.truth_path(k) for k in dashboard.ESTIMATE_KEYS]:
+    assert len(origins) == len(set(origins))
+    paths = (list(dashboard.BLOCK_ENTITIES.values()) + [dashboard.truth_path(k) for k in dashboard.ESTIMATE_KEYS]
+             + list(dashboard.CONTROL_ENTITIES.values()))
+    for path in paths:
         assert any(path == o or path.startswith(o + "/") for o in origins), path
     assert set(dashboard.SERIES_STYLES) >= set(dashboard.BLOCK_ENTITIES.values())

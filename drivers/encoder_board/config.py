@@ -75,7 +75,7 @@ class EmulatorConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     seed: int = 0
-    hold: bool = True                          # the drive's position loop holds theta1 while enabled
+    hold: bool = False                         # a drive-side position loop holding theta1 (identification-only runs)
     heartbeat_timeout: float = Field(0.1, gt=0)  # [s] without a host frame -> disable + fault
     burst_period: float = Field(0.001, gt=0, le=0.1)  # [s] between bursts of frames
     angle_noise: float = Field(0.0, ge=0)      # [rad] rms before quantization

@@ -167,16 +167,11 @@ class PlantSimulator:
                 raise ConfigError("travel", f"must satisfy min < max, got {travel!r}")
         self.travel = (lo, hi)
         key = str(integrator).strip().lower()
-        if key == "zoh":
-            Phi, Gam = zoh_matrices(p, self.dt)
-        elif key == "newmark":
-            Phi, Gam = Newmark().step_matrices(p, self.dt)
-        else:
+        if key not in _PLANT_INTEGRATORS:
             raise ConfigError("integrator", f"unknown plant integrator {integrator!r}; valid: "
                               f"{', '.join(_PLANT_INTEGRATORS)}")
         self.integrator = key
-        self._Phi = np.ascontiguousarray(Phi)
-        self._Gam = np.ascontiguousarray(Gam)
+        self._set_matrices(p)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
             raise ConfigError("seed", f"must be an integer, got {seed!r}")
         self.seed = int(seed)
@@ -199,6 +194,25 @@ class PlantSimulator:
         self._noisy = sensors.noisy
         self._noise = np.empty((64 if self._noisy else 0, 4))
         self._no_noise = np.empty((0, 4))
+
+    def _set_matrices(self, p: AxisParams) -> None:
+        if self.integrator == "zoh":
+            Phi, Gam = zoh_matrices(p, self.dt)
+        else:
+            Phi, Gam = Newmark().step_matrices(p, self.dt)
+        self._Phi = np.ascontiguousarray(Phi)
+        self._Gam = np.ascontiguousarray(Gam)
+
+    def set_params(self, p: AxisParams) -> None:
+        """Change the physical parameters from the next sample on (a workpiece clamped on the
+        table, worn preload...). The true state, the sensors, the hold loop's memory and the noise
+        generator carry over; the lead must stay the same (the sensors are built on it)."""
+        if not isinstance(p, AxisParams):
+            raise ConfigError("p", f"must be AxisParams, got {type(p).__name__}")
+        if p.lead != self.params.lead:
+            raise ConfigError("lead", f"cannot change the lead mid-run ({self.params.lead} -> {p.lead})")
+        self._set_matrices(p)
+        self.params = p
 
     # -- state -------------------------------------------------------------------------
     @property

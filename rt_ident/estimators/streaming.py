@@ -9,7 +9,7 @@ model: ~90 ms measured). So each streaming estimator splits in two:
   update for "paper"); returns True when a new snapshot is worth fitting;
 - ``snapshot()``: a small picklable summary of everything seen so far, and
   :func:`fit_snapshot` (method, snapshot) -> Identification, run by
-  :class:`rt_ident.runtime.fit_worker.FitWorker` in its own process, never in the loop.
+  :func:`rt_ident.runtime.fit_worker.make_fit_worker` in its own process, never in the loop.
 
 After the loop ends, :meth:`final` fits the last snapshot *cold* (no warm
 start), so the loop's final estimate is a pure function of the samples: the

@@ -94,7 +94,8 @@ def print_report(result: dict[str, Any]) -> None:
     if not loop.get("skipped"):
         t = Table(title=f"Loop end to end: sim backend, 1 kHz tick, {loop['seconds']:g} s trials, "
                         f"method {loop['method']}, SCHED_FIFO, one subprocess per trial")
-        for col in ("telemetry", "samples/s", "0 overruns", "overruns (1st s)", "lateness p50/p99/max us",
+        for col in ("telemetry", "samples/s", "0 overruns", "overruns (1st s)", "from work / late start",
+                    "tick work p50/p99/max us", "lateness p50/p99/max us",
                     "longest gap ms @tick", "host steal ms", "lost", "tel. dropped", "RSS 1st/last tick MB", "RSS growth (after 10 %)"):
             t.add_column(col, justify="right")
         for r in loop["trials"]:
@@ -107,6 +108,8 @@ def print_report(result: dict[str, Any]) -> None:
             t.add_row(r["sink"], _si(r["rate"]) + (" (retry)" if r.get("attempt") else ""),
                       "[green]yes[/green]" if r["ok"] else "[red]no[/red]",
                       f"{r.get('overruns', '-')} ({r.get('overruns_first_1s', '-')})",
+                      f"{r.get('overruns_work', '-')} / {r.get('overruns_late_start', '-')}",
+                      "/".join(f"{(r.get('work_us') or {}).get(k, float('nan')):.3g}" for k in ("p50", "p99", "max")),
                       "/".join(f"{lat.get(k, float('nan')):.3g}" for k in ("p50", "p99", "max")) if lat else
                       str(r.get("error", r.get("stop_cause", "-")))[:60],
                       "-" if gap is None else f"{gap[1]:.1f} @{gap[0]}",

@@ -15,6 +15,13 @@ entity                                block key (see :mod:`rt_ident.runtime.tele
 ``angles/theta1``, ``angles/theta2``  ``"theta1"``, ``"theta2"``                  rad
 ``loop/lateness_us``                  ``"lateness_us"``                           us
 ``loop/overruns``                     ``"overruns"``                              count
+``control/position/{reference,actual}`` ``"x_ref"``, ``"x_table"``               m
+``control/error``                     ``"error_m"`` (table minus reference)       m
+``torque/control``                    ``"u_control"`` (the host's control torque) N m
+``control/gains/{theta2,omega1}``     ``"gain_theta2"``, ``"gain_omega1"``        N m/rad, N m s/rad
+``control/margins/{pm_deg,gm_db}``    ``"pm_deg"``, ``"gm_db"`` (nominal loop)    deg, dB
+``control/redesigns/{accepted,rejected}`` ``"n_accepted"``, ``"n_rejected"``           count
+``control/redesigns/fallbacks``       ``"fallbacks"``                             count
 ====================================  ==========================================  =========
 
 ``rerun`` is imported only inside :func:`default_blueprint`, so the real-time process can import
@@ -37,6 +44,24 @@ THETA1 = "angles/theta1"
 THETA2 = "angles/theta2"
 LATENESS = "loop/lateness_us"
 OVERRUNS = "loop/overruns"
+TORQUE_CONTROL = "torque/control"
+
+#: Per-tick control signals -> entity paths (sent on the tick timeline like the estimates).
+CONTROL_ENTITIES: Mapping[str, str] = MappingProxyType(
+    {
+        "x_ref": "control/position/reference",
+        "x_table": "control/position/actual",
+        "error_m": "control/error",
+        "u_control": TORQUE_CONTROL,
+        "gain_theta2": "control/gains/theta2",
+        "gain_omega1": "control/gains/omega1",
+        "pm_deg": "control/margins/pm_deg",
+        "gm_db": "control/margins/gm_db",
+        "n_accepted": "control/redesigns/accepted",
+        "n_rejected": "control/redesigns/rejected",
+        "fallbacks": "control/redesigns/fallbacks",
+    }
+)
 
 
 def estimate_path(key: str) -> str:
@@ -60,6 +85,7 @@ BLOCK_ENTITIES: Mapping[str, str] = MappingProxyType(
         **{k: estimate_path(k) for k in ESTIMATE_KEYS},
         "lateness_us": LATENESS,
         "overruns": OVERRUNS,
+        **CONTROL_ENTITIES,
     }
 )
 
@@ -80,6 +106,17 @@ SERIES_STYLES: Mapping[str, tuple[str, tuple[int, int, int]]] = MappingProxyType
         THETA2: ("theta2 table x/l [rad]", (255, 127, 14)),
         LATENESS: ("tick lateness [us]", (148, 103, 189)),
         OVERRUNS: ("overruns [count]", (214, 39, 40)),
+        "control/position/reference": ("reference [m]", (127, 127, 127)),
+        "control/position/actual": ("table [m]", (31, 119, 180)),
+        "control/error": ("tracking error [m]", (214, 39, 40)),
+        TORQUE_CONTROL: ("control torque [N m]", (255, 127, 14)),
+        "control/gains/theta2": ("gain on theta2 [N m/rad]", (31, 119, 180)),
+        "control/gains/omega1": ("gain on omega1 [N m s/rad]", (255, 127, 14)),
+        "control/margins/pm_deg": ("phase margin [deg]", (44, 160, 44)),
+        "control/margins/gm_db": ("gain margin [dB]", (148, 103, 189)),
+        "control/redesigns/accepted": ("redesigns accepted", (44, 160, 44)),
+        "control/redesigns/rejected": ("redesigns rejected", (214, 39, 40)),
+        "control/redesigns/fallbacks": ("fallbacks to the conservative controller", (127, 127, 127)),
     }
 )
 
@@ -98,5 +135,10 @@ def default_blueprint() -> Any:
         rrb.TimeSeriesView(origin="angles", name="encoder angles [rad]"),
         rrb.TimeSeriesView(origin=LATENESS, name="loop lateness [us]"),
         rrb.TimeSeriesView(origin=OVERRUNS, name="loop overruns"),
+        rrb.TimeSeriesView(origin="control/position", name="table position: reference vs actual [m]"),
+        rrb.TimeSeriesView(origin="control/error", name="tracking error [m]"),
+        rrb.TimeSeriesView(origin="control/gains", name="controller gains"),
+        rrb.TimeSeriesView(origin="control/margins", name="margins of the active controller"),
+        rrb.TimeSeriesView(origin="control/redesigns", name="redesigns accepted / rejected, fallbacks"),
     ]
     return rrb.Blueprint(rrb.Grid(*views, grid_columns=4), collapse_panels=True)

@@ -1,7 +1,7 @@
 """The process that fits streaming-estimator snapshots, so that no fit ever runs in the tick.
 
 The per-sample halves (:mod:`rt_ident.estimators.streaming`) run in the loop and hand over a
-small snapshot now and then; :class:`FitWorker` fits it with
+small snapshot now and then; :func:`make_fit_worker` fits it with
 :func:`rt_ident.estimators.streaming.fit_snapshot` in its own process and hands the result back,
 both ways through shared-memory rings (:mod:`rt_ident.runtime.shm_ring`).
 """
@@ -11,9 +11,9 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 from dataclasses import dataclass
-from typing import Any
+from functools import partial
+from typing import Any, Callable
 
-from rt_ident.estimators.base import Identification
 from rt_ident.estimators.streaming import fit_snapshot
 from rt_ident.runtime.shm_ring import MessageRing
 
@@ -22,8 +22,7 @@ log = logging.getLogger(__name__)
 _WORKER_POLL_S = 0.002  # fit worker: sleep between polls of an empty inbox
 
 
-def _worker_main(method: str, hold: str, lead: float, inbox: MessageRing, outbox: MessageRing,
-                 min_interval: float) -> None:
+def _worker_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing, min_interval: float) -> None:
     import time
 
     inbox.flag = 1                                   # ready for a snapshot
@@ -38,7 +37,7 @@ def _worker_main(method: str, hold: str, lead: float, inbox: MessageRing, outbox
         _, snap = inbox.get_object()
         t0 = time.monotonic()
         try:
-            result: Any = fit_snapshot(method, snap, hold=hold, lead=lead)
+            result: Any = job(snap)
         except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
             result = exc
         try:
@@ -55,8 +54,8 @@ def _worker_main(method: str, hold: str, lead: float, inbox: MessageRing, outbox
 
 
 @dataclass
-class FitWorker:
-    """Fits snapshots in a separate process. ``submit`` and ``poll`` never block the caller.
+class JobWorker:
+    """Runs ``job(request)`` in a separate process. ``submit`` and ``poll`` never block the caller.
 
     Snapshots and results travel through shared-memory rings (:mod:`rt_ident.runtime.shm_ring`: no
     feeder thread in the loop's process). The worker says when it is ready for the next
@@ -64,27 +63,40 @@ class FitWorker:
     per second (``skipped`` counts the ones not sent because a fit was running).
     """
 
-    method: str
-    hold: str = "zoh"
-    lead: float = 7.96e-4
-    min_interval: float = 0.25      # s between fits
+    job: Callable[[Any], Any]       # picklable (a module-level function or a partial of one)
+    name: str = "rt_ident-job"
+    min_interval: float = 0.25      # s between jobs
     ring_bytes: int = 4 << 20       # per direction; a snapshot is a few kB
 
     def __post_init__(self) -> None:
         ctx = mp.get_context("spawn")
         self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
         self._out = MessageRing(self.ring_bytes, ctx=ctx)
-        self._proc = ctx.Process(target=_worker_main, args=(self.method, self.hold, self.lead, self._in, self._out,
-                                                            self.min_interval),
-                                 name="rt_ident-fit", daemon=True)
+        self._proc = ctx.Process(target=_worker_main, args=(self.job, self._in, self._out, self.min_interval),
+                                 name=self.name, daemon=True)
         self.skipped = 0
         self.fits = 0
         self.errors = 0
         self.last_error: str | None = None
 
-    def start(self) -> "FitWorker":
+    def start(self) -> "JobWorker":
         self._proc.start()
         return self
+
+    def wait_ready(self, timeout: float = 30.0) -> bool:
+        """Block (before the loop starts) until the worker has imported everything and waits for
+        its first job; False on timeout. On a 2-CPU machine the worker shares the non-loop CPU with
+        an emulated device's real-time threads, and its imports alone take seconds there."""
+        import time
+
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self._in.flag:
+                return True
+            if not self._proc.is_alive():
+                return False
+            time.sleep(0.01)
+        return False
 
     @property
     def pid(self) -> int | None:
@@ -104,7 +116,7 @@ class FitWorker:
             return False
         return True
 
-    def poll(self) -> Identification | None:
+    def poll(self) -> Any:
         """The newest result the worker has returned since the last poll, or None."""
         if not self._out.pending_messages:
             return None
@@ -125,3 +137,10 @@ class FitWorker:
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(1.0)
+
+
+def make_fit_worker(method: str, hold: str = "zoh", lead: float = 7.96e-4, min_interval: float = 0.25,
+              ring_bytes: int = 4 << 20) -> JobWorker:
+    """The fit worker: :func:`rt_ident.estimators.streaming.fit_snapshot` of one method, per snapshot."""
+    return JobWorker(partial(fit_snapshot, method, hold=hold, lead=lead), name="rt_ident-fit",
+                     min_interval=min_interval, ring_bytes=ring_bytes)

@@ -9,10 +9,15 @@ Each tick (default 1 kHz):
    method updates its per-harmonic DFT sums sample by sample); when a full
    excitation period completes, a snapshot goes to the fit worker process
    and the newest fit it returned becomes the current estimate;
-4. the safety monitor checks watchdog, stuck encoder and the stopping window;
-5. the excitation plan for the next two ticks is written, keyed by sample
-   sequence number, so the excitation is exact at the backend's sample rate;
-6. raw samples go to the recorder process and, every few ticks, a decimated
+4. the position controller (:class:`rt_ident.control.adaptation.Supervisor`, when there is
+   one) takes the state estimate at the newest sample and returns the torque for the next
+   tick: the host closes the position loop (a drive in torque mode holds nothing);
+5. the safety monitor checks watchdog, stuck encoder and the stopping window;
+6. the torque plan for the next two ticks is written, keyed by sample sequence number: the
+   control torque held per tick (the one computed now lands one tick after the newest
+   sample, the one-tick delay the controller was designed with) plus the probing
+   excitation per sample, so the excitation is exact at the backend's sample rate;
+7. raw samples go to the recorder process and, every few ticks, a decimated
    block to the telemetry process — both through non-blocking hand-offs.
 
 Nothing else runs here: no rerun call, no file write, no per-tick logging.
@@ -40,20 +45,31 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class LoopStats:
+    """Counters of one run. An overrun is a tick that found its deadline passed by whole periods;
+    it is put down to the work of the tick before (``overruns_work``: that tick's own work took
+    longer than the period) or else to a late start (``overruns_late_start``: the host or the
+    scheduler took the CPU)."""
+
     ticks: int = 0
     samples: int = 0
     lost_samples: int = 0
     overruns: int = 0
+    overruns_work: int = 0
+    overruns_late_start: int = 0
     skipped_periods: int = 0
     estimates: int = 0
     lateness: LatenessHistogram = field(default_factory=LatenessHistogram)
+    work: LatenessHistogram = field(default_factory=LatenessHistogram)
 
     def as_dict(self) -> dict[str, Any]:
         lat = self.lateness.summary()
+        work = self.work.summary()
         return {"ticks": self.ticks, "samples": self.samples, "lost_samples": self.lost_samples,
-                "overruns": self.overruns, "skipped_periods": self.skipped_periods,
+                "overruns": self.overruns, "overruns_work": self.overruns_work,
+                "overruns_late_start": self.overruns_late_start, "skipped_periods": self.skipped_periods,
                 "estimates": self.estimates,
-                "lateness_us": {"p50": lat["p50"], "p99": lat["p99"], "max": lat["max"]}}
+                "lateness_us": {"p50": lat["p50"], "p99": lat["p99"], "max": lat["max"]},
+                "work_us": {"p50": work["p50"], "p99": work["p99"], "max": work["max"]}}
 
 
 class IdentificationLoop:
@@ -70,9 +86,10 @@ class IdentificationLoop:
                  publish_every: int = 20, telemetry_stride: int = 34,
                  stop_event: threading.Event | None = None, clock: Callable[[], float] = time.perf_counter,
                  tick_hook: Callable[[int], None] | None = None,
-                 max_sleep_s: float | None = 100e-6) -> None:
+                 max_sleep_s: float | None = 100e-6, control=None, ticker: Ticker | None = None,
+                 probe_period: int | None = None) -> None:
         self.backend = backend
-        self.ticker = Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
+        self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hz = tick_hz
         self.excitation = excitation
         self.kf = state_estimator
@@ -89,7 +106,14 @@ class IdentificationLoop:
         self.tick_hook = tick_hook          # test seam: e.g. inject a slow tick
         self.stats = LoopStats()
         self.identification = None          # latest Identification (or None before the first period)
+        self.control = control              # the host's position controller (None: excitation only)
         self._next_seq = 0
+        self._seq0: int | None = None       # first sequence number: the control clock starts there
+        self._per_tick = max(1, int(round(1.0 / (tick_hz * backend.sample_period))))
+        self._u_base = 0.0                  # control torque in force at the newest sample
+        self._u_sched: list[tuple[int, float]] = []   # (first seq, torque) still to land, in order
+        self._probe_period = probe_period   # excitation period [samples]: its amplitude changes on period edges
+        self._probe = (1.0, 1.0, 0)         # (scale now, scale from seq on, that seq)
         self._plan_len = int(math.ceil(2.0 / (tick_hz * backend.sample_period))) + 2
         if on_telemetry is not None:
             self._telemetry_buffers()
@@ -99,19 +123,29 @@ class IdentificationLoop:
         backend, stats = self.backend, self.stats
         self._write_plan()
         n_ticks = int(round(self.duration * self.tick_hz))
+        period = 1.0 / self.tick_hz
+        clock = self.clock
+        last_work = 0.0
         self.ticker.start()
         for _ in range(n_ticks):
             if self.stop_event.is_set():
                 break
             info = self.ticker.wait_next()
+            t0 = clock()
             stats.ticks += 1
             if info.skipped:
                 stats.overruns += 1
                 stats.skipped_periods += info.skipped
+                if last_work > period:
+                    stats.overruns_work += 1
+                else:
+                    stats.overruns_late_start += 1
             stats.lateness.record(info.lateness_s)
             block = backend.read()
             self._process(block, info.lateness_s)
             self._write_plan()
+            last_work = clock() - t0
+            stats.work.record(last_work)
             if self.tick_hook is not None:
                 self.tick_hook(stats.ticks)
         self._flush_telemetry()
@@ -135,24 +169,67 @@ class IdentificationLoop:
                 self.worker.submit(self.est.snapshot())     # the fit runs in the worker process
             else:
                 self.worker.skipped += 1
+        ctl = self.control
         if self.worker is not None and stats.ticks % 10 == 0:
             latest = self.worker.poll()
             if latest is not None:
                 self.identification = latest
                 stats.estimates += 1
+                if ctl is not None:
+                    ctl.offer(latest, bool(latest.trusted))
+        if ctl is not None:
+            self._control(ctl, block, states)
         self.safety.check(n, float(block.theta1[-1]), float(block.theta2[-1]), float(states.omega[-1, 1]),
                           abs(self.backend.last_torque) > 0.0)
         self._next_seq = int(block.seq[-1]) + 1
         if self.on_telemetry is not None:
             self._collect_telemetry(block, states, lateness_s)
 
+    def _control(self, ctl, block: SampleBlock, states) -> None:
+        """The controller's torque from the newest sample's state estimate; it lands ``delay`` ticks
+        after that sample (the delay the controller was designed with)."""
+        last = int(block.seq[-1])
+        if self._seq0 is None:
+            self._seq0 = int(block.seq[0])
+        th, om = states.theta[-1], states.omega[-1]
+        u = ctl.tick((last - self._seq0) * self.backend.sample_period, float(th[0]), float(om[0]),
+                     float(th[1]), float(om[1]))
+        ctl.poll()
+        sched = self._u_sched
+        while sched and sched[0][0] <= last + 1:     # landed: in force from the next sample on
+            self._u_base = sched.pop(0)[1]
+        sched.append((last + 1 + ctl.law.delay * self._per_tick, u))
+
     def _write_plan(self) -> None:
         start = self._next_seq
         seq = np.arange(start, start + self._plan_len)
-        self.backend.write(self.excitation(seq), start_seq=start)
+        torque = self.excitation(seq)
+        ctl = self.control
+        if ctl is not None:
+            self._probe_amplitude(ctl.probe_scale, start)
+            now, later, edge = self._probe
+            if now != 1.0 or later != 1.0:
+                torque *= np.where(seq < edge, now, later)
+            u = np.full(seq.shape, self._u_base)
+            for first, value in self._u_sched:
+                u[seq >= first] = value
+            torque += u
+        self.backend.write(torque, start_seq=start)
+
+    def _probe_amplitude(self, want: float, start: int) -> None:
+        """Dual excitation: the probing amplitude follows ``want`` from the next period edge on
+        (a whole period at one amplitude keeps the multisine periodic for the estimator)."""
+        now, later, edge = self._probe
+        if start >= edge:
+            now = later
+        if want != later:
+            n = self._probe_period or 1
+            later, edge = want, -(-start // n) * n
+        self._probe = (now, later, edge)
 
     # ------------------------------------------------------------ telemetry
     _SAMPLE_KEYS = ("t", "theta1", "theta2", "torque_meas", "torque_cmd", "torque_hat")
+    _CONTROL_TICK_KEYS = ("x_ref", "x_table", "error_m", "u_control")
 
     def _telemetry_buffers(self) -> None:
         """Preallocated window buffers: a tick writes slices into them; nothing is concatenated."""
@@ -163,6 +240,7 @@ class IdentificationLoop:
         self._tel_hat_ok = True
         self._tick_t = np.empty(self.publish_every)
         self._tick_late = np.empty(self.publish_every)
+        self._tick_ctl = {k: np.empty(self.publish_every) for k in self._CONTROL_TICK_KEYS}
         self._tick_n = 0
 
     def _collect_telemetry(self, block: SampleBlock, states, lateness_s: float) -> None:
@@ -195,6 +273,13 @@ class IdentificationLoop:
         k = self._tick_n
         self._tick_t[k] = block.t[-1]
         self._tick_late[k] = lateness_s * 1e6
+        ctl = self.control
+        if ctl is not None:
+            c = self._tick_ctl
+            c["x_ref"][k] = ctl.x_ref
+            c["x_table"][k] = ctl.x_ref + ctl.error
+            c["error_m"][k] = ctl.error
+            c["u_control"][k] = ctl.law.u
         self._tick_n = k + 1
         if self._tick_n == self.publish_every:
             self._flush_telemetry()
@@ -220,6 +305,18 @@ class IdentificationLoop:
                     tick[key] = np.full(k, getattr(ident.params, key))
                 tick["wn"] = np.full(k, ident.modal["wn"])
                 tick["zeta"] = np.full(k, ident.modal["zeta"])
+            ctl = self.control
+            if ctl is not None:
+                tick.update({key: v[:k] for key, v in self._tick_ctl.items()})
+                st, c = ctl.stats, ctl.controller
+                tick["n_accepted"] = np.full(k, float(st.accepted))
+                tick["n_rejected"] = np.full(k, float(st.rejected))
+                tick["fallbacks"] = np.full(k, float(st.fallbacks))
+                tick["gain_theta2"] = np.full(k, float(c.gains[2]))
+                tick["gain_omega1"] = np.full(k, float(c.gains[1]))
+                pm = (c.margins or {}).get("pm_deg")
+                tick["pm_deg"] = np.full(k, np.nan if pm is None else float(pm))
+                tick["gm_db"] = np.full(k, float(c.gain_margin_db))
             self.on_telemetry(tick)
         self._tel_n = self._tick_n = 0
         self._tel_hat_ok = True

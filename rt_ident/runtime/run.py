@@ -27,11 +27,12 @@ from drivers import make_backend
 from rt_ident.axis.excitation import schroeder_multisine
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.config import RunConfig
-from rt_ident.errors import RtIdentError
+from rt_ident.errors import ConfigError, RtIdentError
 from rt_ident.estimators import make_streaming
 from rt_ident.estimators.state_estimation import AxisStateEstimator, encoder_quanta
 from rt_ident.runtime.emulation import start_emulator
-from rt_ident.runtime.fit_worker import FitWorker
+from rt_ident.control import make_controller, redesign
+from rt_ident.runtime.fit_worker import JobWorker, make_fit_worker
 from rt_ident.runtime.loop import IdentificationLoop
 from rt_ident.runtime.safety import SafetyMonitor
 
@@ -48,7 +49,31 @@ def backend_options(cfg: RunConfig) -> dict[str, Any]:
     opts = cfg.backend.options()
     if cfg.backend.name == "sim":
         opts.setdefault("axis", cfg.axis_params().as_dict())
+        if cfg.plant.change:
+            opts.setdefault("changes", [dict(c) for c in cfg.plant.change])
+    elif cfg.plant.change:
+        raise ConfigError("plant.change", f"only the sim backend can change its plant mid-run "
+                          f"(backend is {cfg.backend.name!r})")
     return opts
+
+
+def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack):
+    """The host's position controller (None with ``control.mode = "off"``) and its redesign worker."""
+    settings = cfg.control.settings()
+    if settings.mode == "off":
+        return None, None
+    from rt_ident.control.reference import make_reference
+
+    reference = make_reference(cfg.reference)
+    worker = None
+    if settings.mode == "adaptive":
+        worker = JobWorker(redesign, name="rt_ident-control", min_interval=0.0).start()
+        stack.callback(worker.close)
+    last = cfg.plant.last_change_s()
+    ctl = make_controller(settings, cfg.axis_params(), tick=1.0 / cfg.loop.tick_hz,
+                          torque_limit=backend.torque_limit, reference=reference, worker=worker,
+                          error_after_s=None if last is None else last + 0.5)
+    return ctl, worker
 
 
 def _excitation(cfg: RunConfig):
@@ -136,9 +161,10 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                                            warmup_periods=cfg.loop.warmup_periods,
                                            forgetting=cfg.estimator.forgetting, lead=truth.lead, quanta=(q1, q2),
                                            process_noise=cfg.estimator.kalman_process_noise)
-            worker = FitWorker(cfg.estimator.method, lead=truth.lead).start()
+            worker = make_fit_worker(cfg.estimator.method, lead=truth.lead).start()
             stack.callback(worker.close)
             _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
+            control, ctl_worker = _controller(cfg, backend, stack)
             safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
                                    watchdog_ticks=cfg.safety.watchdog_ticks)
             loop = IdentificationLoop(
@@ -149,10 +175,14 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 publish_every=cfg.telemetry.publish_every_ticks,
                 telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
                 stop_event=stop, tick_hook=tick_hook,
-                max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6)
+                max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
+                control=control, probe_period=ex.period_samples)
             if telemetry is not None:
                 telemetry.wait_ready(5.0)
-            helpers = [getattr(x, "pid", None) for x in (telemetry, recorder, worker) if x is not None]
+            for w in (worker, ctl_worker):               # imported and waiting before the device is active
+                if w is not None and not w.wait_ready(30.0):
+                    log.warning("%s not ready after 30 s: live estimates/redesigns will start late", w.name)
+            helpers = [getattr(x, "pid", None) for x in (telemetry, recorder, worker, ctl_worker) if x is not None]
             device = getattr(emulator, "pid", None)
             summary["helper_processes"] = _keep_off_loop_cpu([p for p in helpers if p], cfg.loop.realtime,
                                                              device=device)
@@ -198,11 +228,13 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     summary["backend_counters"] = _backend_counters(backend)
     if loop is not None:
         summary["loop"] = {**loop.stats.as_dict(), "host": host}
+        summary["control"] = loop.control.summary() if loop.control is not None else {"mode": "off"}
         ident = loop.identification
         if ident is not None:
             summary.update(_ident_summary(ident))
     summary.setdefault("parameters", None)
     if cfg.backend.name == "sim" or cfg.backend.emulate:
+        truth = getattr(backend, "current_params", None) or truth    # after the last [[plant.change]]
         tr = {"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K, **modal_parameters(truth)}
         summary["truth"] = tr
         if summary["parameters"]:

@@ -47,13 +47,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.runtime.dashboard import BLOCK_ENTITIES, ESTIMATE_KEYS, SERIES_STYLES, truth_path
+from rt_ident.runtime.dashboard import BLOCK_ENTITIES, CONTROL_ENTITIES, ESTIMATE_KEYS, SERIES_STYLES, truth_path
 from rt_ident.runtime.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
 
 SINKS: tuple[str, ...] = ("rrd", "spawn", "connect", "serve", "off")
-TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + ("lateness_us", "overruns"))
+TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + ("lateness_us", "overruns") + tuple(CONTROL_ENTITIES))
 _MAX_COALESCE = 256  # blocks merged into one send_columns per entity in the child
 _TRUTH = "truth:"    # key prefix of a truth message in the ring
 _POLL_S = 0.01       # child: sleep between polls of an empty ring

@@ -1,0 +1,28 @@
+"""Position control of the axis from the model it identifies: controller design on the sampled
+two-inertia model (zero-order hold, one-tick delay), the margin check over a family of plants,
+the adaptive supervisor that swaps controllers bumplessly, and reference trajectories.
+
+May import :mod:`rt_ident.axis` and :mod:`rt_ident.estimators`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rt_ident.control.adaptation import ControlFallbackStop, ControlSettings, Supervisor, redesign
+
+
+def make_controller(settings: ControlSettings, nominal, *, tick: float, torque_limit: float, reference,
+                    worker: Any = None, error_after_s: float | None = None) -> Supervisor | None:
+    """The host's position controller for one axis, or None when ``settings.mode == "off"``.
+
+    ``nominal``: the configured axis (the conservative controller's rigid-body inertia and the
+    fixed controller's model); ``worker``: a job worker running :func:`redesign` (adaptive mode).
+    """
+    if settings.mode == "off":
+        return None
+    return Supervisor(settings, nominal, tick=tick, torque_limit=torque_limit, reference=reference,
+                      worker=worker if settings.mode == "adaptive" else None, error_after_s=error_after_s)
+
+
+__all__ = ["ControlFallbackStop", "ControlSettings", "Supervisor", "make_controller", "redesign"]

@@ -1,0 +1,281 @@
+"""Indirect adaptive control: redesign from the identified model, accepted only when it is safe.
+
+Certainty equivalence (Åström & Wittenmark, *Adaptive Control*, ch. 5: the indirect self-tuning
+regulator) with a supervisor around it, because certainty equivalence alone can destabilize a
+plant when the estimate is wrong:
+
+* :func:`redesign` runs in a worker process (never in the tick): it designs the model controller
+  (:func:`rt_ident.control.design.design_lqr`) for the trusted estimate and accepts it only if
+  it stabilizes the estimate *and* its family (each parameter x 0.7 and x 1.3, and the corners of
+  the estimate's 95 % intervals) with the configured gain and phase margins;
+* :class:`Supervisor` (in the tick, scalar arithmetic only) runs the current controller, swaps
+  an accepted design in bumplessly, falls back to the conservative controller when the tracking
+  error leaves its bound or the estimate diverges, and asks for a safe stop when the fallback
+  does not recover in time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from rt_ident.axis.params import AxisParams
+from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_margins
+from rt_ident.control.law import Controller, StateFeedback
+from rt_ident.errors import RtIdentError
+
+KEYS = ("I1", "I2", "B", "K")
+
+
+@dataclass(frozen=True)
+class ControlSettings:
+    """The ``[control]`` table (see :class:`rt_ident.config.ControlConfig`)."""
+
+    mode: str = "adaptive"                   # "adaptive" | "fixed" | "off"
+    bandwidth_hz: float = 20.0               # model controller
+    effort: float = 1.0                      # LQR torque weight multiplier (larger: gentler)
+    conservative_bandwidth_hz: float = 10.0  # rigid-body controller, before a trusted estimate
+    gain_margin_db: float = 6.0
+    phase_margin_deg: float = 40.0
+    family_factors: tuple[float, ...] = (0.7, 1.3)
+    redesign_interval_s: float = 0.25        # at most this often
+    min_change: float = 0.02                 # relative parameter change that asks for a redesign
+    max_error_m: float = 2e-4                # tracking error bound -> fallback
+    fallback_timeout_s: float = 0.5          # the fallback must bring the error back within this
+    plausible: tuple[float, float] = (0.2, 5.0)  # an estimate outside nominal x this range diverged
+    feedforward: bool = True
+    probe_scale_trusted: float = 1.0         # probing amplitude x this while the estimate is trusted
+    delay_ticks: int = 1                     # ticks from the newest sample to the torque landing
+
+
+class ControlFallbackStop(RtIdentError):
+    """The conservative controller did not bring the tracking error back in time."""
+
+    cause = "control-fallback"
+
+
+def rigid_controller(nominal: AxisParams, tick: float, s: ControlSettings) -> Controller:
+    """The conservative controller from the configured nominal rigid-body inertia I1 + I2."""
+    g = design_rigid(nominal.I1 + nominal.I2, tick, s.conservative_bandwidth_hz, s.effort, s.delay_ticks)
+    return Controller(g, nominal, "conservative", s.conservative_bandwidth_hz,
+                      loop_margins(g, nominal, tick).as_dict())
+
+
+def model_controller(p: AxisParams, tick: float, s: ControlSettings, kind: str = "model") -> Controller:
+    g = design_lqr(p, tick, s.bandwidth_hz, s.effort, s.delay_ticks)
+    return Controller(g, p, kind, s.bandwidth_hz, loop_margins(g, p, tick).as_dict())
+
+
+def redesign(request: dict[str, Any]) -> dict[str, Any]:
+    """Worker job: design for ``request["params"]`` and check it over the family.
+
+    Returns ``{"accepted", "reason", "controller" (when accepted), "check", "seq"}``.
+    """
+    s: ControlSettings = request["settings"]
+    tick = request["tick"]
+    p = AxisParams(**{k: request["params"][k] for k in KEYS}, lead=request["params"].get("lead", 7.96e-4))
+    try:
+        ctrl = model_controller(p, tick, s)
+    except Exception as exc:  # noqa: BLE001 - a design that fails is a rejected design, with its reason
+        return {"accepted": False, "reason": f"design failed: {exc}", "seq": request.get("seq")}
+    check = check_family(ctrl.gains, p, tick, gm_db=s.gain_margin_db, pm_deg=s.phase_margin_deg,
+                         factors=tuple(s.family_factors), ci95=request.get("ci95"))
+    out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": request.get("seq")}
+    if check.ok:
+        out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict())
+    return out
+
+
+@dataclass
+class ControlStats:
+    accepted: int = 0
+    rejected: int = 0
+    fallbacks: int = 0
+    reasons: list[str] = field(default_factory=list)
+    events: list[tuple[float, str, str]] = field(default_factory=list)   # (t, kind, detail)
+    sq_err: float = 0.0
+    n_err: int = 0
+    max_err: float = 0.0
+    sq_err_after: float = 0.0
+    n_err_after: int = 0
+    max_err_after: float = 0.0
+    max_step_nm: float = 0.0     # largest torque step a switch would have caused without re-seeding
+
+
+class Supervisor:
+    """The host's position controller for one axis: reference, law, adaptation, fallback.
+
+    ``tick()`` is called every tick with the state estimate at the newest sample and returns the
+    control torque for the next tick. ``offer()`` passes a new identification (from the fit
+    worker); ``poll()`` collects redesigns from the control worker. Nothing here blocks.
+    """
+
+    def __init__(self, settings: ControlSettings, nominal: AxisParams, *, tick: float, torque_limit: float,
+                 reference, worker=None, error_after_s: float | None = None) -> None:
+        self.s = settings
+        self.nominal = nominal
+        self.tick_s = tick
+        self.lead = nominal.lead
+        self.reference = reference
+        self.worker = worker
+        self.error_after_s = error_after_s
+        self.conservative = rigid_controller(nominal, tick, settings)
+        initial = self.conservative
+        if settings.mode == "fixed":
+            initial = model_controller(nominal, tick, settings, kind="fixed")
+        self.law = StateFeedback(initial, tick=tick, torque_limit=torque_limit, feedforward=settings.feedforward)
+        self.stats = ControlStats()
+        self.in_fallback = False
+        self._fallback_since: float | None = None
+        self._last_request_t = -math.inf
+        self._pending = False
+        self._req = 0
+        self._last_state: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)
+        self._last_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.t = 0.0
+        self.error = 0.0
+        self.x_ref = 0.0
+        self.probe_scale = 1.0      # probing-excitation amplitude factor (dual excitation)
+
+    @property
+    def controller(self) -> Controller:
+        return self.law.controller
+
+    # ------------------------------------------------------------------ tick
+    def tick(self, t: float, th1: float, w1: float, th2: float, w2: float) -> float:
+        x, v, a = self.reference.at(np.array([t, t + 1.5 * self.tick_s]))
+        xr, vr, ar, a_ff = float(x[0]), float(v[0]), float(a[0]), float(a[1])
+        self.t, self.x_ref = t, xr
+        self._last_state, self._last_ref = (th1, w1, th2, w2), (xr, vr, ar)
+        err = self.lead * th2 - xr
+        self.error = err
+        st = self.stats
+        st.sq_err += err * err
+        st.n_err += 1
+        st.max_err = max(st.max_err, abs(err))
+        if self.error_after_s is not None and t >= self.error_after_s:
+            st.sq_err_after += err * err
+            st.n_err_after += 1
+            st.max_err_after = max(st.max_err_after, abs(err))
+        self._watch(t, abs(err))
+        return self.law.step(th1, w1, th2, w2, xr, vr, ar, a_ff, self.lead)
+
+    def _watch(self, t: float, abs_err: float) -> None:
+        """Error above the bound: fall back to the conservative controller (once), and start the
+        clock; back below half the bound: recovered. The clock running out stops the axis."""
+        s = self.s
+        if abs_err > s.max_error_m:
+            if self.controller.kind != "conservative":
+                self._fall_back(t, f"tracking error {abs_err * 1e6:.1f} um > {s.max_error_m * 1e6:.1f} um")
+            elif self._fallback_since is None:
+                self._fallback_since = t
+        elif abs_err <= 0.5 * s.max_error_m and self._fallback_since is not None:
+            self._fallback_since = None
+            if self.in_fallback:
+                self.in_fallback = False
+                self.stats.events.append((t, "recovered", f"error {abs_err * 1e6:.1f} um"))
+        if self._fallback_since is not None and t - self._fallback_since > s.fallback_timeout_s:
+            raise ControlFallbackStop(f"tracking error above {s.max_error_m * 1e6:.1f} um for more than "
+                                      f"{s.fallback_timeout_s:g} s on the conservative controller")
+
+    def _fall_back(self, t: float, why: str) -> None:
+        self.in_fallback = True
+        self._fallback_since = t
+        self.stats.fallbacks += 1
+        self.stats.events.append((t, "fallback", why))
+        self._switch(self.conservative)
+
+    def adopt(self, ctrl: Controller) -> None:
+        """Switch to ``ctrl`` now, bumplessly (e.g. an oracle design in a benchmark)."""
+        self._switch(ctrl)
+
+    def _switch(self, ctrl: Controller) -> None:
+        step = self.law.switch(ctrl, *self._last_state, *self._last_ref, self.lead)
+        self.stats.max_step_nm = max(self.stats.max_step_nm, abs(step))
+
+    # ------------------------------------------------------------ adaptation
+    def diverged(self, ident) -> str | None:
+        """Why ``ident`` is not a usable estimate (non-finite, or far outside the nominal box)."""
+        lo, hi = self.s.plausible
+        for k in KEYS:
+            v = float(getattr(ident.params, k))
+            ref = float(getattr(self.nominal, k))
+            if not math.isfinite(v) or v <= 0:
+                return f"{k} = {v!r}"
+            if not lo * ref <= v <= hi * ref:
+                return f"{k} = {v:.4g} outside x{lo:g}..x{hi:g} of nominal {ref:.4g}"
+        return None
+
+    def offer(self, ident, trusted: bool) -> None:
+        """A new identification: redesign from it when adaptive, trusted and due."""
+        if self.s.mode != "adaptive" or ident is None:
+            return
+        why = self.diverged(ident)
+        # dual excitation: probe less while the estimate is trusted, fully again when it is not
+        self.probe_scale = self.s.probe_scale_trusted if (trusted and why is None) else 1.0
+        if why is not None:
+            if not self.in_fallback and self.controller.kind == "model":
+                self._fall_back(self.t, f"estimate diverged: {why}")
+            return
+        if not trusted or self.worker is None or self._pending:
+            return
+        if self.t - self._last_request_t < self.s.redesign_interval_s:
+            return
+        cur = self.controller.model
+        changed = max(abs(getattr(ident.params, k) / getattr(cur, k) - 1.0) for k in KEYS)
+        if self.controller.kind == "model" and changed < self.s.min_change:
+            return
+        if not self.worker.ready:
+            return
+        self._req += 1
+        req = {"params": {**{k: float(getattr(ident.params, k)) for k in KEYS}, "lead": float(ident.params.lead)},
+               "ci95": {k: tuple(ident.ci95[k]) for k in KEYS} if ident.ci95 else None,
+               "tick": self.tick_s, "settings": self.s, "seq": self._req}
+        if self.worker.submit(req):
+            self._pending = True
+            self._last_request_t = self.t
+
+    def poll(self) -> None:
+        if self.worker is None or not self._pending:
+            return
+        res = self.worker.poll()
+        if res is None:
+            return
+        self._pending = False
+        st = self.stats
+        if res.get("accepted"):
+            st.accepted += 1
+            st.events.append((self.t, "accepted", _params_text(res["controller"].model)))
+            if self.in_fallback:                 # not while the conservative controller recovers
+                st.events[-1] = (self.t, "accepted", st.events[-1][2] + " (not applied: in fallback)")
+            else:
+                self._switch(res["controller"])
+        else:
+            st.rejected += 1
+            reason = str(res.get("reason"))
+            st.reasons.append(reason)
+            st.events.append((self.t, "rejected", reason))
+
+    # --------------------------------------------------------------- summary
+    def summary(self) -> dict[str, Any]:
+        st = self.stats
+        rms = math.sqrt(st.sq_err / st.n_err) if st.n_err else None
+        after = math.sqrt(st.sq_err_after / st.n_err_after) if st.n_err_after else None
+        return {"mode": self.s.mode, "rms_error_m": rms, "max_error_m": st.max_err if st.n_err else None,
+                "rms_error_after_change_m": after,
+                "max_error_after_change_m": st.max_err_after if st.n_err_after else None,
+                "redesigns": {"accepted": st.accepted, "rejected": st.rejected,
+                              "rejected_reasons": st.reasons[-10:]},
+                "fallbacks": st.fallbacks, "controller": self.controller.kind,
+                "controller_model": {k: float(getattr(self.controller.model, k)) for k in KEYS},
+                "gains": [float(g) for g in self.controller.gains],
+                "margins": self.controller.margins,
+                "max_switch_step_nm": st.max_step_nm,
+                "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
+
+
+def _params_text(p: AxisParams) -> str:
+    return ", ".join(f"{k}={getattr(p, k):.4g}" for k in KEYS)

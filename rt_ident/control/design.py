@@ -1,0 +1,243 @@
+r"""Position-controller design on the sampled two-inertia model, and its margin check.
+
+The host closes the position loop at the *tick* rate (default 1 kHz). The plant seen by
+the loop is Eq. (8) behind a zero-order hold, with one tick of computation delay: the
+torque computed from the samples of tick k is applied from tick k+1 on. Table 1's mode
+(662 Hz) lies above the 500 Hz Nyquist frequency of a 1 kHz loop and aliases into it
+(to 338 Hz); the exact sampled model (``control.c2d(..., "zoh")``) carries it, so the
+design sees the alias where the loop will.
+
+State of the design model (one tick, period ``T``, a delay of ``d`` ticks, default 1)
+
+.. math::
+
+    z_k = [\theta_1, \omega_1, \theta_2, \omega_2, u_{k-d}, \dots, u_{k-1}, \xi_k]^T,\quad
+    x_{k+1} = A_d x_k + B_d u_{k-d},\quad \xi_{k+1} = \xi_k + T\,(\theta_{2,k} - \theta_{2,k}^{ref})
+
+(``u_{k-d} .. u_{k-1}``: the torques in flight, the delay; ``xi``: integral of the table-angle
+error, for zero steady error under a constant load). A backend whose torque lands later than one
+tick after the newest sample (a serial board that streams in bursts, a field bus) is designed with
+``d = 2``: ``[control] delay_ticks``. The law is ``u_k = -G z_k`` on the errors from the
+reference (:mod:`rt_ident.control.law`).
+
+Two designs:
+
+* :func:`design_lqr` - the *model* controller: discrete LQR (``control.dlqr``) on the full
+  two-inertia model identified for the axis, weights from a target bandwidth (Bryson's rule:
+  the table-angle error, its integral and the torque scaled by what the bandwidth asks of
+  them). It feeds back both angles and both velocities, so it sees the flexible mode.
+* :func:`design_rigid` - the *conservative* controller: LQR on the rigid body J = I1 + I2 at a
+  lower bandwidth, applied as position/integral feedback on the table and velocity feedback
+  on the motor (collocated with the torque, so it damps whatever the mode does). With Table 1
+  at 10 Hz it stays stable for every corner of each parameter x 0.5 ... x 2.
+
+:func:`loop_margins` breaks the loop at the controller output (before the delay):
+``L(z) = G (zI - A_z)^{-1} B_z`` for a plant (the true one, or one of a family), and reads
+gain and phase margins with ``control.stability_margins``. The loop is conditionally stable
+(a double integrator plus the integral action), so there is a *lower* gain margin (how much
+the gain may drop) as well as an upper one; both are checked.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import control as ct
+import numpy as np
+
+from rt_ident.axis.model import state_space
+from rt_ident.axis.params import AxisParams
+from rt_ident.errors import ConfigError
+
+#: State names of the design model with one tick of delay, in order.
+STATE = ("theta1", "omega1", "theta2", "omega2", "u_prev", "xi")
+_ANGLE_SCALE = 1e-4  # rad: the table-angle error Bryson's rule normalizes by (0.08 um of table travel)
+
+
+def _augment(Ad: np.ndarray, Bd: np.ndarray, tick: float, delay: int, pos: int) -> tuple[np.ndarray, np.ndarray]:
+    """Append ``delay`` torques in flight and the integral of state ``pos`` to a sampled model."""
+    n = Ad.shape[0]
+    m = n + delay + 1
+    Az = np.zeros((m, m))
+    Az[:n, :n] = Ad
+    Az[:n, n] = Bd.ravel()                               # x_{k+1} = Ad x_k + Bd u_{k-d}
+    for i in range(delay - 1):                           # the shift register of torques in flight
+        Az[n + i, n + i + 1] = 1.0
+    Az[m - 1, pos] = tick                                # xi_{k+1} = xi_k + T theta2_k
+    Az[m - 1, m - 1] = 1.0
+    Bz = np.zeros((m, 1))
+    Bz[n + delay - 1, 0] = 1.0                           # u_k enters the register
+    return Az, Bz
+
+
+def _check_delay(delay: int) -> int:
+    if isinstance(delay, bool) or not isinstance(delay, (int, np.integer)) or not 1 <= delay <= 5:
+        raise ConfigError("control.delay_ticks", f"must be an integer 1..5, got {delay!r}")
+    return int(delay)
+
+
+def sampled_model(p: AxisParams, tick: float, delay: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(A_z, B_z) of the design model: Eq. (8) under a ZOH of one tick, the delay and the integral."""
+    A, b = state_space(p)                                # Eq. (8), input column +1/I1 (see model.py)
+    sysd = ct.c2d(ct.ss(A, b.reshape(-1, 1), np.eye(4), np.zeros((4, 1))), tick, "zoh")
+    return _augment(np.asarray(sysd.A), np.asarray(sysd.B), tick, _check_delay(delay), 2)
+
+
+def _rigid_model(J: float, tick: float, delay: int) -> tuple[np.ndarray, np.ndarray]:
+    Ar = np.array([[0.0, 1.0], [0.0, 0.0]])
+    sysd = ct.c2d(ct.ss(Ar, np.array([[0.0], [1.0 / J]]), np.eye(2), np.zeros((2, 1))), tick, "zoh")
+    return _augment(np.asarray(sysd.A), np.asarray(sysd.B), tick, _check_delay(delay), 0)
+
+
+def _weights(J: float, bandwidth_hz: float, effort: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bryson's rule: table-angle error 1e-4 rad, its integral over a third of the bandwidth,
+    torque J w^2 1e-4 rad (what the bandwidth needs for that error), scaled by ``effort``."""
+    w = 2.0 * math.pi * bandwidth_hz
+    q = np.zeros(n)
+    q[n - 1] = (w / 3.0 / _ANGLE_SCALE) ** 2             # integral of the error
+    R = np.array([[effort / (J * w * w * _ANGLE_SCALE) ** 2]])
+    return q, R
+
+
+def _check_design_inputs(tick: float, bandwidth_hz: float, effort: float) -> None:
+    if not (math.isfinite(tick) and tick > 0):
+        raise ConfigError("loop.tick_hz", f"tick period must be > 0, got {tick!r}")
+    if not (math.isfinite(bandwidth_hz) and 0 < bandwidth_hz < 0.25 / tick):
+        raise ConfigError("control.bandwidth_hz",
+                          f"must be > 0 and below a quarter of the tick rate ({0.25 / tick:g} Hz), got {bandwidth_hz!r}")
+    if not (math.isfinite(effort) and effort > 0):
+        raise ConfigError("control.effort", f"must be a finite number > 0, got {effort!r}")
+
+
+def design_lqr(p: AxisParams, tick: float, bandwidth_hz: float, effort: float = 1.0, delay: int = 1) -> np.ndarray:
+    """State-feedback gains G (5 + delay,) from discrete LQR on the two-inertia model ``p``."""
+    _check_design_inputs(tick, bandwidth_hz, effort)
+    Az, Bz = sampled_model(p, tick, delay)
+    q, R = _weights(p.I1 + p.I2, bandwidth_hz, effort, Az.shape[0])
+    q[2] = 1.0 / _ANGLE_SCALE**2                         # table angle
+    G, _, _ = ct.dlqr(Az, Bz, np.diag(q), R)
+    return np.asarray(G, dtype=float).ravel()
+
+
+def design_rigid(J: float, tick: float, bandwidth_hz: float, effort: float = 1.0, delay: int = 1) -> np.ndarray:
+    """Conservative gains G (5 + delay,): LQR on the rigid body J, position on theta2, velocity on omega1."""
+    _check_design_inputs(tick, bandwidth_hz, effort)
+    if not (math.isfinite(J) and J > 0):
+        raise ConfigError("axis", f"rigid-body inertia must be > 0, got {J!r}")
+    Az, Bz = _rigid_model(J, tick, delay)
+    q, R = _weights(J, bandwidth_hz, effort, Az.shape[0])
+    q[0] = 1.0 / _ANGLE_SCALE**2
+    Gr, _, _ = ct.dlqr(Az, Bz, np.diag(q), R)
+    Gr = np.asarray(Gr, dtype=float).ravel()             # (theta, omega, u's..., xi)
+    return np.concatenate(([0.0, Gr[1], Gr[0], 0.0], Gr[2:]))
+
+
+@dataclass(frozen=True)
+class Margins:
+    """Margins of one loop: spectral radius of the closed loop, gain margins (dB; upper > 0,
+    lower < 0, +-inf when the Nyquist plot never crosses there) and the smallest phase margin."""
+
+    radius: float
+    gm_up_db: float
+    gm_down_db: float
+    pm_deg: float
+
+    @property
+    def stable(self) -> bool:
+        return self.radius < 1.0
+
+    def meets(self, gm_db: float, pm_deg: float) -> bool:
+        return self.stable and self.gm_up_db >= gm_db and self.gm_down_db <= -gm_db and self.pm_deg >= pm_deg
+
+    def as_dict(self) -> dict[str, float | None]:
+        def f(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+        return {"radius": f(self.radius), "gm_up_db": f(self.gm_up_db), "gm_down_db": f(self.gm_down_db),
+                "pm_deg": f(self.pm_deg)}
+
+
+def delay_of(G: np.ndarray) -> int:
+    """The delay (ticks) a gain vector was designed for: 4 states, the torques in flight, xi."""
+    return int(np.asarray(G).size) - 5
+
+
+def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
+    """Margins of the loop G on plant ``p`` (broken at the controller output)."""
+    Az, Bz = sampled_model(p, tick, delay_of(G))
+    Gr = np.asarray(G, dtype=float).reshape(1, -1)
+    radius = float(np.abs(np.linalg.eigvals(Az - Bz @ Gr)).max())
+    if not np.all(np.isfinite(Gr)):
+        return Margins(math.inf, -math.inf, math.inf, -math.inf)
+    L = ct.ss(Az, Bz, Gr, np.zeros((1, 1)), tick)
+    gm, pm, _, _, _, _ = ct.stability_margins(L, returnall=True)
+    gm = np.atleast_1d(np.asarray(gm, dtype=float))
+    pm = np.atleast_1d(np.asarray(pm, dtype=float))
+    gm = gm[np.isfinite(gm) & (gm > 0)]
+    up = gm[gm > 1.0]
+    down = gm[gm < 1.0]
+    gm_up = 20.0 * math.log10(up.min()) if up.size else math.inf
+    gm_down = 20.0 * math.log10(down.max()) if down.size else -math.inf
+    pm = pm[np.isfinite(pm)]
+    pm_min = float(np.abs(pm).min()) if pm.size else math.inf
+    return Margins(radius, gm_up, gm_down, pm_min)
+
+
+@dataclass(frozen=True)
+class FamilyCheck:
+    """The margin check of one design over a family of plants around an estimate."""
+
+    ok: bool
+    reason: str | None
+    nominal: Margins
+    worst: Margins
+    plants: int
+    worst_plant: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {"ok": self.ok, "reason": self.reason, "plants": self.plants, "nominal": self.nominal.as_dict(),
+                "worst": self.worst.as_dict(), "worst_plant": self.worst_plant}
+
+
+def plant_family(p: AxisParams, factors: tuple[float, ...] = (0.7, 1.3),
+                 ci95: dict[str, tuple[float, float]] | None = None) -> list[AxisParams]:
+    """``p``, each of I1, I2, B, K alone times each factor, and the corners of the 95 % box."""
+    keys = ("I1", "I2", "B", "K")
+    base = {k: float(getattr(p, k)) for k in keys}
+    out = [p]
+    for k in keys:
+        for f in factors:
+            out.append(AxisParams(**{**base, k: base[k] * f}, lead=p.lead))
+    if ci95:
+        ranges = []
+        for k in keys:
+            lo, hi = ci95.get(k, (base[k], base[k]))
+            lo, hi = (lo if lo is not None and lo > 0 else base[k]), (hi if hi is not None and hi > 0 else base[k])
+            ranges.append((lo, hi))
+        for corner in itertools.product(*ranges):
+            out.append(AxisParams(**dict(zip(keys, corner)), lead=p.lead))
+    return out
+
+
+def check_family(G: np.ndarray, p: AxisParams, tick: float, *, gm_db: float = 6.0, pm_deg: float = 40.0,
+                 factors: tuple[float, ...] = (0.7, 1.3),
+                 ci95: dict[str, tuple[float, float]] | None = None) -> FamilyCheck:
+    """Accept ``G`` only if it stabilizes ``p`` and every plant of its family with the margins."""
+    family = plant_family(p, factors, ci95)
+    margins = [loop_margins(G, q, tick) for q in family]
+    failing = [(q, m) for q, m in zip(family, margins) if not m.meets(gm_db, pm_deg)]
+    reason = None
+    if failing:
+        q, m = failing[0]
+        gm = min(m.gm_up_db, -m.gm_down_db)
+        what = ("unstable" if not m.stable else f"gain margin {gm:.1f} dB < {gm_db:g} dB" if gm < gm_db
+                else f"phase margin {m.pm_deg:.1f} deg < {pm_deg:g} deg")
+        reason = f"{what} on " + ("the estimate" if q is p else
+                                  ", ".join(f"{k}={getattr(q, k):.4g}" for k in ("I1", "I2", "B", "K")))
+    worst = Margins(max(m.radius for m in margins), min(m.gm_up_db for m in margins),
+                    max(m.gm_down_db for m in margins), min(m.pm_deg for m in margins))
+    q_worst = (failing[0][0] if failing else
+               min(zip(family, margins), key=lambda qm: qm[1].pm_deg)[0])
+    return FamilyCheck(reason is None, reason, margins[0], worst, len(family),
+                       {k: float(getattr(q_worst, k)) for k in ("I1", "I2", "B", "K")})

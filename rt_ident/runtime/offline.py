@@ -1,0 +1,152 @@
+"""The same loop, faster than real time: for benchmarks and tests of the closed loop.
+
+:func:`run_offline` builds what :func:`rt_ident.runtime.run.run` builds - the backend from the
+config (the ``sim`` backend, free-running), the state estimator, the streaming estimator, the
+host's controller and the :class:`~rt_ident.runtime.loop.IdentificationLoop` itself - but ticks
+on a :class:`VirtualClock` and runs the two workers in-process (:class:`InlineWorker`), with the
+latency and the duty cycle the real worker processes have, counted in virtual time. Nothing is
+recorded and no telemetry is sent; nothing else differs from a real-time run, so a result here
+is what the loop's code does, not what a model of it does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Callable
+
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.config import RunConfig
+from rt_ident.control import make_controller, redesign
+from rt_ident.estimators import make_streaming
+from rt_ident.estimators.state_estimation import AxisStateEstimator
+from rt_ident.estimators.streaming import fit_snapshot
+from rt_ident.errors import ConfigError
+from rt_ident.runtime.loop import IdentificationLoop
+from rt_ident.runtime.safety import SafetyMonitor
+from rt_ident.runtime.scheduler import Ticker
+
+
+class VirtualClock:
+    """A monotonic clock that only a sleep advances (the Ticker's clock and sleeper)."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += max(0.0, seconds)
+
+
+@dataclass
+class InlineWorker:
+    """A job worker that runs in this process: the result of ``submit`` becomes visible to
+    ``poll`` ``latency`` (virtual) seconds later, and the next job is taken ``min_interval`` after."""
+
+    job: Callable[[Any], Any]
+    clock: VirtualClock
+    latency: float = 0.1
+    min_interval: float = 0.25
+    fits: int = 0
+    errors: int = 0
+    skipped: int = 0
+    last_error: str | None = None
+    _due: list = field(default_factory=list)
+    _busy_until: float = 0.0
+
+    @property
+    def ready(self) -> bool:
+        return self.clock() >= self._busy_until
+
+    def submit(self, request: Any) -> bool:
+        if request is None:
+            return False
+        if not self.ready:
+            self.skipped += 1
+            return False
+        now = self.clock()
+        try:
+            result: Any = self.job(request)
+        except Exception as exc:  # noqa: BLE001 - like the worker process: reported, not raised
+            result = exc
+        self._due.append((now + self.latency, result))
+        self._busy_until = now + max(self.latency, self.min_interval)
+        return True
+
+    def poll(self) -> Any:
+        now = self.clock()
+        latest = None
+        while self._due and self._due[0][0] <= now:
+            _, item = self._due.pop(0)
+            if isinstance(item, Exception):
+                self.errors += 1
+                self.last_error = str(item)
+            else:
+                self.fits += 1
+                latest = item
+        return latest
+
+    def close(self) -> None:
+        self._due.clear()
+
+
+def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], None] | None = None,
+                fit_latency: float = 0.1) -> dict[str, Any]:
+    """Run ``cfg`` (a ``sim`` backend) on virtual time; returns identification, control and truth.
+
+    ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
+    """
+    from drivers import make_backend
+    from rt_ident.runtime.run import _excitation, _quanta, _warmup, backend_options
+
+    if cfg.backend.name != "sim":
+        raise ConfigError("backend.name", "the offline loop runs the sim backend only")
+    opts = {**backend_options(cfg), "paced": False}
+    backend = make_backend("sim", opts)
+    dt = backend.sample_period
+    truth = cfg.axis_params()
+    ex = cfg.excitation
+    clock = VirtualClock()
+    q1, q2 = _quanta(cfg)
+    kf = AxisStateEstimator(dt, q1, q2, cfg.estimator.kalman_process_noise)
+    est = make_streaming(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
+                         warmup_periods=cfg.loop.warmup_periods, forgetting=cfg.estimator.forgetting,
+                         lead=truth.lead, quanta=(q1, q2), process_noise=cfg.estimator.kalman_process_noise)
+    fit = InlineWorker(partial(fit_snapshot, cfg.estimator.method, lead=truth.lead), clock, latency=fit_latency)
+    settings = cfg.control.settings()
+    ctl = None
+    if settings.mode != "off":
+        from rt_ident.control.reference import make_reference
+
+        ctl_worker = InlineWorker(redesign, clock, latency=0.05, min_interval=0.0)
+        last = cfg.plant.last_change_s()
+        ctl = make_controller(settings, truth, tick=1.0 / cfg.loop.tick_hz, torque_limit=backend.torque_limit,
+                              reference=make_reference(cfg.reference), worker=ctl_worker,
+                              error_after_s=None if last is None else last + 0.5)
+    _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
+    safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
+                           watchdog_ticks=cfg.safety.watchdog_ticks)
+    loop = IdentificationLoop(backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf,
+                              estimator=est, safety=safety, duration=cfg.loop.duration, fit_worker=fit,
+                              clock=clock, control=ctl, probe_period=ex.period_samples,
+                              ticker=Ticker(1.0 / cfg.loop.tick_hz, clock=clock, sleeper=clock.sleep, spin_s=0.0,
+                                            max_sleep_s=None),
+                              tick_hook=None if tick_hook is None else (lambda _n: tick_hook(loop)))
+    stop = None
+    with backend:
+        backend.activate()
+        try:
+            loop.run()
+        except Exception as exc:  # noqa: BLE001 - a stop is a result here (the bench counts it)
+            stop = f"{type(exc).__name__}: {exc}"
+    now = getattr(backend, "current_params", None) or truth
+    out: dict[str, Any] = {"stop": stop, "loop": loop.stats.as_dict(),
+                           "control": ctl.summary() if ctl is not None else {"mode": "off"},
+                           "truth": {"I1": now.I1, "I2": now.I2, "B": now.B, "K": now.K, **modal_parameters(now)}}
+    ident = loop.identification
+    if ident is not None:
+        d = ident.as_dict()
+        out["parameters"], out["trusted"] = d["parameters"], d["trusted"]
+    return out
