@@ -386,8 +386,14 @@ def bench(
                                  help="Instead: fixed vs adaptive vs oracle control after load changes, and the "
                                       "nominal design on 100 random plants."),
     figure: Optional[Path] = typer.Option(None, "--figure", help="With --control: write the comparison as a PNG."),
+    estimator: bool = typer.Option(False, "--estimator",
+                                   help="Instead: the per-sample estimator's bias and tracking on bench-like data "
+                                        "in closed loop."),
 ) -> None:
     """Speed of our kernels vs peers (padasip, filterpy, numpy, scipy) and the loop's capacity, in one run."""
+    if estimator:
+        _bench_estimator(json_out)
+        return
     if control:
         _bench_control(json_out, quick, figure)
         return
@@ -434,6 +440,32 @@ def _bench_control(json_out: bool, quick: bool, figure: Optional[Path]) -> None:
         out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
     if figure is not None:
         out.print(f"figure: {figure}")
+
+
+def _bench_estimator(json_out: bool) -> None:
+    from rt_ident.reports.svf_bench import KEYS, estimator_bench, targets
+
+    res = estimator_bench(progress=lambda s: err.print(f"estimator bench: {s}", highlight=False))
+    if json_out:
+        typer.echo(json.dumps(res, indent=2, default=_json_default))
+        return
+    r = res["estimator"]
+    tab = Table(title=f"per-sample estimator (svf, {r['filter_hz']:g} Hz filter, {1e3 * r['memory_s']:g} ms memory), "
+                      "closed loop, bench-like sensors: error [%]")
+    tab.add_column("trial")
+    for k in KEYS:
+        tab.add_column(k, justify="right")
+    tab.add_column("settled [ms]", justify="right")
+    b = r["bias"]
+    tab.add_row("bias, last 5 s of 10", *(f"{100 * b['bias'][k]:+.2f}" for k in KEYS), "")
+    tab.add_row("std, last 5 s of 10", *(f"{100 * b['std'][k]:.2f}" for k in KEYS), "")
+    for s in r["steps"]:
+        settle = s["settle_s"]
+        tab.add_row(f"{s['param']} x 1.2: error 0.2 s after", *(f"{100 * s['error_at_0_2_s'][k]:+.2f}" for k in KEYS),
+                    f"{1e3 * settle:.0f}" if math.isfinite(settle) else "never")
+    out.print(tab)
+    for name, ok, fig in targets(res):
+        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
 
 
 def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:

@@ -64,6 +64,12 @@ class EstimatorConfig(_Section):
     method: str = "frequency"
     forgetting: float = Field(1.0, gt=0, le=1)
     kalman_process_noise: float = Field(1e9, gt=0)  # rad^2/s^5 (jerk spectral density) for the velocity filter
+    # the per-sample estimator that feeds the adaptive controller (rt_ident.estimators.svf)
+    per_sample: Literal["svf", "none"] = "svf"      # none: the controller adapts from the frequency fit alone
+    svf_hz: float = Field(800.0, gt=0)              # state-variable filter corner (passes the resonance)
+    svf_memory_s: float = Field(0.05, gt=0)         # forgetting time constant of the per-sample estimate
+    svf_quanta: Optional[tuple[float, float]] = None  # rad (theta1, theta2) for bias compensation;
+                                                    # None: from the backend's encoder and scale resolution
 
 
 class ControlConfig(_Section):

@@ -141,6 +141,9 @@ def _landing(delay: int) -> np.ndarray:
         def poll(self):
             pass
 
+        def observe(self, *a):
+            pass
+
     backend = SimBackend({"paced": False, "samples_per_read": 34, "position_hold": False})
     rec = Recorder()
     blocks = []

@@ -49,6 +49,7 @@ class ControlSettings:
     feedforward: bool = True
     probe_scale_trusted: float = 1.0         # probing amplitude x this while the estimate is trusted
     delay_ticks: int = 1                     # ticks from the newest sample to the torque landing
+    trust_tolerance: float = 0.05            # per-sample estimate vs frequency fit: trusted when within
 
 
 class ControlFallbackStop(RtIdentError):
@@ -103,6 +104,9 @@ class ControlStats:
     n_err_after: int = 0
     max_err_after: float = 0.0
     max_step_nm: float = 0.0     # largest torque step a switch would have caused without re-seeding
+    checks_agreed: int = 0       # cross-checks of the per-sample estimate against the frequency fit
+    checks_disagreed: int = 0
+    last_disagreement: str = ""
 
 
 class Supervisor:
@@ -114,8 +118,9 @@ class Supervisor:
     """
 
     def __init__(self, settings: ControlSettings, nominal: AxisParams, *, tick: float, torque_limit: float,
-                 reference, worker=None, error_after_s: float | None = None) -> None:
+                 reference, worker=None, error_after_s: float | None = None, per_sample=None) -> None:
         self.s = settings
+        self.per_sample = per_sample            # e.g. rt_ident.estimators.svf.SvfEstimator, fed every sample
         self.nominal = nominal
         self.tick_s = tick
         self.lead = nominal.lead
@@ -197,11 +202,22 @@ class Supervisor:
         self.stats.max_step_nm = max(self.stats.max_step_nm, abs(step))
 
     # ------------------------------------------------------------ adaptation
+    def observe(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, gap: bool) -> None:
+        """Feed the per-sample estimator every sample of the block (a sequence gap restarts its filter)."""
+        est = self.per_sample
+        if est is None or self.s.mode != "adaptive":
+            return
+        if gap:
+            est.restart_filter()
+        est.update_block(theta1, theta2, torque)
+
     def diverged(self, ident) -> str | None:
-        """Why ``ident`` is not a usable estimate (non-finite, or far outside the nominal box)."""
+        """Why ``ident`` (an Identification or AxisParams) is not a usable estimate (non-finite, or
+        far outside the nominal box)."""
+        params = getattr(ident, "params", ident)
         lo, hi = self.s.plausible
         for k in KEYS:
-            v = float(getattr(ident.params, k))
+            v = float(getattr(params, k))
             ref = float(getattr(self.nominal, k))
             if not math.isfinite(v) or v <= 0:
                 return f"{k} = {v!r}"
@@ -209,30 +225,61 @@ class Supervisor:
                 return f"{k} = {v:.4g} outside x{lo:g}..x{hi:g} of nominal {ref:.4g}"
         return None
 
+    def _cross_check(self, ident) -> tuple[AxisParams | None, Any, bool, str | None]:
+        """(estimate, its 95 % intervals, trusted, why it diverged) for a new frequency fit ``ident``.
+
+        With a per-sample estimator, *it* is the estimate the controller follows, and it is trusted
+        when the frequency fit (independent data use, the worker's Gauss-Newton) agrees with it within
+        ``trust_tolerance`` on every parameter. Without one, the frequency fit's own trust decides.
+        """
+        est = self.per_sample
+        if est is None:
+            return ident.params, ident.ci95, bool(ident.trusted), self.diverged(ident)
+        if not est.ready:
+            return None, None, False, None
+        p = est.params
+        why = self.diverged(p)
+        if why is not None or self.diverged(ident) is not None:
+            return p, None, False, why                 # a frequency fit that diverged only withholds trust
+        worst = max(KEYS, key=lambda k: abs(getattr(p, k) / getattr(ident.params, k) - 1.0))
+        rel = abs(getattr(p, worst) / getattr(ident.params, worst) - 1.0)
+        st = self.stats
+        if rel <= self.s.trust_tolerance:
+            st.checks_agreed += 1
+            return p, est.ci95(), True, None
+        st.checks_disagreed += 1
+        st.last_disagreement = f"t={self.t:.3f} s: {worst} per-sample {getattr(p, worst):.4g} vs frequency fit " \
+                               f"{getattr(ident.params, worst):.4g} ({100 * rel:.1f} %)"
+        return p, None, False, None
+
     def offer(self, ident, trusted: bool) -> None:
-        """A new identification: redesign from it when adaptive, trusted and due."""
+        """A new identification from the fit worker: cross-check, and redesign when adaptive, trusted
+        and due. ``trusted`` is the frequency fit's own verdict (used when there is no per-sample
+        estimator)."""
         if self.s.mode != "adaptive" or ident is None:
             return
-        why = self.diverged(ident)
+        if self.per_sample is None:
+            ident = _with_trust(ident, trusted)
+        params, ci95, trusted, why = self._cross_check(ident)
         # dual excitation: probe less while the estimate is trusted, fully again when it is not
         self.probe_scale = self.s.probe_scale_trusted if (trusted and why is None) else 1.0
         if why is not None:
             if not self.in_fallback and self.controller.kind == "model":
                 self._fall_back(self.t, f"estimate diverged: {why}")
             return
-        if not trusted or self.worker is None or self._pending:
+        if params is None or not trusted or self.worker is None or self._pending:
             return
         if self.t - self._last_request_t < self.s.redesign_interval_s:
             return
         cur = self.controller.model
-        changed = max(abs(getattr(ident.params, k) / getattr(cur, k) - 1.0) for k in KEYS)
+        changed = max(abs(getattr(params, k) / getattr(cur, k) - 1.0) for k in KEYS)
         if self.controller.kind == "model" and changed < self.s.min_change:
             return
         if not self.worker.ready:
             return
         self._req += 1
-        req = {"params": {**{k: float(getattr(ident.params, k)) for k in KEYS}, "lead": float(ident.params.lead)},
-               "ci95": {k: tuple(ident.ci95[k]) for k in KEYS} if ident.ci95 else None,
+        req = {"params": {**{k: float(getattr(params, k)) for k in KEYS}, "lead": float(params.lead)},
+               "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}
         if self.worker.submit(req):
             self._pending = True
@@ -260,6 +307,14 @@ class Supervisor:
             st.events.append((self.t, "rejected", reason))
 
     # --------------------------------------------------------------- summary
+    def _per_sample_summary(self) -> dict[str, Any] | None:
+        est, st = self.per_sample, self.stats
+        if est is None:
+            return None
+        return {"method": type(est).__name__, "params": est.values(), "counters": est.counters,
+                "cross_checks": {"agreed": st.checks_agreed, "disagreed": st.checks_disagreed,
+                                 "last_disagreement": st.last_disagreement or None}}
+
     def summary(self) -> dict[str, Any]:
         st = self.stats
         rms = math.sqrt(st.sq_err / st.n_err) if st.n_err else None
@@ -274,7 +329,16 @@ class Supervisor:
                 "gains": [float(g) for g in self.controller.gains],
                 "margins": self.controller.margins,
                 "max_switch_step_nm": st.max_step_nm,
+                "per_sample": self._per_sample_summary(),
                 "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
+
+
+def _with_trust(ident, trusted: bool):
+    if bool(getattr(ident, "trusted", trusted)) == trusted:
+        return ident
+    import dataclasses
+
+    return dataclasses.replace(ident, trusted=trusted)
 
 
 def _params_text(p: AxisParams) -> str:

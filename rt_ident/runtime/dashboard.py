@@ -22,6 +22,7 @@ entity                                block key (see :mod:`rt_ident.runtime.tele
 ``control/margins/{pm_deg,gm_db}``    ``"pm_deg"``, ``"gm_db"`` (nominal loop)    deg, dB
 ``control/redesigns/{accepted,rejected}`` ``"n_accepted"``, ``"n_rejected"``           count
 ``control/redesigns/fallbacks``       ``"fallbacks"``                             count
+``params/{I1,I2,B,K}/per_sample``     ``"svf_I1"`` ... (the per-sample estimate)   SI
 ====================================  ==========================================  =========
 
 ``rerun`` is imported only inside :func:`default_blueprint`, so the real-time process can import
@@ -60,6 +61,7 @@ CONTROL_ENTITIES: Mapping[str, str] = MappingProxyType(
         "n_accepted": "control/redesigns/accepted",
         "n_rejected": "control/redesigns/rejected",
         "fallbacks": "control/redesigns/fallbacks",
+        **{f"svf_{k}": f"params/{k}/per_sample" for k in PARAM_NAMES},
     }
 )
 
@@ -99,6 +101,7 @@ SERIES_STYLES: Mapping[str, tuple[str, tuple[int, int, int]]] = MappingProxyType
     {
         **{estimate_path(k): (f"{k} estimate [{_UNITS[k]}]", _EST_COLOR) for k in ESTIMATE_KEYS},
         **{truth_path(k): (f"{k} true [{_UNITS[k]}]", _TRUE_COLOR) for k in ESTIMATE_KEYS},
+        **{f"params/{k}/per_sample": (f"{k} per-sample (svf) [{_UNITS[k]}]", (255, 127, 14)) for k in PARAM_NAMES},
         TORQUE_MEASURED: ("measured [N m]", (214, 39, 40)),
         TORQUE_COMMANDED: ("commanded [N m]", (127, 127, 127)),
         TORQUE_RECONSTRUCTED: ("reconstructed, Eq. 18 [N m]", (44, 160, 44)),

@@ -170,6 +170,8 @@ class IdentificationLoop:
             else:
                 self.worker.skipped += 1
         ctl = self.control
+        if ctl is not None:                             # the per-sample estimator, every sample
+            ctl.observe(block.theta1, block.theta2, torque, block.lost > 0 or int(block.seq[0]) != self._next_seq)
         if self.worker is not None and stats.ticks % 10 == 0:
             latest = self.worker.poll()
             if latest is not None:
@@ -317,6 +319,10 @@ class IdentificationLoop:
                 pm = (c.margins or {}).get("pm_deg")
                 tick["pm_deg"] = np.full(k, np.nan if pm is None else float(pm))
                 tick["gm_db"] = np.full(k, float(c.gain_margin_db))
+                svf = getattr(ctl, "per_sample", None)
+                if svf is not None:
+                    for key, v in svf.values().items():
+                        tick[f"svf_{key}"] = np.full(k, v)
             self.on_telemetry(tick)
         self._tel_n = self._tick_n = 0
         self._tel_hat_ok = True

@@ -99,7 +99,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
     """
     from drivers import make_backend
-    from rt_ident.runtime.run import _excitation, _quanta, _warmup, backend_options
+    from rt_ident.runtime.run import _excitation, _quanta, _warmup, backend_options, per_sample_estimator
 
     if cfg.backend.name != "sim":
         raise ConfigError("backend.name", "the offline loop runs the sim backend only")
@@ -124,7 +124,8 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
         last = cfg.plant.last_change_s()
         ctl = make_controller(settings, truth, tick=1.0 / cfg.loop.tick_hz, torque_limit=backend.torque_limit,
                               reference=make_reference(cfg.reference), worker=ctl_worker,
-                              error_after_s=None if last is None else last + 0.5)
+                              error_after_s=None if last is None else last + 0.5,
+                              per_sample=per_sample_estimator(cfg, dt, (q1, q2)))
     _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
     safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
                            watchdog_ticks=cfg.safety.watchdog_ticks)

@@ -29,6 +29,7 @@ from rt_ident.axis.modal import modal_parameters
 from rt_ident.config import RunConfig
 from rt_ident.errors import ConfigError, RtIdentError
 from rt_ident.estimators import make_streaming
+from rt_ident.estimators.svf import make_svf
 from rt_ident.estimators.state_estimation import AxisStateEstimator, encoder_quanta
 from rt_ident.runtime.emulation import start_emulator
 from rt_ident.control import make_controller, redesign
@@ -57,7 +58,21 @@ def backend_options(cfg: RunConfig) -> dict[str, Any]:
     return opts
 
 
-def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack):
+def per_sample_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float]):
+    """The recursive estimator the adaptive controller follows (``[estimator] per_sample``), or None
+    (not adaptive, switched off, or a sample rate too low for it: logged, the controller then
+    follows the frequency fit)."""
+    e = cfg.estimator
+    if cfg.control.mode != "adaptive" or e.per_sample == "none":
+        return None
+    q = tuple(e.svf_quanta) if e.svf_quanta is not None else quanta
+    est, why = make_svf(dt, cfg.axis_params(), filter_hz=e.svf_hz, memory_s=e.svf_memory_s, quanta=q)
+    if est is None:
+        log.warning("per-sample estimator off (%s): the adaptive controller follows the frequency fit", why)
+    return est
+
+
+def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack, quanta: tuple[float, float]):
     """The host's position controller (None with ``control.mode = "off"``) and its redesign worker."""
     settings = cfg.control.settings()
     if settings.mode == "off":
@@ -72,7 +87,8 @@ def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack):
     last = cfg.plant.last_change_s()
     ctl = make_controller(settings, cfg.axis_params(), tick=1.0 / cfg.loop.tick_hz,
                           torque_limit=backend.torque_limit, reference=reference, worker=worker,
-                          error_after_s=None if last is None else last + 0.5)
+                          error_after_s=None if last is None else last + 0.5,
+                          per_sample=per_sample_estimator(cfg, backend.sample_period, quanta))
     return ctl, worker
 
 
@@ -164,7 +180,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             worker = make_fit_worker(cfg.estimator.method, lead=truth.lead).start()
             stack.callback(worker.close)
             _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
-            control, ctl_worker = _controller(cfg, backend, stack)
+            control, ctl_worker = _controller(cfg, backend, stack, (q1, q2))
             safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
                                    watchdog_ticks=cfg.safety.watchdog_ticks)
             loop = IdentificationLoop(

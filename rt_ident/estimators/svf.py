@@ -1,0 +1,337 @@
+"""Per-sample recursive estimate of (I1, I2, B, K) through a state-variable filter (beyond the paper).
+
+The paper's Eqs. (9)-(10) difference the sampled angles twice; on a 2^17-count encoder and a
+0.1 um scale that amplifies quantization into the regressors and the estimate is biased
+(the noise study shows it). Here nothing differentiates a raw angle:
+
+* **State-variable filter.** Every signal u (theta1, theta1 - theta2, theta2, the torque) goes
+  through the same low-pass F(s) = lam^3 / (s + lam)^3, realized as a chain whose states are
+  F u, s F u and s^2 F u: the filtered derivatives come out of the filter, exactly. Because F is
+  linear and time-invariant, the continuous-time model of Eq. (3) holds for the filtered signals:
+
+      I1 s^2 F th1 + B s F (th1 - th2) + K F (th1 - th2) = F T          (motor)
+      I2 s^2 F th2 - B s F (th1 - th2) - K F (th1 - th2) = 0            (table)
+
+  two rows per sample, linear in (I1, I2, B, K). The filter is discretized exactly: angles as
+  first-order hold (they are continuous signals sampled), the torque as zero-order hold (the
+  drive holds it over the sample). The paper's Eq. (9) discretization is not used.
+* **Bias compensation.** Quantization and encoder noise enter the regressors (errors in
+  variables), which biases least squares by the noise's covariance in the regressors. That
+  covariance is known: the quantum q gives q^2/12 per angle, and the filter's own impulse
+  response maps it into the regressors (:func:`regressor_noise`). The estimate solves
+  ``(R - W Sigma) p = r`` instead of ``R p = r`` (bias-compensated least squares).
+  Closed loop: the controller's torque depends on the noise only through the state estimate and
+  at least one tick of delay; the filter's memory (a few 1/lam) is far shorter than a tick, so
+  the torque is uncorrelated with the regressor noise it sees (no instrumental variable needed at
+  the sim's and the serial board's rates; at the CANopen drive's 2 kHz the filter is too close
+  to the sample rate and the estimate is biased: the frequency cross-check then keeps it
+  untrusted).
+* **Forgetting with windup protection.** R and r forget with ``lam_f`` per sample; stabilized
+  forgetting adds ``(1 - lam_f) rho I`` (and ``(1 - lam_f) rho p_prior`` to r), so in directions
+  the data stop exciting R decays to ``rho I`` and the estimate to the prior instead of blowing up.
+  Parameters are scaled by the nominal axis so the four columns are of one size.
+* **Dead zone.** Stabilized forgetting alone does not stop a drift when the axis sits still and
+  only sensor noise moves the regressors (noise says "motion without torque"). So rows update the
+  estimate only while the rms of the filtered torque over a tenth of the memory is above
+  ``min_torque``;
+  below it the estimate freezes (the gate is a slow average, not a per-sample test on the
+  regressand, which would bias the regression by selection).
+* **NaN rejection.** A sample with a non-finite angle or torque is skipped (counted) and the
+  filter holds its state.
+
+The information form (R, r) is used rather than the UD-factored covariance of
+:mod:`rt_ident.estimators.rls` because bias compensation subtracts from the information matrix;
+with four parameters the per-sample solve is a 4 x 4 elimination (~0.2 us compiled).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.linalg
+
+from rt_ident.axis.params import AxisParams
+from rt_ident.errors import ConfigError
+
+KEYS = ("I1", "I2", "B", "K")
+
+
+@dataclass(frozen=True)
+class SvfSettings:
+    filter_hz: float = 800.0        # corner of F(s) = lam^3/(s + lam)^3; must pass the resonance
+    memory_s: float = 0.05          # forgetting time constant (estimate follows a change in ~3x this)
+    rho: float = 1e-6               # stabilized-forgetting floor (scaled units, N^2 m^2 per sample)
+    q1: float = 0.0                 # rad, motor-encoder quantum (0: none)
+    q2: float = 0.0                 # rad, table quantum referred to theta2 (scale resolution / lead)
+    bias_compensation: bool = True
+    warmup_s: float = 0.005         # filter start-up: no regression rows before this
+    min_torque: float = 0.002       # N m: below this rms of the filtered torque (over the memory) the
+                                    # data are noise only; the estimate freezes instead of drifting
+
+    def check(self, dt: float) -> None:
+        if not self.filter_hz > 0 or not self.memory_s > 0:
+            raise ConfigError("estimator.svf_hz", "svf_hz and svf_memory_s must be > 0")
+        if self.filter_hz * dt > 0.25:
+            raise ConfigError("estimator.svf_hz", f"{self.filter_hz:g} Hz is too close to the sample rate "
+                                                  f"{1 / dt:g} Hz (needs svf_hz <= sample rate / 4)")
+
+
+def filter_matrices(lam: float, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact discretization of x' = A x + b u for F(s) = lam^3/(s+lam)^3, x = (F u, s F u, s^2 F u).
+
+    Returns (Phi, G_foh0, G_foh1, G_zoh): for a first-order-hold input
+    x+ = Phi x + G_foh0 u_k + G_foh1 (u_k+1 - u_k); for a zero-order-hold input x+ = Phi x + G_zoh u_k.
+    """
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-lam**3, -3 * lam**2, -3 * lam]])
+    b = np.array([0.0, 0.0, lam**3])
+    M = np.zeros((5, 5))
+    M[:3, :3] = A
+    M[:3, 3] = b
+    M[3, 4] = 1.0 / dt                      # u(t) = u_k + (t/dt) (u_k+1 - u_k)
+    E = scipy.linalg.expm(M * dt)
+    return E[:3, :3].copy(), E[:3, 3].copy(), E[:3, 4].copy(), E[:3, 3].copy()
+
+
+def _impulse_states(Phi: np.ndarray, G0: np.ndarray, G1: np.ndarray, n: int) -> np.ndarray:
+    """Filter states after a unit impulse in an FOH-interpolated input at sample 0, n samples."""
+    out = np.empty((n, 3))
+    x = G1.copy()                                      # step 0 -> 1 with u_0 = 0, u_1 = 1 ... see below
+    # sample sequence u = (0, 1, 0, 0, ...): step (u0=0 -> u1=1): G0*0 + G1*(1 - 0); then (1 -> 0): G0*1 + G1*(-1)
+    out[0] = x
+    x = Phi @ x + G0 - G1
+    out[1] = x
+    for k in range(2, n):
+        x = Phi @ x
+        out[k] = x
+    return out
+
+
+def regressor_noise(settings: SvfSettings, nominal: AxisParams, dt: float) -> np.ndarray:
+    """Sigma: the per-sample covariance that white quantization noise adds to phi1 phi1' + phi2 phi2'
+    (scaled regressors), from the filter's impulse response."""
+    lam = 2 * math.pi * settings.filter_hz
+    Phi, G0, G1, _ = filter_matrices(lam, dt)
+    h = _impulse_states(Phi, G0, G1, int(40 / (lam * dt)) + 10)     # (n, 3): F e, sF e, s^2F e
+    C = h.T @ h                                                      # per unit noise variance
+    v1, v2 = settings.q1**2 / 12.0, settings.q2**2 / 12.0
+    I1n, I2n, Bn, Kn = (float(getattr(nominal, k)) for k in KEYS)
+    # regressor noise = M_a s(e1) + M_b s(e2), s(e) = (F e, sF e, s^2F e); the Delta channel carries e1 - e2
+    # phi1 = (I1n s^2F th1, 0, Bn sF D, Kn F D);  phi2 = (0, I2n s^2F th2, -Bn sF D, -Kn F D)
+    m1a = np.array([[0, 0, I1n], [0, 0, 0], [0, Bn, 0], [Kn, 0, 0]], float)          # e1 in phi1
+    m1b = np.array([[0, 0, 0], [0, 0, 0], [0, -Bn, 0], [-Kn, 0, 0]], float)          # e2 in phi1
+    m2a = np.array([[0, 0, 0], [0, 0, 0], [0, -Bn, 0], [-Kn, 0, 0]], float)          # e1 in phi2
+    m2b = np.array([[0, 0, 0], [0, 0, I2n], [0, Bn, 0], [Kn, 0, 0]], float)          # e2 in phi2
+    return (v1 * (m1a @ C @ m1a.T + m2a @ C @ m2a.T) + v2 * (m1b @ C @ m1b.T + m2b @ C @ m2b.T))
+
+
+@numba.njit(cache=True)
+def _solve4(A: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
+    """Gaussian elimination with partial pivoting on a 4 x 4 system; False when (near) singular."""
+    M = np.empty((4, 5))
+    for i in range(4):
+        for j in range(4):
+            M[i, j] = A[i, j]
+        M[i, 4] = b[i]
+    scale = 0.0
+    for i in range(4):
+        scale = max(scale, abs(M[i, i]))
+    if not scale > 0.0:
+        return False
+    for c in range(4):
+        p = c
+        for i in range(c + 1, 4):
+            if abs(M[i, c]) > abs(M[p, c]):
+                p = i
+        if abs(M[p, c]) < 1e-12 * scale:
+            return False
+        if p != c:
+            for j in range(5):
+                M[c, j], M[p, j] = M[p, j], M[c, j]
+        for i in range(c + 1, 4):
+            f = M[i, c] / M[c, c]
+            for j in range(c, 5):
+                M[i, j] -= f * M[c, j]
+    for i in range(3, -1, -1):
+        s = M[i, 4]
+        for j in range(i + 1, 4):
+            s -= M[i, j] * out[j]
+        out[i] = s / M[i, i]
+    for i in range(4):
+        if not math.isfinite(out[i]):
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def svf_block(th1, th2, tq, Phi, G0, G1, Gz, xs, prev, scale, lam_f, rho, prior, Sigma,
+              R, r, acc, p, tmp, counts, min_torque2, lam_g):
+    """Advance the estimator over one block (every sample).
+
+    xs (4, 3): filter states for theta1, Delta, theta2, torque; prev (4,): last theta1, theta2,
+    torque, and 1.0 once a first sample was seen; acc (4,): W, sum of squared a-priori residuals,
+    W2 (sum of squared weights), warm-up end (rows), mean square filtered torque; counts (5,): samples,
+    rejected (non-finite), rows, solve failures, rows frozen by the dead zone.
+    """
+    n = th1.shape[0]
+    phi1 = np.empty(4)
+    phi2 = np.empty(4)
+    for k in range(n):
+        a, b, t = th1[k], th2[k], tq[k]
+        counts[0] += 1.0
+        if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(t)):
+            counts[1] += 1.0
+            continue
+        if prev[3] == 0.0:                       # first sample: start the filters at rest on it
+            xs[0, 0], xs[1, 0], xs[2, 0] = a, a - b, b
+            prev[0], prev[1], prev[2], prev[3] = a, b, t, 1.0
+            continue
+        d0, d1 = prev[0] - prev[1], a - b
+        u0 = (prev[0], d0, prev[1])
+        u1 = (a, d1, b)
+        for s in range(3):                       # angles: first-order hold between the samples
+            x0, x1, x2 = xs[s, 0], xs[s, 1], xs[s, 2]
+            du = u1[s] - u0[s]
+            for i in range(3):
+                xs[s, i] = Phi[i, 0] * x0 + Phi[i, 1] * x1 + Phi[i, 2] * x2 + G0[i] * u0[s] + G1[i] * du
+        x0, x1, x2 = xs[3, 0], xs[3, 1], xs[3, 2]
+        for i in range(3):                       # torque: held over the sample it was applied in
+            xs[3, i] = Phi[i, 0] * x0 + Phi[i, 1] * x1 + Phi[i, 2] * x2 + Gz[i] * prev[2]
+        prev[0], prev[1], prev[2] = a, b, t
+        counts[2] += 1.0
+        if counts[2] <= acc[3]:                  # acc[3] holds the warm-up length in samples
+            continue
+        # Eq. (3) on the filtered signals, scaled by the nominal parameters
+        phi1[0] = scale[0] * xs[0, 2]
+        phi1[1] = 0.0
+        phi1[2] = scale[2] * xs[1, 1]
+        phi1[3] = scale[3] * xs[1, 0]
+        phi2[0] = 0.0
+        phi2[1] = scale[1] * xs[2, 2]
+        phi2[2] = -phi1[2]
+        phi2[3] = -phi1[3]
+        y1 = xs[3, 0]
+        acc[4] = lam_g * acc[4] + (1.0 - lam_g) * y1 * y1
+        if acc[4] < min_torque2:
+            counts[4] += 1.0
+            continue
+        e1 = y1 - (phi1[0] * p[0] + phi1[2] * p[2] + phi1[3] * p[3])
+        e2 = -(phi2[1] * p[1] + phi2[2] * p[2] + phi2[3] * p[3])
+        g = 1.0 - lam_f
+        acc[0] = lam_f * acc[0] + 1.0
+        acc[1] = lam_f * acc[1] + e1 * e1 + e2 * e2
+        acc[2] = lam_f * lam_f * acc[2] + 1.0
+        for i in range(4):
+            r[i] = lam_f * r[i] + phi1[i] * y1 + g * rho * prior[i]
+            for j in range(4):
+                R[i, j] = lam_f * R[i, j] + phi1[i] * phi1[j] + phi2[i] * phi2[j]
+            R[i, i] += g * rho
+        for i in range(4):
+            for j in range(4):
+                tmp[i, j] = R[i, j] - acc[0] * Sigma[i, j]
+        if not _solve4(tmp, r, phi1):
+            counts[3] += 1.0
+            continue
+        for i in range(4):
+            p[i] = phi1[i]
+
+
+class SvfEstimator:
+    """The per-sample estimator the adaptive loop feeds (see the module docstring).
+
+    ``update_block(theta1, theta2, torque)`` runs every sample of a block (compiled);
+    ``params`` is the estimate after the newest sample; ``ci95()`` an approximate interval.
+    """
+
+    def __init__(self, dt: float, nominal: AxisParams, settings: SvfSettings | None = None) -> None:
+        self.s = settings or SvfSettings()
+        self.s.check(dt)
+        self.dt = float(dt)
+        self.nominal = nominal
+        lam = 2 * math.pi * self.s.filter_hz
+        self._Phi, self._G0, self._G1, self._Gz = filter_matrices(lam, dt)
+        self._scale = np.array([float(getattr(nominal, k)) for k in KEYS])
+        self.lam_f = math.exp(-dt / self.s.memory_s)
+        self.lam_g = math.exp(-dt / (0.1 * self.s.memory_s))   # the dead zone's average: closes fast
+        self._Sigma = (regressor_noise(self.s, nominal, dt) if self.s.bias_compensation
+                       else np.zeros((4, 4)))
+        self._prior = np.ones(4)
+        self.reset()
+
+    def reset(self) -> None:
+        self._xs = np.zeros((4, 3))
+        self._prev = np.zeros(4)
+        self._R = np.zeros((4, 4))
+        self._r = np.zeros(4)
+        self._acc = np.array([0.0, 0.0, 0.0, float(math.ceil(self.s.warmup_s / self.dt)), 0.0])
+        self._p = self._prior.copy()
+        self._tmp = np.zeros((4, 4))
+        self._counts = np.zeros(5)       # samples, rejected, rows, solve failures, frozen
+
+    def restart_filter(self) -> None:
+        """After lost samples: start the filters again on the next sample (the regression keeps its
+        information; the first ``warmup_s`` of rows after the restart are skipped)."""
+        self._prev[3] = 0.0
+        self._acc[3] = self._counts[2] + math.ceil(self.s.warmup_s / self.dt)
+
+    def update_block(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray) -> None:
+        svf_block(np.ascontiguousarray(theta1, dtype=np.float64), np.ascontiguousarray(theta2, dtype=np.float64),
+                  np.ascontiguousarray(torque, dtype=np.float64), self._Phi, self._G0, self._G1, self._Gz,
+                  self._xs, self._prev, self._scale, self.lam_f, self.s.rho, self._prior, self._Sigma,
+                  self._R, self._r, self._acc, self._p, self._tmp, self._counts, self.s.min_torque ** 2,
+                  self.lam_g)
+
+    @property
+    def ready(self) -> bool:
+        """True once the regression has seen about three memory time constants of data."""
+        return self._counts[2] >= 3.0 * self.s.memory_s / self.dt + math.ceil(self.s.warmup_s / self.dt)
+
+    @property
+    def scaled(self) -> np.ndarray:
+        return self._p.copy()
+
+    @property
+    def params(self) -> AxisParams:
+        v = self._p * self._scale
+        return AxisParams(**{k: float(max(x, 1e-30)) for k, x in zip(KEYS, v)}, lead=self.nominal.lead)
+
+    def values(self) -> dict[str, float]:
+        return {k: float(x) for k, x in zip(KEYS, self._p * self._scale)}
+
+    def ci95(self) -> dict[str, tuple[float, float]] | None:
+        """Approximate 95 % intervals from the weighted information matrix and the residual variance
+        (white-residual assumption: the filtered residuals are coloured, so these are optimistic)."""
+        W, sse, W2 = self._acc[0], self._acc[1], self._acc[2]
+        if W <= 4:
+            return None
+        try:
+            Rinv = np.linalg.inv(self._R - W * self._Sigma)
+        except np.linalg.LinAlgError:
+            return None
+        sigma2 = sse / (2.0 * W)
+        cov = sigma2 * Rinv * (W2 / W) * W / max(W - 4.0, 1.0)
+        out = {}
+        for i, k in enumerate(KEYS):
+            half = 1.96 * math.sqrt(max(cov[i, i], 0.0)) * self._scale[i]
+            v = self._p[i] * self._scale[i]
+            out[k] = (float(v - half), float(v + half))
+        return out
+
+    @property
+    def counters(self) -> dict[str, int]:
+        c = self._counts
+        return {"samples": int(c[0]), "rejected_non_finite": int(c[1]), "rows": int(c[2]),
+                "solve_failures": int(c[3]), "frozen_unexcited": int(c[4])}
+
+
+def make_svf(dt: float, nominal: AxisParams, *, filter_hz: float, memory_s: float,
+             quanta: tuple[float, float]) -> tuple[SvfEstimator | None, str | None]:
+    """The per-sample estimator for a sample period ``dt``, or (None, why) when the sample rate is too
+    low for the filter (the CANopen drive's 2 kHz: the adaptive loop then follows the frequency fit)."""
+    settings = SvfSettings(filter_hz=filter_hz, memory_s=memory_s, q1=float(quanta[0]), q2=float(quanta[1]))
+    try:
+        return SvfEstimator(dt, nominal, settings), None
+    except ConfigError as exc:
+        return None, str(exc)

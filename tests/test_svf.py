@@ -1,0 +1,164 @@
+"""The per-sample state-variable-filter estimator (rt_ident.estimators.svf) and its cross-check."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.params import AxisParams
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.config import from_mapping, load
+from rt_ident.control.adaptation import ControlSettings, Supervisor
+from rt_ident.control.reference import Hold
+from rt_ident.errors import ConfigError
+from rt_ident.estimators.svf import SvfEstimator, SvfSettings, make_svf, regressor_noise
+from rt_ident.reports import svf_bench
+
+P = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110.0)
+DT = 2.9481e-5
+
+
+def _feed(est: SvfEstimator, th1, th2, tq, block: int = 34) -> np.ndarray:
+    out = []
+    for i in range(0, len(th1), block):
+        est.update_block(th1[i:i + block], th2[i:i + block], tq[i:i + block])
+        out.append(est.scaled)
+    return np.array(out)
+
+
+def _clean_block(seconds: float, p: AxisParams = P):
+    sim = PlantSimulator(p, DT, sensors=SensorConfig(counts_per_rev=0, scale_resolution=0),
+                         controller=HoldController(), seed=1)
+    u = np.resize(schroeder_multisine(512, (1, 20), peak=0.3).signal, int(seconds / DT))
+    return sim.step_block(u)
+
+
+def test_svf_recovers_table1_from_clean_data_without_differentiating_angles():
+    b = _clean_block(1.0)
+    est = SvfEstimator(DT, P, SvfSettings())
+    h = _feed(est, b.theta1, b.theta2, b.torque_meas)
+    assert est.ready
+    assert np.abs(h[-1] - 1.0).max() < 0.005, h[-1]
+
+
+def test_svf_follows_a_plant_it_was_not_told_about():
+    p = AxisParams(I1=P.I1 * 1.3, I2=P.I2 * 0.8, B=P.B * 1.2, K=P.K * 0.9)
+    b = _clean_block(1.0, p)
+    est = SvfEstimator(DT, P, SvfSettings())
+    _feed(est, b.theta1, b.theta2, b.torque_meas)
+    for k, v in est.values().items():
+        assert v == pytest.approx(getattr(p, k), rel=0.01), k
+
+
+def test_svf_skips_non_finite_samples_and_counts_them():
+    b = _clean_block(0.6)
+    th1 = b.theta1.copy()
+    th1[5000:5010] = np.nan
+    tq = b.torque_meas.copy()
+    tq[9000] = np.inf
+    est = SvfEstimator(DT, P, SvfSettings())
+    h = _feed(est, th1, b.theta2, tq)
+    assert est.counters["rejected_non_finite"] == 11
+    assert np.all(np.isfinite(h)) and np.abs(h[-1] - 1.0).max() < 0.05
+
+
+def test_svf_freezes_instead_of_winding_up_when_the_excitation_stops():
+    sim = PlantSimulator(P, DT, sensors=SensorConfig(torque_meas_noise=5e-4), controller=HoldController(), seed=2)
+    est = SvfEstimator(DT, P, SvfSettings(q1=2 * math.pi / 2**17, q2=1e-7 / 7.96e-4))
+    u = np.resize(schroeder_multisine(512, (1, 20), peak=0.3).signal, int(0.5 / DT))
+    b = sim.step_block(u)
+    _feed(est, b.theta1, b.theta2, b.torque_meas)
+    before = est.scaled
+    n = int(2.0 / DT)                                    # 2 s = 40 memory time constants of noise only
+    b = sim.step_block(np.zeros(n))
+    h = _feed(est, b.theta1, b.theta2, b.torque_meas)
+    assert np.all(np.isfinite(h))
+    assert np.abs(est.scaled - before).max() < 0.02     # frozen, not drifting on sensor noise
+    assert est.counters["frozen_unexcited"] > 0.9 * n
+
+
+def test_svf_refuses_a_filter_too_close_to_the_sample_rate():
+    with pytest.raises(ConfigError, match="too close to the sample rate"):
+        SvfEstimator(5e-4, P, SvfSettings(filter_hz=800))
+    est, why = make_svf(5e-4, P, filter_hz=800, memory_s=0.05, quanta=(0.0, 0.0))
+    assert est is None and "sample rate" in why
+
+
+def test_regressor_noise_is_zero_without_quantization_and_positive_semidefinite_with_it():
+    assert np.all(regressor_noise(SvfSettings(), P, DT) == 0.0)
+    S = regressor_noise(SvfSettings(q1=2 * math.pi / 2**17, q2=1e-7 / 7.96e-4), P, DT)
+    assert np.allclose(S, S.T) and np.linalg.eigvalsh(S).min() >= -1e-12 * np.abs(S).max()
+    assert S[0, 0] > 0 and S[1, 1] > 0
+
+
+def _short(**over):
+    base = load("sim-load-change.toml")
+    d = base.model_dump(exclude={"source"})
+    for k, v in over.items():
+        sec, key = k.split(".")
+        d[sec][key] = v
+    return from_mapping(d, source=base.source)
+
+
+def test_svf_bias_on_bench_like_closed_loop_data_is_small():
+    # quantized encoder and scale, torque noise, the host's loop closed, moves: tight figures in bench --estimator
+    r = svf_bench.bias_trial(_short(), duration=3.0)
+    assert r["stop"] is None
+    for k, v in r["bias"].items():
+        assert abs(v) < 0.03, (k, r)
+
+
+def test_svf_tracks_a_20_percent_inertia_step_in_closed_loop():
+    r = svf_bench.step_trial(_short(), "I2", at=1.5, after=0.8)
+    assert r["stop"] is None
+    assert r["settle_s"] < 0.4, r
+    assert abs(r["error_at_0_2_s"]["I2"]) < 0.05, r
+
+
+class _Worker:
+    ready = True
+
+    def __init__(self):
+        self.requests = []
+
+    def submit(self, req):
+        self.requests.append(req)
+        return True
+
+    def poll(self):
+        return None
+
+
+def _supervisor(per_sample):
+    w = _Worker()
+    sup = Supervisor(ControlSettings(), P, tick=1e-3, torque_limit=1.0, reference=Hold(0.0), worker=w,
+                     per_sample=per_sample)
+    return sup, w
+
+
+def _ident(p: AxisParams, trusted=False):
+    return SimpleNamespace(params=p, ci95=None, trusted=trusted)
+
+
+def _fake_svf(p: AxisParams):
+    return SimpleNamespace(ready=True, params=p, ci95=lambda: None, values=lambda: {}, counters={})
+
+
+def test_redesign_follows_the_per_sample_estimate_only_when_the_frequency_fit_agrees():
+    moved = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
+    sup, w = _supervisor(_fake_svf(moved))
+    sup.offer(_ident(AxisParams(I1=P.I1, I2=2.4 * P.I2, B=P.B, K=P.K), trusted=True), True)   # 25 % apart
+    assert w.requests == [] and sup.stats.checks_disagreed == 1
+    sup.offer(_ident(AxisParams(I1=P.I1, I2=2.95 * P.I2, B=P.B, K=P.K)), False)   # within 5 %
+    assert len(w.requests) == 1 and sup.stats.checks_agreed == 1
+    assert w.requests[0]["params"]["I2"] == pytest.approx(3 * P.I2)      # the per-sample estimate
+
+
+def test_a_diverging_frequency_fit_withholds_trust_but_does_not_trigger_a_fallback():
+    sup, w = _supervisor(_fake_svf(P))
+    sup.offer(_ident(AxisParams(I1=P.I1, I2=1e-12, B=1e-9, K=1e-5)), False)
+    assert w.requests == [] and sup.stats.fallbacks == 0
