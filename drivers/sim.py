@@ -111,6 +111,8 @@ class SimBackend(Backend):
                            if cfg.position_hold else None)
         self.plant = self._make_plant(self.controller, x0=None)
         self._changes = _changes(cfg.changes, self.true_params, self._dt)
+        # the step matrices of each change, computed now: a change costs the loop's tick no expm
+        self._change_matrices = [self.plant.matrices_for(p) for _, p in self._changes]
         self.applied_changes: list[tuple[int, AxisParams]] = []   # (seq, params) applied so far
         self._clock = clock
         self._t_activate = 0.0
@@ -230,7 +232,7 @@ class SimBackend(Backend):
             if cut > k:
                 parts.append(self.plant.step_block(cmd[k:cut]))
                 k = cut
-            self.plant.set_params(params)
+            self.plant.set_params(params, self._change_matrices.pop(0))
             self.applied_changes.append((max(seq, p), params))
             log.info("sim: plant changed at seq %d: %s", max(seq, p), params)
         parts.append(self.plant.step_block(cmd[k:]))

@@ -308,9 +308,11 @@ def _print_run(s: dict) -> None:
         out.print("control: off (the host sends the excitation only; the drive must hold the axis)")
     work = loop.get("work_us") or {}
     if work:
+        cpu = loop.get("work_cpu_us") or {}
         out.print(f"tick work: p50 {_fmt(work.get('p50'))} us, p99 {_fmt(work.get('p99'))} us, "
-                  f"max {_fmt(work.get('max'))} us; overruns from work {loop.get('overruns_work', 0)}, "
-                  f"from a late start {loop.get('overruns_late_start', 0)}")
+                  f"max {_fmt(work.get('max'))} us (CPU time max {_fmt(cpu.get('max'))} us); overruns from the "
+                  f"tick's own work {loop.get('overruns_work', 0)}, from a late start or a stolen CPU "
+                  f"{loop.get('overruns_late_start', 0)}")
     rt = s.get("realtime") or {}
     if rt:
         out.print("real-time: " + ", ".join(f"{k}={'yes' if v is True else v}" for k, v in rt.items()))
@@ -422,7 +424,7 @@ def _bench_control(json_out: bool, quick: bool, figure: Optional[Path]) -> None:
     if json_out:
         typer.echo(json.dumps(res, indent=2, default=_json_default))
         return
-    tab = Table(title="table tracking error after the plant change [um]: RMS / max")
+    tab = Table(title="table tracking error after the plant change, µm: RMS / max")
     for col in ("scenario", "fixed", "adaptive", "oracle", "adaptive / oracle", "adaptive / fixed"):
         tab.add_column(col, justify="right")
     for r in res["control"]["scenarios"]:

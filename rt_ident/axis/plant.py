@@ -195,23 +195,30 @@ class PlantSimulator:
         self._noise = np.empty((64 if self._noisy else 0, 4))
         self._no_noise = np.empty((0, 4))
 
-    def _set_matrices(self, p: AxisParams) -> None:
+    def matrices_for(self, p: AxisParams) -> tuple[np.ndarray, np.ndarray]:
+        """The step matrices (Phi, Gam) this plant would use for ``p`` (matrix exponential: ~ms)."""
         if self.integrator == "zoh":
             Phi, Gam = zoh_matrices(p, self.dt)
         else:
             Phi, Gam = Newmark().step_matrices(p, self.dt)
-        self._Phi = np.ascontiguousarray(Phi)
-        self._Gam = np.ascontiguousarray(Gam)
+        return np.ascontiguousarray(Phi), np.ascontiguousarray(Gam)
 
-    def set_params(self, p: AxisParams) -> None:
+    def _set_matrices(self, p: AxisParams) -> None:
+        self._Phi, self._Gam = self.matrices_for(p)
+
+    def set_params(self, p: AxisParams, matrices: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Change the physical parameters from the next sample on (a workpiece clamped on the
         table, worn preload...). The true state, the sensors, the hold loop's memory and the noise
-        generator carry over; the lead must stay the same (the sensors are built on it)."""
+        generator carry over; the lead must stay the same (the sensors are built on it).
+        ``matrices``: ``matrices_for(p)`` computed ahead, so a scheduled change costs no expm."""
         if not isinstance(p, AxisParams):
             raise ConfigError("p", f"must be AxisParams, got {type(p).__name__}")
         if p.lead != self.params.lead:
             raise ConfigError("lead", f"cannot change the lead mid-run ({self.params.lead} -> {p.lead})")
-        self._set_matrices(p)
+        if matrices is None:
+            self._set_matrices(p)
+        else:
+            self._Phi, self._Gam = (np.ascontiguousarray(m, dtype=np.float64) for m in matrices)
         self.params = p
 
     # -- state -------------------------------------------------------------------------

@@ -259,6 +259,9 @@ class SvfEstimator:
                        else np.zeros((4, 4)))
         self._prior = np.ones(4)
         self.reset()
+        z = np.zeros(2)                     # compile (or load) the kernel now, not in the loop's first tick
+        self.update_block(z, z, z)
+        self.reset()
 
     def reset(self) -> None:
         self._xs = np.zeros((4, 3))
