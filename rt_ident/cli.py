@@ -319,7 +319,9 @@ def _print_run(s: dict) -> None:
     files = s.get("files") or {}
     if files.get("rrd"):
         out.print(f"dashboard: {files['rrd']}   (open with: rerun {files['rrd']})")
-    if files.get("recording"):
+    if s.get("data_lost"):
+        out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
+    elif files.get("recording"):
         out.print(f"recording: {files['recording']}   (re-identify: rt-ident identify {files['recording']})")
     stop = s.get("stop") or {}
     if stop.get("cause"):

@@ -15,6 +15,7 @@ from functools import partial
 from typing import Any, Callable
 
 from rt_ident.estimators.streaming import fit_snapshot
+from rt_ident.runtime.helper_guard import become_helper, start_ignoring_signals
 from rt_ident.runtime.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
@@ -25,8 +26,11 @@ _WORKER_POLL_S = 0.002  # fit worker: sleep between polls of an empty inbox
 def _worker_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing, min_interval: float) -> None:
     import time
 
+    watch = become_helper()
     inbox.flag = 1                                   # ready for a snapshot
     while True:
+        if watch.gone:                               # the run's main process died: nobody to answer
+            return
         closed = inbox.writer_closed
         if not inbox.pending_messages:
             if closed:
@@ -80,7 +84,7 @@ class JobWorker:
         self.last_error: str | None = None
 
     def start(self) -> "JobWorker":
-        self._proc.start()
+        start_ignoring_signals(self._proc)
         return self
 
     def wait_ready(self, timeout: float = 30.0) -> bool:

@@ -143,7 +143,8 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
         except Exception as exc:  # noqa: BLE001 - a stop is a result here (the bench counts it)
             stop = f"{type(exc).__name__}: {exc}"
     now = getattr(backend, "current_params", None) or truth
-    out: dict[str, Any] = {"stop": stop, "loop": loop.stats.as_dict(),
+    x_end = float(truth.lead * backend.plant.state[2])      # the true table position when the run ended
+    out: dict[str, Any] = {"stop": stop, "loop": loop.stats.as_dict(), "table_end_m": x_end,
                            "control": ctl.summary() if ctl is not None else {"mode": "off"},
                            "truth": {"I1": now.I1, "I2": now.I2, "B": now.B, "K": now.K, **modal_parameters(now)}}
     ident = loop.identification

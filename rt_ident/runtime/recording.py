@@ -40,6 +40,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from rt_ident.errors import ConfigError, DataError, RtIdentError
+from rt_ident.runtime.helper_guard import become_helper, start_ignoring_signals
 from rt_ident.runtime.recording_reader import (
     COLUMNS,
     FORMAT_KEY,
@@ -267,13 +268,16 @@ def _recorder_main(
     rows_written: Any,
     failed: Any,
 ) -> None:
-    """Body of the recorder process: drain the ring, flush on time, finish when the writer closes."""
+    """Body of the recorder process: drain the ring, flush on time, finish when the writer closes
+    or the parent dies (kill -9: the file is then finished from every sample the ring holds)."""
+    watch = become_helper()
     rec = Recorder(path, json.loads(metadata_json), flush_interval, overwrite=overwrite)
     poll = min(0.02, flush_interval / 4.0)
     try:
         rec.open()
         while True:
-            closed = ring.writer_closed          # read before draining: nothing can follow a close
+            # read before draining: nothing can follow a close (or the writer's death)
+            closed = ring.writer_closed or watch.gone
             msgs = ring.get()
             for m in msgs:
                 rec.append(m["t"], m["seq"], m["theta1"], m["theta2"], m["torque_cmd"], m.get("torque_meas"))
@@ -285,6 +289,8 @@ def _recorder_main(
                 time.sleep(poll)
         rec.close()
         rows_written.value = rec.rows_written
+        if watch.gone:
+            log.warning("recorder: the run's main process died; %s finished with %d rows", path, rec.rows_written)
     except BaseException:
         failed.value = 1
         log.exception("recorder process for %s failed", path)
@@ -339,6 +345,7 @@ class RecorderProcess:
         self._failed: Any = None
         self.full_waits = 0
         self.blocks_put = 0
+        self.samples_put = 0
         self._last_alive_check = -math.inf
         self._exited = False
         self._closed = False
@@ -357,7 +364,7 @@ class RecorderProcess:
             name="rt_ident-recorder",
             daemon=True,
         )
-        self._proc.start()
+        start_ignoring_signals(self._proc)
         return self
 
     @property
@@ -398,14 +405,17 @@ class RecorderProcess:
                                        "recorder stalled")
                 time.sleep(1e-4)
         self.blocks_put += 1
+        self.samples_put += len(cols["seq"])
 
     def close(self, timeout: float = 10.0) -> dict[str, Any]:
         """Let the recorder drain the ring, finalize the file and join. Terminates it after ``timeout``."""
         summary: dict[str, Any] = {"path": str(self.path), "blocks_put": self.blocks_put,
-                                   "full_waits": self.full_waits, "terminated": False}
+                                   "samples_put": self.samples_put, "full_waits": self.full_waits,
+                                   "terminated": False}
         if self._proc is None or self._closed:
             self._closed = True
             summary.update(rows_written=self.rows_written, exitcode=getattr(self._proc, "exitcode", None))
+            summary["complete"] = self._complete(summary)
             return summary
         self._closed = True
         self._ring.close_writer()
@@ -416,7 +426,16 @@ class RecorderProcess:
             self._proc.join(2.0)
             summary["terminated"] = True
         summary.update(rows_written=self.rows_written, exitcode=self._proc.exitcode)
+        summary["complete"] = self._complete(summary)
+        if not summary["complete"]:
+            log.error("recording %s is incomplete: %d of %d samples written (recorder exit code %s)",
+                      self.path, summary["rows_written"], self.samples_put, summary["exitcode"])
         return summary
+
+    def _complete(self, summary: Mapping[str, Any]) -> bool:
+        """Every sample handed over is in the finished file, and the recorder exited cleanly."""
+        return (summary.get("exitcode") == 0 and not summary.get("terminated")
+                and summary.get("rows_written") == self.samples_put and self.path.exists())
 
     def __enter__(self) -> "RecorderProcess":
         return self.start()

@@ -233,6 +233,10 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         files = {"rrd": rrd_path if sink == "rrd" else None, "recording": rec_path}
         if recorder is not None:
             summary["recording"] = recorder.close()
+            if not summary["recording"]["complete"]:
+                r = summary["recording"]
+                summary["data_lost"] = (f"recording {r['path']} incomplete: {r['rows_written']} of "
+                                        f"{r['samples_put']} samples written (recorder exit code {r['exitcode']})")
         if telemetry is not None:
             tel = telemetry.close()
             summary["telemetry"] = {"dropped": telemetry.dropped, "sent": telemetry.sent, **tel}
@@ -405,6 +409,10 @@ def _realtime(cfg: RunConfig) -> dict[str, Any]:
 
 
 def exit_code(summary: dict[str, Any]) -> int:
-    return 0 if summary["stop"]["cause"] is None else 3
+    """0: ended as asked (duration, or a signal) with every sample recorded; 3: stopped by a fault,
+    trip or error (safe stop); 4: ended, but samples were lost from the recording."""
+    if summary["stop"]["cause"] is not None:
+        return 3
+    return 4 if summary.get("data_lost") else 0
 
 

@@ -48,6 +48,7 @@ import numpy as np
 
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.runtime.dashboard import BLOCK_ENTITIES, CONTROL_ENTITIES, ESTIMATE_KEYS, SERIES_STYLES, truth_path
+from rt_ident.runtime.helper_guard import become_helper, start_ignoring_signals
 from rt_ident.runtime.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
@@ -170,7 +171,9 @@ def _send(rec: Any, rr: Any, blocks: list[dict[str, np.ndarray]], truth: dict[st
 
 
 def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: Any, truth: dict[str, float]) -> None:
-    """Body of the telemetry process: poll the ring, send what is there, stop when the writer closes."""
+    """Body of the telemetry process: poll the ring, send what is there, stop when the writer closes
+    (or the run's main process dies: the .rrd is then finished with what arrived)."""
+    watch = become_helper()
     os.environ.setdefault("CI", "1")  # rerun: no analytics config written under HOME
     import rerun as rr
 
@@ -181,7 +184,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     ready.set()
     truth = dict(truth)
     while True:
-        closed = ring.writer_closed          # read before draining: nothing can follow a close
+        closed = ring.writer_closed or watch.gone   # read before draining: nothing can follow a close
         msgs = ring.get(_MAX_COALESCE)
         blocks = []
         for m in msgs:
@@ -252,7 +255,7 @@ class TelemetryProcess:
         self._ready = self._ctx.Event()
         self._proc = self._ctx.Process(target=_telemetry_main, name="rt_ident-telemetry", daemon=True,
                                        args=(self.config, self._ring, self._sent, self._ready, dict(self._truth)))
-        self._proc.start()
+        start_ignoring_signals(self._proc)
         self._truth_pending = False
         return self
 

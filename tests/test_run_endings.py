@@ -1,0 +1,93 @@
+"""However a run ends (Ctrl-C to the group, SIGTERM to the group, kill -9 of the main process), it
+leaves complete files, no orphan process, and an exit code and summary that tell the truth."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rt_ident.runtime.recording import read_recording
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="process groups and /proc")
+
+
+def _group(pgid: int) -> list[int]:
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if os.getpgid(int(d.name)) == pgid:
+                    pids.append(int(d.name))
+            except (ProcessLookupError, PermissionError):
+                pass
+    return pids
+
+
+def _start(tmp_path: Path) -> tuple[subprocess.Popen, Path, Path]:
+    rec, rrd = tmp_path / "r.parquet", tmp_path / "r.rrd"
+    cmd = [sys.executable, "-m", "rt_ident", "run", "--duration", "60", "--no-realtime", "--json",
+           "--record", str(rec), "--rrd", str(rrd)]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path)
+    journal = rec.with_name(rec.name + ".arrows")
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 100_000):
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended before it recorded: {proc.stderr.read()[-2000:]}")
+        time.sleep(0.1)
+    assert journal.exists(), "the run never started recording"
+    return proc, rec, rrd
+
+
+def _wait_group_empty(pgid: int, timeout: float) -> list[int]:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        left = _group(pgid)
+        if not left:
+            return []
+        time.sleep(0.1)
+    return _group(pgid)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_path, sig):
+    proc, rec, rrd = _start(tmp_path)
+    try:
+        os.killpg(proc.pid, sig)                 # what a terminal's Ctrl-C / systemd's stop do
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
+    assert proc.returncode == 0, err[-2000:]
+    s = json.loads(out)
+    assert s["stop"]["interrupted"] and s["stop"]["cause"] is None
+    assert s["recording"]["complete"] and "data_lost" not in s
+    assert len(read_recording(rec)) == s["loop"]["samples"] == s["recording"]["rows_written"]
+    assert rrd.exists() and rrd.stat().st_size > 0
+    assert _wait_group_empty(proc.pid, 5.0) == []
+
+
+def test_kill_9_of_the_main_process_leaves_no_orphan_and_a_finished_recording(tmp_path):
+    proc, rec, rrd = _start(tmp_path)
+    time.sleep(1.0)
+    os.kill(proc.pid, signal.SIGKILL)           # the main process only: its helpers must notice
+    proc.communicate(timeout=30)
+    try:
+        left = _wait_group_empty(proc.pid, 5.0)
+    finally:
+        if _group(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert left == [], f"orphans still running 5 s after kill -9: {left}"
+    # the recorder finished the file from what it had received, not only up to the last journal flush
+    assert rec.exists(), "no finished Parquet file after kill -9"
+    assert not rec.with_name(rec.name + ".part").exists() and not rec.with_name(rec.name + ".arrows").exists()
+    assert len(read_recording(rec)) > 0
+    assert rrd.exists() and rrd.stat().st_size > 0
