@@ -226,6 +226,7 @@ def run(
                                                "(excitation only; needs a drive-side hold)."),
     no_realtime: bool = typer.Option(False, "--no-realtime", help="Do not ask for SCHED_FIFO/mlockall."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --rrd / --record file."),
 ) -> None:
     """Run the real-time identification loop (sim by default) with a live dashboard and a recording."""
     from rt_ident import config as cfgmod
@@ -242,7 +243,7 @@ def run(
     if not json_out:
         err.print(f"running {cfg.backend.name} for {cfg.loop.duration:g} s "
                   f"(method {cfg.estimator.method}, tick {cfg.loop.tick_hz:g} Hz); Ctrl-C stops safely")
-    summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect)
+    summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
     if json_out:
         typer.echo(json.dumps(summary, indent=2, default=_json_default))
     else:
@@ -266,6 +267,11 @@ def _um(v):
 
 def _print_run(s: dict) -> None:
     loop = s.get("loop") or {}
+    if not loop.get("samples"):
+        _print_stop(s)
+        if not s["stop"].get("cause"):
+            out.print("the run read no samples")
+        return
     lat = loop.get("lateness_us") or {}
     tab = Table(title=f"rt-ident run - {s['backend']} - method {s.get('method')}")
     tab.add_column("param")
@@ -323,6 +329,10 @@ def _print_run(s: dict) -> None:
         out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
     elif files.get("recording"):
         out.print(f"recording: {files['recording']}   (re-identify: rt-ident identify {files['recording']})")
+    _print_stop(s)
+
+
+def _print_stop(s: dict) -> None:
     stop = s.get("stop") or {}
     if stop.get("cause"):
         err.print(f"[red]stopped by {stop['cause']}:[/red] {stop.get('message')} - torque zeroed, drive disabled")

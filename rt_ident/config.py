@@ -118,6 +118,7 @@ class TelemetryConfig(_Section):
     rrd: Optional[str] = None
     connect_url: Optional[str] = None
     bind_ip: str = "127.0.0.1"
+    port: Optional[int] = Field(None, ge=1, le=65535)  # --serve / --spawn port; None: 9876, or a free one
     rate_hz: float = Field(1000.0, gt=0)        # angle/torque samples per second sent to the viewer
     publish_every_ticks: int = Field(20, ge=1)
 

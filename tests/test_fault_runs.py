@@ -20,6 +20,9 @@ COLUMNS = {"t", "seq", "theta1", "theta2", "torque_cmd", "torque_meas"}
 
 
 def _check_recording(path, samples: int) -> None:
+    if samples == 0:                                     # stopped before any sample: no empty file is left
+        assert not path.exists() and not path.with_name(path.name + ".arrows").exists()
+        return
     table = pq.read_table(path)
     assert COLUMNS <= set(table.column_names)
     assert table.num_rows == samples                     # every sample the loop read, nothing more

@@ -85,3 +85,21 @@ def test_unknown_method_lists_the_valid_ones(tmp_path):
     res = runner.invoke(app, ["identify", str(f), "--method", "magic"])
     assert res.exit_code != 0
     assert "frequency" in str(res.exception)
+
+
+def test_absurd_torque_and_non_utf8_csv_are_one_line_errors_not_tracebacks(tmp_path):
+    import subprocess
+    import sys
+
+    big = tmp_path / "big.csv"
+    bench_csv(big, thomson_x(), 12_000.0, seed=3, periods=3)
+    rows = np.loadtxt(big, delimiter=",", skiprows=1)
+    rows[:, 1] *= 1e300                                   # torque x 1e300 (a unit mix-up gone wild)
+    np.savetxt(big, rows, delimiter=",", header="t,torque,theta2,theta1,command", comments="")
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes("t,theta1,theta2,torque\n".encode() + "0,1,2,\xe9\n".encode("latin-1"))
+    for f, needle in ((big, "beyond any plausible value"), (latin, "not UTF-8")):
+        p = subprocess.run([sys.executable, "-m", "rt_ident", "identify", str(f)], capture_output=True, text=True,
+                           timeout=120)
+        assert p.returncode == 2, p.stderr
+        assert needle in p.stderr and "Traceback" not in p.stderr and "Warning" not in p.stderr, p.stderr

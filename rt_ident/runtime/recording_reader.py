@@ -93,6 +93,18 @@ def _check_finite(name: str, x: np.ndarray, where: Path) -> None:
         raise DataError(f"{where}: column {name!r} has a non-finite value {x[bad[0]]!r} at data row {bad[0] + 1}")
 
 
+#: magnitudes no axis of this kind reaches (the numerics overflow long before a fit means anything)
+PLAUSIBLE_MAX = {"t": 1e9, "theta1": 1e9, "theta2": 1e9, "torque": 1e6}   # s, rad, rad, N m
+
+
+def _check_plausible(name: str, x: np.ndarray, where: Path) -> None:
+    big = np.flatnonzero(np.abs(x) > PLAUSIBLE_MAX[name])
+    if big.size:
+        unit = {"t": "s", "torque": "N m"}.get(name, "rad")
+        raise DataError(f"{where}: column {name!r} reaches {x[big[0]]:.3g} {unit} at data row {big[0] + 1}, beyond "
+                        f"any plausible value (|{name}| <= {PLAUSIBLE_MAX[name]:g} {unit}); check the units")
+
+
 def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, where: Path) -> Recording:
     """Validate columns (names, length, finiteness, monotonic t) and pick the torque signal."""
     has_torque = any(k in cols for k in ("torque", "torque_cmd", "torque_meas"))
@@ -120,6 +132,7 @@ def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, w
             torque = np.where(finite, meas, cmd)
     for name, x in (("t", t), ("theta1", get["theta1"]), ("theta2", get["theta2"]), ("torque", torque)):
         _check_finite(name, x, where)
+        _check_plausible(name, x, where)
     for name in CSV_OPTIONAL:
         if name in get:
             _check_finite(name, get[name], where)
@@ -179,7 +192,7 @@ def _read_parquet(path: Path) -> tuple[Any, dict[str, Any]]:
 def _csv_scan(path: Path, names: list[str], idx: list[int]) -> np.ndarray:
     """Slow path: parse row by row, naming the first malformed row."""
     out = []
-    with open(path, newline="") as f:
+    with open(path, newline="", encoding="utf-8") as f:
         reader = csv.reader(f)
         next(reader)
         row_no = 0
@@ -202,7 +215,15 @@ def _csv_scan(path: Path, names: list[str], idx: list[int]) -> np.ndarray:
 
 
 def _read_csv(path: Path) -> dict[str, np.ndarray]:
-    with open(path, newline="") as f:
+    try:
+        return _read_csv_utf8(path)
+    except UnicodeDecodeError as e:
+        raise DataError(f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); "
+                        "save the CSV as UTF-8 or ASCII") from None
+
+
+def _read_csv_utf8(path: Path) -> dict[str, np.ndarray]:
+    with open(path, newline="", encoding="utf-8") as f:
         header = next(csv.reader(f), None)
     if not header:
         raise DataError(f"{path}: empty CSV (no header row)")
@@ -215,7 +236,8 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported below
-            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=idx, ndmin=2, dtype=np.float64, comments="#")
+            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=idx, ndmin=2, dtype=np.float64, comments="#",
+                              encoding="utf-8")
     except ValueError:
         data = _csv_scan(path, names, idx)  # names the bad row, or parses what loadtxt could not
     return {name: data[:, k] for k, name in enumerate(names)}

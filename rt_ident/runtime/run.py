@@ -15,6 +15,7 @@ import contextlib
 import datetime as _dt
 import logging
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -29,6 +30,7 @@ from rt_ident.axis.modal import modal_parameters
 from rt_ident.config import RunConfig
 from rt_ident.errors import ConfigError, RtIdentError
 from rt_ident.estimators import make_streaming
+from rt_ident.estimators.streaming import STREAMING_METHODS
 from rt_ident.estimators.svf import make_svf
 from rt_ident.estimators.state_estimation import AxisStateEstimator, encoder_quanta
 from rt_ident.runtime.emulation import start_emulator
@@ -41,9 +43,67 @@ log = logging.getLogger(__name__)
 
 
 def default_paths(stamp: str | None = None) -> tuple[Path, Path]:
-    stamp = stamp or _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    base = Path("runs") / f"run-{stamp}"
+    """``runs/run-<date>-<time>-<pid>.{rrd,parquet}``: the pid keeps two runs started in the same
+    second apart (and :func:`prepare_outputs` still refuses a name that exists)."""
+    stamp = stamp or f"{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    for n in range(1, 1000):
+        base = Path("runs") / (f"run-{stamp}" if n == 1 else f"run-{stamp}-{n}")
+        names = (".rrd", ".parquet", ".parquet.part", ".parquet.arrows")
+        if not any(base.with_name(base.name + x).exists() for x in names):
+            break
     return base.with_suffix(".rrd"), base.with_suffix(".parquet")
+
+
+#: free space an output directory must have before the device is enabled (a few seconds of data)
+MIN_FREE_BYTES = 32 << 20
+
+
+def _check_output(path: str | None, suffix: str, what: str, overwrite: bool) -> None:
+    """One line, before anything is energized: the suffix, no silent overwrite, a writable
+    directory with room."""
+    if not path:
+        return
+    p = Path(path)
+    if p.suffix != suffix:
+        raise ConfigError(what, f"{path!r} must end in {suffix}")
+    siblings = [p, p.with_name(p.name + ".part"), p.with_name(p.name + ".arrows")]
+    existing = [str(x) for x in siblings if x.exists()]
+    if existing and not overwrite:
+        raise ConfigError(what, f"{existing[0]} exists; choose another path or pass --overwrite")
+    if p.exists() and not p.is_file():
+        raise ConfigError(what, f"{path} exists and is not a file")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(what, f"cannot create the directory {p.parent}: {exc.strerror or exc}") from None
+    if not os.access(p.parent, os.W_OK | os.X_OK):
+        raise ConfigError(what, f"the directory {p.parent} is not writable")
+    free = shutil.disk_usage(p.parent).free
+    if free < MIN_FREE_BYTES:
+        raise ConfigError(what, f"only {free >> 20} MiB free in {p.parent} (needs {MIN_FREE_BYTES >> 20} MiB "
+                                "for the first seconds of the run)")
+
+
+def prepare_outputs(cfg: RunConfig, rrd: str | None, record: str | None, sink: str,
+                    overwrite: bool) -> tuple[str | None, str | None]:
+    """(rrd path, recording path) of a run, checked before any device or helper starts."""
+    rrd_default, rec_default = default_paths()
+    rrd_path = rrd or cfg.telemetry.rrd or (str(rrd_default) if sink == "rrd" else None)
+    if sink != "rrd":
+        rrd_path = None
+    rec_path = record or cfg.recording.path or (str(rec_default) if cfg.recording.enabled else None)
+    _check_output(rrd_path, ".rrd", "--rrd / telemetry.rrd", overwrite)
+    _check_output(rec_path, ".parquet", "--record / recording.path", overwrite)
+    if rrd_path and rec_path and Path(rrd_path).resolve() == Path(rec_path).resolve():
+        raise ConfigError("--rrd", "the dashboard and the recording cannot be the same file")
+    return rrd_path, rec_path
+
+
+def check_methods(cfg: RunConfig) -> None:
+    """The estimator method has a streaming form (checked before anything starts)."""
+    if cfg.estimator.method not in STREAMING_METHODS:
+        raise ConfigError("estimator.method", f"{cfg.estimator.method!r} has no streaming form for the loop; "
+                          f"use one of {', '.join(STREAMING_METHODS)} (rt-ident identify runs the others offline)")
 
 
 def backend_options(cfg: RunConfig) -> dict[str, Any]:
@@ -119,24 +179,22 @@ def _install_signals(stop: threading.Event) -> dict:
 
 def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
         connect_url: str | None = None, stop_event: threading.Event | None = None,
-        tick_hook=None) -> dict[str, Any]:
+        tick_hook=None, overwrite: bool = False) -> dict[str, Any]:
     """Run the loop described by ``cfg``; returns the summary (also on a safety stop).
 
     ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached or Ctrl-C/SIGTERM)
     and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise.
     """
     from rt_ident.runtime.recording import RecorderProcess
-    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.runtime.telemetry import DEFAULT_PORT, TelemetryConfig, TelemetryProcess, serve_port
 
     stop = stop_event or threading.Event()
     truth = cfg.axis_params()
-    rrd_default, rec_default = default_paths()
     sink = sink or cfg.telemetry.sink
-    rrd_path = rrd or cfg.telemetry.rrd or (str(rrd_default) if sink == "rrd" else None)
-    rec_path = record or cfg.recording.path or (str(rec_default) if cfg.recording.enabled else None)
-    for p in (rrd_path, rec_path):
-        if p:
-            Path(p).parent.mkdir(parents=True, exist_ok=True)
+    check_methods(cfg)
+    rrd_path, rec_path = prepare_outputs(cfg, rrd, record, sink, overwrite)
+    port = serve_port(cfg.telemetry.bind_ip, cfg.telemetry.port) if sink == "serve" else \
+        (cfg.telemetry.port or DEFAULT_PORT)
 
     emulator = None
     opts = backend_options(cfg)
@@ -160,8 +218,12 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             if sink != "off":
                 telemetry = TelemetryProcess(TelemetryConfig(sink=sink, rrd_path=rrd_path, connect_url=connect_url
                                                              or cfg.telemetry.connect_url,
-                                                             bind_ip=cfg.telemetry.bind_ip))
+                                                             bind_ip=cfg.telemetry.bind_ip, port=port))
                 telemetry.start()
+                if sink == "serve":
+                    summary["serve_url"] = f"rerun+http://{_url_host(cfg.telemetry.bind_ip)}:{port}/proxy"
+                    log.warning("dashboard served at %s (open with: rerun --connect %s)", summary["serve_url"],
+                                summary["serve_url"])
                 if cfg.backend.name == "sim":
                     telemetry.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
                                          **{k: v for k, v in modal_parameters(truth).items() if k != "wd"}})
@@ -170,7 +232,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                     "excitation": ex.model_dump(), "method": cfg.estimator.method,
                     "warmup_periods": cfg.loop.warmup_periods, "forgetting": cfg.estimator.forgetting}
             if rec_path:
-                recorder = RecorderProcess(rec_path, meta, overwrite=True).start()
+                recorder = RecorderProcess(rec_path, meta, overwrite=overwrite).start()
             q1, q2 = _quanta(cfg)
             kf = AxisStateEstimator(dt, q1, q2, cfg.estimator.kalman_process_noise)
             est = make_streaming(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
@@ -221,7 +283,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     except RtIdentError as exc:
         stop_cause = getattr(exc, "cause", "error")
         stop_message = str(exc)
-        log.error("run stopped: %s", exc)
+        log.info("run stopped: %s", exc)        # the summary carries it (the CLI prints it once)
         if loop is not None:                         # nothing lost: still fit what was measured
             summary["final_fit_error"] = _final_fit(loop, loop.est)
     finally:
@@ -243,6 +305,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         else:
             summary["telemetry"] = {"dropped": 0, "sent": 0, "sink": "off"}
         summary["files"] = files
+        if loop is None or loop.stats.samples == 0:
+            _remove_empty_outputs(summary, files)
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set(),
                        "final_torque": backend.last_torque, "backend_state": backend.state.value}
     summary["backend_counters"] = _backend_counters(backend)
@@ -260,6 +324,26 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         if summary["parameters"]:
             summary["error_pct"] = {k: 100.0 * (summary["parameters"][k] - v) / v for k, v in tr.items()}
     return summary
+
+
+def _url_host(ip: str) -> str:
+    return f"[{ip}]" if ":" in ip else ip
+
+
+def _remove_empty_outputs(summary: dict[str, Any], files: dict[str, Any]) -> None:
+    """A run that read no sample leaves no file: an empty recording and a dashboard with nothing
+    on it would only look like data."""
+    for key in ("rrd", "recording"):
+        path = files.get(key)
+        if not path:
+            continue
+        p = Path(path)
+        for f in (p, p.with_name(p.name + ".part"), p.with_name(p.name + ".arrows")):
+            with contextlib.suppress(FileNotFoundError):
+                f.unlink()
+        files[key] = None
+    if "recording" in summary:
+        summary["recording"]["removed_empty"] = True
 
 
 def _final_fit(loop: IdentificationLoop, est) -> str | None:

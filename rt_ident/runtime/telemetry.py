@@ -118,6 +118,34 @@ def _local_host(bind_ip: str) -> str:
     return "127.0.0.1" if ipaddress.ip_address(bind_ip).is_unspecified else bind_ip
 
 
+DEFAULT_PORT = 9876
+
+
+def serve_port(bind_ip: str, configured: int | None) -> int:
+    """The port to serve on: the configured one (refused in one line when taken), else 9876, or a
+    free port the system picks when 9876 is taken (a second run beside the first)."""
+    def free(port: int) -> bool:
+        with socket.socket(socket.AF_INET6 if ":" in bind_ip else socket.AF_INET) as s:
+            try:
+                s.bind((bind_ip, port))
+            except OSError:
+                return False
+            return True
+
+    if configured is not None:
+        if not free(configured):
+            raise ConfigError("telemetry.port", f"{bind_ip}:{configured} is in use (another run serving?); "
+                                                "choose another port or leave it unset for a free one")
+        return configured
+    if free(DEFAULT_PORT):
+        return DEFAULT_PORT
+    with socket.socket(socket.AF_INET6 if ":" in bind_ip else socket.AF_INET) as s:
+        s.bind((bind_ip, 0))
+        port = int(s.getsockname()[1])
+    log.warning("telemetry: port %d is in use; serving on %d instead", DEFAULT_PORT, port)
+    return port
+
+
 def _port_open(host: str, port: int) -> bool:
     try:
         with socket.create_connection((host, port), timeout=0.2):

@@ -1,0 +1,124 @@
+"""A run's output files: never overwritten silently, unique by default, and every path, suffix and
+method checked in one line before anything starts."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from rt_ident.cli import app
+from rt_ident.config import load
+from rt_ident.errors import ConfigError
+from rt_ident.runtime import run as run_mod
+from rt_ident.runtime.recording import read_recording
+
+runner = CliRunner()
+
+
+def test_two_runs_started_in_the_same_second_write_separate_files(tmp_path):
+    cmd = [sys.executable, "-m", "rt_ident", "run", "--duration", "1", "--no-realtime", "--json"]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    errs = [p.communicate(timeout=180)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], errs
+    recs = sorted((tmp_path / "runs").glob("run-*.parquet"))
+    rrds = sorted((tmp_path / "runs").glob("run-*.rrd"))
+    assert len(recs) == 2 and len(rrds) == 2, os.listdir(tmp_path / "runs")
+    for r in recs:
+        assert len(read_recording(r)) > 0
+
+
+def test_default_names_differ_even_within_one_process_and_second(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rrd1, rec1 = run_mod.default_paths(stamp="same")
+    rec1.parent.mkdir()
+    rec1.write_bytes(b"x")
+    rrd2, rec2 = run_mod.default_paths(stamp="same")
+    assert rec2 != rec1 and rrd2 != rrd1 and not rec2.exists()
+
+
+def test_an_explicit_path_that_exists_is_refused_unless_overwrite(tmp_path):
+    rec = tmp_path / "r.parquet"
+    rec.write_bytes(b"precious")
+    res = runner.invoke(app, ["run", "--duration", "0.2", "--no-realtime", "--no-telemetry", "--record", str(rec)])
+    assert res.exit_code != 0 and "exists" in str(res.exception) and "--overwrite" in str(res.exception)
+    assert rec.read_bytes() == b"precious"
+    other = tmp_path / "d.rrd"
+    other.write_bytes(b"old dashboard")
+    with pytest.raises(ConfigError, match="exists"):
+        run_mod.run(load(None, **{"loop.duration": 0.2, "loop.realtime": False, "recording.enabled": False}),
+                    rrd=str(other), sink="rrd")
+    assert other.read_bytes() == b"old dashboard"
+
+
+def test_overwrite_replaces_an_existing_recording(tmp_path):
+    rec = tmp_path / "r.parquet"
+    rec.write_bytes(b"old")
+    s = run_mod.run(load(None, **{"loop.duration": 0.3, "loop.realtime": False, "telemetry.sink": "off"}),
+                    record=str(rec), overwrite=True)
+    assert s["recording"]["complete"] and len(read_recording(rec)) == s["loop"]["samples"]
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--record", "r.txt"], "must end in .parquet"),
+    (["--rrd", "dash.png"], "must end in .rrd"),
+    (["--record", "/proc/foo/r.parquet"], "cannot create the directory"),
+    (["--method", "tustin"], "no streaming form"),
+])
+def test_bad_paths_and_methods_fail_in_one_line_before_anything_starts(tmp_path, monkeypatch, args, needle):
+    monkeypatch.chdir(tmp_path)
+    started = []
+    monkeypatch.setattr(run_mod, "make_backend", lambda *a, **k: started.append(a) or pytest.fail("backend made"))
+    t0 = time.monotonic()
+    res = runner.invoke(app, ["run", "--duration", "0.2", "--no-realtime", *args])
+    assert res.exit_code != 0, res.output
+    assert needle in str(res.exception)
+    assert not started and time.monotonic() - t0 < 10
+    assert not Path("runs").exists() or not any(Path("runs").iterdir())      # no file left behind
+
+
+def test_a_run_that_fails_before_any_sample_says_why_once_and_leaves_no_file(tmp_path):
+    from rt_ident.axis.params import CONFIG_DIR
+
+    import re
+
+    text = re.sub(r"^emulate = true", 'emulate = false\nport = "/dev/ttyNOPE"',
+                  (CONFIG_DIR / "serial-virtual.toml").read_text(), flags=re.M)
+    (tmp_path / "bad.toml").write_text(text)
+    p = subprocess.run([sys.executable, "-m", "rt_ident", "run", "bad.toml", "--duration", "1"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 3
+    text = p.stdout + p.stderr
+    assert text.count("/dev/ttyNOPE': [Errno 2]") == 1, text        # the cause, once
+    assert "Traceback" not in text and "no estimate" not in text and "param" not in text, text
+    runs = tmp_path / "runs"
+    assert not runs.exists() or not any(runs.iterdir()), list(runs.iterdir())
+
+
+def test_serve_moves_to_a_free_port_when_9876_is_taken_and_refuses_a_taken_configured_port():
+    import socket
+
+    from rt_ident.runtime.telemetry import DEFAULT_PORT
+
+    holder = socket.socket()
+    try:
+        try:
+            holder.bind(("127.0.0.1", DEFAULT_PORT))
+        except OSError:
+            pass                          # taken already: the run must move anyway
+        s = run_mod.run(load(None, **{"loop.duration": 0.3, "loop.realtime": False, "recording.enabled": False}),
+                        sink="serve")
+        assert s["stop"]["cause"] is None
+        port = int(s["serve_url"].rsplit(":", 1)[1].split("/")[0])
+        assert port != DEFAULT_PORT and s["serve_url"].startswith("rerun+http://127.0.0.1:")
+        with pytest.raises(ConfigError, match="in use"):
+            run_mod.run(load(None, **{"loop.duration": 0.3, "loop.realtime": False, "recording.enabled": False,
+                                      "telemetry.port": DEFAULT_PORT}), sink="serve")
+    finally:
+        holder.close()
