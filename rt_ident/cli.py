@@ -325,6 +325,12 @@ def _print_run(s: dict) -> None:
     files = s.get("files") or {}
     if files.get("rrd"):
         out.print(f"dashboard: {files['rrd']}   (open with: rerun {files['rrd']})")
+    for name, st in (s.get("helpers") or {}).items():
+        if st.get("deaths"):
+            out.print(f"[yellow]helper {name} died[/] {st['deaths']}x (exit codes {st['exitcodes']}); "
+                      f"restarted {st['restarts']}x; {'running' if st['alive'] else 'not running'} at the end")
+    if (s.get("files") or {}).get("rrd_earlier"):
+        out.print(f"dashboard before the telemetry restart: {', '.join(s['files']['rrd_earlier'])}")
     if s.get("data_lost"):
         out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
     elif files.get("recording"):

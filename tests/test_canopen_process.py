@@ -15,6 +15,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -25,6 +26,7 @@ import pytest
 
 import rt_ident.runtime.run as run_mod
 from drivers.cia402 import profile as p402
+from drivers.cia402.bus import open_bus
 from drivers.cia402.frames import FrameIO
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.config import load
@@ -74,7 +76,7 @@ def _assert_drive_left_safe(emu: EmulatorProcess) -> None:
 def test_frameio_speaks_python_cans_udp_format_and_sees_its_own_frames_in_bus_order():
     kw = {"interface": "udp_multicast", "channel": GROUP, "port": free_udp_port(), "hop_limit": 0}
     got: list = []
-    other, mine = can.Bus(**kw), can.Bus(**kw)
+    other, mine = open_bus(kw), open_bus(kw)              # python-can's bus class, confined to this host
     io = FrameIO(mine, got.extend, bus_kwargs=kw).open()
     try:
         io.send(0x80, b"")
@@ -94,6 +96,49 @@ def test_frameio_speaks_python_cans_udp_format_and_sees_its_own_frames_in_bus_or
     finally:
         io.close()
         other.shutdown()
+        mine.shutdown()
+
+
+def _non_loopback_ipv4() -> str | None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect(("192.0.2.1", 9))                  # no packet is sent: this only picks the route's source
+            ip = s.getsockname()[0]
+        except OSError:
+            return None
+    return None if ip.startswith("127.") else ip
+
+
+def test_the_emulated_bus_ignores_frames_from_the_network_and_keeps_its_own_on_the_host():
+    ip = _non_loopback_ipv4()
+    if ip is None:
+        pytest.skip("this machine has no non-loopback IPv4 address")
+    kw = {"interface": "udp_multicast", "channel": GROUP, "port": free_udp_port(), "hop_limit": 1}
+    got: list = []
+    mine = open_bus(kw)
+    io = FrameIO(mine, got.extend, bus_kwargs=kw).open()
+    try:
+        sock = mine._multicast._socket
+        assert sock.getsockname()[0] == GROUP                 # bound to the group, not 0.0.0.0
+        assert sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 0     # hop_limit 1 overridden
+        emcy = can.Message(arbitration_id=0x85, data=bytes(8), is_extended_id=False)
+        from can.interfaces.udp_multicast.utils import pack_message
+
+        evil = pack_message(emcy)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            for _ in range(50):                              # to this host's own address, and to the group
+                tx.sendto(evil, (ip, kw["port"]))            # from the LAN side
+                tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(ip))
+                tx.sendto(evil, (GROUP, kw["port"]))
+        io.send(0x80, b"")                                   # and one legitimate frame from this host
+        end = time.monotonic() + 1.0
+        while not got and time.monotonic() < end:
+            io.pump()
+        time.sleep(0.1)
+        io.pump()
+        assert [(cob, bytes(d)) for cob, d, _ in got] == [(0x80, b"")], got
+    finally:
+        io.close()
         mine.shutdown()
 
 

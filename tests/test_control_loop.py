@@ -106,7 +106,8 @@ def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, em
     assert summary["stop"]["cause"] is None, summary["stop"]
     ctl = summary["control"]
     assert ctl["mode"] == "adaptive"
-    assert ctl["max_error_m"] is not None and ctl["max_error_m"] < 500e-6 and ctl["rms_error_m"] < 100e-6, ctl
+    assert ctl["max_error_m"] is not None and ctl["max_error_m"] < 500e-6 and ctl["rms_error_m"] < 100e-6, \
+        (ctl, summary["loop"], summary.get("backend_counters"))
     assert summary["stop"]["final_torque"] == 0.0
     (emu,) = emulators
     assert emu.stats is not None and not emu.stats["enabled"]

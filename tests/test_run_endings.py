@@ -91,3 +91,51 @@ def test_kill_9_of_the_main_process_leaves_no_orphan_and_a_finished_recording(tm
     assert not rec.with_name(rec.name + ".part").exists() and not rec.with_name(rec.name + ".arrows").exists()
     assert len(read_recording(rec)) > 0
     assert rrd.exists() and rrd.stat().st_size > 0
+
+
+def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_path):
+    import multiprocessing as mp
+
+    from rt_ident.config import load
+    from rt_ident.runtime import run as run_mod
+
+    killed = []
+    before = {p.pid for p in mp.active_children()}       # helpers of earlier tests are not this run's
+
+    def hook(n: int) -> None:
+        if n == 1500:
+            for p in mp.active_children():
+                if p.name in ("rt_ident-fit", "rt_ident-telemetry") and p.pid not in before:
+                    os.kill(p.pid, signal.SIGKILL)
+                    killed.append(p.name)
+
+    import logging
+
+    class Keep(logging.Handler):
+        def __init__(self):
+            super().__init__(logging.ERROR)
+            self.records = []
+
+        def emit(self, record):
+            self.records.append(record)
+
+    keep = Keep()
+    helpers_log = logging.getLogger("rt_ident.runtime.helpers")
+    helpers_log.addHandler(keep)
+    rrd = tmp_path / "d.rrd"
+    cfg = load(None, **{"loop.duration": 4.0, "loop.realtime": False, "recording.enabled": False})
+    try:
+        s = run_mod.run(cfg, rrd=str(rrd), sink="rrd", tick_hook=hook)
+    finally:
+        helpers_log.removeHandler(keep)
+    assert sorted(killed) == ["rt_ident-fit", "rt_ident-telemetry"], (killed, s.get("helpers"))
+    assert s["stop"]["cause"] is None, s["stop"]
+    for name in ("fit", "telemetry"):
+        st = s["helpers"][name]
+        assert st["deaths"] == 1 and st["restarts"] == 1 and st["alive"], st
+        assert any(f"helper {name} died" in r.getMessage() for r in keep.records), (
+            helpers_log.disabled, helpers_log.getEffectiveLevel(), logging.root.manager.disable, keep.records)
+    # the dead child's file is kept, the restarted one writes the next
+    assert s["files"]["rrd_earlier"] == [str(rrd)] and Path(s["files"]["rrd"]).name == "d-2.rrd"
+    assert Path(s["files"]["rrd"]).stat().st_size > 0
+    assert s["helpers"]["fit"]["results_since_restart"] >= 1, s["helpers"]   # live estimates came back

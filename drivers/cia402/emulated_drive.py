@@ -39,11 +39,11 @@ import time
 from pathlib import Path
 from typing import Any, Literal, Mapping
 
-import can
 import canopen
 import numpy as np
 
 from drivers.cia402 import profile as p402
+from drivers.cia402.bus import open_bus
 from drivers.cia402.faults import FaultConfig
 from drivers.cia402.frames import FrameIO, stop_periodic
 from drivers.cia402.local_pdo import PdoLayout, check_mapping_write, od_value, pdo_layouts
@@ -172,7 +172,7 @@ class EmulatedCia402Drive:
             return self
         self.plant.step_block(np.empty(0))            # compile the plant kernel before going on the bus
         od = canopen.import_od(str(self.eds_path), self.node_id)
-        bus = can.Bus(**self.bus_kwargs)
+        bus = open_bus(self.bus_kwargs)
         net = canopen.Network(bus)
         node = canopen.LocalNode(self.node_id, od)
         if self._rated_override:

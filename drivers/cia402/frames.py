@@ -21,6 +21,8 @@ from typing import Any, Callable, Mapping
 
 import can
 
+from drivers.cia402.bus import confined
+
 log = logging.getLogger(__name__)
 
 _IDLE_S = 0.05           # s; a blocking receive thread wakes at least this often (stop() waits at most this)
@@ -85,6 +87,8 @@ class FrameIO:
         self.name = name
         self._lock = send_lock if send_lock is not None else threading.Lock()
         self.udp = bus_kwargs.get("interface") == "udp_multicast"
+        self.local_only = confined(bus_kwargs)   # drop datagrams from anywhere but this host (drivers.cia402.bus)
+        self.foreign = 0          # datagrams dropped because they came from another address
         self._dest = (str(bus_kwargs.get("channel")), int(bus_kwargs.get("port") or UDP_DEFAULT_PORT))
         self._sock: socket.socket | None = None
         self._templates: dict[tuple[int, int], tuple[bytes, bytes]] = {}
@@ -190,9 +194,12 @@ class FrameIO:
         frames: list[Frame] = []
         while len(frames) < limit:
             try:
-                raw, anc, _, _ = recvmsg(4096, 256, socket.MSG_DONTWAIT)
+                raw, anc, _, src = recvmsg(4096, 256, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 break
+            if self.local_only and not (src and str(src[0]).startswith("127.")):
+                self.foreign += 1
+                continue
             t = 0.0
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET:

@@ -20,11 +20,11 @@ import struct
 import time
 from typing import Any, Callable
 
-import can
 import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from drivers.cia402 import profile as p402
+from drivers.cia402.bus import open_bus
 from drivers.cia402.config import Cia402Config
 from drivers.cia402.frames import FrameIO, stop_periodic
 from drivers.errors import DeviceConnectionError, DeviceTimeout, ProtocolError
@@ -163,7 +163,7 @@ class NodeSetup:
             raise ConfigError("backend.eds", f"cannot read EDS {path}: {exc}") from exc
         self._check_od()
         try:
-            bus = can.Bus(**cfg.bus_kwargs())
+            bus = open_bus(cfg.bus_kwargs())
         except Exception as exc:  # noqa: BLE001 - python-can raises many types here
             raise DeviceConnectionError(f"cannot open CAN interface {cfg.interface!r} channel {cfg.channel!r}: "
                                         f"{type(exc).__name__}: {exc}") from exc

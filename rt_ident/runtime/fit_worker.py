@@ -73,19 +73,41 @@ class JobWorker:
     ring_bytes: int = 4 << 20       # per direction; a snapshot is a few kB
 
     def __post_init__(self) -> None:
+        self._make()
+        self.skipped = 0
+        self.fits_at_restart = 0        # results before the last restart (see restart)
+        self.fits = 0
+        self.errors = 0
+        self.last_error: str | None = None
+
+    def _make(self) -> None:
         ctx = mp.get_context("spawn")
         self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
         self._out = MessageRing(self.ring_bytes, ctx=ctx)
         self._proc = ctx.Process(target=_worker_main, args=(self.job, self._in, self._out, self.min_interval),
                                  name=self.name, daemon=True)
-        self.skipped = 0
-        self.fits = 0
-        self.errors = 0
-        self.last_error: str | None = None
 
     def start(self) -> "JobWorker":
         start_ignoring_signals(self._proc)
         return self
+
+    @property
+    def alive(self) -> bool:
+        return self._proc.is_alive()
+
+    @property
+    def exitcode(self) -> int | None:
+        return self._proc.exitcode
+
+    def restart(self) -> "JobWorker":
+        """A new worker process (and rings) in place of a dead one; results in flight are lost."""
+        old = self._proc
+        if old.is_alive():
+            old.terminate()
+            old.join(1.0)
+        self._make()
+        self.fits_at_restart = self.fits
+        return self.start()
 
     def wait_ready(self, timeout: float = 30.0) -> bool:
         """Block (before the loop starts) until the worker has imported everything and waits for

@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import threading
@@ -23,6 +24,7 @@ import time
 from typing import Any
 
 _GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_log = logging.getLogger("rt_ident.runtime.helpers")
 
 
 def start_ignoring_signals(proc: Any) -> None:
@@ -63,3 +65,53 @@ class ParentWatch:
             self._next = now + self.every_s
             self._gone = os.getppid() != self.ppid
         return self._gone
+
+
+class HelperWatch:
+    """Notices, within ``every_ticks`` ticks, a helper process that died, says so at once (one log
+    line, and the run summary's ``helpers``), and restarts it once where that is safe (the fit and
+    control workers; telemetry, which then writes a new file). The recorder is watched by the loop
+    itself: its death stops the run (samples could no longer be recorded)."""
+
+    def __init__(self, helpers: dict[str, Any], *, restartable: tuple[str, ...] = (), max_restarts: int = 1,
+                 every_ticks: int = 100) -> None:
+        self.helpers = {k: v for k, v in helpers.items() if v is not None}
+        self.restartable = set(restartable)
+        self.max_restarts = max_restarts
+        self.every_ticks = every_ticks
+        self.status: dict[str, dict[str, Any]] = {
+            k: {"pid": getattr(v, "pid", None), "deaths": 0, "restarts": 0, "alive": True, "exitcodes": []}
+            for k, v in self.helpers.items()}
+
+    def __call__(self, tick: int) -> None:
+        if tick % self.every_ticks:
+            return
+        for name, h in self.helpers.items():
+            st = self.status[name]
+            if not st["alive"] or h.alive:
+                continue
+            code = h.exitcode
+            st["deaths"] += 1
+            st["exitcodes"].append(code)
+            if name in self.restartable and st["restarts"] < self.max_restarts:
+                st["restarts"] += 1
+                h.restart()
+                st["pid"] = getattr(h, "pid", None)
+                _log.error("helper %s died (exit code %s); restarted it (pid %s)", name, code, st["pid"])
+            else:
+                st["alive"] = False
+                _log.error("helper %s died (exit code %s); not restarted", name, code)
+
+    def freeze(self) -> None:
+        """Take the status when the loop ends (the helpers are closed after that)."""
+        for name, h in self.helpers.items():
+            st = self.status[name]
+            st["alive"] = st["alive"] and bool(h.alive)
+            if hasattr(h, "fits") and st["restarts"]:
+                st["results_since_restart"] = h.fits - h.fits_at_restart
+        self._frozen = True
+
+    def summary(self) -> dict[str, dict[str, Any]]:
+        if not getattr(self, "_frozen", False):
+            self.freeze()
+        return self.status

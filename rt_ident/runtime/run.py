@@ -36,6 +36,7 @@ from rt_ident.estimators.state_estimation import AxisStateEstimator, encoder_qua
 from rt_ident.runtime.emulation import start_emulator
 from rt_ident.control import make_controller, redesign
 from rt_ident.runtime.fit_worker import JobWorker, make_fit_worker
+from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop
 from rt_ident.runtime.safety import SafetyMonitor
 
@@ -209,7 +210,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     stop_cause = None
     stop_message = None
     loop = None
-    telemetry = recorder = None
+    telemetry = recorder = watch = None
     old_signals = _install_signals(stop)
     try:
         with contextlib.ExitStack() as stack:
@@ -245,6 +246,15 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             control, ctl_worker = _controller(cfg, backend, stack, (q1, q2))
             safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
                                    watchdog_ticks=cfg.safety.watchdog_ticks)
+            watch = HelperWatch({"telemetry": telemetry, "fit": worker, "control": ctl_worker},
+                                restartable=("telemetry", "fit", "control"))
+            user_hook = tick_hook
+
+            def hooks(n: int) -> None:
+                watch(n)
+                if user_hook is not None:
+                    user_hook(n)
+
             loop = IdentificationLoop(
                 backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf, estimator=est,
                 safety=safety, duration=cfg.loop.duration, fit_worker=worker,
@@ -252,7 +262,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 on_telemetry=telemetry.publish if telemetry else None,
                 publish_every=cfg.telemetry.publish_every_ticks,
                 telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
-                stop_event=stop, tick_hook=tick_hook,
+                stop_event=stop, tick_hook=hooks,
                 max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
                 control=control, probe_period=ex.period_samples)
             if telemetry is not None:
@@ -278,6 +288,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 loop.run()
             finally:
                 host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
+                watch.freeze()
             backend.safe_stop()                      # zero torque before the (slower) final fit
             summary["final_fit_error"] = _final_fit(loop, est)
     except RtIdentError as exc:
@@ -305,6 +316,11 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         else:
             summary["telemetry"] = {"dropped": 0, "sent": 0, "sink": "off"}
         summary["files"] = files
+        if watch is not None:
+            summary["helpers"] = watch.summary()
+            if telemetry is not None and telemetry.earlier_rrd:
+                files["rrd_earlier"] = list(telemetry.earlier_rrd)
+                files["rrd"] = telemetry.config.rrd_path
         if loop is None or loop.stats.samples == 0:
             _remove_empty_outputs(summary, files)
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set(),

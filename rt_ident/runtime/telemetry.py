@@ -256,10 +256,12 @@ class TelemetryProcess:
         self._truth: dict[str, float] = {}
         self._truth_pending = False
         self._closed = False
+        self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
+        self._sent_before = 0
 
     @property
     def sent(self) -> int:
-        return 0 if self._sent is None else int(self._sent.value)
+        return self._sent_before + (0 if self._sent is None else int(self._sent.value))
 
     @property
     def dropped(self) -> int:
@@ -286,6 +288,32 @@ class TelemetryProcess:
         start_ignoring_signals(self._proc)
         self._truth_pending = False
         return self
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    @property
+    def exitcode(self) -> int | None:
+        return None if self._proc is None else self._proc.exitcode
+
+    def restart(self) -> "TelemetryProcess":
+        """A new telemetry process in place of a dead one. An .rrd sink continues in a new file
+        (``<name>-2.rrd``: the dead child's file keeps what it wrote, never overwritten)."""
+        old = self._proc
+        if old is not None and old.is_alive():
+            old.terminate()
+            old.join(1.0)
+        self._sent_before = self.sent
+        self._sent = None
+        if self.config.sink == "rrd" and self.config.rrd_path:
+            import dataclasses
+
+            p = Path(self.config.rrd_path)
+            self.earlier_rrd.append(str(p))
+            self.config = dataclasses.replace(self.config, rrd_path=str(p.with_name(f"{p.stem}-2{p.suffix}")))
+        self._proc = None
+        return self.start()
 
     def wait_ready(self, timeout: float) -> bool:
         """Wait (outside the real-time loop!) until the child has opened its sink. True if ready.
@@ -383,6 +411,7 @@ class TelemetryProcess:
         return {
             "sink": self.config.sink,
             "rrd_path": self.config.rrd_path if self.config.sink == "rrd" else None,
+            "earlier_rrd": list(self.earlier_rrd),
             "published": self._published,
             "sent": self.sent,
             "dropped": self.dropped,

@@ -1,0 +1,91 @@
+"""Opening the CAN bus: python-can, with ``udp_multicast`` confined to this host unless asked otherwise.
+
+python-can's ``udp_multicast`` interface binds its socket to every interface (0.0.0.0), joins the
+group on the default interface and sends with a hop limit of 1: any host on the LAN (or a datagram
+to this host's own address) can put frames on "the bus" - an EMCY, or fake position data that the
+safety monitor would believe - and our frames leave the host. The emulated drive is a process on
+this host, so by default the bus is confined to the loopback interface:
+
+* the socket is bound to the *group* address (a unicast datagram to any address of this host does
+  not reach it) and joins the group on 127.0.0.1 only;
+* multicast goes out through 127.0.0.1 with a hop limit (TTL) of 0, looped back to this host;
+* :class:`drivers.cia402.frames.FrameIO` also drops any datagram whose source is not a loopback
+  address (counted as ``foreign``).
+
+A bus that really spans hosts needs ``bus_options = { allow_network = true }`` (then python-can's
+own socket and the configured ``hop_limit`` are used, and the user has said so).
+"""
+
+from __future__ import annotations
+
+import errno
+import socket
+import struct
+from typing import Any, Mapping
+
+import can
+from can import CanProtocol
+from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus, UdpMulticastBus
+
+from rt_ident.errors import ConfigError
+
+LOOPBACK = "127.0.0.1"
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+
+
+def confined(bus_kwargs: Mapping[str, Any]) -> bool:
+    """True when a ``udp_multicast`` bus is to stay on this host (the default)."""
+    return bus_kwargs.get("interface") == "udp_multicast" and not bus_kwargs.get("allow_network", False)
+
+
+def open_bus(bus_kwargs: Mapping[str, Any]) -> can.BusABC:
+    """``can.Bus(**bus_kwargs)``, or the loopback-confined ``udp_multicast`` bus (see the module)."""
+    kw = dict(bus_kwargs)
+    network = bool(kw.pop("allow_network", False))
+    if kw.get("interface") != "udp_multicast" or network:
+        return can.Bus(**kw)
+    return LoopbackUdpMulticastBus(channel=str(kw.get("channel") or UdpMulticastBus.DEFAULT_GROUP_IPv4),
+                                   port=int(kw.get("port") or 43113), fd=bool(kw.get("fd", True)))
+
+
+class _LoopbackMulticast(GeneralPurposeUdpMulticastBus):
+    """python-can's multicast handler with a socket bound to the group on the loopback interface."""
+
+    def _create_socket(self, address_family: socket.AddressFamily) -> socket.socket:
+        if address_family != socket.AF_INET:
+            raise OSError(errno.EAFNOSUPPORT, "the loopback-confined bus needs an IPv4 multicast group")
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("@I", 0))
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(LOOPBACK))
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if hasattr(socket, "SO_REUSEPORT"):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                self.timestamp_nanosecond = True
+            except OSError:
+                self.timestamp_nanosecond = False
+            sock.bind((self.group, self.port))
+            mreq = socket.inet_aton(self.group) + socket.inet_aton(LOOPBACK)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
+            return sock
+        except OSError:
+            sock.close()
+            raise
+
+
+class LoopbackUdpMulticastBus(UdpMulticastBus):
+    """python-can's ``udp_multicast`` bus (same wire format), confined to this host."""
+
+    def __init__(self, channel: str = UdpMulticastBus.DEFAULT_GROUP_IPv4, port: int = 43113, fd: bool = True,
+                 **kwargs: Any) -> None:
+        try:
+            socket.inet_aton(channel)
+        except OSError:
+            raise ConfigError("backend.channel", f"{channel!r}: the loopback-confined udp_multicast bus needs an "
+                              "IPv4 multicast group (or bus_options.allow_network = true)") from None
+        can.BusABC.__init__(self, channel, **kwargs)
+        self._multicast = _LoopbackMulticast(channel, port, 0)
+        self._can_protocol = CanProtocol.CAN_FD if fd else CanProtocol.CAN_20
