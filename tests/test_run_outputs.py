@@ -122,3 +122,31 @@ def test_serve_moves_to_a_free_port_when_9876_is_taken_and_refuses_a_taken_confi
                                       "telemetry.port": DEFAULT_PORT}), sink="serve")
     finally:
         holder.close()
+
+
+def test_a_bad_eds_is_named_without_echoing_its_contents(tmp_path):
+    from drivers import make_backend
+
+    secret = "password=hunter2 this line must not be echoed"
+    eds = tmp_path / "bad.eds"
+    eds.write_text(secret + "\n[broken\n")
+    from rt_ident.axis.params import CONFIG_DIR
+
+    opts = load(CONFIG_DIR / "canopen-virtual.toml").backend.options()
+    opts.update(interface="virtual", channel="eds-test", eds=str(eds), bus_options={})
+    opts.pop("port", None)
+    be = make_backend("canopen", opts)
+    with pytest.raises(ConfigError) as info:
+        be.open()
+    be.close()
+    assert "bad.eds" in str(info.value) and "hunter2" not in str(info.value)
+
+
+@pytest.mark.parametrize("url", ["socket://127.0.0.1:9", "spy://loop://?file=/tmp/x", "rfc2217://h:1"])
+def test_pyserial_urls_need_an_explicit_opt_in(url):
+    from drivers import make_backend
+
+    with pytest.raises(ConfigError, match="allow_url"):
+        make_backend("serial", {"port": url})
+    be = make_backend("serial", {"port": url, "allow_url": True})     # accepted when asked for
+    assert be is not None

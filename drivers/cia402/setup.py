@@ -160,7 +160,9 @@ class NodeSetup:
         try:
             self._od = canopen.import_od(str(path), cfg.node_id)
         except Exception as exc:  # noqa: BLE001 - any parse failure is a config error
-            raise ConfigError("backend.eds", f"cannot read EDS {path}: {exc}") from exc
+            # the parser's message can quote the file's lines: name the file and the kind of error only
+            raise ConfigError("backend.eds", f"cannot read EDS {path}: not a valid EDS file "
+                                             f"({type(exc).__name__})") from None
         self._check_od()
         try:
             bus = open_bus(cfg.bus_kwargs())

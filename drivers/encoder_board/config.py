@@ -21,7 +21,8 @@ class SerialBoardConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     name: Optional[str] = None                  # registry name, ignored here
-    port: Optional[str] = None                  # device path or pyserial URL; required unless emulate
+    port: Optional[str] = None                  # device path (a pyserial URL only with allow_url); required unless emulate
+    allow_url: bool = False                     # accept pyserial URLs (socket://, rfc2217://, spy://...) as port
     baudrate: int = Field(12_000_000, gt=0)     # 8N1; ignored by USB CDC devices but checked
     sample_rate_hz: float = Field(20000.0, gt=0, le=200_000)
     counts_per_rev: int = Field(131072, gt=0)   # motor encoder counts per revolution
@@ -46,6 +47,9 @@ class SerialBoardConfig(BaseModel):
     def _checks(self) -> "SerialBoardConfig":
         if self.port is None and not self.emulate:
             raise ValueError("port: required unless emulate = true")
+        if self.port is not None and "://" in self.port and not self.allow_url:
+            raise ValueError(f"port: {self.port!r} is a pyserial URL (it can open network sockets or write files); "
+                             "set allow_url = true to use it")
         need = self.sample_rate_hz * sp.DATA_FRAME_SIZE * 10 * _LINK_MARGIN
         if self.baudrate < need:
             raise ValueError(f"baudrate: {self.baudrate} baud carries {self.baudrate / 300:.0f} frames/s; "
