@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from rt_ident.cli import app
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
+from rt_ident.runtime import outputs
 from rt_ident.runtime import run as run_mod
 from rt_ident.runtime.recording import read_recording
 
@@ -36,10 +37,10 @@ def test_two_runs_started_in_the_same_second_write_separate_files(tmp_path):
 
 def test_default_names_differ_even_within_one_process_and_second(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    rrd1, rec1 = run_mod.default_paths(stamp="same")
+    rrd1, rec1 = outputs.default_paths(stamp="same")
     rec1.parent.mkdir()
     rec1.write_bytes(b"x")
-    rrd2, rec2 = run_mod.default_paths(stamp="same")
+    rrd2, rec2 = outputs.default_paths(stamp="same")
     assert rec2 != rec1 and rrd2 != rrd1 and not rec2.exists()
 
 
