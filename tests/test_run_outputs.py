@@ -151,3 +151,46 @@ def test_pyserial_urls_need_an_explicit_opt_in(url):
         make_backend("serial", {"port": url})
     be = make_backend("serial", {"port": url, "allow_url": True})     # accepted when asked for
     assert be is not None
+
+
+def _full_disk(path: Path) -> None:
+    """Point ``path`` at /dev/full: every write to it fails with ENOSPC, as on a full disk."""
+    path.symlink_to("/dev/full")
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_a_disk_full_at_start_stops_before_the_device_is_enabled_in_one_line(tmp_path):
+    rec = tmp_path / "r.parquet"
+    _full_disk(tmp_path / "r.parquet.part")                # the Parquet header, written at open, fails
+    energized = []
+    from drivers.sim import SimBackend
+
+    orig = SimBackend.activate
+
+    def activate(self):
+        energized.append(True)
+        return orig(self)
+
+    SimBackend.activate = activate
+    try:
+        s = run_mod.run(load(None, **{"loop.duration": 1.0, "loop.realtime": False, "telemetry.sink": "off"}),
+                        record=str(rec), overwrite=True)
+    finally:
+        SimBackend.activate = orig
+    assert not energized, "the device was enabled although the recording could not be written"
+    assert s["stop"]["cause"] is not None and "ENOSPC" in s["stop"]["message"], s["stop"]
+    assert "r.parquet" in s["stop"]["message"] and "\n" not in s["stop"]["message"]
+    assert run_mod.exit_code(s) == 3
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_a_disk_that_fills_mid_run_stops_safely_and_never_reports_rows_it_did_not_write(tmp_path):
+    rec = tmp_path / "r.parquet"
+    _full_disk(tmp_path / "r.parquet.arrows")              # the journal's first batch (0.5 s in) fails
+    s = run_mod.run(load(None, **{"loop.duration": 5.0, "loop.realtime": False, "telemetry.sink": "off"}),
+                    record=str(rec), overwrite=True)
+    assert s["stop"]["cause"] is not None and "ENOSPC" in s["stop"]["message"], s["stop"]
+    assert s["stop"]["final_torque"] == 0.0
+    assert not s["recording"]["complete"] and "ENOSPC" in s["data_lost"]
+    assert s["recording"]["rows_written"] < s["loop"]["samples"]
+    assert run_mod.exit_code(s) == 3

@@ -259,6 +259,15 @@ def _block_columns(block: Any) -> dict[str, np.ndarray]:
     return cols
 
 
+def _os_reason(exc: OSError, path: str) -> str:
+    import errno as _errno
+
+    where = exc.filename or path
+    if exc.errno == _errno.ENOSPC:
+        return f"{where}: no space left on the device (ENOSPC); recording stopped"
+    return f"{where}: {exc.strerror or exc} ({_errno.errorcode.get(exc.errno or 0, 'OSError')}); recording stopped"
+
+
 def _recorder_main(
     path: str,
     metadata_json: bytes,
@@ -267,14 +276,21 @@ def _recorder_main(
     ring: MessageRing,
     rows_written: Any,
     failed: Any,
+    ready: Any = None,
+    reason: Any = None,
 ) -> None:
     """Body of the recorder process: drain the ring, flush on time, finish when the writer closes
-    or the parent dies (kill -9: the file is then finished from every sample the ring holds)."""
+    or the parent dies (kill -9: the file is then finished from every sample the ring holds).
+
+    A failure is reported to the parent in one line (``reason``): for an OS error (a full disk,
+    a file that cannot be written) the file and the cause, without a traceback."""
     watch = become_helper()
     rec = Recorder(path, json.loads(metadata_json), flush_interval, overwrite=overwrite)
     poll = min(0.02, flush_interval / 4.0)
     try:
         rec.open()
+        if ready is not None:
+            ready.value = 1
         while True:
             # read before draining: nothing can follow a close (or the writer's death)
             closed = ring.writer_closed or watch.gone
@@ -291,7 +307,20 @@ def _recorder_main(
         rows_written.value = rec.rows_written
         if watch.gone:
             log.warning("recorder: the run's main process died; %s finished with %d rows", path, rec.rows_written)
-    except BaseException:
+    except OSError as exc:                       # a full disk, a file that cannot be written
+        why = _os_reason(exc, path)
+        if reason is not None:
+            reason.value = why.encode("utf-8", "replace")[: len(reason) - 1]
+        failed.value = 1
+        log.info("recorder: %s", why)          # the parent names it in the run's stop (one line)
+        try:
+            rec.close()  # keep whatever can still be written
+        except Exception:  # noqa: BLE001 - already failing; the journal holds the flushed rows
+            pass
+        raise SystemExit(1) from None
+    except BaseException as exc:
+        if reason is not None:
+            reason.value = f"{type(exc).__name__}: {exc}".encode("utf-8", "replace")[: len(reason) - 1]
         failed.value = 1
         log.exception("recorder process for %s failed", path)
         try:
@@ -343,6 +372,8 @@ class RecorderProcess:
         self._proc: Any = None
         self._rows_written: Any = None
         self._failed: Any = None
+        self._ready: Any = None
+        self._reason: Any = None
         self.full_waits = 0
         self.blocks_put = 0
         self.samples_put = 0
@@ -357,10 +388,12 @@ class RecorderProcess:
         # Lock-free: one writer (the child); a child killed while holding a lock would hang us.
         self._rows_written = self._ctx.Value("q", 0, lock=False)
         self._failed = self._ctx.Value("b", 0, lock=False)
+        self._ready = self._ctx.Value("b", 0, lock=False)
+        self._reason = self._ctx.Array("c", 512, lock=False)
         self._proc = self._ctx.Process(
             target=_recorder_main,
             args=(str(self.path), self._metadata_json, self.flush_interval, self.overwrite,
-                  self._ring, self._rows_written, self._failed),
+                  self._ring, self._rows_written, self._failed, self._ready, self._reason),
             name="rt_ident-recorder",
             daemon=True,
         )
@@ -370,6 +403,25 @@ class RecorderProcess:
     @property
     def pid(self) -> int | None:
         return None if self._proc is None else self._proc.pid
+
+    @property
+    def failure(self) -> str | None:
+        """The recorder's own one-line reason for failing (None while it works)."""
+        if self._reason is None or not self._reason.value:
+            return None
+        return self._reason.value.decode("utf-8", "replace")
+
+    def wait_ready(self, timeout: float = 30.0) -> None:
+        """Block (before the device is enabled) until the recorder has created its files; raise
+        :class:`RtIdentError` with the recorder's reason if it could not."""
+        end = time.monotonic() + timeout
+        while not self._ready.value:
+            if self._failed.value or self._proc.exitcode is not None:
+                self._proc.join(1.0)
+                raise RtIdentError(self.failure or f"recorder for {self.path} exited ({self._proc.exitcode})")
+            if time.monotonic() > end:
+                raise RtIdentError(f"recorder for {self.path} did not open its files within {timeout:g} s")
+            time.sleep(0.01)
 
     @property
     def rows_written(self) -> int:
@@ -382,6 +434,8 @@ class RecorderProcess:
             self._last_alive_check = now
             self._exited = self._proc.exitcode is not None
         if self._failed.value or self._exited:
+            if self.failure:
+                raise RtIdentError(self.failure)
             raise RtIdentError(
                 f"recorder process for {self.path} is not running (exitcode {self._proc.exitcode}); "
                 "samples can no longer be recorded"
@@ -425,10 +479,10 @@ class RecorderProcess:
             self._proc.terminate()
             self._proc.join(2.0)
             summary["terminated"] = True
-        summary.update(rows_written=self.rows_written, exitcode=self._proc.exitcode)
+        summary.update(rows_written=self.rows_written, exitcode=self._proc.exitcode, failure=self.failure)
         summary["complete"] = self._complete(summary)
         if not summary["complete"]:
-            log.error("recording %s is incomplete: %d of %d samples written (recorder exit code %s)",
+            log.info("recording %s is incomplete: %d of %d samples written (recorder exit code %s)",
                       self.path, summary["rows_written"], self.samples_put, summary["exitcode"])
         return summary
 

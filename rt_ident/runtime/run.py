@@ -198,6 +198,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 stop_event=stop, tick_hook=hooks,
                 max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
                 control=control, probe_period=ex.period_samples)
+            if recorder is not None:
+                recorder.wait_ready(30.0)               # its files exist and take bytes before the device moves
             if telemetry is not None:
                 telemetry.wait_ready(5.0)
             for w in (worker, ctl_worker):               # imported and waiting before the device is active
@@ -242,7 +244,9 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             if not summary["recording"]["complete"]:
                 r = summary["recording"]
                 summary["data_lost"] = (f"recording {r['path']} incomplete: {r['rows_written']} of "
-                                        f"{r['samples_put']} samples written (recorder exit code {r['exitcode']})")
+                                        f"{r['samples_put']} samples written" +
+                                        (f": {r['failure']}" if r.get("failure") else
+                                         f" (recorder exit code {r['exitcode']})"))
         if telemetry is not None:
             tel = telemetry.close()
             summary["telemetry"] = {"dropped": telemetry.dropped, "sent": telemetry.sent, **tel}
