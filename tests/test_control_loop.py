@@ -106,7 +106,10 @@ def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, em
     assert summary["stop"]["cause"] is None, summary["stop"]
     ctl = summary["control"]
     assert ctl["mode"] == "adaptive"
-    assert ctl["max_error_m"] is not None and ctl["max_error_m"] < 500e-6 and ctl["rms_error_m"] < 100e-6, \
+    # idle machine: max 0.1-0.2 mm, rms 20-40 um; with a busy loop per core beside the suite the emulated
+    # device process is starved and its torque lands late: max 0.6 mm, rms 0.1 mm measured. Without the
+    # host's loop the table walks off by millimetres in this time (test_without_host_control...).
+    assert ctl["max_error_m"] is not None and ctl["max_error_m"] < 1.5e-3 and ctl["rms_error_m"] < 300e-6, \
         (ctl, summary["loop"], summary.get("backend_counters"))
     assert summary["stop"]["final_torque"] == 0.0
     (emu,) = emulators
