@@ -107,12 +107,13 @@ def test_serve_moves_to_a_free_port_when_9876_is_taken_and_refuses_a_taken_confi
 
     from rt_ident.runtime.telemetry import DEFAULT_PORT
 
-    holder = socket.socket()
+    holder, mine = socket.socket(), socket.socket()
     try:
         try:
             holder.bind(("127.0.0.1", DEFAULT_PORT))
         except OSError:
-            pass                          # taken already: the run must move anyway
+            pass                          # taken already (another run): the run must move anyway
+        mine.bind(("127.0.0.1", 0))       # a port this test surely holds
         s = run_mod.run(load(None, **{"loop.duration": 0.3, "loop.realtime": False, "recording.enabled": False}),
                         sink="serve")
         assert s["stop"]["cause"] is None
@@ -120,9 +121,10 @@ def test_serve_moves_to_a_free_port_when_9876_is_taken_and_refuses_a_taken_confi
         assert port != DEFAULT_PORT and s["serve_url"].startswith("rerun+http://127.0.0.1:")
         with pytest.raises(ConfigError, match="in use"):
             run_mod.run(load(None, **{"loop.duration": 0.3, "loop.realtime": False, "recording.enabled": False,
-                                      "telemetry.port": DEFAULT_PORT}), sink="serve")
+                                      "telemetry.port": mine.getsockname()[1]}), sink="serve")
     finally:
         holder.close()
+        mine.close()
 
 
 def test_a_bad_eds_is_named_without_echoing_its_contents(tmp_path):

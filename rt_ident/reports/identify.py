@@ -19,13 +19,23 @@ import numpy as np
 from rt_ident.errors import EstimationError
 from rt_ident.estimators.base import IdentData, Identification
 from rt_ident.runtime.recording import read_recording
+from rt_ident.runtime.recording_reader import iter_parquet_blocks, parquet_metadata
 
 REPLAY_CHUNK = 4096
 
 
 def identify_file(path: str | Path, method: str | None = None, *, period: int | None = None,
                   **options: Any) -> tuple[Identification, dict[str, Any]]:
-    """Identify the axis from a recording; returns (identification, info about how)."""
+    """Identify the axis from a recording; returns (identification, info about how).
+
+    A finished ``.parquet`` recording replayed through the loop's streaming estimator is read in
+    record batches (memory independent of its length); everything else is read whole."""
+    meta = parquet_metadata(path)
+    if meta is not None and _replayable(meta, method, period, options):
+        est, n = _stream_replay(path, meta, method or meta["method"])
+        info = {"file": str(path), "source": "parquet", "samples": n, "metadata": True,
+                "how": "replay of the loop's streaming estimator (streamed in record batches)"}
+        return est, info
     rec = read_recording(path)
     meta = rec.metadata or {}
     method = method or meta.get("method") or _default_method()
@@ -48,6 +58,43 @@ def identify_file(path: str | Path, method: str | None = None, *, period: int | 
     return identify(data, method, **options), info
 
 
+def _replayable(meta: dict[str, Any], method: str | None, period: int | None, options: dict) -> bool:
+    from rt_ident.estimators.streaming import STREAMING_METHODS
+
+    ex = meta.get("excitation") or {}
+    m = method or meta.get("method")
+    return bool(meta.get("sample_period") and ex.get("period_samples") and ex.get("band") and period is None
+                and not options and m == meta.get("method") and m in STREAMING_METHODS and m != "paper")
+
+
+def _streaming_estimator(meta: dict[str, Any], method: str):
+    from rt_ident.estimators.streaming import make_streaming
+
+    ex = meta["excitation"]
+    lead = float((meta.get("axis") or {}).get("lead", 7.96e-4))
+    return make_streaming(method, dt=float(meta["sample_period"]), period=int(ex["period_samples"]),
+                          band=tuple(ex["band"]), warmup_periods=int(meta.get("warmup_periods", 2)),
+                          forgetting=float(meta.get("forgetting", 1.0)), lead=lead)
+
+
+def _stream_replay(path, meta: dict[str, Any], method: str) -> tuple[Identification, int]:
+    est = _streaming_estimator(meta, method)
+    n = 0
+    for th1, th2, tq, seq in iter_parquet_blocks(path, REPLAY_CHUNK * 16):
+        if seq is None:
+            seq = np.arange(n, n + th1.shape[0])
+        for i in range(0, th1.shape[0], REPLAY_CHUNK):
+            s = slice(i, i + REPLAY_CHUNK)
+            est.update_block(th1[s], th2[s], tq[s], seq[s])
+        n += th1.shape[0]
+    if n < 10:
+        raise EstimationError(f"{path}: only {n} data rows")
+    ident = est.final()
+    if ident is None:
+        raise EstimationError(f"{method}: the recording holds no complete excitation period after the warm-up")
+    return ident, n
+
+
 def _default_method() -> str:
     from rt_ident.estimators.registry import DEFAULT_METHOD
 
@@ -55,13 +102,7 @@ def _default_method() -> str:
 
 
 def _replay(rec, meta: dict[str, Any], method: str) -> Identification:
-    from rt_ident.estimators.streaming import make_streaming
-
-    ex = meta["excitation"]
-    lead = float((meta.get("axis") or {}).get("lead", 7.96e-4))
-    est = make_streaming(method, dt=float(meta["sample_period"]), period=int(ex["period_samples"]),
-                                   band=tuple(ex["band"]), warmup_periods=int(meta.get("warmup_periods", 2)),
-                                   forgetting=float(meta.get("forgetting", 1.0)), lead=lead)
+    est = _streaming_estimator(meta, method)
     seq = rec.seq if rec.seq is not None else np.arange(len(rec))
     for i in range(0, len(rec), REPLAY_CHUNK):
         s = slice(i, i + REPLAY_CHUNK)

@@ -186,8 +186,11 @@ def start_emulator(cfg) -> Any:
     module = EMULATORS.get(name)
     if module is None:
         raise RtIdentError(f"backend.emulate: no emulator for backend {name!r}")
+    realtime = bool(cfg.loop.realtime)
+    placement = {"cpus": _helper_cpus(realtime), "fifo_priority": EMULATOR_FIFO_PRIORITY if realtime else None}
     if name == "serial":
-        return EmulatorProcess(module, cfg.model_dump())
+        # a real board runs on its own hardware: the emulated one must not be starved by a busy host either
+        return EmulatorProcess(module, cfg.model_dump(), placement=placement)
     opts = cfg.backend.options()
     if opts.get("interface") != "udp_multicast":
         log.warning("emulated drive on %r runs in the loop's process (only udp_multicast reaches a child "
@@ -196,6 +199,4 @@ def start_emulator(cfg) -> Any:
     port = opts.get("port") or free_udp_port()
     config = {"backend": {**opts, "port": port}, "emulator": dict(cfg.emulator),
               "axis": cfg.axis_params().as_dict()}
-    realtime = bool(cfg.loop.realtime)
-    placement = {"cpus": _helper_cpus(realtime), "fifo_priority": EMULATOR_FIFO_PRIORITY if realtime else None}
     return EmulatorProcess(module, config, placement=placement, port=port)
