@@ -263,3 +263,34 @@ def test_recorder_process_rejects_a_malformed_block_in_the_caller(tmp_path: Path
         rp.put({"t": np.zeros(3), "seq": np.arange(3), "theta1": np.zeros(3), "theta2": np.zeros(3)})
     with pytest.raises(RtIdentError, match="not started"):
         rp.put(_signals(np.arange(5, dtype=np.int64)))
+
+
+def test_a_finished_recording_streams_in_bounded_blocks_equal_to_the_whole_read(tmp_path):
+    from rt_ident.runtime.recording_reader import iter_parquet_blocks
+
+    path = tmp_path / "s.parquet"
+    rng = np.random.default_rng(0)
+    with Recorder(path, {"sample_period": 1e-4}, flush_interval=1.0) as rec:
+        for k in range(7):                                   # seven row groups of 3000
+            seq = np.arange(k * 3000, (k + 1) * 3000)
+            rec.append(seq * 1e-4, seq, rng.normal(size=3000), rng.normal(size=3000), rng.normal(size=3000),
+                       rng.normal(size=3000))
+            rec.flush()
+    blocks = list(iter_parquet_blocks(path, rows=1000))
+    assert max(len(b[0]) for b in blocks) <= 1000 and len(blocks) == 21
+    whole = read_recording(path)
+    np.testing.assert_array_equal(np.concatenate([b[0] for b in blocks]), whole.theta1)
+    np.testing.assert_array_equal(np.concatenate([b[2] for b in blocks]), whole.torque)
+    np.testing.assert_array_equal(np.concatenate([b[3] for b in blocks]), whole.seq)
+
+
+def test_streamed_blocks_still_refuse_time_going_backwards_across_a_block_edge(tmp_path):
+    from rt_ident.runtime.recording_reader import iter_parquet_blocks
+
+    path = tmp_path / "b.parquet"
+    with Recorder(path, {}, flush_interval=1.0) as rec:
+        rec.append(np.arange(100) * 1e-3, np.arange(100), np.zeros(100), np.zeros(100), np.zeros(100))
+        rec.flush()
+        rec.append(np.arange(100) * 1e-3, np.arange(100, 200), np.zeros(100), np.zeros(100), np.zeros(100))
+    with pytest.raises(DataError, match="not strictly increasing at data row 101"):
+        list(iter_parquet_blocks(path, rows=64))
