@@ -146,16 +146,7 @@ class JobWorker:
         """The newest result the worker has returned since the last poll, or None."""
         if not self._out.pending_messages:
             return None
-        latest = None
-        for msg in self._out.get():
-            item = MessageRing.unpickle(msg)
-            if isinstance(item, Exception):
-                self.errors += 1
-                self.last_error = str(item)
-            else:
-                self.fits += 1
-                latest = item
-        return latest
+        return newest_result(self, (MessageRing.unpickle(msg) for msg in self._out.get()))
 
     def close(self, timeout: float = 5.0) -> None:
         self._in.close_writer()
@@ -163,6 +154,20 @@ class JobWorker:
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(1.0)
+
+
+def newest_result(worker: Any, items: Any) -> Any:
+    """The last non-exception of ``items`` (None if none); counts ``worker.fits`` and ``worker.errors``
+    (and keeps ``worker.last_error``) on the way. Shared by the process worker and the inline one."""
+    latest = None
+    for item in items:
+        if isinstance(item, Exception):
+            worker.errors += 1
+            worker.last_error = str(item)
+        else:
+            worker.fits += 1
+            latest = item
+    return latest
 
 
 def make_fit_worker(method: str, hold: str = "zoh", lead: float = 7.96e-4, min_interval: float = 0.25,

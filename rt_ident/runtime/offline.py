@@ -22,6 +22,7 @@ from rt_ident.estimators import make_streaming
 from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.estimators.streaming import fit_snapshot
 from rt_ident.errors import ConfigError
+from rt_ident.runtime.fit_worker import newest_result
 from rt_ident.runtime.loop import IdentificationLoop
 from rt_ident.runtime.safety import SafetyMonitor
 from rt_ident.runtime.scheduler import Ticker
@@ -77,16 +78,11 @@ class InlineWorker:
 
     def poll(self) -> Any:
         now = self.clock()
-        latest = None
-        while self._due and self._due[0][0] <= now:
-            _, item = self._due.pop(0)
-            if isinstance(item, Exception):
-                self.errors += 1
-                self.last_error = str(item)
-            else:
-                self.fits += 1
-                latest = item
-        return latest
+        n = 0
+        while n < len(self._due) and self._due[n][0] <= now:
+            n += 1
+        done, self._due = self._due[:n], self._due[n:]
+        return newest_result(self, (item for _, item in done))
 
     def close(self) -> None:
         self._due.clear()
