@@ -516,6 +516,12 @@ def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:
                         ("RSS growth after the first 10 % (%)", f"{res.get('rss_growth_after_10pct_pct') or 0:+.2f}"),
                         ("RSS flat within +-5 %", res.get("rss_flat_within_5pct"))):
         tab.add_row(name, str(value))
+    for name, h in (res.get("helpers") or {}).items():
+        g = h.get("growth_after_10pct_pct")
+        tab.add_row(f"{name}: RSS first / last (MiB), growth after 10 % (%)",
+                    f"{h['first_kb'] / 1024:.1f} / {h['last_kb'] / 1024:.1f}, "
+                    f"{'n/a' if g is None else f'{g:+.2f}'}")
+    tab.add_row("every helper flat within +-5 %", str(res.get("helpers_flat_within_5pct")))
     out.print(tab)
 
 

@@ -182,3 +182,13 @@ def test_bench_loop_rates_option_is_parsed_sorted_and_bad_values_are_refused(mon
     for bad in ("fast", "0,170000"):
         res = CliRunner().invoke(app, ["bench", "--loop-rates", bad])
         assert res.exit_code != 0 and "--loop-rates" in res.output + str(res.exception)
+
+
+def test_soak_reports_every_helper_process_and_flags_one_that_grows():
+    from rt_ident.reports.bench_loop import _helper_growth
+
+    series = [(t, {"11": 100_000, "12": 100_000 + 50 * t, "13": 20_000}) for t in range(0, 20_000, 1000)]
+    out = _helper_growth({"helpers_rss": series, "helper_processes": {"pids": [12, 11]}})
+    assert set(out) == {"telemetry", "recorder", "pid 13"}          # named by the run's helper order
+    assert out["recorder"]["growth_after_10pct_pct"] == 0.0
+    assert out["telemetry"]["growth_after_10pct_pct"] > 50.0         # 100 -> 195 MB: a leak shows

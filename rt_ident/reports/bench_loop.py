@@ -37,6 +37,22 @@ def rss_kb():
     with open("/proc/self/statm") as fh:
         return int(fh.read().split()[1]) * page_kb
 rss = {"process_start_kb": rss_kb()}
+def children_rss_kb():
+    # every child of this process (the run's helpers, an emulator): {pid: rss_kb}
+    out = {}
+    try:
+        with open(f"/proc/self/task/{os.getpid()}/children") as fh:
+            kids = [int(x) for x in fh.read().split()]
+    except OSError:
+        return out
+    for k in kids:
+        try:
+            with open(f"/proc/{k}/statm") as fh:
+                out[k] = int(fh.read().split()[1]) * page_kb
+        except OSError:
+            pass
+    return out
+helpers_rss = []
 from rt_ident import config
 from rt_ident.runtime import run as runmod
 mapping, rrd = json.loads(sys.argv[1]), sys.argv[2] or None
@@ -53,6 +69,7 @@ def hook(ticks):
         stamps[ticks] = clock()
     if ticks == 1 or ticks % 1000 == 0:
         ticks_rss.append((ticks, rss_kb()))
+        helpers_rss.append((ticks, children_rss_kb()))
     if ticks == 1000:   # overruns during the first second (the loop's LoopStats, read from its frame)
         st = sys._getframe(1).f_locals.get("stats")
         startup["overruns_first_1s"] = getattr(st, "overruns", None)
@@ -66,6 +83,7 @@ gaps = [(k, round(1e3 * (stamps[k] - stamps[k - 1]), 3)) for k in range(2, n_tic
         if stamps[k] and stamps[k - 1] and stamps[k] - stamps[k - 1] > 1.5 * period]
 print(json.dumps({"loop": s.get("loop"), "stop": s.get("stop"), "telemetry": s.get("telemetry"),
                   "realtime": s.get("realtime"), "rss": rss, "rss_ticks": ticks_rss,
+                  "helpers_rss": helpers_rss, "helper_processes": s.get("helper_processes"),
                   "long_gaps_ms": gaps[:50], "n_long_gaps": len(gaps), **startup}, default=str))
 """
 
@@ -131,7 +149,25 @@ def loop_trial(rate: float, seconds: float, sink: str, *, method: str = "frequen
             "overruns_first_1s": res.get("overruns_first_1s"),
             "rss_series_kb": (res.get("rss_ticks") or [])[::max(1, len(res.get("rss_ticks") or []) // 20)],
             "rss_growth_after_10pct_pct": _growth_after(res.get("rss_ticks") or [], 0.1),
-            "rss_growth_pct": None if not first or not last else 100.0 * (last - first) / first}
+            "rss_growth_pct": None if not first or not last else 100.0 * (last - first) / first,
+            "helpers": _helper_growth(res)}
+
+
+def _helper_growth(res: dict[str, Any]) -> dict[str, Any]:
+    """RSS of every helper process over the run: first, 10 % in, last, and growth after 10 %."""
+    series = res.get("helpers_rss") or []
+    pids = (res.get("helper_processes") or {}).get("pids") or []
+    names = dict(zip(pids, ("telemetry", "recorder", "fit", "control")))
+    out: dict[str, Any] = {}
+    for pid in sorted({int(p) for _, d in series for p in d}):
+        pts = [(t, d[str(pid)] if str(pid) in d else d.get(pid)) for t, d in series]
+        pts = [(t, v) for t, v in pts if v]
+        if len(pts) < 3:
+            continue
+        name = names.get(pid, f"pid {pid}")
+        out[name] = {"first_kb": pts[0][1], "last_kb": pts[-1][1],
+                     "growth_after_10pct_pct": _growth_after(pts, 0.1)}
+    return out
 
 
 def _saturated(res: dict[str, Any]) -> bool:
@@ -203,4 +239,6 @@ def soak(seconds: float = 600.0, rate: float = 170_000, sink: str = "rrd",
     res = loop_trial(rate, seconds, sink, method=method)
     growth = res.get("rss_growth_pct")
     res["rss_flat_within_5pct"] = None if growth is None else abs(growth) <= 5.0
+    grow = [h.get("growth_after_10pct_pct") for h in (res.get("helpers") or {}).values()]
+    res["helpers_flat_within_5pct"] = None if not grow or None in grow else all(abs(g) <= 5.0 for g in grow)
     return res
