@@ -225,7 +225,7 @@ class Supervisor:
                 return f"{k} = {v:.4g} outside x{lo:g}..x{hi:g} of nominal {ref:.4g}"
         return None
 
-    def _cross_check(self, ident) -> tuple[AxisParams | None, Any, bool, str | None]:
+    def _cross_check(self, ident, trusted: bool) -> tuple[AxisParams | None, Any, bool, str | None]:
         """(estimate, its 95 % intervals, trusted, why it diverged) for a new frequency fit ``ident``.
 
         With a per-sample estimator, *it* is the estimate the controller follows, and it is trusted
@@ -234,7 +234,7 @@ class Supervisor:
         """
         est = self.per_sample
         if est is None:
-            return ident.params, ident.ci95, bool(ident.trusted), self.diverged(ident)
+            return ident.params, ident.ci95, trusted, self.diverged(ident)
         if not est.ready:
             return None, None, False, None
         p = est.params
@@ -258,9 +258,7 @@ class Supervisor:
         estimator)."""
         if self.s.mode != "adaptive" or ident is None:
             return
-        if self.per_sample is None:
-            ident = _with_trust(ident, trusted)
-        params, ci95, trusted, why = self._cross_check(ident)
+        params, ci95, trusted, why = self._cross_check(ident, trusted)
         # dual excitation: probe less while the estimate is trusted, fully again when it is not
         self.probe_scale = self.s.probe_scale_trusted if (trusted and why is None) else 1.0
         if why is not None:
@@ -331,14 +329,6 @@ class Supervisor:
                 "max_switch_step_nm": st.max_step_nm,
                 "per_sample": self._per_sample_summary(),
                 "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
-
-
-def _with_trust(ident, trusted: bool):
-    if bool(getattr(ident, "trusted", trusted)) == trusted:
-        return ident
-    import dataclasses
-
-    return dataclasses.replace(ident, trusted=trusted)
 
 
 def _params_text(p: AxisParams) -> str:

@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.config import RunConfig
-from rt_ident.control import make_controller, redesign
+from rt_ident.control import redesign
 from rt_ident.estimators import make_streaming
 from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.estimators.streaming import fit_snapshot
@@ -95,7 +95,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
     """
     from drivers import make_backend
-    from rt_ident.runtime.run import _excitation, _quanta, _warmup, backend_options, per_sample_estimator
+    from rt_ident.runtime.run import _excitation, _quanta, _warmup, backend_options, controller_for
 
     if cfg.backend.name != "sim":
         raise ConfigError("backend.name", "the offline loop runs the sim backend only")
@@ -111,17 +111,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
                          warmup_periods=cfg.loop.warmup_periods, forgetting=cfg.estimator.forgetting,
                          lead=truth.lead, quanta=(q1, q2), process_noise=cfg.estimator.kalman_process_noise)
     fit = InlineWorker(partial(fit_snapshot, cfg.estimator.method, lead=truth.lead), clock, latency=fit_latency)
-    settings = cfg.control.settings()
-    ctl = None
-    if settings.mode != "off":
-        from rt_ident.control.reference import make_reference
-
-        ctl_worker = InlineWorker(redesign, clock, latency=0.05, min_interval=0.0)
-        last = cfg.plant.last_change_s()
-        ctl = make_controller(settings, truth, tick=1.0 / cfg.loop.tick_hz, torque_limit=backend.torque_limit,
-                              reference=make_reference(cfg.reference), worker=ctl_worker,
-                              error_after_s=None if last is None else last + 0.5,
-                              per_sample=per_sample_estimator(cfg, dt, (q1, q2)))
+    ctl = controller_for(cfg, backend, InlineWorker(redesign, clock, latency=0.05, min_interval=0.0), (q1, q2))
     _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
     safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
                            watchdog_ticks=cfg.safety.watchdog_ticks)

@@ -66,24 +66,28 @@ def per_sample_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float])
     return est
 
 
-def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack, quanta: tuple[float, float]):
-    """The host's position controller (None with ``control.mode = "off"``) and its redesign worker."""
+def controller_for(cfg: RunConfig, backend, worker, quanta: tuple[float, float]):
+    """The host's position controller for ``cfg`` (None with ``control.mode = "off"``), redesigning
+    through ``worker`` (a process worker here, an inline one in :mod:`rt_ident.runtime.offline`)."""
     settings = cfg.control.settings()
     if settings.mode == "off":
-        return None, None
+        return None
     from rt_ident.control.reference import make_reference
 
-    reference = make_reference(cfg.reference)
+    last = cfg.plant.last_change_s()
+    return make_controller(settings, cfg.axis_params(), tick=1.0 / cfg.loop.tick_hz,
+                           torque_limit=backend.torque_limit, reference=make_reference(cfg.reference),
+                           worker=worker, error_after_s=None if last is None else last + 0.5,
+                           per_sample=per_sample_estimator(cfg, backend.sample_period, quanta))
+
+
+def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack, quanta: tuple[float, float]):
+    """The host's position controller (None with ``control.mode = "off"``) and its redesign worker."""
     worker = None
-    if settings.mode == "adaptive":
+    if cfg.control.mode == "adaptive":
         worker = JobWorker(redesign, name="rt_ident-control", min_interval=0.0).start()
         stack.callback(worker.close)
-    last = cfg.plant.last_change_s()
-    ctl = make_controller(settings, cfg.axis_params(), tick=1.0 / cfg.loop.tick_hz,
-                          torque_limit=backend.torque_limit, reference=reference, worker=worker,
-                          error_after_s=None if last is None else last + 0.5,
-                          per_sample=per_sample_estimator(cfg, backend.sample_period, quanta))
-    return ctl, worker
+    return controller_for(cfg, backend, worker, quanta), worker
 
 
 def _excitation(cfg: RunConfig):
