@@ -23,13 +23,52 @@ from rt_ident.errors import RtIdentError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Identify a machine-tool axis (two-inertia spring-damper) from simulation or a bench.")
-err = Console(stderr=True)
-out = Console()
+# soft_wrap: a line (a file path, a command to copy) is never broken at 80 columns when piped;
+# tables still fit the width (their columns fold instead of cutting values to "2.948...")
+err = Console(stderr=True, soft_wrap=True)
+out = Console(soft_wrap=True)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            v = version("rt-ident")
+        except PackageNotFoundError:
+            v = "unknown (not installed)"
+        typer.echo(f"rt-ident {v}")
+        raise typer.Exit()
 
 
 @app.callback()
-def _root() -> None:
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
     """rt-ident: model, simulate and identify a machine-tool axis; run the real-time loop."""
+
+
+UNITS = {"I1": "kg m²", "I2": "kg m²", "B": "N m s/rad", "K": "N m/rad", "wn": "rad/s", "wd": "rad/s", "zeta": "-",
+         "J": "kg m²", "Fc": "N m", "Fv": "N m s/rad", "Fc1": "N m", "Fv1": "N m s/rad", "Fc2": "N m",
+         "Fv2": "N m s/rad", "offset": "N m"}
+
+
+def _param_table(title: str, truth: bool = False) -> Table:
+    """The parameter table of run and identify: values never cut ('fold' wraps a cell instead)."""
+    tab = Table(title=title, title_justify="left")
+    tab.add_column("param", overflow="fold")
+    tab.add_column("unit", overflow="fold")
+    tab.add_column("estimate", justify="right", overflow="fold")
+    tab.add_column("95 % interval", justify="right", overflow="fold")
+    if truth:
+        tab.add_column("true", justify="right", overflow="fold")
+        tab.add_column("error %", justify="right", overflow="fold")
+    return tab
+
+
+def _interval(ci) -> str:
+    return "-" if not ci else f"{_fmt(ci[0])} .. {_fmt(ci[1])}"
 
 
 def _fmt(x: float) -> str:
@@ -273,17 +312,11 @@ def _print_run(s: dict) -> None:
             out.print("the run read no samples")
         return
     lat = loop.get("lateness_us") or {}
-    tab = Table(title=f"rt-ident run - {s['backend']} - method {s.get('method')}")
-    tab.add_column("param")
-    tab.add_column("estimate", justify="right")
-    tab.add_column("95 % interval", justify="right")
-    if s.get("truth"):
-        tab.add_column("true", justify="right")
-        tab.add_column("error %", justify="right")
+    tab = _param_table(f"rt-ident run - {s['backend']} - method {s.get('method')}", bool(s.get("truth")))
     params = s.get("parameters") or {}
     ci = s.get("ci95") or {}
     for k, v in params.items():
-        row = [k, _fmt(v), "-" if k not in ci or ci[k] is None else f"[{_fmt(ci[k][0])}, {_fmt(ci[k][1])}]"]
+        row = [k, UNITS.get(k, ""), _fmt(v), _interval(ci.get(k))]
         if s.get("truth"):
             row += [_fmt(s["truth"][k]), f"{s['error_pct'][k]:+.3f}"]
         tab.add_row(*row)
@@ -293,7 +326,7 @@ def _print_run(s: dict) -> None:
     elif not params:
         out.print("no estimate yet: the run ended before a full excitation period after the warm-up")
     else:
-        out.print(f"trusted: {s.get('trusted')}")
+        _print_trust(s.get("trust"), s.get("trusted"))
     out.print(f"loop: {loop.get('ticks', 0)} ticks, {loop.get('samples', 0)} samples, "
               f"{loop.get('overruns', 0)} overruns, lateness p50 {_fmt(lat.get('p50'))} us, "
               f"p99 {_fmt(lat.get('p99'))} us, max {_fmt(lat.get('max'))} us; "
@@ -338,6 +371,22 @@ def _print_run(s: dict) -> None:
     _print_stop(s)
 
 
+def _print_trust(trust: dict | None, trusted: bool | None = None) -> None:
+    """``trusted: yes`` or ``trusted: no`` with each failed criterion (and, with -v, all of them)."""
+    if not trust:
+        out.print(f"trusted: {'yes' if trusted else 'no'}")
+        return
+    if trust["trusted"]:
+        out.print(f"trusted: yes ({len(trust['criteria'])} criteria met)")
+        return
+    out.print("trusted: [bold]no[/]")
+    for why in trust["reasons"]:
+        out.print(f"  - {why}", highlight=False)
+    for c in trust["criteria"]:
+        if c["passed"]:
+            out.print(f"  ok: {c['criterion']} {_fmt(c['value'])} {c['limit']}", highlight=False, style="dim")
+
+
 def _print_stop(s: dict) -> None:
     stop = s.get("stop") or {}
     if stop.get("cause"):
@@ -347,8 +396,13 @@ def _print_stop(s: dict) -> None:
 # --------------------------------------------------------------------------- identify
 @app.command()
 def identify(
-    file: Optional[Path] = typer.Argument(None, help="A recording (.parquet from `run`) or a CSV t,theta1,theta2,torque."),
+    file: Optional[Path] = typer.Argument(None, help="A recording (.parquet from `run`) or a CSV t,theta1,theta2,torque "
+                                          "(t,theta1,torque with --model rigid-friction)."),
     method: Optional[str] = typer.Option(None, "--method", help="Estimator name (see --methods)."),
+    model: Optional[str] = typer.Option(None, "--model", help="two-inertia (default), two-inertia-friction or "
+                                        "rigid-friction (the friction models: method svf-ls)."),
+    validate: Optional[Path] = typer.Option(None, "--validate", help="Another recording: report the identified "
+                                            "model's relative torque-prediction error on it (--model fits)."),
     methods: bool = typer.Option(False, "--methods", help="List the estimators and exit."),
     period: Optional[int] = typer.Option(None, "--period", min=2, help="Excitation period in samples (else detected)."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
@@ -364,29 +418,37 @@ def identify(
         tab = Table(title="estimators (rt-ident identify --method NAME)")
         tab.add_column("name")
         tab.add_column("needs")
+        tab.add_column("models (--model)")
         tab.add_column("when to use it")
         for m in ms:
-            tab.add_row(m.name + (" (default)" if m.name == DEFAULT_METHOD else ""), m.needs, m.summary)
+            tab.add_row(m.name + (" (default)" if m.name == DEFAULT_METHOD else ""), m.needs, ", ".join(m.models),
+                        m.summary)
         out.print(tab)
         return
     if file is None:
         raise typer.BadParameter("give a recording FILE (or --methods)")
     from rt_ident.reports.identify import identify_file
 
-    ident, info = identify_file(file, method, period=period)
+    ident, info = identify_file(file, method, period=period, model=model)
     d = ident.as_dict()
+    if validate is not None:
+        from rt_ident.reports.identify import validate_file
+
+        d["validation"] = validate_file(ident, validate)
     if json_out:
         typer.echo(json.dumps({**d, "input": info}, indent=2, default=_json_default))
         return
-    tab = Table(title=f"{file} - method {d['method']} ({info['how']}, {info['samples']} samples)")
-    tab.add_column("param")
-    tab.add_column("estimate", justify="right")
-    tab.add_column("95 % interval", justify="right")
+    tab = _param_table(f"{file} - method {d['method']} ({info['how']}, {info['samples']} samples)")
     for k, v in d["parameters"].items():
-        ci = (d.get("ci95") or {}).get(k)
-        tab.add_row(k, _fmt(v), "-" if not ci else f"[{_fmt(ci[0])}, {_fmt(ci[1])}]")
+        tab.add_row(k, UNITS.get(k, ""), _fmt(v), _interval((d.get("ci95") or {}).get(k)))
     out.print(tab)
-    out.print(f"trusted: {d['trusted']}")
+    if "fit" in d:      # a --model fit (svf-ls): units are the file's own (N m and rad, or N and m)
+        out.print(f"model {d['model']}: torque fit NRMSE {d['fit']['nrmse_percent']:.2f} %")
+    if "validation" in d:
+        v = d["validation"]
+        out.print(f"validation on {v['file']}: torque prediction error {v['torque_error_percent']:.2f} % "
+                  f"(correlation {v['correlation']:.4f}, {v['samples_used']} samples in motion)")
+    _print_trust(d.get("trust"), d["trusted"])
 
 
 # --------------------------------------------------------------------------- bench
@@ -525,10 +587,35 @@ def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:
     out.print(tab)
 
 
+def _command():
+    """The click command behind ``app``, with on/off flags shown as ``--flag`` or ``--flag/--no-flag``
+    in ``--help`` rather than with a ``<bool>`` value they do not take."""
+    cmd = typer.main.get_command(app)
+
+    def fix(c) -> None:   # typer vendors its own click: duck-typed, not isinstance(click.Option)
+        for p in c.params:
+            if getattr(p, "is_flag", False):
+                p.metavar = ""
+        made = c.get_help_option
+
+        def help_option(ctx, made=made):
+            opt = made(ctx)
+            if opt is not None:
+                opt.metavar = ""
+            return opt
+
+        c.get_help_option = help_option
+        for sub in getattr(c, "commands", {}).values():
+            fix(sub)
+
+    fix(cmd)
+    return cmd
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        app()
+        _command()(prog_name="rt-ident")
     except RtIdentError as exc:
         err.print(f"[red]error:[/red] {exc}")
         sys.exit(2)

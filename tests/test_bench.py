@@ -121,7 +121,7 @@ def test_bench_main_json_prints_the_returned_data(monkeypatch, capsys):
 def test_bench_main_tables_name_the_machine_and_every_section(monkeypatch, capsys):
     out, text = _tiny_main(monkeypatch, capsys, json_out=False)
     for needle in (out["machine"]["cpu"][:20], "RLS, 5 regressors x 4 outputs", "Simulation of Eq. (3)",
-                   "Batch LS", "Issue 6 targets"):
+                   "Batch LS", "Speed and capacity targets"):
         assert needle in text
 
 

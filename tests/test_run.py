@@ -76,9 +76,10 @@ def test_rrd_holds_the_dashboard_entities_with_values(recorded):
         batch = chunk.to_record_batch()
         seen.setdefault(str(chunk.entity_path), 0)
         seen[str(chunk.entity_path)] += batch.num_rows
-    for entity in ("/params/K/estimate", "/params/K/true", "/params/B/estimate", "/modal/zeta/estimate",
-                   "/torque/measured", "/torque/reconstructed", "/angles/theta1", "/angles/theta2",
-                   "/loop/lateness_us"):
+    for entity in ("/params/K/estimate", "/params/K/true", "/params/K/ci95", "/params/B/estimate",
+                   "/modal/zeta/estimate", "/modal/wd/estimate", "/modal/wd/ci95", "/torque/drive",
+                   "/torque/nrmse_percent", "/angles", "/loop/lateness_us",
+                   "/frf/theta1/magnitude/model", "/frf/theta1/magnitude/measured", "/frf/theta2/phase/model"):
         assert seen.get(entity, 0) > 0, (entity, sorted(seen))
     assert s["telemetry"]["dropped"] == 0
 

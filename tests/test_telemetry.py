@@ -48,7 +48,8 @@ def _read_rrd(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         if "time" not in rb.schema.names or "Scalars:scalars" not in rb.schema.names:
             continue
         t = rb.column("time").cast("int64").to_numpy() * 1e-9  # duration[ns]
-        v = np.array([x[0] for x in rb.column("Scalars:scalars").to_pylist()])
+        v = np.array([x for x in rb.column("Scalars:scalars").to_pylist()], dtype=float)
+        v = v[:, 0] if v.ndim == 2 and v.shape[1] == 1 else v     # one series: a column of values
         parts.setdefault(chunk.entity_path.lstrip("/"), []).append((t, v))
     out = {}
     for ent, ps in parts.items():
@@ -72,24 +73,89 @@ def test_rrd_holds_dashboard_entities_with_the_values_sent(tmp_path: Path) -> No
     assert not summary["terminated"]
 
     data = _read_rrd(path)
-    expected = {dashboard.THETA1, dashboard.THETA2, dashboard.TORQUE_MEASURED, dashboard.TORQUE_RECONSTRUCTED,
+    expected = {dashboard.ANGLES, dashboard.TORQUE_DRIVE, dashboard.TORQUE_NRMSE,
                 dashboard.estimate_path("I1"), dashboard.truth_path("I1"), dashboard.estimate_path("K"),
                 dashboard.truth_path("K"), dashboard.estimate_path("wn"), dashboard.truth_path("wn"),
                 dashboard.LATENESS, dashboard.OVERRUNS}
     assert expected <= set(data)
-    # Decimation by 3 is continuous across blocks of 7 samples: every 3rd sample of the whole run.
+    # Decimation by 3 is continuous across blocks of 7 samples: every 3rd sample of the whole run;
+    # theta1 and theta2 share the rows of one entity.
     t_all = np.concatenate([b["t"] for b in blocks])
     th1_all = np.concatenate([b["theta1"] for b in blocks])
-    t, v = data[dashboard.THETA1]
-    assert np.allclose(t, t_all[::3], atol=1e-9, rtol=0) and np.array_equal(v, th1_all[::3])
-    # Tick-rate estimates are not decimated and sit on t_tick.
+    th2_all = np.concatenate([b["theta2"] for b in blocks])
+    t, v = data[dashboard.ANGLES]
+    assert np.allclose(t, t_all[::3], atol=1e-9, rtol=0)
+    assert np.array_equal(v[:, 0], th1_all[::3]) and np.array_equal(v[:, 1], th2_all[::3])
+    # the commanded torque is absent from every block: its series is NaN, the others are values
+    t, v = data[dashboard.TORQUE_DRIVE]
+    assert np.all(np.isnan(v[:, 1])) and np.all(np.isfinite(v[:, [0, 2]]))
+    # Tick-rate estimates are not decimated and sit on t_tick (I1 changes every tick: every tick kept).
     t, v = data[dashboard.estimate_path("I1")]
     assert np.array_equal(v, [b["I1"][0] for b in blocks])
     assert np.allclose(t, [b["t_tick"][0] for b in blocks], atol=1e-9, rtol=0)
-    assert data[dashboard.LATENESS][1][5] == 15.0
+    # Lateness is thinned to the largest of every 10 ticks: every late tick stays visible.
+    assert np.array_equal(data[dashboard.LATENESS][1], [3.0 * (k + 9) for k in range(0, 40, 10)])
+    # Overruns change every 10th tick: sent as steps (the change, the tick before it, the last).
+    t, v = data[dashboard.OVERRUNS]
+    assert np.array_equal(v, [0, 0, 1, 1, 2, 2, 3, 3])
+    # reconstruction = measured + 0.5: the NRMSE is 0.5 / std(measured) over the last second
+    meas = np.concatenate([b["torque_meas"] for b in blocks])[::3]
+    assert data[dashboard.TORQUE_NRMSE][1][-1] == pytest.approx(100 * 0.5 / np.std(meas), rel=1e-9)
     # The true value is drawn over the estimate's time span.
     t, v = data[dashboard.truth_path("K")]
     assert np.all(v == 2.5e5) and t.min() <= blocks[0]["t_tick"][0] and t.max() >= blocks[-1]["t_tick"][0]
+
+
+def test_blocks_are_batched_into_few_chunks_per_entity(tmp_path: Path) -> None:
+    """One chunk per entity per batch, not per block: rerun stores each send as a chunk, and tiny
+    chunks were most of an .rrd's size."""
+    from rerun.chunk import RrdReader
+
+    path = tmp_path / "batch.rrd"
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256, batch_seconds=10.0))
+    tp.start()
+    assert tp.wait_ready(20.0)
+    for k in range(200):
+        assert tp.publish(_block(k))
+    assert tp.close(timeout=10.0)["sent"] == 200
+    chunks: dict[str, int] = {}
+    for chunk in RrdReader(str(path)).stream():
+        if "time" in chunk.to_record_batch().schema.names:
+            chunks[chunk.entity_path.lstrip("/")] = chunks.get(chunk.entity_path.lstrip("/"), 0) + 1
+    assert chunks[dashboard.ANGLES] <= 2 and chunks[dashboard.estimate_path("K")] <= 3, chunks
+
+
+def test_fit_and_loop_gain_views_are_drawn_under_frf(tmp_path: Path) -> None:
+    from rerun.chunk import RrdReader
+
+    from rt_ident.estimators.frf import FRF_KEYS
+
+    path = tmp_path / "frf.rrd"
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path))).start()
+    assert tp.wait_ready(20.0)
+    f = np.geomspace(10, 1000, 50)
+    view = {k: np.linspace(-80, -20, 50) for k in FRF_KEYS}
+    view.update(f_meas=f[::5], m1_db=np.linspace(-80, -20, 10), p1_deg=np.full(10, -180.0),
+                m2_db=np.linspace(-85, -25, 10), p2_deg=np.full(10, -200.0), f_model=f,
+                g1_deg=np.full(50, -180.0), g2_deg=np.full(50, -190.0), marks_hz=np.array([300.0, 250.0]))
+    assert tp.publish_fit(1.0, view)
+    lg = {"f_hz": f, "mag_db": np.linspace(40, -40, 50), "phase_deg": np.linspace(-270, -150, 50)}
+    assert tp.publish_loop_gain(1.0, lg, {"pm_deg": 50.0, "gm_db": 8.0})
+    assert tp.close(timeout=10.0)["exitcode"] == 0
+    seen = {chunk.entity_path for chunk in RrdReader(str(path)).stream()}
+    for entity in ("/frf/theta1/magnitude/model", "/frf/theta1/magnitude/measured", "/frf/theta1/magnitude/band_low",
+                   "/frf/theta2/phase/model", "/frf/theta1/magnitude/marks", "/frf/loop/magnitude/loop_gain",
+                   "/frf/loop/phase/marks"):
+        assert entity in seen, (entity, sorted(seen))
+
+
+def test_step_points_keep_each_change_and_the_row_before_it() -> None:
+    from rt_ident.runtime.telemetry import _step_points
+
+    v = np.array([[1.0], [1.0], [1.0], [2.0], [2.0], [np.nan], [np.nan]])
+    assert list(_step_points(v, np.array([1.0]), extend=False)) == [2, 3, 4, 5]
+    assert list(_step_points(v, np.array([1.0]), extend=True)) == [2, 3, 4, 5, 6]
+    assert list(_step_points(v, None, extend=False)) == [0, 2, 3, 4, 5]
 
 
 def test_connect_to_absent_viewer_never_blocks_publish_and_counts_drops() -> None:
@@ -174,7 +240,8 @@ def test_blueprint_has_a_view_for_every_entity() -> None:
     origins = [str(v.origin) for v in grid.contents]
     assert len(origins) == len(set(origins))
     paths = (list(dashboard.BLOCK_ENTITIES.values()) + [dashboard.truth_path(k) for k in dashboard.ESTIMATE_KEYS]
-             + list(dashboard.CONTROL_ENTITIES.values()))
+             + list(dashboard.CONTROL_ENTITIES.values()) + [dashboard.TORQUE_NRMSE]
+             + [f"frf/{s}/{p}" for s in ("theta1", "theta2", "loop") for p in ("magnitude", "phase")])
     for path in paths:
         assert any(path == o or path.startswith(o + "/") for o in origins), path
     assert set(dashboard.SERIES_STYLES) >= set(dashboard.BLOCK_ENTITIES.values())

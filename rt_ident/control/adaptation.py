@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from rt_ident.axis.params import AxisParams
-from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_margins
+from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_gain_view, loop_margins
 from rt_ident.control.law import Controller, StateFeedback
 from rt_ident.errors import RtIdentError
 
@@ -62,12 +62,12 @@ def rigid_controller(nominal: AxisParams, tick: float, s: ControlSettings) -> Co
     """The conservative controller from the configured nominal rigid-body inertia I1 + I2."""
     g = design_rigid(nominal.I1 + nominal.I2, tick, s.conservative_bandwidth_hz, s.effort, s.delay_ticks)
     return Controller(g, nominal, "conservative", s.conservative_bandwidth_hz,
-                      loop_margins(g, nominal, tick).as_dict())
+                      loop_margins(g, nominal, tick).as_dict(), loop_gain_view(g, nominal, tick))
 
 
 def model_controller(p: AxisParams, tick: float, s: ControlSettings, kind: str = "model") -> Controller:
     g = design_lqr(p, tick, s.bandwidth_hz, s.effort, s.delay_ticks)
-    return Controller(g, p, kind, s.bandwidth_hz, loop_margins(g, p, tick).as_dict())
+    return Controller(g, p, kind, s.bandwidth_hz, loop_margins(g, p, tick).as_dict(), loop_gain_view(g, p, tick))
 
 
 def redesign(request: dict[str, Any]) -> dict[str, Any]:
@@ -86,7 +86,7 @@ def redesign(request: dict[str, Any]) -> dict[str, Any]:
                          factors=tuple(s.family_factors), ci95=request.get("ci95"))
     out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": request.get("seq")}
     if check.ok:
-        out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict())
+        out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict(), ctrl.loop_view)
     return out
 
 

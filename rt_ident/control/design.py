@@ -163,6 +163,24 @@ def delay_of(G: np.ndarray) -> int:
     return int(np.asarray(G).size) - 5
 
 
+def loop_gain_view(G: np.ndarray, p: AxisParams, tick: float, n: int = 200) -> dict[str, np.ndarray]:
+    """The loop gain of :func:`loop_margins` (broken at the controller output) on a log grid up to
+    the tick's Nyquist frequency, for the dashboard: ``f_hz``, ``mag_db``, ``phase_deg``."""
+    Az, Bz = sampled_model(p, tick, delay_of(G))
+    Gr = np.asarray(G, dtype=float).reshape(1, -1)
+    f = np.geomspace(0.1, 0.499 / tick, n)
+    z = np.exp(2j * math.pi * f * tick)
+    eye = np.eye(Az.shape[0])
+    # L(z) = G (zI - Az)^-1 Bz; the loop's sign convention u = -G x makes -L the open-loop gain
+    # whose Nyquist plot is checked against -1 (as control.stability_margins does with L)
+    L = np.array([(Gr @ np.linalg.solve(zi * eye - Az, Bz))[0, 0] for zi in z])
+    with np.errstate(divide="ignore"):
+        mag = 20.0 * np.log10(np.abs(L))
+    ph = np.degrees(np.unwrap(np.angle(L)))
+    ph -= 360.0 * math.ceil(ph[0] / 360.0)   # the Bode convention: low-frequency phase in (-360, 0]
+    return {"f_hz": f, "mag_db": mag, "phase_deg": ph}
+
+
 def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
     """Margins of the loop G on plant ``p`` (broken at the controller output)."""
     Az, Bz = sampled_model(p, tick, delay_of(G))

@@ -9,6 +9,9 @@
   damping term);
 * feedforward u_ff = (I1 + I2) alpha_ref, taken half a tick after the torque lands (the
   middle of the tick it is held over), since the torque computed now is applied one tick later;
+* optional friction feedforward (``StateFeedback.friction``, a
+  :class:`rt_ident.control.feedforward.FrictionFeedforward`; issue #14) adds Fv w + Fc sat(w / band)
+  at the reference velocity of the same instant;
 * the delay states are the feedback torques in flight (the design's ``u_{k-d} .. u_{k-1}``);
 * the integral ``xi`` of the table-angle error stops integrating while the torque saturates
   in the direction that would wind it up.
@@ -21,7 +24,7 @@ feedback torque as the old one at the switching instant, so the torque does not 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -37,6 +40,7 @@ class Controller:
     kind: str                  # "conservative" | "model" | "fixed"
     bandwidth_hz: float
     margins: dict | None = None
+    loop_view: dict | None = field(default=None, compare=False, repr=False)  # design.loop_gain_view
 
     @property
     def inertia(self) -> float:
@@ -67,6 +71,7 @@ class StateFeedback:
         self.u = 0.0                # last total control torque [N m]
         self.u_ff = 0.0
         self.saturated = 0          # ticks the command hit the limit
+        self.friction = None        # FrictionFeedforward or None (rt_ident.control.feedforward)
 
     def _errors(self, th1: float, w1: float, th2: float, w2: float,
                 x_ref: float, v_ref: float, a_ref: float, lead: float) -> tuple[float, float, float, float]:
@@ -82,6 +87,8 @@ class StateFeedback:
         e3 = (th2 - x_ref / lead)
         u_fb = self.feedback_torque(th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
         u_ff = self.controller.inertia * a_ff / lead if self.feedforward else 0.0
+        if self.friction is not None:           # velocity at the middle of the tick the torque is held over
+            u_ff += self.friction.torque((v_ref + 0.75 * self.tick * (a_ref + a_ff)) / lead)
         u = u_fb + u_ff
         wind = 0.0
         if u > self.limit:

@@ -148,6 +148,11 @@ class Identification:
     modal       : wn, wd, zeta of the flexible mode of ``params``
     trusted     : whether the data were informative enough (see rt_ident.estimators.uncertainty)
     diagnostics : numbers behind ``trusted`` and the fit (cond, min_eig, periods, n_samples, ...)
+    trust_criteria : each criterion behind ``trusted`` (see
+                  :func:`rt_ident.estimators.uncertainty.criterion`); empty when the estimator
+                  states none (then ``reasons`` says so for an untrusted result)
+    frf         : the frequency-response view of the fit (:func:`rt_ident.estimators.frf.frf_view`),
+                  when the method has one; the dashboard draws it
     """
 
     params: AxisParams
@@ -156,6 +161,21 @@ class Identification:
     modal: dict[str, float]
     trusted: bool
     diagnostics: dict[str, float] = field(default_factory=dict)
+    trust_criteria: tuple[dict[str, Any], ...] = ()
+    frf: dict[str, Any] | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def reasons(self) -> list[str]:
+        """Why the result is not trusted (empty when it is)."""
+        if self.trusted:
+            return []
+        why = [c["why"] or c["criterion"] for c in self.trust_criteria if not c["passed"]]
+        return why or [f"{self.method} states no trust criteria; its result is never trusted"]
+
+    def trust(self) -> dict[str, Any]:
+        """``{"trusted", "reasons", "criteria"}`` as the CLI's JSON reports it."""
+        return {"trusted": bool(self.trusted), "reasons": self.reasons,
+                "criteria": [dict(c) for c in self.trust_criteria]}
 
     def value(self, key: str) -> float:
         """A physical (I1, I2, B, K) or modal (wn, wd, zeta) value by name."""
@@ -175,5 +195,6 @@ class Identification:
             "ci95": None if self.ci95 is None else {
                 k: [_json_float(lo), _json_float(hi)] for k, (lo, hi) in self.ci95.items()},
             "trusted": bool(self.trusted),
+            "trust": self.trust(),
             "diagnostics": {k: _json_float(v) for k, v in self.diagnostics.items()},
         }

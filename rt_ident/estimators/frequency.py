@@ -39,7 +39,7 @@ from rt_ident.errors import ConfigError, DataError, EstimationError
 from rt_ident.estimators.base import Identification
 from rt_ident.estimators.sampled_model import (HOLDS, POS, check_hold, frequency_response,  # noqa: F401
                                                hold_model)
-from rt_ident.estimators.uncertainty import (build_identification, covariance_from_jacobian,
+from rt_ident.estimators.uncertainty import (build_identification, covariance_from_jacobian, criterion,
                                              excitation_report, params_from_log)
 
 logger = logging.getLogger(__name__)
@@ -388,20 +388,20 @@ def identification_from_fit(sp: Spectra, fit: FitResult, hold: str, *, lead: flo
     m1, m2, _ = regressors(sp, hold)
     pe = excitation_report([m1[:, [0, 2, 3]], np.vstack([m1, m2])])
     snr = math.nan
-    extra_ok, why = True, ""
+    checks = [criterion("Gauss-Newton fit converged", fit.converged, float(fit.iterations), "converged",
+                        f"Gauss-Newton stopped after {fit.iterations} iterations without converging")]
     if sp.periods >= 2:
         var_T = sp.cov[:, 2, 2].real * sp.mean_cov_factor
         snr = float(np.median(np.abs(sp.mean[2]) ** 2 / np.maximum(var_T, 1e-300)))
-        if not snr >= MIN_SNR:
-            extra_ok, why = False, f"torque lines barely above noise (median SNR {snr:.3g} < {MIN_SNR:g})"
+        checks.append(criterion("median torque-line SNR (power)", snr >= MIN_SNR, snr, f">= {MIN_SNR:g}",
+                                f"torque lines barely above noise (median SNR {snr:.3g} < {MIN_SNR:g})"))
     diag = {"periods": float(sp.periods), "period_samples": float(sp.N), "n_harmonics": float(sp.harmonics.size),
             "chi2_dof": fit.s2, "iterations": float(fit.iterations), "converged": float(fit.converged),
             "snr_median_db": 10.0 * math.log10(snr) if snr > 0.0 else math.nan}
     if n_samples is not None:
         diag["n_samples"] = float(n_samples)
     cov_log = fit.cov[:4, :4] if np.all(np.isfinite(fit.cov[:4, :4])) else None
-    return build_identification(p, method, cov_log, pe, diag, extra_ok=extra_ok and fit.converged,
-                                extra_reason=why or "Gauss-Newton did not converge")
+    return build_identification(p, method, cov_log, pe, diag, checks=checks)
 
 
 def compute_spectra(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, dt: float, *,

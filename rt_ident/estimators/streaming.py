@@ -171,8 +171,18 @@ def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.9
     if method == "frequency":
         from rt_ident.estimators.frequency import fit_spectra, identification_from_fit
 
+        import dataclasses
+
+        from rt_ident.estimators.frf import frf_view
+
         fit = fit_spectra(snap, hold)
-        return identification_from_fit(snap, fit, hold, lead=lead)
+        ident = identification_from_fit(snap, fit, hold, lead=lead)
+        try:                              # the dashboard's FRF view; a fit is never lost over it
+            view = frf_view(snap, fit.x, fit.cov[:4, :4], hold)
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
+            log.debug("frf view not built: %s", e)
+            view = None
+        return dataclasses.replace(ident, frf=view)
     if method == "paper":
         from rt_ident.axis.modal import modal_parameters
         from rt_ident.estimators.base import Identification as Ident

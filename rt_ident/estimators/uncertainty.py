@@ -37,7 +37,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -169,6 +169,8 @@ class ExcitationReport:
     cond: float         # its condition number
     trusted: bool       # min_eig >= MIN_EIG and cond <= MAX_COND
     reason: str
+    min_eig_limit: float = MIN_EIG
+    max_cond_limit: float = MAX_COND
 
 
 def excitation_report(regressors: Sequence[np.ndarray], *, min_eig: float = MIN_EIG,
@@ -201,39 +203,61 @@ def excitation_report(regressors: Sequence[np.ndarray], *, min_eig: float = MIN_
         ok, reason = False, f"ill-conditioned regression: condition number {worst_cond:.3g} > {max_cond:g}"
     else:
         ok, reason = True, "persistently exciting"
-    return ExcitationReport(min_eig=worst_eig, cond=worst_cond, trusted=ok, reason=reason)
+    return ExcitationReport(min_eig=worst_eig, cond=worst_cond, trusted=ok, reason=reason,
+                            min_eig_limit=min_eig, max_cond_limit=max_cond)
 
 
 # --------------------------------------------------------------------------- assembly
+def criterion(name: str, passed: bool, value: float | None = None, limit: str = "", why: str = "") -> dict[str, Any]:
+    """One trust criterion as the JSON reports it: what was checked, the number, the limit, the verdict
+    and (when it failed) why in words."""
+    v = None if value is None or not math.isfinite(float(value)) else float(value)
+    return {"criterion": name, "value": v, "limit": limit, "passed": bool(passed), "why": "" if passed else why}
+
+
 def build_identification(p: AxisParams, method: str, cov_log: np.ndarray | None,
                          excitation: ExcitationReport, diagnostics: Mapping[str, float] | None = None,
                          *, extra_ok: bool = True, extra_reason: str = "",
+                         checks: Sequence[dict[str, Any]] = (),
                          max_rel_halfwidth: float = MAX_REL_HALFWIDTH) -> Identification:
     """Assemble an :class:`Identification` with intervals and the trust decision.
 
-    trusted = excitation.trusted and extra_ok and every 95 % half-width of
-    I1, I2, B, K <= max_rel_halfwidth of its value (when a covariance is given).
+    trusted = every criterion passed: persistent excitation (min eigenvalue, condition number of
+    the normalized information matrix), the method's own ``checks`` (e.g. the fit converged),
+    ``extra_ok``, and every 95 % half-width of I1, I2, B, K <= max_rel_halfwidth of its value
+    (when a covariance is given).
+    The criteria, with the reason of each failure, travel with the result (``trust_criteria``).
     """
     modal = modal_parameters(p)
     diag: dict[str, float] = {k: float(v) for k, v in (diagnostics or {}).items()}
     diag["min_eig"] = excitation.min_eig
     diag["cond"] = excitation.cond
     ci = None
-    trusted = excitation.trusted and extra_ok
-    reasons = [] if excitation.trusted else [excitation.reason]
+    crit = [
+        criterion("excitation: smallest eigenvalue of the normalized information matrix",
+                  excitation.min_eig >= excitation.min_eig_limit, excitation.min_eig,
+                  f">= {excitation.min_eig_limit:g}", excitation.reason),
+        criterion("excitation: condition number of the normalized information matrix",
+                  excitation.cond <= excitation.max_cond_limit, excitation.cond,
+                  f"<= {excitation.max_cond_limit:g}", excitation.reason),
+    ]
+    crit += [dict(c) for c in checks]
     if not extra_ok:
-        reasons.append(extra_reason)
+        crit.append(criterion(f"{method}: method check", False, why=extra_reason))
     if cov_log is not None:
         ci = intervals(p, cov_log)
         values = {k: float(getattr(p, k)) for k in PARAM_KEYS}
         rel = relative_halfwidths({k: ci[k] for k in PARAM_KEYS}, values)
         worst_key = max(rel, key=lambda k: rel[k])
         diag["max_rel_ci95"] = rel[worst_key]
-        if not rel[worst_key] <= max_rel_halfwidth:
-            trusted = False
-            reasons.append(f"95 % interval of {worst_key} is +-{100 * rel[worst_key]:.3g} % "
-                           f"(> {100 * max_rel_halfwidth:g} %)")
+        crit.append(criterion("widest 95 % interval of I1, I2, B, K (half-width, relative)",
+                              rel[worst_key] <= max_rel_halfwidth, 100 * rel[worst_key],
+                              f"<= {100 * max_rel_halfwidth:g} %",
+                              f"95 % interval of {worst_key} is +-{100 * rel[worst_key]:.3g} % "
+                              f"(> {100 * max_rel_halfwidth:g} %)"))
+    trusted = all(c["passed"] for c in crit)
     if not trusted:
-        logger.info("%s: identification not trusted: %s", method, "; ".join(reasons))
+        logger.info("%s: identification not trusted: %s", method,
+                    "; ".join(c["why"] for c in crit if not c["passed"]))
     return Identification(params=p, method=method, ci95=ci, modal=modal, trusted=bool(trusted),
-                          diagnostics=diag)
+                          diagnostics=diag, trust_criteria=tuple(crit))

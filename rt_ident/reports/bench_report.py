@@ -125,7 +125,7 @@ def print_report(result: dict[str, Any]) -> None:
                            ("max_sustained_rate", "kept pace")):
             con.print(f"largest rate with {label}: " + ", ".join(
                 f"telemetry {k}: {_si(v, 'samples/s') if v else 'none'}" for k, v in loop[key].items()))
-    t = Table(title="Issue 6 targets (this run)")
+    t = Table(title="Speed and capacity targets, measured in this run")
     t.add_column("target")
     t.add_column("met", justify="right")
     for part in ("rls", "sim", "ls", "loop"):

@@ -1,147 +1,305 @@
-"""The rerun dashboard: entity paths (all in one place) and the default blueprint.
+"""The rerun dashboard: entity paths (all in one place), how the FRF views are drawn, the blueprint.
 
-Entity paths (time series on the ``time`` timeline, duration in seconds):
+Time series (``time`` timeline, duration in seconds). An entity with several series holds one
+row per time with one scalar per series: signals sampled together share their row id and time
+column, which is most of a small row's bytes (a 10-s run's .rrd went from 2.9 to 1.9 MB).
 
-====================================  ==========================================  =========
-entity                                block key (see :mod:`rt_ident.runtime.telemetry`)   unit
-====================================  ==========================================  =========
-``params/{I1,I2,B,K}/estimate``       ``"I1"``, ``"I2"``, ``"B"``, ``"K"``        SI
-``params/{I1,I2,B,K}/true``           ``set_truth({...})``                        SI
-``modal/{wn,zeta}/estimate``          ``"wn"``, ``"zeta"``                        rad/s, -
-``modal/{wn,zeta}/true``              ``set_truth({...})``                        rad/s, -
-``torque/measured``                   ``"torque_meas"``                           N m
-``torque/commanded``                  ``"torque_cmd"``                            N m
-``torque/reconstructed``              ``"torque_hat"`` (Eq. 18)                   N m
-``angles/theta1``, ``angles/theta2``  ``"theta1"``, ``"theta2"``                  rad
-``loop/lateness_us``                  ``"lateness_us"``                           us
-``loop/overruns``                     ``"overruns"``                              count
-``control/position/{reference,actual}`` ``"x_ref"``, ``"x_table"``               m
-``control/error``                     ``"error_m"`` (table minus reference)       m
-``torque/control``                    ``"u_control"`` (the host's control torque) N m
-``control/gains/{theta2,omega1}``     ``"gain_theta2"``, ``"gain_omega1"``        N m/rad, N m s/rad
-``control/margins/{pm_deg,gm_db}``    ``"pm_deg"``, ``"gm_db"`` (nominal loop)    deg, dB
-``control/redesigns/{accepted,rejected}`` ``"n_accepted"``, ``"n_rejected"``           count
-``control/redesigns/fallbacks``       ``"fallbacks"``                             count
-``params/{I1,I2,B,K}/per_sample``     ``"svf_I1"`` ... (the per-sample estimate)   SI
-====================================  ==========================================  =========
+==========================================  ===============================================  ============
+entity                                      block keys (see :mod:`rt_ident.runtime.telemetry`)  unit
+==========================================  ===============================================  ============
+``angles``                                  ``theta1``, ``theta2``                           rad
+``torque/drive``                            ``torque_meas``, ``torque_cmd``, ``torque_hat``  N m
+                                            (measured, commanded, Eq. 18 reconstruction)
+``torque/nrmse_percent``                    (the telemetry process: Eq. 18 vs measured, 1 s)  %
+``torque/control``                          ``u_control`` (the host's control torque)        N m
+``params/{I1,I2,B,K}/estimate``             ``I1`` ... ``K``                                 SI
+``params/{I1,I2,B,K}/ci95``                 ``lo_I1``, ``hi_I1`` ... (95 % interval)         SI
+``params/{I1,I2,B,K}/true``                 ``set_truth({...})``                             SI
+``params/{I1,I2,B,K}/per_sample``           ``svf_I1`` ... (the per-sample estimate)         SI
+``modal/{wn,wd,zeta}/estimate|ci95|true``   ``wn``, ``wd``, ``zeta``, ``lo_wn`` ...          rad/s, -
+``loop/lateness_us``, ``loop/overruns``     ``lateness_us``, ``overruns``                    us, count
+``control/position``                        ``x_ref``, ``x_table``                           m
+``control/error``                           ``error_m`` (table minus reference)              m
+``control/gains/{theta2,omega1}``           ``gain_theta2``, ``gain_omega1``                 N m/rad, N m s/rad
+``control/margins/{pm_deg,gm_db}``          ``pm_deg``, ``gm_db`` (nominal loop)             deg, dB
+``control/redesigns``                       ``n_accepted``, ``n_rejected``, ``fallbacks``    count
+==========================================  ===============================================  ============
 
-``rerun`` is imported only inside :func:`default_blueprint`, so the real-time process can import
+Frequency responses (logged at each fit / redesign on the ``time`` timeline, so scrubbing the
+time shows the FRF as it was then), under ``frf/``:
+
+* ``frf/theta1/{magnitude,phase}``, ``frf/theta2/{magnitude,phase}``: the measured FRF
+  (``Points2D`` at the excited lines) with the identified model's (``LineStrips2D``) and its 95 %
+  band; the resonance and the anti-resonance marked;
+* ``frf/loop/{magnitude,phase}``: the active controller's loop gain on the identified model,
+  with the crossover and the margins.
+
+Why ``LineStrips2D`` in a 2-D view and not time series over a frequency timeline: a time series
+holds every value ever logged at an index, so the FRFs of successive fits would pile up; a strip
+logged at time t is *replaced* by the next fit, and the view shows the one valid at the selected
+time. The 2-D view has no log axis, so the drawing space is ``x = 100 log10(f / Hz)`` (one decade
+= 100 units) and ``y = -2 dB`` (or ``-phase / 2``: the y axis of a 2-D view points down), with
+its own labelled grid lines.
+
+``rerun`` is imported only inside the functions that draw, so the real-time process can import
 the path constants without loading rerun.
 """
 
 from __future__ import annotations
 
+import math
 from types import MappingProxyType
 from typing import Any, Mapping
 
+import numpy as np
+
 PARAM_NAMES: tuple[str, ...] = ("I1", "I2", "B", "K")
-MODAL_NAMES: tuple[str, ...] = ("wn", "zeta")
+MODAL_NAMES: tuple[str, ...] = ("wn", "wd", "zeta")
 ESTIMATE_KEYS: tuple[str, ...] = PARAM_NAMES + MODAL_NAMES
 
-TORQUE_MEASURED = "torque/measured"
-TORQUE_COMMANDED = "torque/commanded"
-TORQUE_RECONSTRUCTED = "torque/reconstructed"
-THETA1 = "angles/theta1"
-THETA2 = "angles/theta2"
+ANGLES = "angles"
+TORQUE_DRIVE = "torque/drive"
+TORQUE_NRMSE = "torque/nrmse_percent"
+TORQUE_CONTROL = "torque/control"
 LATENESS = "loop/lateness_us"
 OVERRUNS = "loop/overruns"
-TORQUE_CONTROL = "torque/control"
+FRF = "frf"
+
+
+def _group(key: str) -> str:
+    return "params" if key in PARAM_NAMES else "modal"
+
+
+def estimate_path(key: str) -> str:
+    """Entity of the running estimate of ``key`` (one of :data:`ESTIMATE_KEYS`)."""
+    return f"{_group(key)}/{key}/estimate"
+
+
+def truth_path(key: str) -> str:
+    """Entity of the true value of ``key``, drawn next to its estimate."""
+    return f"{_group(key)}/{key}/true"
+
+
+def interval_path(key: str) -> str:
+    """Entity of the 95 % interval of ``key`` (two series: lower, upper)."""
+    return f"{_group(key)}/{key}/ci95"
+
 
 #: Per-tick control signals -> entity paths (sent on the tick timeline like the estimates).
 CONTROL_ENTITIES: Mapping[str, str] = MappingProxyType(
     {
-        "x_ref": "control/position/reference",
-        "x_table": "control/position/actual",
+        "x_ref": "control/position",
+        "x_table": "control/position",
         "error_m": "control/error",
         "u_control": TORQUE_CONTROL,
         "gain_theta2": "control/gains/theta2",
         "gain_omega1": "control/gains/omega1",
         "pm_deg": "control/margins/pm_deg",
         "gm_db": "control/margins/gm_db",
-        "n_accepted": "control/redesigns/accepted",
-        "n_rejected": "control/redesigns/rejected",
-        "fallbacks": "control/redesigns/fallbacks",
+        "n_accepted": "control/redesigns",
+        "n_rejected": "control/redesigns",
+        "fallbacks": "control/redesigns",
         **{f"svf_{k}": f"params/{k}/per_sample" for k in PARAM_NAMES},
     }
 )
 
-
-def estimate_path(key: str) -> str:
-    """Entity of the running estimate of ``key`` (one of :data:`ESTIMATE_KEYS`)."""
-    return f"{'params' if key in PARAM_NAMES else 'modal'}/{key}/estimate"
-
-
-def truth_path(key: str) -> str:
-    """Entity of the true value of ``key``, drawn next to its estimate."""
-    return f"{'params' if key in PARAM_NAMES else 'modal'}/{key}/true"
-
-
-#: Block key -> entity path for every signal the telemetry process draws.
-BLOCK_ENTITIES: Mapping[str, str] = MappingProxyType(
+#: Entity path -> the block keys it holds, one series each, in this order.
+ENTITY_SERIES: Mapping[str, tuple[str, ...]] = MappingProxyType(
     {
-        "theta1": THETA1,
-        "theta2": THETA2,
-        "torque_meas": TORQUE_MEASURED,
-        "torque_cmd": TORQUE_COMMANDED,
-        "torque_hat": TORQUE_RECONSTRUCTED,
-        **{k: estimate_path(k) for k in ESTIMATE_KEYS},
-        "lateness_us": LATENESS,
-        "overruns": OVERRUNS,
-        **CONTROL_ENTITIES,
+        ANGLES: ("theta1", "theta2"),
+        TORQUE_DRIVE: ("torque_meas", "torque_cmd", "torque_hat"),
+        **{estimate_path(k): (k,) for k in ESTIMATE_KEYS},
+        **{interval_path(k): (f"lo_{k}", f"hi_{k}") for k in ESTIMATE_KEYS},
+        LATENESS: ("lateness_us",),
+        OVERRUNS: ("overruns",),
+        "control/position": ("x_ref", "x_table"),
+        "control/error": ("error_m",),
+        TORQUE_CONTROL: ("u_control",),
+        "control/gains/theta2": ("gain_theta2",),
+        "control/gains/omega1": ("gain_omega1",),
+        "control/margins/pm_deg": ("pm_deg",),
+        "control/margins/gm_db": ("gm_db",),
+        "control/redesigns": ("n_accepted", "n_rejected", "fallbacks"),
+        **{f"params/{k}/per_sample": (f"svf_{k}",) for k in PARAM_NAMES},
     }
 )
+
+#: Block key -> entity path of every signal the loop publishes.
+BLOCK_ENTITIES: Mapping[str, str] = MappingProxyType({k: path for path, keys in ENTITY_SERIES.items() for k in keys})
 
 _UNITS = MappingProxyType({"I1": "kg m²", "I2": "kg m²", "B": "N m s/rad", "K": "N m/rad",
-                           "wn": "rad/s", "zeta": "-"})
+                           "wn": "rad/s", "wd": "rad/s", "zeta": "-"})
 _EST_COLOR = (31, 119, 180)
+_CI_COLOR = (158, 202, 225)
 _TRUE_COLOR = (150, 150, 150)
+_RED, _GREEN, _ORANGE, _PURPLE, _GREY = (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189), (127, 127, 127)
 
-#: Entity path -> (legend name, RGB colour), logged once as static ``rr.SeriesLines``.
-SERIES_STYLES: Mapping[str, tuple[str, tuple[int, int, int]]] = MappingProxyType(
+#: Entity path -> (legend names, RGB colours) per series, logged once as static ``rr.SeriesLines``.
+SERIES_STYLES: Mapping[str, tuple[tuple[str, ...], tuple[tuple[int, int, int], ...]]] = MappingProxyType(
     {
-        **{estimate_path(k): (f"{k} estimate [{_UNITS[k]}]", _EST_COLOR) for k in ESTIMATE_KEYS},
-        **{truth_path(k): (f"{k} true [{_UNITS[k]}]", _TRUE_COLOR) for k in ESTIMATE_KEYS},
-        **{f"params/{k}/per_sample": (f"{k} per-sample (svf) [{_UNITS[k]}]", (255, 127, 14)) for k in PARAM_NAMES},
-        TORQUE_MEASURED: ("measured [N m]", (214, 39, 40)),
-        TORQUE_COMMANDED: ("commanded [N m]", (127, 127, 127)),
-        TORQUE_RECONSTRUCTED: ("reconstructed, Eq. 18 [N m]", (44, 160, 44)),
-        THETA1: ("theta1 motor [rad]", (31, 119, 180)),
-        THETA2: ("theta2 table x/l [rad]", (255, 127, 14)),
-        LATENESS: ("tick lateness [us]", (148, 103, 189)),
-        OVERRUNS: ("overruns [count]", (214, 39, 40)),
-        "control/position/reference": ("reference [m]", (127, 127, 127)),
-        "control/position/actual": ("table [m]", (31, 119, 180)),
-        "control/error": ("tracking error [m]", (214, 39, 40)),
-        TORQUE_CONTROL: ("control torque [N m]", (255, 127, 14)),
-        "control/gains/theta2": ("gain on theta2 [N m/rad]", (31, 119, 180)),
-        "control/gains/omega1": ("gain on omega1 [N m s/rad]", (255, 127, 14)),
-        "control/margins/pm_deg": ("phase margin [deg]", (44, 160, 44)),
-        "control/margins/gm_db": ("gain margin [dB]", (148, 103, 189)),
-        "control/redesigns/accepted": ("redesigns accepted", (44, 160, 44)),
-        "control/redesigns/rejected": ("redesigns rejected", (214, 39, 40)),
-        "control/redesigns/fallbacks": ("fallbacks to the conservative controller", (127, 127, 127)),
+        **{estimate_path(k): ((f"{k} estimate [{_UNITS[k]}]",), (_EST_COLOR,)) for k in ESTIMATE_KEYS},
+        **{interval_path(k): ((f"{k} 95 % lower", f"{k} 95 % upper"), (_CI_COLOR, _CI_COLOR)) for k in ESTIMATE_KEYS},
+        **{truth_path(k): ((f"{k} true [{_UNITS[k]}]",), (_TRUE_COLOR,)) for k in ESTIMATE_KEYS},
+        **{f"params/{k}/per_sample": ((f"{k} per-sample (svf) [{_UNITS[k]}]",), (_ORANGE,)) for k in PARAM_NAMES},
+        ANGLES: (("theta1 motor [rad]", "theta2 table x/l [rad]"), (_EST_COLOR, _ORANGE)),
+        TORQUE_DRIVE: (("measured [N m]", "commanded [N m]", "reconstructed, Eq. 18 [N m]"), (_RED, _GREY, _GREEN)),
+        TORQUE_NRMSE: (("Eq. 18 vs measured, NRMSE over 1 s [%]",), (_GREEN,)),
+        TORQUE_CONTROL: (("control torque [N m]",), (_ORANGE,)),
+        LATENESS: (("tick lateness [us] (max per 10 ticks)",), (_PURPLE,)),
+        OVERRUNS: (("overruns [count]",), (_RED,)),
+        "control/position": (("reference [m]", "table [m]"), (_GREY, _EST_COLOR)),
+        "control/error": (("tracking error [m]",), (_RED,)),
+        "control/gains/theta2": (("gain on theta2 [N m/rad]",), (_EST_COLOR,)),
+        "control/gains/omega1": (("gain on omega1 [N m s/rad]",), (_ORANGE,)),
+        "control/margins/pm_deg": (("phase margin [deg]",), (_GREEN,)),
+        "control/margins/gm_db": (("gain margin [dB]",), (_PURPLE,)),
+        "control/redesigns": (("redesigns accepted", "redesigns rejected", "fallbacks to the conservative controller"),
+                              (_GREEN, _RED, _GREY)),
     }
 )
+
+# ------------------------------------------------------------------ frequency-response drawing
+_X_PER_DECADE = 100.0
+_Y_PER_DB = 2.0
+_Y_PER_DEG = 0.5
+
+
+def _x(f_hz: np.ndarray) -> np.ndarray:
+    return _X_PER_DECADE * np.log10(np.asarray(f_hz, dtype=float))
+
+
+def _strip(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(x) & np.isfinite(y)
+    return np.column_stack([x[ok], y[ok]])
+
+
+def _grid(lo_hz: float, hi_hz: float, y_lo: float, y_hi: float, y_step: float, y_scale: float, unit: str
+          ) -> tuple[list[np.ndarray], list[str], np.ndarray, list[str]]:
+    """Grid lines and their labels: a vertical line at each 1-2-5 frequency, a horizontal one every
+    ``y_step`` units of the quantity (dB or deg)."""
+    strips, labels, pts, pt_labels = [], [], [], []
+    y0, y1 = -y_scale * y_hi, -y_scale * y_lo
+    for dec in range(int(math.floor(math.log10(lo_hz))), int(math.ceil(math.log10(hi_hz))) + 1):
+        for m in (1, 2, 5):
+            f = m * 10.0 ** dec
+            if lo_hz <= f <= hi_hz:
+                x = float(_x(np.array([f]))[0])
+                strips.append(np.array([[x, y0], [x, y1]]))
+                labels.append("")
+                if m == 1:
+                    pts.append([x, y1 + 6.0])
+                    pt_labels.append(f"{f / 1000:g} kHz" if f >= 1000 else f"{f:g} Hz")
+    x0, x1 = float(_x(np.array([lo_hz]))[0]), float(_x(np.array([hi_hz]))[0])
+    v = math.floor(y_lo / y_step) * y_step
+    while v <= y_hi + 1e-9:
+        y = -y_scale * v
+        strips.append(np.array([[x0, y], [x1, y]]))
+        labels.append("")
+        pts.append([x0 - 4.0, y])
+        pt_labels.append(f"{v:g} {unit}")
+        v += y_step
+    return strips, labels, np.array(pts, dtype=float).reshape(-1, 2), pt_labels
+
+
+def _bode_pair(rec: Any, rr: Any, base: str, f_model: np.ndarray, curves: list[tuple[str, np.ndarray, np.ndarray,
+               tuple[int, int, int]]], f_meas: np.ndarray | None, meas: tuple[np.ndarray, np.ndarray] | None,
+               marks: list[tuple[float, str]], mag_floor: float | None = None) -> None:
+    """Draw one magnitude and one phase panel under ``base`` (see the module docstring)."""
+    lo_hz, hi_hz = float(np.min(f_model)), float(np.max(f_model))
+    for part, k, step, scale, unit in (("magnitude", 0, 20.0, _Y_PER_DB, "dB"), ("phase", 1, 90.0, _Y_PER_DEG, "deg")):
+        ys = [c[1 + k] for c in curves]
+        if meas is not None:
+            ys.append(meas[k])
+        allv = np.concatenate([np.ravel(y) for y in ys])
+        allv = allv[np.isfinite(allv)]
+        if allv.size == 0:
+            continue
+        y_lo, y_hi = float(allv.min()), float(allv.max())
+        if k == 0 and mag_floor is not None:
+            y_lo = max(y_lo, mag_floor)
+        y_lo, y_hi = math.floor(y_lo / step) * step, math.ceil(y_hi / step) * step
+        path = f"{base}/{part}"
+        strips, labels, pts, pt_labels = _grid(lo_hz, hi_hz, y_lo, y_hi, step, scale, unit)
+        rec.log(f"{path}/grid", rr.LineStrips2D(strips, colors=[(90, 90, 90)], radii=rr.Radius.ui_points(0.5)),
+                rr.Points2D(pts, labels=pt_labels, radii=rr.Radius.ui_points(0.1), colors=[(170, 170, 170)],
+                            show_labels=True))
+        for name, *vals, color in curves:
+            if not np.any(np.isfinite(vals[k])):
+                continue
+            y = -scale * np.clip(vals[k], y_lo - step, y_hi + step)
+            rec.log(f"{path}/{name}", rr.LineStrips2D([_strip(_x(f_model), y)], colors=[color],
+                                                      radii=rr.Radius.ui_points(1.5 if "band" not in name else 0.8)))
+        if meas is not None and f_meas is not None:
+            y = -scale * np.asarray(meas[k], dtype=float)
+            rec.log(f"{path}/measured", rr.Points2D(_strip(_x(f_meas), y), colors=[_RED],
+                                                    radii=rr.Radius.ui_points(3.0)))
+        y0, y1 = -scale * y_hi, -scale * y_lo
+        mk = [(f, text) for f, text in marks if math.isfinite(f) and lo_hz <= f <= hi_hz]
+        if mk:
+            rec.log(f"{path}/marks", rr.LineStrips2D([np.array([[float(_x(np.array([f]))[0]), y0],
+                                                               [float(_x(np.array([f]))[0]), y1]]) for f, _ in mk],
+                                                     labels=[text for _, text in mk], colors=[_PURPLE],
+                                                     radii=rr.Radius.ui_points(1.0), show_labels=True))
+
+
+def draw_fit_frf(rec: Any, rr: Any, view: Mapping[str, np.ndarray]) -> None:
+    """The measured FRFs of theta1 and theta2 with the model and its 95 % band (one fit)."""
+    f_res, f_anti = (float(v) for v in view["marks_hz"][:2])
+    for j, name in ((1, "theta1"), (2, "theta2")):
+        g = f"g{j}"
+        curves = [("model", view[f"{g}_db"], view[f"{g}_deg"], _EST_COLOR),
+                  ("band_low", view[f"{g}_lo"], view[f"{g}_deg"] * np.nan, _CI_COLOR),
+                  ("band_high", view[f"{g}_hi"], view[f"{g}_deg"] * np.nan, _CI_COLOR)]
+        marks = [(f_res, f"resonance {f_res:.0f} Hz")]
+        if j == 1:
+            marks.append((f_anti, f"anti-resonance {f_anti:.0f} Hz"))
+        _bode_pair(rec, rr, f"{FRF}/{name}", view["f_model"], curves, view["f_meas"],
+                   (view[f"m{j}_db"], view[f"p{j}_deg"]), marks)
+
+
+def draw_loop_gain(rec: Any, rr: Any, view: Mapping[str, np.ndarray], margins: Mapping[str, float]) -> None:
+    """The active controller's loop gain, 0 dB and -180 deg lines, crossover and margins."""
+    f, mag, ph = (np.asarray(view[k], dtype=float) for k in ("f_hz", "mag_db", "phase_deg"))
+    zero = np.zeros_like(f)
+    curves = [("loop_gain", mag, ph, _EST_COLOR), ("reference_0db_m180", zero, zero - 180.0, _GREY)]
+    cross = np.flatnonzero(np.diff(np.sign(mag)) != 0)
+    pm, gm = margins.get("pm_deg"), margins.get("gm_db")
+    text = f"crossover, PM {pm:.0f} deg" if pm is not None and math.isfinite(pm) else "crossover"
+    if gm is not None and math.isfinite(gm):
+        text += f", GM {gm:.1f} dB"
+    marks = [(float(f[cross[0]]), text)] if cross.size else []
+    _bode_pair(rec, rr, f"{FRF}/loop", f, curves, None, None, marks, mag_floor=-80.0)
 
 
 def default_blueprint() -> Any:
-    """A grid of time-series views: I1, I2, B, K (each with its true value), wn, zeta,
-    measured vs reconstructed torque, encoder angles, loop lateness, overruns."""
+    """One grid: FRFs (measured vs model, loop gain), the estimates with their 95 % bands and true
+    values, torque vs its Eq. 18 reconstruction and NRMSE, tracking, margins, the loop's timing."""
     import rerun.blueprint as rrb
 
+    def frf(origin: str, name: str) -> Any:
+        return rrb.Spatial2DView(origin=origin, name=name)
+
     views = [
-        rrb.TimeSeriesView(origin=f"params/{k}", name=f"{k} [{_UNITS[k]}]") for k in PARAM_NAMES
+        frf(f"{FRF}/theta1/magnitude", "FRF theta1/T: measured (dots) vs model, 95 % band [dB]"),
+        frf(f"{FRF}/theta2/magnitude", "FRF theta2/T: measured (dots) vs model, 95 % band [dB]"),
+        frf(f"{FRF}/theta1/phase", "FRF theta1/T phase [deg]"),
+        frf(f"{FRF}/loop/magnitude", "loop gain of the active controller [dB]"),
+        frf(f"{FRF}/loop/phase", "loop gain phase [deg]"),
     ]
+    views += [rrb.TimeSeriesView(origin=f"params/{k}", name=f"{k} [{_UNITS[k]}]") for k in PARAM_NAMES]
     views += [rrb.TimeSeriesView(origin=f"modal/{k}", name=f"{k} [{_UNITS[k]}]") for k in MODAL_NAMES]
     views += [
-        rrb.TimeSeriesView(origin="torque", name="torque: measured vs reconstructed (Eq. 18)"),
-        rrb.TimeSeriesView(origin="angles", name="encoder angles [rad]"),
-        rrb.TimeSeriesView(origin=LATENESS, name="loop lateness [us]"),
-        rrb.TimeSeriesView(origin=OVERRUNS, name="loop overruns"),
+        rrb.TimeSeriesView(origin=TORQUE_DRIVE, name="torque: measured vs reconstructed (Eq. 18) [N m]"),
+        rrb.TimeSeriesView(origin=TORQUE_NRMSE, name="Eq. 18 reconstruction NRMSE [%]"),
         rrb.TimeSeriesView(origin="control/position", name="table position: reference vs actual [m]"),
         rrb.TimeSeriesView(origin="control/error", name="tracking error [m]"),
-        rrb.TimeSeriesView(origin="control/gains", name="controller gains"),
+        rrb.TimeSeriesView(origin=TORQUE_CONTROL, name="control torque [N m]"),
         rrb.TimeSeriesView(origin="control/margins", name="margins of the active controller"),
+        rrb.TimeSeriesView(origin="control/gains", name="controller gains"),
         rrb.TimeSeriesView(origin="control/redesigns", name="redesigns accepted / rejected, fallbacks"),
+        rrb.TimeSeriesView(origin=ANGLES, name="encoder angles [rad]"),
+        rrb.TimeSeriesView(origin=LATENESS, name="loop lateness [us]"),
+        rrb.TimeSeriesView(origin=OVERRUNS, name="loop overruns"),
+        frf(f"{FRF}/theta2/phase", "FRF theta2/T phase [deg]"),
     ]
-    return rrb.Blueprint(rrb.Grid(*views, grid_columns=4), collapse_panels=True)
+    return rrb.Blueprint(rrb.Grid(*views, grid_columns=6), collapse_panels=True)

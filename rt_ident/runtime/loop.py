@@ -92,7 +92,8 @@ class IdentificationLoop:
                  stop_event: threading.Event | None = None, clock: Callable[[], float] = time.perf_counter,
                  tick_hook: Callable[[int], None] | None = None,
                  max_sleep_s: float | None = 100e-6, control=None, ticker: Ticker | None = None,
-                 probe_period: int | None = None) -> None:
+                 probe_period: int | None = None, on_fit: Callable[[float, Any], Any] | None = None,
+                 on_loop_gain: Callable[[float, Any, Any], Any] | None = None) -> None:
         self.backend = backend
         self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hz = tick_hz
@@ -104,6 +105,9 @@ class IdentificationLoop:
         self.duration = duration
         self.on_block = on_block
         self.on_telemetry = on_telemetry
+        self.on_fit = on_fit                # a new fit's FRF view -> the dashboard (never blocks)
+        self.on_loop_gain = on_loop_gain    # a new controller's loop gain -> the dashboard
+        self._shown_controller: Any = None
         self.publish_every = max(1, publish_every)
         self.stride = max(1, telemetry_stride)
         self.stop_event = stop_event or threading.Event()
@@ -185,6 +189,8 @@ class IdentificationLoop:
             if latest is not None:
                 self.identification = latest
                 stats.estimates += 1
+                if self.on_fit is not None and latest.frf is not None:
+                    self.on_fit(float(block.t[-1]), latest.frf)
                 if ctl is not None:
                     ctl.offer(latest, bool(latest.trusted))
         if ctl is not None:
@@ -313,12 +319,20 @@ class IdentificationLoop:
             if ident is not None:
                 for key in ("I1", "I2", "B", "K"):
                     tick[key] = np.full(k, getattr(ident.params, key))
-                tick["wn"] = np.full(k, ident.modal["wn"])
-                tick["zeta"] = np.full(k, ident.modal["zeta"])
+                for key in ("wn", "wd", "zeta"):
+                    tick[key] = np.full(k, ident.modal[key])
+                for key, (lo, hi) in (ident.ci95 or {}).items():
+                    if key in ("I1", "I2", "B", "K", "wn", "wd", "zeta"):
+                        tick[f"lo_{key}"] = np.full(k, lo)
+                        tick[f"hi_{key}"] = np.full(k, hi if math.isfinite(hi) else np.nan)
             ctl = self.control
             if ctl is not None:
                 tick.update({key: v[:k] for key, v in self._tick_ctl.items()})
                 st, c = ctl.stats, ctl.controller
+                if self.on_loop_gain is not None and c is not self._shown_controller:
+                    self._shown_controller = c
+                    self.on_loop_gain(float(self._tick_t[k - 1]), c.loop_view,
+                                      {"pm_deg": (c.margins or {}).get("pm_deg"), "gm_db": c.gain_margin_db})
                 tick["n_accepted"] = np.full(k, float(st.accepted))
                 tick["n_rejected"] = np.full(k, float(st.rejected))
                 tick["fallbacks"] = np.full(k, float(st.fallbacks))

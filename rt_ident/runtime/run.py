@@ -164,7 +164,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                                 summary["serve_url"])
                 if cfg.backend.name == "sim":
                     telemetry.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
-                                         **{k: v for k, v in modal_parameters(truth).items() if k != "wd"}})
+                                         **modal_parameters(truth)})
             dt = backend.sample_period                 # known from the config, before any I/O
             meta = {"backend": cfg.backend.name, "sample_period": dt, "axis": truth.as_dict(),
                     "excitation": ex.model_dump(), "method": cfg.estimator.method,
@@ -197,6 +197,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 safety=safety, duration=cfg.loop.duration, fit_worker=worker,
                 on_block=recorder.put if recorder else None,
                 on_telemetry=telemetry.publish if telemetry else None,
+                on_fit=telemetry.publish_fit if telemetry else None,
+                on_loop_gain=telemetry.publish_loop_gain if telemetry else None,
                 publish_every=cfg.telemetry.publish_every_ticks,
                 telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
                 stop_event=stop, tick_hook=hooks,
@@ -302,7 +304,7 @@ def _final_fit(loop: IdentificationLoop, est) -> str | None:
 def _ident_summary(ident) -> dict[str, Any]:
     d = ident.as_dict()
     return {"parameters": d["parameters"], "ci95": d.get("ci95"), "trusted": d.get("trusted"),
-            "method": d.get("method")}
+            "trust": d.get("trust"), "method": d.get("method")}
 
 
 def _quanta(cfg: RunConfig) -> tuple[float, float]:

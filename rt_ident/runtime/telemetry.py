@@ -47,16 +47,32 @@ from typing import Any, Mapping
 import numpy as np
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.runtime.dashboard import BLOCK_ENTITIES, CONTROL_ENTITIES, ESTIMATE_KEYS, SERIES_STYLES, truth_path
+from rt_ident.runtime.dashboard import (BLOCK_ENTITIES, CONTROL_ENTITIES, ENTITY_SERIES, ESTIMATE_KEYS, SERIES_STYLES,
+                                        TORQUE_NRMSE, draw_fit_frf, draw_loop_gain, truth_path)
 from rt_ident.runtime.helper_guard import become_helper, start_ignoring_signals
 from rt_ident.runtime.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
 
 SINKS: tuple[str, ...] = ("rrd", "spawn", "connect", "serve", "off")
-TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + ("lateness_us", "overruns") + tuple(CONTROL_ENTITIES))
-_MAX_COALESCE = 256  # blocks merged into one send_columns per entity in the child
+_CI_KEYS = tuple(f"{side}_{k}" for k in ESTIMATE_KEYS for side in ("lo", "hi"))
+TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("lateness_us", "overruns") + tuple(CONTROL_ENTITIES))
+#: Tick-rate signals drawn at a tenth of the tick rate (the lateness as its envelope: every late
+#: tick stays visible); the per-sample estimates settle over ~100 ms, 100 points/s draw them whole.
+THIN_KEYS: Mapping[str, int] = {"lateness_us": 10, **{f"svf_{k}": 10 for k in ("I1", "I2", "B", "K")}}
+#: Tick-rate signals that change only now and then (a fit, a redesign, an overrun): sent as steps.
+STEP_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("overruns", "gain_theta2", "gain_omega1", "pm_deg",
+                                                       "gm_db", "n_accepted", "n_rejected", "fallbacks"))
+_MAX_COALESCE = 256  # blocks taken from the ring per poll
+_MAX_PENDING = 2048  # blocks held in the child before a send even if batch_seconds has not passed
 _TRUTH = "truth:"    # key prefix of a truth message in the ring
+_VIEWS = ("frf:", "lg:")  # key prefixes of a fit's FRF view and of a controller's loop-gain view
+_NRMSE_WINDOW_S = 1.0  # Eq. 18 reconstruction NRMSE over the last second of samples
+# Every send_columns is a chunk of its own (~1-2 kB of overhead in the .rrd). A step signal that did
+# not change is therefore extended (its last value re-sent) only this often, and the FRF views are
+# drawn at most this often (the newest one wins; the last one is always drawn at close).
+_EXTEND_S = 5.0
+_VIEW_EVERY_S = 2.0
 _POLL_S = 0.01       # child: sleep between polls of an empty ring
 
 
@@ -80,6 +96,10 @@ class TelemetryConfig:
     queue_size: int = 64  # blocks buffered between the loop and the child
     ring_bytes: int = 8 << 20  # and at most this many bytes of them
     flush_timeout: float = 2.0  # child: max wait for rerun to flush at close
+    # child: send at most every batch_seconds (one chunk per entity per batch). Rerun stores each
+    # send_columns as its own chunk; one per 20-ms block made ~8000 tiny chunks in 10 s and
+    # 2.4 MB/s of .rrd. Half a second keeps the live view fluid and the chunks big enough to compress.
+    batch_seconds: float = 1.0
 
     def __post_init__(self) -> None:
         if self.sink not in SINKS:
@@ -106,6 +126,8 @@ class TelemetryConfig:
             raise ConfigError("application_id", "must not be empty")
         if not (math.isfinite(self.flush_timeout) and self.flush_timeout > 0):
             raise ConfigError("flush_timeout", f"must be > 0 s, got {self.flush_timeout!r}")
+        if not (math.isfinite(self.batch_seconds) and 0 <= self.batch_seconds <= 10):
+            raise ConfigError("batch_seconds", f"must be in 0..10 s, got {self.batch_seconds!r}")
 
 
 def viewer_command(cfg: TelemetryConfig) -> list[str]:
@@ -181,21 +203,171 @@ def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
         rec.connect_grpc(f"rerun+http://{host}:{cfg.port}/proxy", default_blueprint=bp)
 
 
-def _send(rec: Any, rr: Any, blocks: list[dict[str, np.ndarray]], truth: dict[str, float]) -> None:
-    """One ``send_columns`` per entity for a list of blocks (and the truth line segments)."""
-    keys = [k for k in BLOCK_ENTITIES if any(k in b for b in blocks)]
-    for key in keys:
-        tcol = [b["t_tick"] if key in TICK_KEYS and "t_tick" in b else b["t"] for b in blocks if key in b]
-        t = np.concatenate(tcol)
-        if t.size == 0:
-            continue
-        v = np.concatenate([b[key] for b in blocks if key in b])
-        rec.send_columns(BLOCK_ENTITIES[key], indexes=[rr.TimeColumn("time", duration=t)],
-                         columns=rr.Scalars.columns(scalars=v))
-        if key in truth:
-            span = np.array([t.min(), t.max()])
-            rec.send_columns(truth_path(key), indexes=[rr.TimeColumn("time", duration=span)],
-                             columns=rr.Scalars.columns(scalars=np.full(2, truth[key])))
+def _step_points(v: np.ndarray, last: np.ndarray | None, extend: bool) -> np.ndarray:
+    """Row indices of a piecewise-constant signal worth sending (``v``: rows x series): each row
+    where any series changes, with the row just before it (so the viewer draws a step, not a ramp),
+    and, when ``extend``, the batch's last row (so the line reaches the present). ``last`` is the
+    row sent at the end of the previous batch."""
+    n = v.shape[0]
+    prev = np.empty_like(v)
+    prev[0] = np.nan if last is None else last
+    prev[1:] = v[:-1]
+    same = np.all((v == prev) | (np.isnan(v) & np.isnan(prev)), axis=1)
+    change = np.flatnonzero(~same)
+    keep = np.zeros(n, dtype=bool)
+    keep[change] = True
+    keep[change[change > 0] - 1] = True
+    keep[-1] |= extend
+    return np.flatnonzero(keep)
+
+
+def _thin(t: np.ndarray, v: np.ndarray, every: int, envelope: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``every``-th row, or (``envelope``) the row with the largest first series of each run
+    of ``every`` rows, so a single late tick still shows as a spike."""
+    if every <= 1 or v.shape[0] <= every:
+        return t, v
+    if not envelope:
+        return t[every - 1::every], v[every - 1::every]
+    m = v.shape[0] // every * every
+    w = v[:m, 0].reshape(-1, every)
+    arg = np.argmax(np.where(np.isnan(w), -np.inf, w), axis=1) + np.arange(0, m, every)
+    tail = np.arange(m, v.shape[0])[-1:] if m < v.shape[0] else np.empty(0, dtype=int)
+    idx = np.concatenate([arg, tail])
+    return t[idx], v[idx]
+
+
+class _Sender:
+    """Sends coalesced blocks with one ``send_columns`` per entity per batch.
+
+    An entity's series share one row per time (:data:`~rt_ident.runtime.dashboard.ENTITY_SERIES`;
+    a series missing from a block, like the reconstruction before the first fit, is NaN there).
+    Signals that change only at a fit or a redesign (estimates, intervals, gains, margins,
+    counters) are sent as their change points (:func:`_step_points`): repeating one value per
+    tick was most of the .rrd's bytes for none of its information. The Eq. 18 reconstruction's
+    NRMSE against the measured torque is computed here, over the last second, once per batch."""
+
+    def __init__(self, rec: Any, rr: Any) -> None:
+        self.rec, self.rr = rec, rr
+        self.last: dict[str, np.ndarray] = {}
+        self.extended: dict[str, float] = {}      # entity -> when its line was last extended
+        self.truth_sent: dict[str, float] = {}    # truth entity -> last time its line was extended to
+        self.tail: dict[str, tuple[float, np.ndarray, bool]] = {}  # step entity -> (last t, row, was sent)
+        self.views: dict[str, dict[str, np.ndarray]] = {}   # newest undrawn view per kind
+        self.view_drawn: dict[str, float] = {}
+        self._torque: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # (t, measured, reconstructed)
+
+    def send(self, blocks: list[dict[str, np.ndarray]], truth: dict[str, float], final: bool = False) -> None:
+        rec, rr = self.rec, self.rr
+        now = time.monotonic()
+        for path, keys in ENTITY_SERIES.items():
+            have = [b for b in blocks if any(k in b for k in keys)]
+            if not have:
+                continue
+            tick = keys[0] in TICK_KEYS
+            t = np.concatenate([b["t_tick"] if tick and "t_tick" in b else b["t"] for b in have])
+            if t.size == 0:
+                continue
+            cols = []
+            for k in keys:
+                parts = []
+                for b in have:
+                    n = (b["t_tick"] if tick and "t_tick" in b else b["t"]).size
+                    parts.append(b[k] if k in b else np.full(n, np.nan))
+                cols.append(np.concatenate(parts))
+            v = np.column_stack(cols)
+            if all(k in STEP_KEYS for k in keys):
+                extend = final or now - self.extended.get(path, -math.inf) >= _EXTEND_S
+                idx = _step_points(v, self.last.get(path), extend)
+                self.last[path] = v[-1].copy()
+                self.tail[path] = (float(t[-1]), v[-1].copy(), idx.size > 0 and idx[-1] == v.shape[0] - 1)
+                if extend:
+                    self.extended[path] = now
+                if idx.size == 0:
+                    continue
+                t, v = t[idx], v[idx]
+            elif keys[0] in THIN_KEYS:
+                t, v = _thin(t, v, THIN_KEYS[keys[0]], envelope=keys[0] == "lateness_us")
+            rec.send_columns(path, indexes=[rr.TimeColumn("time", duration=t)],
+                             columns=rr.Scalars.columns(scalars=v if v.shape[1] > 1 else v[:, 0]))
+            for k in keys:
+                if k in truth and (final or truth_path(k) not in self.truth_sent
+                                   or now - self.extended.get(truth_path(k), -math.inf) >= _EXTEND_S):
+                    start = self.truth_sent.get(truth_path(k), float(t.min()))
+                    span = np.array([start, max(start, float(t.max()))])
+                    self.truth_sent[truth_path(k)] = float(span[1])
+                    self.extended[truth_path(k)] = now
+                    rec.send_columns(truth_path(k), indexes=[rr.TimeColumn("time", duration=span)],
+                                     columns=rr.Scalars.columns(scalars=np.full(2, truth[k])))
+        self._nrmse(blocks)
+
+    def finish(self, truth: dict[str, float]) -> None:
+        """At close: every step line and true-value line reaches the last time seen."""
+        rr = self.rr
+        t_end = -math.inf
+        for path, (t, row, sent) in self.tail.items():
+            t_end = max(t_end, t)
+            if not sent:
+                self.rec.send_columns(path, indexes=[rr.TimeColumn("time", duration=np.array([t]))],
+                                      columns=rr.Scalars.columns(scalars=row[None, :] if row.size > 1 else row))
+        for key, value in truth.items():
+            start = self.truth_sent.get(truth_path(key))
+            if start is not None and t_end > start:
+                self.rec.send_columns(truth_path(key), indexes=[rr.TimeColumn("time", duration=np.array([start, t_end]))],
+                                      columns=rr.Scalars.columns(scalars=np.full(2, value)))
+
+    def _nrmse(self, blocks: list[dict[str, np.ndarray]]) -> None:
+        """NRMSE [%] of the Eq. 18 reconstruction against the measured torque over the last second:
+        100 rms(T_hat - T) / std(T), the fit measure of rt_ident.estimators.excitation_id."""
+        for b in blocks:
+            if "torque_meas" in b and "torque_hat" in b:
+                self._torque.append((b["t"], b["torque_meas"], b["torque_hat"]))
+        if not self._torque:
+            return
+        t_end = float(self._torque[-1][0][-1])
+        while self._torque and float(self._torque[0][0][-1]) < t_end - _NRMSE_WINDOW_S:
+            self._torque.pop(0)
+        if not self._torque:
+            return
+        meas = np.concatenate([x[1] for x in self._torque])
+        hat = np.concatenate([x[2] for x in self._torque])
+        ok = np.isfinite(meas) & np.isfinite(hat)
+        if ok.sum() < 10:
+            return
+        sd = float(np.std(meas[ok]))
+        if sd <= 0.0:
+            return
+        value = 100.0 * float(np.sqrt(np.mean((hat[ok] - meas[ok]) ** 2))) / sd
+        self.rec.send_columns(TORQUE_NRMSE, indexes=[self.rr.TimeColumn("time", duration=np.array([t_end]))],
+                              columns=self.rr.Scalars.columns(scalars=np.array([value])))
+
+    def offer_view(self, msg: dict[str, np.ndarray], final: bool = False) -> None:
+        """Keep the newest view of its kind; draw it when the last one of that kind is old enough."""
+        kind = "frf:" if any(k.startswith("frf:") for k in msg) else "lg:"
+        self.views[kind] = msg
+        self.draw_views(final)
+
+    def draw_views(self, final: bool = False) -> None:
+        now = time.monotonic()
+        for kind in list(self.views):
+            # a new controller's loop gain is drawn at once (rare); fits are rate-limited
+            if final or kind == "lg:" or now - self.view_drawn.get(kind, -math.inf) >= _VIEW_EVERY_S:
+                msg = self.views.pop(kind)
+                self.view_drawn[kind] = now
+                try:
+                    self._draw_view(kind, msg)
+                except (ValueError, KeyError, TypeError) as e:   # a view that cannot be drawn is skipped
+                    log.warning("telemetry: view not drawn: %s", e)
+
+    def _draw_view(self, kind: str, msg: dict[str, np.ndarray]) -> None:
+        """A fit's FRF view or a controller's loop gain, logged at its time (see rt_ident.runtime.dashboard)."""
+        rec, rr = self.rec, self.rr
+        view = {k[len(kind):]: v for k, v in msg.items() if k.startswith(kind)}
+        rec.set_time("time", duration=float(view.pop("t")[0]))
+        if kind == "frf:":
+            draw_fit_frf(rec, rr, view)
+        else:
+            margins = {"pm_deg": float(view.pop("pm_deg")[0]), "gm_db": float(view.pop("gm_db")[0])}
+            draw_loop_gain(rec, rr, view, margins)
 
 
 def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: Any, truth: dict[str, float]) -> None:
@@ -207,24 +379,35 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
 
     rec = rr.RecordingStream(cfg.application_id)
     _open_sink(rec, cfg, rr)
-    for path, (name, color) in SERIES_STYLES.items():
-        rec.log(path, rr.SeriesLines(names=name, colors=[color]), static=True)
+    for path, (names, colors) in SERIES_STYLES.items():
+        rec.log(path, rr.SeriesLines(names=list(names), colors=list(colors)), static=True)
     ready.set()
     truth = dict(truth)
+    sender = _Sender(rec, rr)
+    pending: list[dict[str, np.ndarray]] = []
+    last_send = time.monotonic()
     while True:
         closed = ring.writer_closed or watch.gone   # read before draining: nothing can follow a close
         msgs = ring.get(_MAX_COALESCE)
-        blocks = []
         for m in msgs:
             if any(k.startswith(_TRUTH) for k in m):
                 truth.update({k[len(_TRUTH):]: float(v[0]) for k, v in m.items()})
+            elif any(k.startswith(_VIEWS) for k in m):
+                sender.offer_view(m)              # logged at its own time: order against the samples is moot
             else:
-                blocks.append(m)
-        if blocks:
-            _send(rec, rr, blocks, truth)
-            sent.value += len(blocks)
+                pending.append(m)
+        now = time.monotonic()
+        final = closed and not msgs
+        if pending and (now - last_send >= cfg.batch_seconds or len(pending) >= _MAX_PENDING or final):
+            sender.send(pending, truth, final=final)
+            sent.value += len(pending)
+            pending = []
+            last_send = now
+        if sender.views:
+            sender.draw_views(final)
         if not msgs:
-            if closed:
+            if closed and not pending:
+                sender.finish(truth)
                 break
             time.sleep(_POLL_S)
     try:
@@ -334,6 +517,36 @@ class TelemetryProcess:
         self._truth.update({k: float(v) for k, v in truth.items()})
         self._truth_pending = True
         return self._push_truth()
+
+    def publish_fit(self, t: float, frf: Mapping[str, Any] | None) -> bool:
+        """Queue a fit's FRF view (:func:`rt_ident.estimators.frf.frf_view`) drawn at time ``t``.
+        Never blocks; False (and counted in ``dropped``) when it could not be queued."""
+        if frf is None:
+            return False
+        return self._publish_view("frf:", t, frf)
+
+    def publish_loop_gain(self, t: float, view: Mapping[str, Any] | None, margins: Mapping[str, Any] | None) -> bool:
+        """Queue the active controller's loop gain (:func:`rt_ident.control.design.loop_gain_view`)
+        with its phase margin and smaller gain margin, drawn at time ``t``."""
+        if view is None:
+            return False
+        m = margins or {}
+        pm = m.get("pm_deg")
+        gm = m.get("gm_db")
+        extra = {"pm_deg": np.array([np.nan if pm is None else float(pm)]),
+                 "gm_db": np.array([np.nan if gm is None else float(gm)])}
+        return self._publish_view("lg:", t, {**view, **extra})
+
+    def _publish_view(self, prefix: str, t: float, arrays: Mapping[str, Any]) -> bool:
+        if self.config.sink == "off":
+            return True
+        msg = {prefix + "t": np.array([float(t)])}
+        for k, v in arrays.items():
+            msg[prefix + k] = np.asarray(v, dtype=np.float64).ravel()
+        if self._ring is None or self._closed or not self._ring.put(msg):
+            self._dropped += 1
+            return False
+        return True
 
     def _push_truth(self) -> bool:
         if self._ring is None:  # not started: handed to the child at start()

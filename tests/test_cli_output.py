@@ -1,0 +1,124 @@
+"""What the CLI says: why an estimate is (not) trusted, units, 80 columns, one-line file hints,
+--version, flags without a <bool> value, the FRF view a fit carries."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+from rt_ident import cli
+from rt_ident.axis.integrators import Newmark
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.params import thomson_x
+from rt_ident.estimators.frequency import fit_frequency
+
+
+def _data(periods: int = 4, noise: float = 0.0):
+    p, dt = thomson_x(), 2.9481e-5
+    u = schroeder_multisine(512, (1, 60), peak=1.0).periodic(periods)
+    tr = Newmark().simulate(p, u, dt)
+    rng = np.random.default_rng(0)
+    return tr.theta[:, 0], tr.theta[:, 1], u + noise * rng.standard_normal(u.size), dt
+
+
+def test_trusted_fit_lists_every_criterion_as_passed():
+    r = fit_frequency(*_data()[:3], _data()[3], hold="tustin")
+    t = r.as_dict()["trust"]
+    assert t["trusted"] is True and t["reasons"] == []
+    names = [c["criterion"] for c in t["criteria"]]
+    assert any("converged" in n for n in names) and any("eigenvalue" in n for n in names)
+    assert all(c["passed"] for c in t["criteria"])
+
+
+def test_non_converged_fit_is_never_trusted_and_says_why():
+    th1, th2, u, dt = _data()
+    r = fit_frequency(th1, th2, u, dt, hold="zoh", max_iter=1)      # wrong hold, one iteration
+    t = r.as_dict()["trust"]
+    assert t["trusted"] is False
+    assert any("without converging" in why for why in t["reasons"])
+    failed = [c for c in t["criteria"] if not c["passed"]]
+    assert failed and all(c["why"] for c in failed)
+
+
+def _capture(monkeypatch, width: int = 80) -> io.StringIO:
+    buf = io.StringIO()
+    monkeypatch.setattr(cli, "out", Console(file=buf, width=width, soft_wrap=True, color_system=None))
+    return buf
+
+
+def _summary(path: str) -> dict:
+    params = {"I1": 2.9481234e-05, "I2": 8.2999876e-06, "B": 0.0021234567, "K": 110.123456, "wn": 4162.5812,
+              "wd": 4159.2871, "zeta": 0.0397123}
+    return {"backend": "sim", "method": "frequency", "parameters": params,
+            "ci95": {k: [0.98 * v, 1.02 * v] for k, v in params.items()}, "truth": params,
+            "error_pct": {k: 0.0123 for k in params}, "trusted": False,
+            "trust": {"trusted": False, "reasons": ["95 % interval of I2 is +-12 % (> 10 %)"],
+                      "criteria": [{"criterion": "widest 95 % interval", "value": 12.0, "limit": "<= 10 %",
+                                    "passed": False, "why": "95 % interval of I2 is +-12 % (> 10 %)"}]},
+            "loop": {"ticks": 10, "samples": 340}, "telemetry": {"dropped": 0}, "stop": {},
+            "files": {"rrd": path + ".rrd", "recording": path + ".parquet"}}
+
+
+def test_run_table_has_units_and_cuts_no_value_at_80_columns(monkeypatch):
+    buf = _capture(monkeypatch, 80)
+    cli._print_run(_summary("runs/x"))
+    text = buf.getvalue()
+    assert "…" not in text
+    assert "kg m²" in text and "N m/rad" in text and "N m s/rad" in text
+    assert "2.948e-05" in text and "110.1" in text
+    assert "trusted: no" in text and "95 % interval of I2 is +-12 % (> 10 %)" in text
+
+
+def test_file_hints_stay_on_one_line_when_piped(monkeypatch):
+    buf = _capture(monkeypatch, 80)
+    long = "runs/" + "a-very-long-directory-name/" * 3 + "run-20261125-022806-5971"
+    cli._print_run(_summary(long))
+    lines = buf.getvalue().splitlines()
+    hint = [ln for ln in lines if ln.startswith("recording:")]
+    assert len(hint) == 1 and f"rt-ident identify {long}.parquet" in hint[0]
+
+
+def _invoke(args: list[str], capsys, monkeypatch) -> tuple[int, str]:
+    monkeypatch.setenv("COLUMNS", "120")
+    with pytest.raises(SystemExit) as e:
+        cli._command().main(args=args, prog_name="rt-ident")
+    return int(e.value.code or 0), capsys.readouterr().out
+
+
+def test_version_prints_the_installed_version(capsys, monkeypatch):
+    from importlib.metadata import version
+
+    code, text = _invoke(["--version"], capsys, monkeypatch)
+    assert code == 0 and text.strip() == f"rt-ident {version('rt-ident')}"
+
+
+@pytest.mark.parametrize("command", [[], ["run"], ["identify"], ["reproduce"], ["bench"]])
+def test_help_shows_flags_without_a_bool_value(command, capsys, monkeypatch):
+    code, text = _invoke([*command, "--help"], capsys, monkeypatch)
+    assert code == 0 and "--help" in text
+    assert "<bool>" not in text and "BOOLEAN" not in text
+
+
+def test_a_frequency_fit_carries_its_frf_view_with_model_and_band():
+    from rt_ident.estimators.frequency import compute_spectra
+    from rt_ident.estimators.streaming import fit_snapshot
+
+    from rt_ident.axis.plant import HoldController, PlantSimulator
+
+    p, dt = thomson_x(), 2.9481e-5      # closed loop: periodic response, so Theta/T is the FRF
+    ms = schroeder_multisine(512, (1, 60), peak=0.3)
+    blk = PlantSimulator(p, dt, controller=HoldController(), seed=0).step_block(ms.periodic(6))
+    sp = compute_spectra(blk.theta1, blk.theta2, blk.torque_meas, dt, period=512)
+    r = fit_snapshot("frequency", sp, hold="zoh")
+    v = r.frf
+    assert v is not None and v["f_meas"].size == sp.harmonics.size
+    # the model passes through the measured lines (quantized angles; the grid is interpolated, so
+    # the lines next to the sharp resonance are compared loosely) ...
+    d = np.abs(np.interp(np.log(v["f_meas"]), np.log(v["f_model"]), v["g1_db"]) - v["m1_db"])
+    assert np.median(d) < 0.3 and np.mean(d < 1.5) >= 0.85
+    # ... inside its band, and the resonance mark is the model's damped frequency
+    assert np.all(v["g1_lo"] <= v["g1_db"] + 1e-9) and np.all(v["g1_db"] <= v["g1_hi"] + 1e-9)
+    assert v["marks_hz"][0] == pytest.approx(r.modal["wd"] / (2 * np.pi), rel=1e-9)
