@@ -32,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from drivers.base import Backend, SampleBlock
 from drivers.errors import DriverError, TravelLimitTrip
+from rt_ident.axis.friction import Friction
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantBlock, PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError
@@ -68,6 +69,9 @@ class SimConfig(BaseModel):
     samples_per_read: Optional[int] = Field(None, ge=1)
     has_measured_torque: bool = True
     changes: list[dict[str, float]] = Field(default_factory=list)  # [{at: s, I1/I2/B/K: factor}], see _changes()
+    # friction to ground and backlash (rt_ident.axis.friction.Friction keys, or preset = "thomson");
+    # None / all zero: the frictionless plant. [plant.friction] of a run config lands here.
+    friction: Optional[dict[str, Any]] = None
 
     @field_validator("travel")
     @classmethod
@@ -109,6 +113,7 @@ class SimBackend(Backend):
         self.controller = (HoldController(kp=DEFAULT_KP if cfg.kp is None else cfg.kp,
                                           kd=DEFAULT_KD if cfg.kd is None else cfg.kd)
                            if cfg.position_hold else None)
+        self.friction = Friction.from_mapping(cfg.friction, where="backend.friction")
         self.plant = self._make_plant(self.controller, x0=None)
         self._changes = _changes(cfg.changes, self.true_params, self._dt)
         # the step matrices of each change, computed now: a change costs the loop's tick no expm
@@ -131,7 +136,7 @@ class SimBackend(Backend):
         params = self.plant.params if hasattr(self, "plant") else self.true_params
         return PlantSimulator(params, self._dt, sensors=self.sensors, controller=controller,
                               torque_limit=cfg.torque_limit, travel=cfg.travel,
-                              integrator=cfg.integrator, seed=cfg.seed, x0=x0)
+                              integrator=cfg.integrator, seed=cfg.seed, x0=x0, friction=self.friction)
 
     @property
     def current_params(self) -> AxisParams:

@@ -331,6 +331,13 @@ def _print_run(s: dict) -> None:
               f"{loop.get('overruns', 0)} overruns, lateness p50 {_fmt(lat.get('p50'))} us, "
               f"p99 {_fmt(lat.get('p99'))} us, max {_fmt(lat.get('max'))} us; "
               f"telemetry dropped {s['telemetry'].get('dropped', 0)}")
+    lost, n = loop.get("lost_samples") or 0, loop.get("samples") or 0
+    if lost and lost > 0.01 * (n + lost):
+        hint = ""
+        if not (s.get("realtime") or {}).get("sched_fifo"):
+            hint = ("; without real-time scheduling this host did not keep pace with the device "
+                    "(run without --no-realtime, or lower the device's rate)")
+        out.print(f"[yellow]lost {lost} samples[/] ({100 * lost / (n + lost):.1f} % of what the device sent){hint}")
     ctl = s.get("control") or {}
     if ctl.get("mode") not in (None, "off"):
         rd = ctl.get("redesigns") or {}
@@ -407,7 +414,7 @@ def identify(
     period: Optional[int] = typer.Option(None, "--period", min=2, help="Excitation period in samples (else detected)."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
-    """Identify I1, I2, B, K (and wn, wd, zeta) offline from a recording."""
+    """Identify I1, I2, B, K (and wn, wd, zeta) offline from a recording; with --model, friction too."""
     if methods:
         from rt_ident.estimators.registry import DEFAULT_METHOD, list_methods
 

@@ -99,9 +99,20 @@ class ControlConfig(_Section):
 
 
 class PlantConfig(_Section):
-    """Scenario changes of the simulated plant (sim backend only): ``[[plant.change]]``."""
+    """Scenario changes of the simulated plant (sim backend only): ``[[plant.change]]``; and its friction
+    and backlash, ``[plant.friction]`` (:class:`rt_ident.axis.friction.Friction` keys or ``preset =
+    "thomson"``; handed to the sim backend as ``[backend] friction``)."""
 
     change: list[dict[str, float]] = Field(default_factory=list)  # {at = s, I1/I2/B/K = factor}
+    friction: Optional[dict[str, Any]] = None
+
+    @model_validator(mode="after")
+    def _friction_valid(self) -> "PlantConfig":
+        if self.friction is not None:
+            from rt_ident.axis.friction import Friction
+
+            Friction.from_mapping(self.friction, where="plant.friction")
+        return self
 
     def last_change_s(self) -> float | None:
         return max((float(c.get("at", 0.0)) for c in self.change), default=None)
@@ -145,6 +156,23 @@ class RunConfig(_Section):
 
     def axis_params(self) -> AxisParams:
         return AxisParams.from_mapping(self.axis, where="axis") if self.axis else thomson_x()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _plant_friction_to_backend(cls, data: Any) -> Any:
+        """``[plant.friction]`` goes to the sim backend as its ``friction`` option (an explicit
+        ``[backend] friction`` wins); other backends cannot take it."""
+        if not isinstance(data, dict):
+            return data
+        fr = (data.get("plant") or {}).get("friction") if isinstance(data.get("plant"), dict) else None
+        if fr is None:
+            return data
+        backend = dict(data.get("backend") or {})
+        if backend.get("name", "sim") != "sim":
+            raise ValueError(f"plant.friction: only the sim backend simulates friction "
+                             f"(backend is {backend.get('name')!r})")
+        backend.setdefault("friction", dict(fr))
+        return {**data, "backend": backend}
 
 
 def _field_name(err: dict) -> str:

@@ -191,6 +191,33 @@ def test_lone_answer_after_a_missing_one_is_dropped_as_ambiguous():
     assert asm.stale == 3 and asm.ambiguous == 1 and asm.late == 2
 
 
+def _silent_run(host_missed_during: int) -> str:
+    """SYNCs without an answer (stale_limit 10) while the host's sender skipped
+    ``host_missed_during`` periods; returns the trip's message."""
+    asm, dq = _echo_assembler()
+    missed = [3]                                     # skipped before the run: not counted against it
+    asm.host_missed = lambda: missed[0]
+    for k in range(3):                               # the silent run starts
+        dq.extend([(MARK, k, float(k), 0.0), (ECHO, 0.0)])
+    asm.feed(dq, deliver=True)
+    missed[0] += host_missed_during
+    with pytest.raises(WatchdogTrip) as e:
+        for k in range(3, 20):
+            dq.extend([(MARK, k, float(k), 0.0), (ECHO, 0.0)])
+            asm.feed(dq, deliver=True)
+    return str(e.value)
+
+
+def test_a_stale_run_trip_says_the_drive_was_silent_when_the_host_kept_time():
+    msg = _silent_run(0)
+    assert "no fresh TPDO data" in msg and "the drive sent no fresh data" in msg
+
+
+def test_a_stale_run_trip_says_the_host_was_late_when_its_sync_sender_skipped_periods():
+    msg = _silent_run(5)
+    assert "no fresh TPDO data" in msg and "a busy host, not a silent drive" in msg and "5 SYNC periods" in msg
+
+
 def test_cancelled_sync_has_no_window():
     asm, dq = _echo_assembler()
     dq.extend([(MARK, 0, 0.0, 0.0), (ECHO, 0.0)])

@@ -196,3 +196,42 @@ def test_a_disk_that_fills_mid_run_stops_safely_and_never_reports_rows_it_did_no
     assert not s["recording"]["complete"] and "ENOSPC" in s["data_lost"]
     assert s["recording"]["rows_written"] < s["loop"]["samples"]
     assert run_mod.exit_code(s) == 3
+
+
+def test_a_dashboard_file_that_cannot_be_written_is_reported_lost_with_exit_4(tmp_path, monkeypatch):
+    from rt_ident.runtime.telemetry import TelemetryProcess
+
+    def written(self):
+        return {"written": False, "write_error": f"no space left on the device of {self.config.rrd_path}"}
+
+    monkeypatch.setattr(TelemetryProcess, "_written", written)
+    s = run_mod.run(load(None, **{"loop.duration": 0.5, "loop.realtime": False, "recording.enabled": False}),
+                    rrd=str(tmp_path / "d.rrd"))
+    assert s["stop"]["cause"] is None
+    assert s["telemetry"]["written"] is False and "d.rrd" in s["telemetry"]["write_error"]
+    assert "dashboard" in s["data_lost"] and "d.rrd" in s["data_lost"]
+    assert run_mod.exit_code(s) == 4
+
+
+def test_a_full_disk_stops_the_dashboard_and_is_never_reported_as_written(tmp_path):
+    """The child checks the free space before each batch (rerun's file sink reports a failed write to
+    nobody): with a bound no disk meets, nothing is sent and close() says why."""
+    import numpy as np
+
+    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "f.rrd"), min_free_bytes=1 << 62))
+    tp.start()
+    assert tp.wait_ready(20.0)
+    for k in range(5):
+        assert tp.publish({"t": np.arange(10.0) + 10 * k, "theta1": np.zeros(10)})
+    out = tp.close(timeout=10.0)
+    assert out["sent"] == 0 and out["written"] is False and "no space left" in out["write_error"]
+
+
+def test_free_space_check_names_the_file(tmp_path):
+    from rt_ident.runtime import telemetry as tel
+
+    assert tel._disk_full(str(tmp_path / "x.rrd"), 1) is None
+    why = tel._disk_full(str(tmp_path / "x.rrd"), 1 << 62)
+    assert why is not None and "x.rrd" in why and "no space left" in why

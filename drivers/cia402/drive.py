@@ -141,6 +141,7 @@ class Cia402Backend(Backend):
                             rpdo_cob=setup.rpdo_cob)
         sender.controlword = p402.CW_SHUTDOWN
         self._sender = sender
+        self._asm.host_missed = lambda: sender.overruns
         try:
             # Heartbeats sent before the drive saw NMT start may still be queued (python-can's cyclic
             # sender also sends missed heartbeats in a burst after a stall, e.g. while this process

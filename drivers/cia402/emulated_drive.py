@@ -455,7 +455,7 @@ class EmulatedCia402Drive:
             p = self.plant
             self.plant = PlantSimulator(p.params, p.dt, sensors=p.sensors, controller=want,
                                         torque_limit=p.torque_limit, travel=p.travel, integrator=p.integrator,
-                                        seed=p.seed + p.sample_index, x0=p.state)
+                                        seed=p.seed + p.sample_index, x0=p.state, friction=p.friction)
 
     def _send_tpdos(self, enabled: bool, n: int) -> None:
         f, v = self.faults, self._values

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
+from drivers.placement import device_placement, place
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
 
@@ -122,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--channel", help="override backend.channel (e.g. 239.74.163.2)")
     ap.add_argument("--port", type=int, help="override backend.port (udp_multicast)")
     ap.add_argument("--log-level", default="WARNING")
+    ap.add_argument("--no-realtime", action="store_true",
+                    help="do not keep off the loop's CPU / ask for SCHED_FIFO (use when the loop runs --no-realtime "
+                         "and this host has CPUs to spare)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
     path = Path(args.config)
@@ -138,6 +142,10 @@ def main(argv: list[str] | None = None) -> int:
             backend[key] = getattr(args, key)
     if backend.get("interface") == "virtual":
         log.warning("the virtual bus is in-process only: nothing outside this process can reach this drive")
+    # the placement the loop gives its own emulator child: off the loop's CPU, SCHED_FIFO below the
+    # loop (before the drive starts its threads: they inherit it). Without it a real-time loop on
+    # the same CPU starves this process and trips its watchdog on stale data.
+    placed = place(device_placement(not args.no_realtime))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -148,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     where = f"{backend.get('interface')}:{backend.get('channel')}" + (f" port {backend['port']}"
                                                                       if backend.get("port") else "")
-    print(f"READY node {drive.node_id} on {where}", flush=True)
+    print(f"READY node {drive.node_id} on {where}" + (f" ({', '.join(f'{k} {v}' for k, v in placed.items())})"
+                                                      if placed else ""), flush=True)
     try:
         while not stop.wait(0.2):
             pass

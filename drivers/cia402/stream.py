@@ -266,6 +266,21 @@ class SampleAssembler:
         self._scale_raw = 0
         self._stuck_run = 0
         self.rows: dict[str, list] = {k: [] for k in ("k", "t", "sw", "pos", "tq", "scale", "cmd")}
+        # SYNC periods the host's sender has skipped so far (drive.py wires it): a stale run during
+        # which the host itself fell behind is the host's fault, not the drive's, and the trip says so
+        self.host_missed: Callable[[], int] | None = None
+        self._run_missed0 = 0
+        self._run_latency = 0.0
+
+    def _which(self) -> str:
+        """Whose fault a stale run was: the host's (its SYNC sender skipped periods meanwhile: a
+        busy host that was late, the drive may well have answered) or the drive's (the host kept
+        time and no valid answer came: stale data)."""
+        missed = (self.host_missed() - self._run_missed0) if self.host_missed is not None else 0
+        if missed > 0:
+            return (f"the host fell behind meanwhile ({missed} SYNC periods skipped by its sender): "
+                    "a busy host, not a silent drive")
+        return "the host kept time (0 SYNC periods skipped): the drive sent no fresh data"
 
     def reset_counters(self) -> None:
         self.stale = self.ambiguous = self.late = self.corrupt = self.unchanged = 0
@@ -359,6 +374,9 @@ class SampleAssembler:
         self._prev_complete = bad is None or bad == "ambiguous"
         if bad is not None:
             self.stale += 1
+            if self._bad_run == 0:
+                self._run_missed0 = self.host_missed() if self.host_missed is not None else 0
+                self._run_latency = 0.0
             self._bad_run += 1
             self._bad_corrupt = self._bad_corrupt or bad == "corrupt"
             if deliver and self._bad_run > self.stale_limit:
@@ -367,7 +385,8 @@ class SampleAssembler:
                                         f"(last bad frame: {self._last_corrupt}); {self.corrupt} corrupt "
                                         f"frames in total")
                 raise WatchdogTrip(f"no fresh TPDO data for {self._bad_run} SYNCs in a row "
-                                   f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total)")
+                                   f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total); "
+                                   + self._which())
             return
         self._bad_run = 0
         self._bad_corrupt = False

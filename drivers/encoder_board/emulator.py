@@ -32,6 +32,7 @@ import numpy as np
 from drivers.encoder_board import protocol as sp
 from drivers.encoder_board.config import EmulatorConfig, SerialBoardConfig, parse_emulator, parse_serial
 from rt_ident.axis.params import AxisParams, thomson_x
+from rt_ident.axis.friction import Friction
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 
 log = logging.getLogger(__name__)
@@ -64,8 +65,9 @@ class EmulatedBoard:
                  counts_per_rev: int = 2**17, scale_resolution: float = 1e-7,
                  torque_constant: float = 0.1, torque_limit: float = 1.0,
                  emulator: EmulatorConfig | None = None, plan_capacity: int = 4096,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, friction: Friction | None = None) -> None:
         self.params = params if params is not None else thomson_x()
+        self.friction = friction          # friction to ground / backlash of the plant (rt_ident.axis.friction)
         self.cfg = emulator if emulator is not None else EmulatorConfig()
         self.sample_rate_hz = float(sample_rate_hz)
         self.dt = 1.0 / self.sample_rate_hz
@@ -190,7 +192,7 @@ class EmulatedBoard:
         sensors = self.sensors if self.enabled else replace(self.sensors, torque_process_noise=0.0)
         return PlantSimulator(self.params, self.dt, sensors=sensors, controller=controller,
                               torque_limit=self.torque_limit, travel=travel,
-                              seed=self.cfg.seed * 1000 + self._rebuilds, x0=x0)
+                              seed=self.cfg.seed * 1000 + self._rebuilds, x0=x0, friction=self.friction)
 
     def _set_enabled(self, on: bool) -> None:
         """Power stage on/off. The drive's hold loop (``hold``) only acts while enabled."""
@@ -472,6 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", help="run TOML with [backend] (serial), [emulator], [axis]")
     ap.add_argument("--rate", type=float, help="sample rate [Hz] (default 20000)")
     ap.add_argument("--seed", type=int, help="noise / fault seed")
+    ap.add_argument("--no-realtime", action="store_true",
+                    help="do not keep off the loop's CPU / ask for SCHED_FIFO (see drivers.placement)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     data: dict[str, Any] = {}
@@ -484,6 +488,10 @@ def main(argv: list[str] | None = None) -> int:
         data["backend"]["sample_rate_hz"] = args.rate
     if args.seed is not None:
         data["emulator"]["seed"] = args.seed
+    from drivers.placement import device_placement, place
+
+    placed = place(device_placement(not args.no_realtime))   # as the loop places its own emulator child
+    logging.getLogger(__name__).info("placement: %s", placed or "none")
     board = start_emulator_for(data)
     print(board.port, flush=True)   # the one line a caller reads (CLI output, not logging)
     try:

@@ -223,3 +223,176 @@ def plant_block_py(Phi: np.ndarray, Gam: np.ndarray, x: np.ndarray, ctrl: np.nda
 
 
 plant_block = numba.njit(cache=True)(plant_block_py)
+
+
+def plant_block_friction_py(Phi: np.ndarray, Gam: np.ndarray, x: np.ndarray, ctrl: np.ndarray,
+                            cmd: np.ndarray, noise: np.ndarray, par: np.ndarray, fpar: np.ndarray,
+                            fstate: np.ndarray, th1_out: np.ndarray, th2_out: np.ndarray,
+                            applied_out: np.ndarray, meas_out: np.ndarray, states_out: np.ndarray) -> int:
+    """:func:`plant_block_py` with friction to ground and backlash (:mod:`rt_ident.axis.friction`).
+
+    Phi (2, 4, 4), Gam (2, 4, 2): ZOH step matrices with two inputs (torque on body 1, on body 2),
+    viscous friction included; index 0 in contact, 1 inside the backlash gap.
+    fpar  : (10,) [Fc1, Fs1, vs1, Fc2, Fs2, vs2, backlash b, K, B, stick_window]
+    fstate: (2,) stuck flags of body 1 and 2 (carried between blocks)
+
+    Measurement, hold loop, saturation and noise are those of :func:`plant_block_py`. Physics per
+    sample (Karnopp stick-slip, held over the sample like the torque): the coupling torque
+    c = K dz(th1 - th2) + B (w1 - w2) (dead zone of width b; no coupling inside the gap); the
+    non-friction torques N1 = T - c, N2 = c; a body that is stuck, or whose velocity is within the
+    window, sticks when |N| <= Fs (friction = N, velocity 0, position pinned after the step) and
+    else breaks away with friction Fs sign(N); a sliding body gets sign(v) (Fc + (Fs - Fc)
+    exp(-(v/vs)^2)); a velocity that crosses zero within the sample is stopped there.
+    """
+    n = cmd.shape[0]
+    for k in range(n):
+        if not math.isfinite(cmd[k]):
+            return k
+    q1 = par[0]
+    res = par[1]
+    lead = par[2]
+    ctrl_on = par[3] != 0.0
+    kp = par[4]
+    kd = par[5]
+    ref = par[6]
+    beta = par[7]
+    limit = par[8]
+    s_ang = par[9]
+    s_meas = par[10]
+    s_proc = par[11]
+    lo = par[12]
+    hi = par[13]
+    noisy = noise.shape[0] > 0
+    inv_dt = par[14]
+    Fc1 = fpar[0]
+    Fs1 = fpar[1]
+    vs1 = fpar[2]
+    Fc2 = fpar[3]
+    Fs2 = fpar[4]
+    vs2 = fpar[5]
+    half = 0.5 * fpar[6]
+    Kc = fpar[7]
+    Bc = fpar[8]
+    win = fpar[9]
+    on1 = Fs1 > 0.0 or Fc1 > 0.0
+    on2 = Fs2 > 0.0 or Fc2 > 0.0
+    for k in range(n):
+        th1 = x[0]
+        th2 = x[2]
+        if noisy:
+            th1 += s_ang * noise[k, 0]
+            th2 += s_ang * noise[k, 1]
+        if q1 > 0.0:
+            th1 = math.floor(th1 / q1 + 0.5) * q1
+        if res > 0.0:
+            th2 = math.floor(lead * th2 / res + 0.5) * res / lead
+        torque = cmd[k]
+        if ctrl_on:
+            if ctrl[2] == 0.0:
+                ctrl[0] = th1
+                ctrl[2] = 1.0
+            vraw = (th1 - ctrl[0]) * inv_dt
+            ctrl[1] += beta * (vraw - ctrl[1])
+            ctrl[0] = th1
+            torque += kp * (ref - th1) - kd * ctrl[1]
+        if torque > limit:
+            torque = limit
+        elif torque < -limit:
+            torque = -limit
+        if noisy:
+            torque += s_proc * noise[k, 3]
+            meas = torque + s_meas * noise[k, 2]
+        else:
+            meas = torque
+        xpos = lead * x[2]
+        if xpos < lo or xpos > hi:
+            ctrl[3] = 1.0
+        th1_out[k] = th1
+        th2_out[k] = th2
+        applied_out[k] = torque
+        meas_out[k] = meas
+        for i in range(4):
+            states_out[k, i] = x[i]
+        # ---- coupling, with the backlash dead zone
+        d = x[0] - x[2]
+        mode = 0
+        e = 0.0                       # constant part of the contact torque on body 1: K s b/2
+        if half > 0.0:
+            if d > half:
+                e = Kc * half
+            elif d < -half:
+                e = -Kc * half
+            else:
+                mode = 1
+        if mode == 0:
+            c = Kc * d - e + Bc * (x[1] - x[3])
+        else:
+            c = 0.0
+        # ---- Karnopp stick-slip on each body
+        stick1 = False
+        f1 = 0.0
+        if on1:
+            n1 = torque - c
+            w1 = x[1]
+            if fstate[0] != 0.0 or abs(w1) <= win:
+                if abs(n1) <= Fs1:
+                    stick1 = True
+                    f1 = n1
+                    x[1] = 0.0
+                else:
+                    f1 = Fs1 if n1 > 0.0 else -Fs1
+                    fstate[0] = 0.0
+            else:
+                m = Fc1
+                if vs1 > 0.0 and abs(w1) < 6.0 * vs1:      # beyond 6 vs the Stribeck term is < 3e-16 Fs
+                    r = w1 / vs1
+                    m += (Fs1 - Fc1) * math.exp(-r * r)
+                f1 = m if w1 > 0.0 else -m
+        stick2 = False
+        f2 = 0.0
+        if on2:
+            n2 = c
+            w2 = x[3]
+            if fstate[1] != 0.0 or abs(w2) <= win:
+                if abs(n2) <= Fs2:
+                    stick2 = True
+                    f2 = n2
+                    x[3] = 0.0
+                else:
+                    f2 = Fs2 if n2 > 0.0 else -Fs2
+                    fstate[1] = 0.0
+            else:
+                m = Fc2
+                if vs2 > 0.0 and abs(w2) < 6.0 * vs2:      # beyond 6 vs the Stribeck term is < 3e-16 Fs
+                    r = w2 / vs2
+                    m += (Fs2 - Fc2) * math.exp(-r * r)
+                f2 = m if w2 > 0.0 else -m
+        u1 = torque - f1 + e
+        u2 = -f2 - e
+        x0 = x[0]
+        x1 = x[1]
+        x2 = x[2]
+        x3 = x[3]
+        for i in range(4):
+            x[i] = (Phi[mode, i, 0] * x0 + Phi[mode, i, 1] * x1 + Phi[mode, i, 2] * x2 + Phi[mode, i, 3] * x3
+                    + Gam[mode, i, 0] * u1 + Gam[mode, i, 1] * u2)
+        if on1:
+            if stick1:
+                x[0] = x0
+                x[1] = 0.0
+                fstate[0] = 1.0
+            elif x1 * x[1] < 0.0:     # stopped within the sample
+                x[1] = 0.0
+                fstate[0] = 1.0
+        if on2:
+            if stick2:
+                x[2] = x2
+                x[3] = 0.0
+                fstate[1] = 1.0
+            elif x3 * x[3] < 0.0:
+                x[3] = 0.0
+                fstate[1] = 1.0
+    return -1
+
+
+plant_block_friction = numba.njit(cache=True)(plant_block_friction_py)

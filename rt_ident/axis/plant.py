@@ -15,6 +15,11 @@ object. Per sample ``k`` (:func:`rt_ident.axis.kernels.plant_block`):
    acceleration step with the held torque (``integrator="newmark"``, see
    :meth:`rt_ident.axis.integrators.Newmark.step_matrices`).
 
+With ``friction`` (:class:`rt_ident.axis.friction.Friction`, issue #14) the physics step is
+:func:`rt_ident.axis.kernels.plant_block_friction` instead: Coulomb/viscous/Stribeck friction to
+ground on each body with Karnopp sticking, and optional backlash (ZOH only). Without friction (the
+default, or all-zero values) nothing changes: the same kernel as before runs.
+
 Noise comes from ``numpy.random.Generator(seed)``, drawn as one (n, 4) array
 per block in sample order, so the result does not depend on how a run is
 split into blocks.
@@ -29,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from rt_ident.axis.integrators import Newmark, check_dt, check_x0, zoh_matrices
-from rt_ident.axis.kernels import plant_block, plant_block_py
+from rt_ident.axis.friction import Friction, friction_matrices, friction_par
+from rt_ident.axis.kernels import plant_block, plant_block_friction, plant_block_friction_py, plant_block_py
 from rt_ident.axis.params import AxisParams
 from rt_ident.errors import ConfigError, DataError
 
@@ -144,7 +150,7 @@ class PlantSimulator:
     def __init__(self, p: AxisParams, dt: float, *, sensors: SensorConfig = SensorConfig(),
                  controller: HoldController | None = None, torque_limit: float = math.inf,
                  travel: tuple[float, float] | None = None, integrator: str = "zoh",
-                 seed: int = 0, x0: np.ndarray | None = None) -> None:
+                 seed: int = 0, x0: np.ndarray | None = None, friction: Friction | None = None) -> None:
         if not isinstance(p, AxisParams):
             raise ConfigError("p", f"must be AxisParams, got {type(p).__name__}")
         if not isinstance(sensors, SensorConfig):
@@ -171,6 +177,14 @@ class PlantSimulator:
             raise ConfigError("integrator", f"unknown plant integrator {integrator!r}; valid: "
                               f"{', '.join(_PLANT_INTEGRATORS)}")
         self.integrator = key
+        if friction is not None and not isinstance(friction, Friction):
+            raise ConfigError("friction", f"must be Friction or None, got {type(friction).__name__}")
+        self.friction = friction if friction is not None and friction.active else None
+        if self.friction is not None and key != "zoh":
+            raise ConfigError("integrator", "friction needs the 'zoh' plant integrator (the friction torque is "
+                              "held over the sample like the drive torque)")
+        self._fstate = np.zeros(2)       # Karnopp stuck flags of body 1 and 2
+        self._fpar = friction_par(p.B, p.K, self.friction) if self.friction is not None else np.zeros(10)
         self._set_matrices(p)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
             raise ConfigError("seed", f"must be an integer, got {seed!r}")
@@ -196,7 +210,10 @@ class PlantSimulator:
         self._no_noise = np.empty((0, 4))
 
     def matrices_for(self, p: AxisParams) -> tuple[np.ndarray, np.ndarray]:
-        """The step matrices (Phi, Gam) this plant would use for ``p`` (matrix exponential: ~ms)."""
+        """The step matrices (Phi, Gam) this plant would use for ``p`` (matrix exponential: ~ms).
+        With friction: the stacked two-input matrices of :func:`~rt_ident.axis.friction.friction_matrices`."""
+        if self.friction is not None:
+            return friction_matrices(p.I1, p.I2, p.B, p.K, self.friction, self.dt)
         if self.integrator == "zoh":
             Phi, Gam = zoh_matrices(p, self.dt)
         else:
@@ -219,6 +236,8 @@ class PlantSimulator:
             self._set_matrices(p)
         else:
             self._Phi, self._Gam = (np.ascontiguousarray(m, dtype=np.float64) for m in matrices)
+        if self.friction is not None:
+            self._fpar = friction_par(p.B, p.K, self.friction)
         self.params = p
 
     # -- state -------------------------------------------------------------------------
@@ -265,9 +284,14 @@ class PlantSimulator:
             raise DataError(f"torque_cmd: non-finite value at sample {bad} of the block")
         if self._noisy and n:
             self._rng.standard_normal(out=noise)
-        kernel = plant_block if compiled else plant_block_py
-        kernel(self._Phi, self._Gam, self._x, self._ctrl, cmd_out, noise, self._par,
+        if self.friction is not None:
+            fk = plant_block_friction if compiled else plant_block_friction_py
+            fk(self._Phi, self._Gam, self._x, self._ctrl, cmd_out, noise, self._par, self._fpar, self._fstate,
                th1, th2, applied, meas, states)
+        else:
+            kernel = plant_block if compiled else plant_block_py
+            kernel(self._Phi, self._Gam, self._x, self._ctrl, cmd_out, noise, self._par,
+                   th1, th2, applied, meas, states)
         self._k += n
         return PlantBlock(th1, th2, cmd_out, applied, meas, states)
 
@@ -280,6 +304,7 @@ class PlantSimulator:
         c = self.controller
         kp, kd = (c.kp, c.kd) if c else (0.0, 0.0)
         beta = c.filter_gain(self.dt) if c else 1.0
+        Phi, Gam = (self._Phi[0], self._Gam[0][:, 0]) if self.friction is not None else (self._Phi, self._Gam)
         F = np.zeros((6, 6))
         # vf_k = (1 - beta) vf_{k-1} + beta (x0_k - th1m_{k-1}) / dt
         vf_row = np.zeros(6)
@@ -287,7 +312,7 @@ class PlantSimulator:
         vf_row[4] = -beta / self.dt
         vf_row[5] = 1.0 - beta
         torque_row = -kp * np.eye(6)[0] - kd * vf_row  # T_k = -kp th1m_k - kd vf_k
-        F[:4] = np.hstack([self._Phi, np.zeros((4, 2))]) + np.outer(self._Gam, torque_row)
+        F[:4] = np.hstack([Phi, np.zeros((4, 2))]) + np.outer(Gam, torque_row)
         F[4, 0] = 1.0
         F[5] = vf_row
         return F

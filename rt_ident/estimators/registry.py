@@ -12,6 +12,11 @@ Methods (``list_methods()``):
   velocities, else the three-point angle relation (rt_ident.estimators.consistent).
 * ``zoh`` - exact for zero-order-hold data; needs velocities.
 * ``paper`` - the paper's forward-Euler LS (Eqs. 9-10); kept for comparison, never trusted.
+* ``svf-ls`` - batch state-variable-filter least squares; the one method that accepts the friction
+  models (``two-inertia-friction``, ``rigid-friction``; rt_ident.estimators.friction).
+
+Models (``MethodInfo.models``): every method fits ``two-inertia`` (Eq. 3); the frequency method
+and the discrete-time regressions stay linear-only.
 
 Options are passed through to the method's function; unknown ones raise ConfigError.
 """
@@ -30,11 +35,12 @@ from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification, IdentData
 from rt_ident.estimators.consistent import fit_tustin_angles, fit_tustin_states, fit_zoh
 from rt_ident.estimators.frequency import fit_frequency
+from rt_ident.estimators.friction import MODELS as FRICTION_MODELS, check_model, fit_friction
 from rt_ident.estimators.uncertainty import build_identification, excitation_report
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT_METHOD", "IdentData", "METHODS", "MethodInfo", "identify", "list_methods"]
+__all__ = ["DEFAULT_METHOD", "IdentData", "METHODS", "MethodInfo", "identify", "list_methods", "methods_for_model"]
 
 DEFAULT_METHOD = "frequency"
 
@@ -48,6 +54,7 @@ class MethodInfo:
     needs: str                                  # "angles" or "states"
     fn: Callable[..., Identification]           # fn(data: IdentData, **options)
     options: tuple[str, ...] = ()               # accepted option names
+    models: tuple[str, ...] = ("two-inertia",)  # the models it can fit (rt_ident.estimators.friction.MODELS)
 
 
 def _kw(*fns: Callable[..., Any]) -> tuple[str, ...]:
@@ -99,6 +106,11 @@ def _paper(data: IdentData, **options: Any) -> Identification:
                                 extra_reason="forward-Euler model (Eq. 9): biased by the discretization")
 
 
+def _svf_ls(data: IdentData, *, model: str = "two-inertia", **options: Any):
+    """Batch SVF least squares (rt_ident.estimators.friction); returns a FrictionIdentification."""
+    return fit_friction(data.theta1, data.torque, data.dt, model=model, theta2=data.theta2, **options)
+
+
 METHODS: Mapping[str, MethodInfo] = types.MappingProxyType({
     "frequency": MethodInfo("frequency", "periodic excitation, angles only: exact sampled model fitted to "
                             "period-averaged spectra (quantized, noisy, closed-loop data)", "angles", _frequency,
@@ -110,7 +122,17 @@ METHODS: Mapping[str, MethodInfo] = types.MappingProxyType({
                       _kw(fit_zoh)),
     "paper": MethodInfo("paper", "the paper's forward-Euler LS, Eqs. (9)-(10) (biased; for comparison)",
                         "states", _paper, ("lead",)),
+    "svf-ls": MethodInfo("svf-ls", "batch state-variable-filter LS in continuous time (Eq. 3 filtered), with "
+                         "Coulomb/viscous friction and an offset; the one method for the friction models and for "
+                         "one-sensor recordings", "angles", _svf_ls, ("model",) + _kw(fit_friction),
+                         tuple(FRICTION_MODELS)),
 })
+
+
+def methods_for_model(model: str) -> list[str]:
+    """Names of the methods that accept ``model``."""
+    key = check_model(model)
+    return [m.name for m in list_methods() if key in m.models]
 
 
 def list_methods() -> list[MethodInfo]:
@@ -130,6 +152,13 @@ def identify(data: IdentData, method: str = DEFAULT_METHOD, **options: Any) -> I
     if key not in METHODS:
         raise ConfigError("method", f"unknown method {method!r}; valid: {', '.join(METHODS)}")
     info = METHODS[key]
+    if "model" in options:
+        model = check_model(options["model"])
+        if model not in info.models:
+            raise ConfigError("model", f"method {key!r} fits {', '.join(info.models)} only; {model!r} needs "
+                              f"{' or '.join(methods_for_model(model))}")
+        if "model" not in info.options:
+            options.pop("model")
     unknown = sorted(set(options) - set(info.options))
     if unknown:
         raise ConfigError(f"options.{unknown[0]}", f"not an option of method {key!r}; valid: {', '.join(info.options)}")

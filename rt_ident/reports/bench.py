@@ -300,6 +300,11 @@ def bench_sim(n_steps: int = 1_000_000, n_peer: int = 50_000, repeats: int = 5) 
     plant = PlantSimulator(p, dt, controller=HoldController(), torque_limit=1.0)
     rows.append(_row("sim backend plant step_block (ZOH, sensors, hold loop)", n_steps,
                      _time(lambda: plant.step_block(u), repeats), None, kind="ours", integrator="zoh"))
+    from rt_ident.axis.friction import thomson_friction
+
+    plant_f = PlantSimulator(p, dt, controller=HoldController(), torque_limit=1.0, friction=thomson_friction())
+    rows.append(_row("the same with THOMSON friction (Karnopp stick-slip, Stribeck)", n_steps,
+                     _time(lambda: plant_f.step_block(u), repeats), None, kind="friction", integrator="zoh"))
     best = {name: max(r["per_s"] for r in rows if r["kind"] == "ours" and r["integrator"] == name)
             for name in ("newmark", "zoh")}
     for r in rows:   # how many times faster our best Newmark / ZOH path is than this row

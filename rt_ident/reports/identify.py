@@ -7,6 +7,11 @@ snapshot is fitted cold: the result equals the loop's final estimate.
 Anything else (a CSV with ``t,theta1,theta2,torque`` and no metadata, another
 method) goes through the batch estimator registry, which detects the
 excitation period from the data when nobody says it.
+
+``model`` (issue #14): ``two-inertia`` (default: everything above), ``two-inertia-friction`` or
+``rigid-friction`` (:mod:`rt_ident.estimators.friction`, method ``svf-ls``). ``rigid-friction``
+accepts a CSV with one position sensor ``t,theta1,torque`` in the file's own units.
+:func:`validate_file` checks an identified model on another recording.
 """
 
 from __future__ import annotations
@@ -25,11 +30,14 @@ REPLAY_CHUNK = 4096
 
 
 def identify_file(path: str | Path, method: str | None = None, *, period: int | None = None,
-                  **options: Any) -> tuple[Identification, dict[str, Any]]:
+                  model: str | None = None, **options: Any) -> tuple[Identification, dict[str, Any]]:
     """Identify the axis from a recording; returns (identification, info about how).
 
     A finished ``.parquet`` recording replayed through the loop's streaming estimator is read in
-    record batches (memory independent of its length); everything else is read whole."""
+    record batches (memory independent of its length); everything else is read whole.
+    ``model`` other than ``two-inertia`` (or ``method="svf-ls"``) goes to :func:`identify_model`."""
+    if (model is not None and model.strip().lower() != "two-inertia") or (method or "").lower() == "svf-ls":
+        return identify_model(path, model or "two-inertia", method, **options)
     meta = parquet_metadata(path)
     if meta is not None and _replayable(meta, method, period, options):
         est, n = _stream_replay(path, meta, method or meta["method"])
@@ -56,6 +64,58 @@ def identify_file(path: str | Path, method: str | None = None, *, period: int | 
                      omega2=rec.omega2, dt=meta.get("sample_period"),
                      period=period or ex.get("period_samples"))
     return identify(data, method, **options), info
+
+
+def identify_model(path: str | Path, model: str, method: str | None = None,
+                   **options: Any) -> tuple[Any, dict[str, Any]]:
+    """Fit ``model`` (:data:`rt_ident.estimators.friction.MODELS`) to a recording by the batch
+    method (default ``svf-ls``, the only one that accepts the friction models)."""
+    from rt_ident.errors import ConfigError
+    from rt_ident.estimators.base import uniform_dt
+    from rt_ident.estimators.friction import NEEDS_THETA2, check_model, fit_friction
+    from rt_ident.estimators.registry import METHODS, methods_for_model
+
+    key = check_model(model)
+    m = (method or "svf-ls").strip().lower()
+    if m not in METHODS:
+        raise ConfigError("method", f"unknown method {method!r}; valid: {', '.join(METHODS)}")
+    if key not in METHODS[m].models:
+        raise ConfigError("model", f"method {m!r} fits {', '.join(METHODS[m].models)} only; model {key!r} "
+                          f"needs {' or '.join(methods_for_model(key))}")
+    rec = read_recording(path, require_theta2=key in NEEDS_THETA2)
+    dt = float((rec.metadata or {}).get("sample_period") or uniform_dt(rec.t))
+    info: dict[str, Any] = {"file": str(path), "source": rec.source, "samples": len(rec),
+                            "metadata": bool(rec.metadata), "how": f"batch ({m}, model {key})", "model": key}
+    if m != "svf-ls":     # a linear-only method on the two-inertia model
+        from rt_ident.estimators.registry import identify
+
+        data = IdentData(t=rec.t, theta1=rec.theta1, theta2=rec.theta2, torque=rec.torque, omega1=rec.omega1,
+                         omega2=rec.omega2, dt=(rec.metadata or {}).get("sample_period"))
+        return identify(data, m, **options), info
+    ident = fit_friction(rec.theta1, rec.torque, dt, model=key, theta2=rec.theta2, **options)
+    return ident, info
+
+
+def validate_file(ident: Any, path: str | Path) -> dict[str, Any]:
+    """An identified model on *another* recording (``identify --validate OTHER``): the relative error
+    of the torque it predicts from that recording's measured motion (and, for ``rigid-friction``,
+    of the position an open-loop simulation from its torque gives, which drifts)."""
+    from rt_ident.estimators.base import uniform_dt
+    from rt_ident.estimators.friction import (NEEDS_THETA2, FrictionIdentification, predict_torque,
+                                              simulate_rigid)
+
+    if not isinstance(ident, FrictionIdentification):
+        raise EstimationError("--validate needs a model fitted by svf-ls (give --model)")
+    rec = read_recording(path, require_theta2=ident.model in NEEDS_THETA2)
+    dt = float((rec.metadata or {}).get("sample_period") or uniform_dt(rec.t))
+    out: dict[str, Any] = {"file": str(path), "samples": len(rec)}
+    out.update(predict_torque(ident, rec.theta1, rec.torque, dt, theta2=rec.theta2))
+    if ident.model == "rigid-friction":
+        x = simulate_rigid(ident, rec.torque, dt)
+        meas = rec.theta1 - rec.theta1[0]
+        span = float(np.ptp(meas)) or 1.0
+        out["open_loop_position_error_percent_of_span"] = float(100.0 * np.sqrt(np.mean((x - meas) ** 2)) / span)
+    return out
 
 
 def _replayable(meta: dict[str, Any], method: str | None, period: int | None, options: dict) -> bool:
@@ -113,4 +173,4 @@ def _replay(rec, meta: dict[str, Any], method: str) -> Identification:
     return ident
 
 
-__all__ = ["identify_file"]
+__all__ = ["identify_file", "identify_model", "validate_file"]

@@ -29,41 +29,17 @@ import os
 import socket
 from typing import Any
 
+from drivers.placement import device_placement, place
 from rt_ident.errors import RtIdentError
 
 log = logging.getLogger(__name__)
 
 EMULATORS = {"canopen": "drivers.cia402.emulator", "serial": "drivers.encoder_board.emulator"}
 
-#: SCHED_FIFO priority of an emulated drive when the loop is real-time (the loop has 50).
-EMULATOR_FIFO_PRIORITY = 40
-
-
-def _place(placement: dict[str, Any] | None) -> dict[str, Any]:
-    """CPU set and scheduling of the calling thread (the child's main thread, before any other)."""
-    report: dict[str, Any] = {}
-    if not placement:
-        return report
-    cpus = placement.get("cpus")
-    if cpus:
-        try:
-            os.sched_setaffinity(0, set(cpus))
-            report["cpus"] = sorted(cpus)
-        except (AttributeError, OSError) as exc:
-            report["cpus"] = f"denied: {exc}"
-    prio = placement.get("fifo_priority")
-    if prio:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(prio)))
-            report["sched_fifo"] = int(prio)
-        except (AttributeError, OSError) as exc:
-            report["sched_fifo"] = f"denied: {exc}"
-    return report
-
 
 def _serve(module: str, config: dict[str, Any], conn, placement: dict[str, Any] | None) -> None:
     """Child process: place, start the device, report, wait for "stop" (or the parent's end), stop."""
-    placed = _place(placement)
+    placed = place(placement)
     parent = os.getppid()
     try:
         dev = importlib.import_module(module).start_emulator_for(config)
@@ -171,15 +147,6 @@ class EmulatorProcess:
         self.close()
 
 
-def _helper_cpus(realtime: bool) -> list[int] | None:
-    """Every CPU but the loop's (the last one, see rt_ident.runtime.run) when the loop is real-time."""
-    try:
-        cpus = sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return None
-    return cpus[:-1] if realtime and len(cpus) >= 2 else None
-
-
 def start_emulator(cfg) -> Any:
     """The emulated device for ``cfg.backend.name``; call ``.close()`` (or ``.stop()``) when done."""
     name = cfg.backend.name
@@ -187,7 +154,7 @@ def start_emulator(cfg) -> Any:
     if module is None:
         raise RtIdentError(f"backend.emulate: no emulator for backend {name!r}")
     realtime = bool(cfg.loop.realtime)
-    placement = {"cpus": _helper_cpus(realtime), "fifo_priority": EMULATOR_FIFO_PRIORITY if realtime else None}
+    placement = device_placement(realtime)
     if name == "serial":
         # a real board runs on its own hardware: the emulated one must not be starved by a busy host either
         return EmulatorProcess(module, cfg.model_dump(), placement=placement)

@@ -6,7 +6,9 @@ does not depend on the writer.
 
 CSV input: a header row naming at least ``t, theta1, theta2, torque`` (SI units: s, rad, rad,
 N m), optionally ``omega1, omega2`` [rad/s]; any column order; other columns are ignored; ``#``
-starts a comment. A CSV carries no metadata (``metadata == {}``) and its ``torque`` is taken as
+starts a comment. With ``require_theta2=False`` (the ``rigid-friction`` model: one position
+sensor) ``theta2`` may be missing (``Recording.theta2`` is then None) and the units are the file's
+own (rad and N m, or m and N). A CSV carries no metadata (``metadata == {}``) and its ``torque`` is taken as
 both the applied and the commanded torque.
 
 Torque used for identification (:attr:`Recording.torque`): ``torque_meas`` where it is present and
@@ -63,7 +65,7 @@ class Recording:
 
     t: np.ndarray
     theta1: np.ndarray
-    theta2: np.ndarray
+    theta2: np.ndarray | None           # None only when read with require_theta2=False and absent
     torque: np.ndarray
     torque_cmd: np.ndarray
     torque_meas: np.ndarray | None
@@ -106,10 +108,12 @@ def _check_plausible(name: str, x: np.ndarray, where: Path) -> None:
                         f"any plausible value (|{name}| <= {PLAUSIBLE_MAX[name]:g} {unit}); check the units")
 
 
-def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, where: Path) -> Recording:
+def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, where: Path,
+           require_theta2: bool = True) -> Recording:
     """Validate columns (names, length, finiteness, monotonic t) and pick the torque signal."""
     has_torque = any(k in cols for k in ("torque", "torque_cmd", "torque_meas"))
-    missing = [k for k in ("t", "theta1", "theta2") if k not in cols] + ([] if has_torque else ["torque"])
+    needed = ("t", "theta1", "theta2") if require_theta2 else ("t", "theta1")
+    missing = [k for k in needed if k not in cols] + ([] if has_torque else ["torque"])
     if missing:
         raise DataError(f"{where}: missing column(s) {', '.join(missing)} (found: {', '.join(cols) or 'none'})")
     t = np.asarray(cols["t"], dtype=np.float64)
@@ -131,7 +135,9 @@ def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, w
                 log.warning("%s: torque_meas missing for %d samples; using torque_cmd there",
                             where, int(n - finite.sum()))
             torque = np.where(finite, meas, cmd)
-    for name, x in (("t", t), ("theta1", get["theta1"]), ("theta2", get["theta2"]), ("torque", torque)):
+    for name, x in (("t", t), ("theta1", get["theta1"]), ("theta2", get.get("theta2")), ("torque", torque)):
+        if x is None:
+            continue
         _check_finite(name, x, where)
         _check_plausible(name, x, where)
     for name in CSV_OPTIONAL:
@@ -145,7 +151,7 @@ def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, w
         )
     seq = cols.get("seq")
     return Recording(
-        t=t, theta1=get["theta1"], theta2=get["theta2"], torque=torque, torque_cmd=cmd,
+        t=t, theta1=get["theta1"], theta2=get.get("theta2"), torque=torque, torque_cmd=cmd,
         torque_meas=meas, omega1=get.get("omega1"), omega2=get.get("omega2"),
         seq=None if seq is None else np.asarray(seq, dtype=np.int64),
         metadata=metadata, source=source,
@@ -215,23 +221,27 @@ def _csv_scan(path: Path, names: list[str], idx: list[int]) -> np.ndarray:
     return np.array(out, dtype=np.float64).reshape(-1, len(names))
 
 
-def _read_csv(path: Path) -> dict[str, np.ndarray]:
+def _read_csv(path: Path, require_theta2: bool = True) -> dict[str, np.ndarray]:
     try:
-        return _read_csv_utf8(path)
+        return _read_csv_utf8(path, require_theta2)
     except UnicodeDecodeError as e:
         raise DataError(f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); "
                         "save the CSV as UTF-8 or ASCII") from None
 
 
-def _read_csv_utf8(path: Path) -> dict[str, np.ndarray]:
+def _read_csv_utf8(path: Path, require_theta2: bool = True) -> dict[str, np.ndarray]:
     with open(path, newline="", encoding="utf-8") as f:
         header = next(csv.reader(f), None)
     if not header:
         raise DataError(f"{path}: empty CSV (no header row)")
     header = [h.strip() for h in header]
-    missing = [c for c in CSV_REQUIRED if c not in header]
+    required = CSV_REQUIRED if require_theta2 else tuple(c for c in CSV_REQUIRED if c != "theta2")
+    missing = [c for c in required if c not in header]
     if missing:
-        raise DataError(f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(header)})")
+        hint = ""
+        if require_theta2 and missing == ["theta2"]:
+            hint = " (a one-sensor recording t,theta1,torque needs --model rigid-friction)"
+        raise DataError(f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(header)}){hint}")
     names = [c for c in CSV_REQUIRED + CSV_OPTIONAL if c in header]
     idx = [header.index(c) for c in names]
     try:
@@ -244,7 +254,7 @@ def _read_csv_utf8(path: Path) -> dict[str, np.ndarray]:
     return {name: data[:, k] for k, name in enumerate(names)}
 
 
-def read_recording(path: str | os.PathLike[str]) -> Recording:
+def read_recording(path: str | os.PathLike[str], *, require_theta2: bool = True) -> Recording:
     """Read ``.parquet`` (closed, or recovered from its journal after a crash), ``.arrows``, ``.csv``.
 
     Raises :class:`DataError` naming the problem: missing file, unknown extension, missing columns,
@@ -255,7 +265,7 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
     if ext == ".csv":
         if not p.is_file():
             raise DataError(f"{p}: no such file")
-        return _build(_read_csv(p), {}, "csv", p)
+        return _build(_read_csv(p, require_theta2), {}, "csv", p, require_theta2)
     if ext == ".parquet":
         journal = journal_path(p)
         if p.is_file():

@@ -256,6 +256,9 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         if telemetry is not None:
             tel = telemetry.close()
             summary["telemetry"] = {"dropped": telemetry.dropped, "sent": telemetry.sent, **tel}
+            if tel.get("write_error"):
+                lost = f"dashboard: {tel['write_error']}"
+                summary["data_lost"] = f"{summary['data_lost']}; {lost}" if summary.get("data_lost") else lost
         else:
             summary["telemetry"] = {"dropped": 0, "sent": 0, "sink": "off"}
         summary["files"] = files

@@ -100,6 +100,7 @@ class TelemetryConfig:
     # send_columns as its own chunk; one per 20-ms block made ~8000 tiny chunks in 10 s and
     # 2.4 MB/s of .rrd. Half a second keeps the live view fluid and the chunks big enough to compress.
     batch_seconds: float = 1.0
+    min_free_bytes: int = 4 << 20  # an .rrd sink stops (and says so) when its filesystem has less left
 
     def __post_init__(self) -> None:
         if self.sink not in SINKS:
@@ -370,7 +371,24 @@ class _Sender:
             draw_loop_gain(rec, rr, view, margins)
 
 
-def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: Any, truth: dict[str, float]) -> None:
+def _disk_full(path: str | None, min_free: int) -> str | None:
+    """Why an .rrd sink cannot go on writing (its filesystem is full), or None. Rerun's file sink
+    writes in a thread of its own and reports a failed write only to its log, never to the caller:
+    so the free space is checked before each batch instead."""
+    if not path:
+        return None
+    try:
+        st = os.statvfs(Path(path).resolve().parent)
+    except OSError:
+        return None
+    free = st.f_bavail * st.f_frsize
+    if free < min_free:
+        return f"no space left on the device of {path} ({free} bytes free)"
+    return None
+
+
+def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: Any, truth: dict[str, float],
+                    failed: Any = None) -> None:
     """Body of the telemetry process: poll the ring, send what is there, stop when the writer closes
     (or the run's main process dies: the .rrd is then finished with what arrived)."""
     watch = become_helper()
@@ -399,8 +417,14 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
         now = time.monotonic()
         final = closed and not msgs
         if pending and (now - last_send >= cfg.batch_seconds or len(pending) >= _MAX_PENDING or final):
-            sender.send(pending, truth, final=final)
-            sent.value += len(pending)
+            full = _disk_full(cfg.rrd_path, cfg.min_free_bytes) if cfg.sink == "rrd" else None
+            if full:                              # stop writing; the parent reports it (never "sent")
+                if failed is not None and not failed.value:
+                    failed.value = 1
+                    log.error("telemetry: %s; the dashboard stops here", full)
+            else:
+                sender.send(pending, truth, final=final)
+                sent.value += len(pending)
             pending = []
             last_send = now
         if sender.views:
@@ -432,6 +456,7 @@ class TelemetryProcess:
         self._ring: MessageRing | None = None
         self._proc: Any = None
         self._sent: Any = None  # mp.Value, created by start() (the constructor does no I/O)
+        self._failed: Any = None
         self._dropped = 0
         self._published = 0
         self._n_seen = 0  # samples seen, for decimation phase across blocks
@@ -465,9 +490,11 @@ class TelemetryProcess:
         # Lock-free, one writer (the child). A child terminated while holding a lock would
         # otherwise hang every later read.
         self._sent = self._ctx.Value("q", 0, lock=False)
+        self._failed = self._ctx.Value("b", 0, lock=False)   # the child found its .rrd's disk full
         self._ready = self._ctx.Event()
         self._proc = self._ctx.Process(target=_telemetry_main, name="rt_ident-telemetry", daemon=True,
-                                       args=(self.config, self._ring, self._sent, self._ready, dict(self._truth)))
+                                       args=(self.config, self._ring, self._sent, self._ready, dict(self._truth),
+                                             self._failed))
         start_ignoring_signals(self._proc)
         self._truth_pending = False
         return self
@@ -622,6 +649,7 @@ class TelemetryProcess:
                     self._proc.join(0.1)
         self._closed = True
         return {
+            **self._written(),
             "sink": self.config.sink,
             "rrd_path": self.config.rrd_path if self.config.sink == "rrd" else None,
             "earlier_rrd": list(self.earlier_rrd),
@@ -632,6 +660,29 @@ class TelemetryProcess:
             "terminated": terminated,
             "seconds": time.monotonic() - t0,
         }
+
+    def _written(self) -> dict[str, Any]:
+        """Whether the .rrd holds what was sent: ``{"written": bool, "write_error": str | None}``.
+        A disk found full by the child, a file that is not a regular file or is empty though blocks
+        were sent (a write that failed: ENOSPC on the whole file, /dev/full) are write errors."""
+        if self.config.sink != "rrd" or not self.config.rrd_path:
+            return {"written": None, "write_error": None}
+        path = Path(self.config.rrd_path)
+        why = None
+        if getattr(self, "_failed", None) is not None and self._failed.value:
+            why = f"no space left on the device of {path}: the dashboard stopped early"
+        else:
+            try:
+                st = path.stat()
+                import stat as _stat
+
+                if not _stat.S_ISREG(st.st_mode):
+                    why = f"{path} is not a regular file: nothing was stored"
+                elif st.st_size == 0 and self.sent > 0:
+                    why = f"{path} is empty though {self.sent} blocks were sent (a failed write)"
+            except OSError as exc:
+                why = f"{path}: {exc.strerror or exc}"
+        return {"written": why is None, "write_error": why}
 
     def __enter__(self) -> "TelemetryProcess":
         return self.start()

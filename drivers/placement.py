@@ -1,0 +1,54 @@
+"""Where an emulated device runs: its CPU set and scheduling, so the real-time loop cannot starve it.
+
+A real drive or encoder board has its own processor and clock. An emulated one shares this
+host's CPUs with the loop, which (when real-time) runs SCHED_FIFO on the last CPU and barely
+yields it. An emulator on that CPU then answers late and the loop sees stale data. Both ways of
+starting an emulator use the same placement: the loop's own child process
+(:class:`rt_ident.runtime.emulation.EmulatorProcess`) and the command line
+(``python -m drivers.cia402.emulator``, ``python -m drivers.encoder_board.emulator``).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+#: SCHED_FIFO priority of an emulated device when the loop is real-time (the loop has 50).
+EMULATOR_FIFO_PRIORITY = 40
+
+
+def helper_cpus(realtime: bool) -> list[int] | None:
+    """Every CPU but the loop's (the last one, see rt_ident.runtime.run) when the loop is real-time."""
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return None
+    return cpus[:-1] if realtime and len(cpus) >= 2 else None
+
+
+def device_placement(realtime: bool = True) -> dict[str, Any]:
+    """The placement of an emulated device beside a (real-time) loop."""
+    return {"cpus": helper_cpus(realtime), "fifo_priority": EMULATOR_FIFO_PRIORITY if realtime else None}
+
+
+def place(placement: dict[str, Any] | None) -> dict[str, Any]:
+    """Apply ``{"cpus": [...], "fifo_priority": n}`` to the calling thread (call it before starting any
+    other thread: new threads inherit it). Returns what was applied, or why not ("denied: ...")."""
+    report: dict[str, Any] = {}
+    if not placement:
+        return report
+    cpus = placement.get("cpus")
+    if cpus:
+        try:
+            os.sched_setaffinity(0, set(cpus))
+            report["cpus"] = sorted(cpus)
+        except (AttributeError, OSError) as exc:
+            report["cpus"] = f"denied: {exc}"
+    prio = placement.get("fifo_priority")
+    if prio:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(prio)))
+            report["sched_fifo"] = int(prio)
+        except (AttributeError, OSError) as exc:
+            report["sched_fifo"] = f"denied: {exc}"
+    return report

@@ -1,0 +1,661 @@
+"""Batch identification with friction to ground (issue #14; beyond the paper): method ``svf-ls``.
+
+Models (``MODELS``; JSON parameter names exactly these):
+
+* ``two-inertia``: Eq. (3) as the paper has it, (I1, I2, B, K) plus a torque ``offset``;
+* ``two-inertia-friction``: Eq. (3) with Coulomb and viscous friction to ground on each body,
+
+      I1 th1'' + B (th1' - th2') + K (th1 - th2) + Fv1 th1' + Fc1 sgn(th1') + offset = T      (motor)
+      I2 th2'' - B (th1' - th2') - K (th1 - th2) + Fv2 th2' + Fc2 sgn(th2')          = 0      (table)
+
+  parameters ``I1, I2, B, K, Fc1, Fv1, Fc2, Fv2, offset``;
+* ``rigid-friction``: one inertia (or mass) J with ``J th'' + Fv th' + Fc sgn(th') + offset = T``
+  (a stiff axis, or a recording with one position sensor), parameters ``J, Fv, Fc, offset`` in the
+  file's own units (rad and N m, or m and N).
+
+**Regression.** Every model is linear in its parameters once sgn(th') is known, so it is a least
+squares problem, in continuous time like Eq. (18) and :mod:`rt_ident.estimators.svf`: both sides
+pass the state-variable filter F(s) = lam^3/(s + lam)^3 and s F, s^2 F give the filtered
+derivatives (no raw angle is differenced; the paper's forward-Euler Eq. (9) is not used). The
+two-inertia models stack the motor row and the sum of both rows (``F T = I1 s^2F th1 + I2 s^2F th2 +
+friction + offset``), both with the filtered torque as the regressand. The filter is discretized
+exactly per sample (angles first-order hold, torque zero-order hold), with one run of
+:func:`scipy.signal.lfilter` per column.
+
+**Sign of the velocity.** sgn(th') is taken from a *zero-phase* low-passed velocity (the batch can
+look ahead: no lag at reversals) with a **dead band** around zero: rows whose filter memory
+(8 / lam) contains a sample inside the dead band are left out of the fit, so standstill stretches,
+sticking and the reversals themselves (where Karnopp/Stribeck friction is not Fc sgn(v)) neither
+flip the sign column nor enter the fit. The dead band is 5 standard deviations of that velocity's
+quantization noise (q^2 / 12 per sample, q detected from the data as the smallest position step)
+unless given (``dead_band``, in position units per second).
+
+**Quantization bias.** The angle noise enters the regressors (errors in variables); its covariance
+per row is known from q and the filters' impulse responses, and is subtracted from the normal
+equations (bias-compensated least squares, as :mod:`rt_ident.estimators.svf` does per sample).
+
+**95 % intervals**: sigma^2 (A'A)^-1 from the residual, inflated by the residual's integrated
+autocorrelation time (the filtered rows are strongly correlated).
+
+The frequency method stays linear-only (no friction model); this method accepts every model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numba
+import numpy as np
+import scipy.linalg
+import scipy.signal
+
+from rt_ident.errors import ConfigError, DataError, EstimationError
+
+MODELS: dict[str, tuple[str, ...]] = {
+    "two-inertia": ("I1", "I2", "B", "K", "offset"),
+    "two-inertia-friction": ("I1", "I2", "B", "K", "Fc1", "Fv1", "Fc2", "Fv2", "offset"),
+    "rigid-friction": ("J", "Fv", "Fc", "offset"),
+}
+DEFAULT_MODEL = "two-inertia"
+#: Models that need a second (table) position sensor.
+NEEDS_THETA2 = ("two-inertia", "two-inertia-friction")
+
+
+def check_model(model: str | None) -> str:
+    key = DEFAULT_MODEL if model is None else str(model).strip().lower()
+    if key not in MODELS:
+        raise ConfigError("model", f"unknown model {model!r}; valid: {', '.join(MODELS)}")
+    return key
+
+
+@dataclass(frozen=True)
+class FrictionIdentification:
+    """Result of :func:`fit_friction` (the JSON of ``rt-ident identify --model ...``)."""
+
+    model: str
+    parameters: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+    nrmse_percent: float
+    method: str = "svf-ls"
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def trusted(self) -> bool:
+        return bool(self.diagnostics.get("well_posed", False))
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"model": self.model, "method": self.method, "parameters": dict(self.parameters),
+                "intervals": {k: [lo, hi] for k, (lo, hi) in self.ci95.items()},
+                "ci95": {k: [lo, hi] for k, (lo, hi) in self.ci95.items()},
+                "fit": {"nrmse_percent": self.nrmse_percent}, "trusted": self.trusted,
+                "diagnostics": dict(self.diagnostics)}
+
+
+# ----------------------------------------------------------------------------- filters
+def _svf_filters(lam: float, dt: float) -> tuple[list[tuple[np.ndarray, np.ndarray]], tuple[np.ndarray, np.ndarray]]:
+    """Discrete s^k lam^3/(s+lam)^3, k = 0, 1, 2, for a first-order-hold input (angles), and F for a
+    zero-order-hold input (torque). Exact: the continuous filter's state-space model sampled."""
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-lam**3, -3 * lam**2, -3 * lam]])
+    b = np.array([0.0, 0.0, lam**3])
+    # ZOH and FOH input integrals via one expm of the augmented matrix
+    M = np.zeros((5, 5))
+    M[:3, :3] = A * dt
+    M[:3, 3] = b * dt
+    M[3, 4] = 1.0
+    E = scipy.linalg.expm(M)
+    Phi = E[:3, :3]
+    g0 = E[:3, 3]                # ZOH: x+ = Phi x + g0 u_k
+    g1 = E[:3, 4]                # FOH slope part: x+ = Phi x + (g0 - g1) u_k + g1 u_{k+1}
+    outs = [np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0])]
+    foh = []
+    for c in outs:
+        # y_k = c x_k; transfer from u: c (zI - Phi)^-1 ((g0 - g1) + g1 z)
+        sys = scipy.signal.StateSpace(Phi, np.column_stack([g0 - g1, g1]), c[None, :], np.zeros((1, 2)), dt=dt)
+        n0, den = scipy.signal.ss2tf(sys.A, sys.B, sys.C, sys.D, input=0)
+        n1, _ = scipy.signal.ss2tf(sys.A, sys.B, sys.C, sys.D, input=1)
+        # u_{k+1} term: multiply by z -> shift numerator one place left
+        num = np.zeros(4)
+        num[:] = n0[0][-4:] + np.append(n1[0][-3:], 0.0)
+        foh.append((num, den))
+    n0, den = scipy.signal.ss2tf(Phi, g0[:, None], outs[0][None, :], np.zeros((1, 1)))
+    zoh = (np.asarray(n0[0][-4:], dtype=float), den)
+    return foh, zoh
+
+
+def _lfilter(nd: tuple[np.ndarray, np.ndarray], x: np.ndarray) -> np.ndarray:
+    return scipy.signal.lfilter(nd[0], nd[1], x)
+
+
+def _impulse(nd: tuple[np.ndarray, np.ndarray], n: int) -> np.ndarray:
+    u = np.zeros(n)
+    u[0] = 1.0
+    return scipy.signal.lfilter(nd[0], nd[1], u)
+
+
+def detect_quantum(x: np.ndarray) -> float:
+    """The position step of a quantized signal (the smallest non-negligible |diff|), 0 if it looks continuous."""
+    d = np.abs(np.diff(np.asarray(x, dtype=float)))
+    scale = float(np.max(np.abs(x - x[0]))) if x.size else 0.0
+    d = d[d > 1e-9 * max(scale, 1e-300)]
+    if d.size < 10:
+        return 0.0
+    q = float(np.min(d))
+    # quantized: most steps are integer multiples of q
+    frac = np.abs(d / q - np.round(d / q))
+    return q if float(np.mean(frac < 0.05)) > 0.9 else 0.0
+
+
+def _zero_phase_velocity(x: np.ndarray, dt: float, hz: float) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    v = np.gradient(x, dt)
+    wn = min(0.9, 2.0 * hz * dt)
+    ba = scipy.signal.butter(2, wn)
+    return scipy.signal.filtfilt(*ba, v), ba
+
+
+def _velocity_noise_std(q: float, dt: float, ba, n: int = 20000, seed: int = 12345) -> float:
+    if q <= 0.0:
+        return 0.0
+    e = np.random.default_rng(seed).uniform(-q / 2, q / 2, n)
+    v = scipy.signal.filtfilt(*ba, np.gradient(e, dt))
+    return float(np.std(v[n // 10: -n // 10]))
+
+
+#: the dead band is at least this fraction of the rms velocity (sticking stretches are smeared by the
+#: velocity filter even when the position is not quantized)
+DEAD_BAND_FLOOR = 0.02
+
+
+def _dead_band(v: np.ndarray, q: float, dt: float, ba) -> float:
+    return max(5.0 * _velocity_noise_std(q, dt, ba), DEAD_BAND_FLOOR * float(np.sqrt(np.mean(v**2))), 1e-12)
+
+
+def _memory_mask(bad: np.ndarray, n_mem: int, n_ahead: int = 0) -> np.ndarray:
+    """True where no sample in [k - n_mem, k + n_ahead] is bad."""
+    c = np.concatenate([[0], np.cumsum(bad.astype(np.int64))])
+    k = np.arange(bad.size)
+    lo = np.maximum(0, k - n_mem)
+    hi = np.minimum(bad.size, k + n_ahead + 1)
+    return (c[hi] - c[lo]) == 0
+
+
+# ----------------------------------------------------------------------------- the fit
+def fit_friction(theta1: np.ndarray, torque: np.ndarray, dt: float, *, model: str = "two-inertia-friction",
+                 theta2: np.ndarray | None = None, filter_hz: float | None = None,
+                 velocity_hz: float | None = None, dead_band: float | None = None,
+                 dead_band2: float | None = None, quanta: tuple[float, float] | None = None,
+                 bias_compensation: bool = True, torque_hold: str = "zoh",
+                 lead: float | None = None) -> FrictionIdentification:
+    """Identify ``model`` from sampled positions and torque (see the module docstring).
+
+    ``filter_hz``: the SVF corner (default: 800 Hz for the two-inertia models - it must pass the
+    resonance - capped at the sample rate / 8; for ``rigid-friction`` the sample rate / 40);
+    ``velocity_hz``: the zero-phase velocity low-pass for the sign (default sample rate / 10);
+    ``dead_band`` / ``dead_band2``: |velocity| below which a sample counts as standstill (motor /
+    table); ``quanta``: (q1, q2) position quanta (default: detected); ``torque_hold``: "zoh" (the
+    torque is held over each sample, as a drive applies a command) or "foh" (a sampled continuous
+    torque, e.g. a measured current that varies within the sample). ``lead`` is accepted and
+    ignored (the registry passes it to every method)."""
+    del lead
+    key = check_model(model)
+    th1 = np.asarray(theta1, dtype=float)
+    tq = np.asarray(torque, dtype=float)
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        raise DataError(f"dt: must be > 0, got {dt!r}")
+    two = key in NEEDS_THETA2
+    if two and theta2 is None:
+        raise DataError(f"model {key!r} needs theta2 (the table position); a one-sensor recording needs "
+                        f"--model rigid-friction")
+    th2 = np.asarray(theta2, dtype=float) if two else None
+    n = th1.size
+    for name, a in (("theta1", th1), ("torque", tq)) + ((("theta2", th2),) if two else ()):
+        if a.shape != (n,):
+            raise DataError(f"{name}: must be 1-D of length {n}, got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise DataError(f"{name}: non-finite values")
+    fs = 1.0 / dt
+    if filter_hz is None:
+        filter_hz = min(800.0, fs / 8.0) if two else fs / 40.0
+    if velocity_hz is None:
+        velocity_hz = fs / 10.0
+    if not 0 < filter_hz <= fs / 4:
+        raise ConfigError("filter_hz", f"must be in (0, {fs / 4:g}] Hz (a quarter of the sample rate)")
+    lam = 2 * math.pi * filter_hz
+    n_mem = int(math.ceil(8.0 / (lam * dt)))
+    if n < 4 * n_mem + 50:
+        raise DataError(f"only {n} samples; need more than {4 * n_mem + 50} at filter_hz = {filter_hz:g}")
+    # positions start anywhere: only differences and derivatives matter (the offset absorbs the rest)
+    th1 = th1 - th1[0]
+    if two:
+        th2 = th2 - th2[0]
+    q1, q2 = quanta if quanta is not None else (detect_quantum(th1), detect_quantum(th2) if two else 0.0)
+    foh, zoh = _svf_filters(lam, dt)
+    if torque_hold not in ("zoh", "foh"):
+        raise ConfigError("torque_hold", f"must be 'zoh' or 'foh', got {torque_hold!r}")
+    base = [_lfilter(f, th1) for f in foh]                 # F th1, sF th1, s^2F th1
+    if two:
+        base += [_lfilter(f, th2) for f in foh]
+    y = _lfilter(zoh if torque_hold == "zoh" else foh[0], tq)
+    one = _lfilter(zoh, np.ones(n))
+    # sign of a zero-phase velocity, with the dead band
+    v1, ba = _zero_phase_velocity(th1, dt, velocity_hz)
+    db1 = dead_band if dead_band is not None else _dead_band(v1, q1, dt, ba)
+    s1 = np.where(np.abs(v1) > db1, np.sign(v1), 0.0)
+    n_v = int(math.ceil(1.0 / (2 * math.pi * velocity_hz * dt)))   # the zero-phase filter's reach
+    ok = _memory_mask(s1 == 0.0, n_mem + n_v, n_v)
+    if two:
+        v2, _ = _zero_phase_velocity(th2, dt, velocity_hz)
+        db2 = dead_band2 if dead_band2 is not None else _dead_band(v2, q2, dt, ba)
+        s2 = np.where(np.abs(v2) > db2, np.sign(v2), 0.0)
+        if key == "two-inertia-friction":
+            ok &= _memory_mask(s2 == 0.0, n_mem + n_v, n_v)
+    ok[: 4 * n_mem] = False                                # filter start-up
+    rows = np.flatnonzero(ok)
+    if rows.size < 20 * len(MODELS[key]):
+        raise EstimationError(f"only {rows.size} samples in motion outside the dead band "
+                              f"({db1:.3g}/s); the record is mostly at standstill")
+    # regressor columns as linear maps of the base (for the noise covariance) plus noise-free columns
+    nb = len(base)
+    if key == "rigid-friction":
+        names = MODELS[key]
+        C = np.zeros((1, 4, nb))          # (equations, parameters, base)
+        C[0, 0, 2] = 1.0                  # J: s^2F th
+        C[0, 1, 1] = 1.0                  # Fv: sF th
+        extra = [[None, None, _lfilter(zoh, s1), one]]
+    else:
+        names = MODELS[key]
+        p = len(names)
+        C = np.zeros((2, p, nb))
+        # motor row: I1 s2F1 + B (sF1 - sF2) + K (F1 - F2) [+ Fv1 sF1]
+        C[0, 0, 2] = 1.0
+        C[0, 2, 1], C[0, 2, 4] = 1.0, -1.0
+        C[0, 3, 0], C[0, 3, 3] = 1.0, -1.0
+        # sum row: I1 s2F1 + I2 s2F2 [+ Fv1 sF1 + Fv2 sF2]
+        C[1, 0, 2] = 1.0
+        C[1, 1, 5] = 1.0
+        ex0: list[Any] = [None] * p
+        ex1: list[Any] = [None] * p
+        ex0[-1] = ex1[-1] = one
+        if key == "two-inertia-friction":
+            fs1, fs2 = _lfilter(zoh, s1), _lfilter(zoh, s2)
+            C[0, 5, 1] = 1.0                      # Fv1
+            C[1, 5, 1] = 1.0
+            C[1, 7, 4] = 1.0                      # Fv2
+            ex0[4] = ex1[4] = fs1                 # Fc1
+            ex1[6] = fs2                          # Fc2
+        extra = [ex0, ex1]
+    neq, p, _ = C.shape
+    Bsel = np.column_stack([b[rows] for b in base])
+    A_blocks = []
+    for e in range(neq):
+        Ae = Bsel @ C[e].T
+        for j, col in enumerate(extra[e]):
+            if col is not None:
+                Ae[:, j] += col[rows]
+        A_blocks.append(Ae)
+    A = np.vstack(A_blocks)
+    yy = np.concatenate([y[rows]] * neq)
+    # scale columns
+    sc = np.sqrt(np.mean(A**2, axis=0))
+    sc[sc == 0] = 1.0
+    As = A / sc
+    R = As.T @ As
+    r = As.T @ yy
+    # bias compensation: noise covariance of the base signals (white q^2/12 per angle)
+    Sig = np.zeros((p, p))
+    if bias_compensation and (q1 > 0 or q2 > 0):
+        H = np.column_stack([_impulse(f, 40 * n_mem) for f in foh])
+        G = H.T @ H
+        Nb = np.zeros((nb, nb))
+        Nb[:3, :3] = G * q1**2 / 12.0
+        if two:
+            Nb[3:, 3:] = G * q2**2 / 12.0
+        for e in range(neq):
+            Sig += rows.size * (C[e] @ Nb @ C[e].T)
+        Sig = Sig / np.outer(sc, sc)
+    try:
+        ps = np.linalg.solve(R - Sig, r)
+    except np.linalg.LinAlgError as exc:
+        raise EstimationError(f"the regression is singular ({exc}); not enough excitation") from None
+    res = yy - As @ ps
+    m = rows.size
+    nrmse = float(100.0 * math.sqrt(np.mean(res[:m] ** 2)) / max(float(np.std(yy[:m])), 1e-300))
+    # intervals: residual variance x integrated autocorrelation time of the residual
+    tau = _autocorr_time(res[:m])
+    dof = max(yy.size - p, 1)
+    s2 = float(res @ res) / dof
+    try:
+        Rinv = np.linalg.inv(R)
+    except np.linalg.LinAlgError:
+        Rinv = np.full((p, p), np.nan)
+    cov = s2 * tau * Rinv / np.outer(sc, sc)
+    est = ps / sc
+    half = 1.96 * np.sqrt(np.maximum(np.diag(cov), 0.0))
+    params = {k: float(v) for k, v in zip(names, est)}
+    ci = {k: (float(v - h), float(v + h)) for k, v, h in zip(names, est, half)}
+    cond = float(np.linalg.cond(R))
+    positive = [k for k in names if k in ("I1", "I2", "K", "J")]
+    diag = {"samples": int(n), "rows_used": int(m), "filter_hz": float(filter_hz), "velocity_hz": float(velocity_hz),
+            "dead_band": float(db1), "torque_hold": torque_hold, "quanta": [float(q1), float(q2)], "regressor_cond": cond,
+            "autocorrelation_time": float(tau),
+            "well_posed": bool(cond < 1e12 and all(params[k] > 0 for k in positive))}
+    return FrictionIdentification(key, params, ci, nrmse, diagnostics=diag)
+
+
+def _autocorr_time(e: np.ndarray, max_lag: int = 20000) -> float:
+    """1 + 2 sum of the residual's autocorrelation up to its first drop below 0.05 (>= 1)."""
+    e = e - e.mean()
+    n = e.size
+    L = min(max_lag, n // 4)
+    f = np.fft.rfft(e, 2 * n)
+    ac = np.fft.irfft(f * np.conj(f))[: L + 1]
+    if ac[0] <= 0:
+        return 1.0
+    rho = ac / ac[0]
+    cut = np.flatnonzero(rho < 0.05)
+    k = int(cut[0]) if cut.size else L
+    return max(1.0, float(1.0 + 2.0 * rho[1:k].sum()))
+
+
+# ----------------------------------------------------------------------------- per sample
+def _row_maps(key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(C, E) of a model: C (neq, p, 6) maps the filtered angle states (F, sF, s^2F of th1, then th2)
+    to each row's regressors; E (neq, p) names the noise-free column (0 none, 1 F[1], 2 F[sgn v1],
+    3 F[sgn v2]). Same rows as :func:`fit_friction`."""
+    p = len(MODELS[key])
+    if key == "rigid-friction":
+        C = np.zeros((1, p, 6))
+        C[0, 0, 2] = 1.0
+        C[0, 1, 1] = 1.0
+        E = np.array([[0, 0, 2, 1]], dtype=np.int64)
+        return C, E
+    C = np.zeros((2, p, 6))
+    E = np.zeros((2, p), dtype=np.int64)
+    C[0, 0, 2] = 1.0
+    C[0, 2, 1], C[0, 2, 4] = 1.0, -1.0
+    C[0, 3, 0], C[0, 3, 3] = 1.0, -1.0
+    C[1, 0, 2] = 1.0
+    C[1, 1, 5] = 1.0
+    E[0, p - 1] = E[1, p - 1] = 1
+    if key == "two-inertia-friction":
+        C[0, 5, 1] = C[1, 5, 1] = 1.0
+        C[1, 7, 4] = 1.0
+        E[0, 4] = E[1, 4] = 2
+        E[1, 6] = 3
+    return C, E
+
+
+def _rfs_block_py(th1, th2, tq, X, last, Phi, G0, G1, Gz, C, E, lamf, db, n_gate, n_warm, fv, R, r,
+                  rbuf, ybuf, okbuf):
+    """Advance the recursive friction estimator over one block (in place).
+
+    X (6, 3): filter states of th1, th2 (FOH), torque, 1, sgn v1, sgn v2 (ZOH);
+    last (12,): [th1, th2, torque, sgn1, sgn2, has_prev, gate1, gate2, samples, weight, v1 ms, v2 ms].
+    db (2,): dead bands from the sensor noise (at least 2 % of the running rms velocity is used);
+    fv: forgetting of that running mean square.
+    rbuf (L, neq, p), ybuf (L,), okbuf (L,): rows wait L samples (the causal sign's lag) before they
+    enter (R, r); a standstill sample in that time discards them (their sign may have been stale)."""
+    n = th1.shape[0]
+    neq = C.shape[0]
+    p = C.shape[1]
+    L = ybuf.shape[0]
+    two_fric = neq == 2 and p == 9
+    xn = np.empty(3)
+    for k in range(n):
+        a1 = th1[k]
+        a2 = th2[k]
+        u = tq[k]
+        if not (math.isfinite(a1) and math.isfinite(a2) and math.isfinite(u)):
+            continue
+        if last[5] == 0.0:
+            last[0] = a1
+            last[1] = a2
+            last[2] = u
+            last[5] = 1.0
+            continue
+        # advance every filter from the previous sample to this one
+        for f in range(6):
+            if f == 0:
+                uk, uk1 = last[0], a1
+            elif f == 1:
+                uk, uk1 = last[1], a2
+            elif f == 2:
+                uk, uk1 = last[2], last[2]
+            elif f == 3:
+                uk, uk1 = 1.0, 1.0
+            elif f == 4:
+                uk, uk1 = last[3], last[3]
+            else:
+                uk, uk1 = last[4], last[4]
+            for i in range(3):
+                acc = Phi[i, 0] * X[f, 0] + Phi[i, 1] * X[f, 1] + Phi[i, 2] * X[f, 2]
+                if f < 2:
+                    acc += G0[i] * uk + G1[i] * (uk1 - uk)
+                else:
+                    acc += Gz[i] * uk
+                xn[i] = acc
+            for i in range(3):
+                X[f, i] = xn[i]
+        last[0] = a1
+        last[1] = a2
+        last[2] = u
+        last[8] += 1.0
+        # the sign of the (causal) filtered velocity, with the dead band; gates count samples since standstill
+        event = False
+        for b in range(2):
+            v = X[b, 1]
+            last[10 + b] = fv * last[10 + b] + (1.0 - fv) * v * v
+            band = max(db[b], 0.02 * math.sqrt(last[10 + b]))
+            if abs(v) > band:
+                last[3 + b] = 1.0 if v > 0.0 else -1.0
+                last[6 + b] += 1.0
+            else:
+                last[3 + b] = 0.0
+                last[6 + b] = 0.0
+                if b == 0 or two_fric:
+                    event = True
+        if event:
+            for i in range(L):
+                okbuf[i] = 0.0
+        # the row of L samples ago enters now (forgetting applies per sample from here)
+        slot = int(last[8]) % L
+        if okbuf[slot] != 0.0:
+            for ii in range(p):
+                for jj in range(p):
+                    R[ii, jj] *= lamf
+                r[ii] *= lamf
+            last[9] = lamf * last[9] + 1.0
+            yo = ybuf[slot]
+            for e in range(neq):
+                for ii in range(p):
+                    ri = rbuf[slot, e, ii]
+                    r[ii] += ri * yo
+                    for jj in range(p):
+                        R[ii, jj] += ri * rbuf[slot, e, jj]
+        ok = last[8] >= n_warm and last[6] > n_gate and (not two_fric or last[7] > n_gate)
+        okbuf[slot] = 1.0 if ok else 0.0
+        ybuf[slot] = X[2, 0]
+        for e in range(neq):
+            for j in range(p):
+                acc = 0.0
+                for m in range(3):
+                    acc += C[e, j, m] * X[0, m] + C[e, j, 3 + m] * X[1, m]
+                ex = E[e, j]
+                if ex == 1:
+                    acc += X[3, 0]
+                elif ex == 2:
+                    acc += X[4, 0]
+                elif ex == 3:
+                    acc += X[5, 0]
+                rbuf[slot, e, j] = acc
+
+
+_rfs_block = numba.njit(cache=True)(_rfs_block_py)
+
+
+class RecursiveFrictionEstimator:
+    """The friction models per sample (issue #14): the rows of :func:`fit_friction` accumulated sample by
+    sample in information form with exponential forgetting, compiled.
+
+    Differences from the batch fit: the sign comes from the *causal* filtered velocity (sF th, lag
+    ~3/lam), so rows are used only once ``n_gate`` samples (the filter memory plus that lag) have
+    passed since the last standstill sample, and each row waits that lag before it enters the sums
+    (a standstill sample meanwhile discards it: its sign may have been stale); the dead band is 5 sigma of the quantization noise of
+    sF th and at least 2 % of the running rms velocity. ``estimate()`` solves the
+    bias-compensated normal equations (Jacobi-scaled) on request - the update itself is O(p^2) per
+    row. ``memory_s`` = inf: no forgetting (the batch answer, up to the causal sign)."""
+
+    def __init__(self, dt: float, model: str = "two-inertia-friction", *, filter_hz: float = 800.0,
+                 memory_s: float = math.inf, quanta: tuple[float, float] = (0.0, 0.0),
+                 dead_band: tuple[float, float] | None = None) -> None:
+        self.model = check_model(model)
+        self.dt = float(dt)
+        if not 0 < filter_hz <= 0.25 / dt:
+            raise ConfigError("filter_hz", f"must be in (0, {0.25 / dt:g}] Hz (a quarter of the sample rate)")
+        self.filter_hz = float(filter_hz)
+        lam = 2 * math.pi * filter_hz
+        Phi = np.zeros((3, 3))
+        A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-lam**3, -3 * lam**2, -3 * lam]])
+        M = np.zeros((5, 5))
+        M[:3, :3] = A * dt
+        M[:3, 3] = np.array([0.0, 0.0, lam**3]) * dt
+        M[3, 4] = 1.0
+        Ex = scipy.linalg.expm(M)
+        Phi, g0, g1 = Ex[:3, :3].copy(), Ex[:3, 3].copy(), Ex[:3, 4].copy()
+        self._mats = (Phi, g0, g1, g0.copy())
+        self._C, self._E = _row_maps(self.model)
+        self.names = MODELS[self.model]
+        p = len(self.names)
+        n_mem = int(math.ceil(8.0 / (lam * dt)))
+        self._n_gate = float(n_mem + int(math.ceil(3.0 / (lam * dt))))
+        self._n_warm = float(4 * n_mem)
+        self._lamf = 1.0 if not math.isfinite(memory_s) else math.exp(-dt / memory_s)
+        self._fv = math.exp(-dt / 0.5)               # running rms velocity over 0.5 s (dead band floor)
+        # quantization: per-row noise covariance (white q^2/12 through the FOH filter)
+        foh, _ = _svf_filters(lam, dt)
+        H = np.column_stack([_impulse(f, 40 * n_mem) for f in foh])
+        G = H.T @ H
+        q1, q2 = quanta
+        Nb = np.zeros((6, 6))
+        Nb[:3, :3] = G * q1**2 / 12.0
+        Nb[3:, 3:] = G * q2**2 / 12.0
+        self._Sigma = sum(self._C[e] @ Nb @ self._C[e].T for e in range(self._C.shape[0]))
+        sd = math.sqrt(G[1, 1])
+        if dead_band is None:
+            dead_band = (5.0 * sd * q1 / math.sqrt(12.0), 5.0 * sd * q2 / math.sqrt(12.0))
+        self._db = np.array([float(dead_band[0]), float(dead_band[1])])
+        self._X = np.zeros((6, 3))
+        self._last = np.zeros(12)
+        self._R = np.zeros((p, p))
+        self._r = np.zeros(p)
+        L = int(math.ceil(3.0 / (lam * dt))) + 1              # the causal sign's lag, in samples
+        self._rbuf = np.zeros((L, self._C.shape[0], p))
+        self._ybuf = np.zeros(L)
+        self._okbuf = np.zeros(L)
+
+    def update_block(self, theta1: np.ndarray, theta2: np.ndarray | None, torque: np.ndarray) -> None:
+        th1 = np.ascontiguousarray(theta1, dtype=np.float64)
+        th2 = np.zeros_like(th1) if theta2 is None else np.ascontiguousarray(theta2, dtype=np.float64)
+        tq = np.ascontiguousarray(torque, dtype=np.float64)
+        Phi, G0, G1, Gz = self._mats
+        _rfs_block(th1, th2, tq, self._X, self._last, Phi, G0, G1, Gz, self._C, self._E, self._lamf,
+                   self._db, self._n_gate, self._n_warm, self._fv, self._R, self._r, self._rbuf, self._ybuf,
+                   self._okbuf)
+
+    @property
+    def rows_weight(self) -> float:
+        return float(self._last[9])
+
+    def estimate(self) -> dict[str, float] | None:
+        """The current parameters (None before enough rows in motion)."""
+        p = len(self.names)
+        if self._last[9] < 10 * p:
+            return None
+        A = self._R - self._last[9] * self._Sigma
+        d = np.sqrt(np.abs(np.diag(self._R)))
+        d[d == 0] = 1.0
+        try:
+            ps = np.linalg.solve(A / np.outer(d, d), self._r / d)
+        except np.linalg.LinAlgError:
+            return None
+        return {k: float(v) for k, v in zip(self.names, ps / d)}
+
+
+# ----------------------------------------------------------------------------- validation
+def predict_torque(ident: FrictionIdentification, theta1: np.ndarray, torque: np.ndarray, dt: float, *,
+                   theta2: np.ndarray | None = None) -> dict[str, float]:
+    """Torque prediction of an identified model on *another* record, from its measured motion.
+
+    The model's torque (motor row) is computed from the filtered derivatives of the measured
+    positions (the same SVF and sign-with-dead-band as the fit) and compared with the filtered
+    measured torque over the samples in motion. Returns the relative error (rms(error) /
+    rms(torque - mean), %) and the correlation. This is the stable form of an open-loop check: a
+    free simulation of a friction model from the torque drifts with any offset error."""
+    d = ident.diagnostics
+    key = ident.model
+    P = ident.parameters
+    th1 = np.asarray(theta1, float) - float(theta1[0])
+    tq = np.asarray(torque, float)
+    two = key in NEEDS_THETA2
+    if two and theta2 is None:
+        raise DataError(f"model {key!r} needs theta2 in the validation record")
+    lam = 2 * math.pi * d["filter_hz"]
+    n_mem = int(math.ceil(8.0 / (lam * dt)))
+    foh, zoh = _svf_filters(lam, dt)
+    f1 = [_lfilter(f, th1) for f in foh]
+    y = _lfilter(zoh if d.get("torque_hold", "zoh") == "zoh" else foh[0], tq)
+    one = _lfilter(zoh, np.ones(th1.size))
+    v1, ba = _zero_phase_velocity(th1, dt, d["velocity_hz"])
+    q1 = detect_quantum(th1)
+    db1 = max(d["dead_band"], 5.0 * _velocity_noise_std(q1, dt, ba))
+    s1 = np.where(np.abs(v1) > db1, np.sign(v1), 0.0)
+    n_v = int(math.ceil(1.0 / (2 * math.pi * d["velocity_hz"] * dt)))
+    ok = _memory_mask(s1 == 0.0, n_mem + n_v, n_v)
+    ok[: 4 * n_mem] = False
+    fs1 = _lfilter(zoh, s1)
+    if key == "rigid-friction":
+        pred = P["J"] * f1[2] + P["Fv"] * f1[1] + P["Fc"] * fs1 + P["offset"] * one
+    else:
+        th2 = np.asarray(theta2, float) - float(theta2[0])
+        f2 = [_lfilter(f, th2) for f in foh]
+        pred = (P["I1"] * f1[2] + P["B"] * (f1[1] - f2[1]) + P["K"] * (f1[0] - f2[0]) + P["offset"] * one)
+        if key == "two-inertia-friction":
+            pred = pred + P["Fv1"] * f1[1] + P["Fc1"] * fs1
+    e = (y - pred)[ok]
+    yo = y[ok]
+    rel = float(100.0 * math.sqrt(np.mean(e**2)) / max(float(np.std(yo)), 1e-300))
+    corr = float(np.corrcoef(yo, pred[ok])[0, 1]) if yo.size > 2 else float("nan")
+    return {"torque_error_percent": rel, "correlation": corr, "samples_used": int(ok.sum())}
+
+
+def simulate_rigid(ident: FrictionIdentification, torque: np.ndarray, dt: float, v0: float = 0.0) -> np.ndarray:
+    """Open-loop simulation of a ``rigid-friction`` model from a torque record (Karnopp sticking:
+    held while |u - offset| <= Fc at zero velocity). Returns the position (from 0)."""
+    if ident.model != "rigid-friction":
+        raise ConfigError("model", "simulate_rigid needs a rigid-friction identification")
+    J, Fv, Fc, off = (ident.parameters[k] for k in ("J", "Fv", "Fc", "offset"))
+    n = len(torque)
+    x = np.zeros(n)
+    v = v0
+    pos = 0.0
+    a_v = math.exp(-Fv * dt / J) if Fv > 0 else 1.0
+    for k in range(n - 1):
+        u = float(torque[k]) - off
+        if v == 0.0 and abs(u) <= Fc:
+            x[k + 1] = pos
+            continue
+        sgn = math.copysign(1.0, v if v != 0.0 else u)
+        f = u - Fc * sgn
+        v_inf = f / Fv if Fv > 0 else math.inf
+        vn = (v - v_inf) * a_v + v_inf if Fv > 0 else v + f / J * dt
+        if v != 0.0 and vn * v < 0.0:
+            vn = 0.0
+        pos += 0.5 * (v + vn) * dt
+        v = vn
+        x[k + 1] = pos
+    return x
+
+
+__all__ = ["MODELS", "DEFAULT_MODEL", "NEEDS_THETA2", "FrictionIdentification", "fit_friction", "check_model",
+           "detect_quantum", "predict_torque", "simulate_rigid", "RecursiveFrictionEstimator"]

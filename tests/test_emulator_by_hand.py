@@ -1,0 +1,57 @@
+"""The emulated drive started by hand, the way configs/canopen-virtual.toml and the README describe it:
+``python -m drivers.cia402.emulator --config ... --port N`` in one process, ``rt-ident run`` with
+``emulate = false`` in another."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rt_ident.runtime.emulation import free_udp_port
+
+ROOT = Path(__file__).resolve().parents[1]
+RT_IDENT = [sys.executable, "-c", "from rt_ident.cli import main; main()"]
+
+
+def _config(tmp_path: Path, port: int) -> Path:
+    text = (ROOT / "configs" / "canopen-virtual.toml").read_text()
+    text = re.sub(r"(?m)^emulate = true", "emulate = false", text)
+    text = re.sub(r"(?m)^# port: unset.*$", f"port = {port}", text)
+    assert "emulate = false" in text and f"port = {port}" in text
+    shutil.copy(ROOT / "configs" / "cia402_generic.eds", tmp_path)
+    path = tmp_path / "my-drive.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.slow
+def test_drive_started_by_hand_keeps_pace_with_the_real_time_loop(tmp_path):
+    port = free_udp_port()
+    cfg = _config(tmp_path, port)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    emu = subprocess.Popen([sys.executable, "-m", "drivers.cia402.emulator", "--config", str(cfg), "--port", str(port)],
+                           cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        ready = emu.stdout.readline()
+        assert ready.startswith("READY node 5"), ready
+        if os.cpu_count() and os.cpu_count() >= 2 and "denied" not in ready:
+            assert "sched_fifo 40" in ready and "cpus" in ready      # kept off the loop's CPU
+        run = subprocess.run([*RT_IDENT, "run", str(cfg), "--duration", "3", "--no-telemetry", "--json"],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
+        s = json.loads(run.stdout)
+        assert s["stop"]["cause"] is None, (s["stop"], run.stderr[-2000:])
+        assert run.returncode == 0
+        # 2 kHz SYNC for 3 s: the loop received nearly every sample (a few stale ones are tolerated)
+        assert s["loop"]["samples"] >= 0.9 * 6000
+        assert s["loop"]["lost_samples"] <= 0.05 * s["loop"]["samples"], s["backend_counters"]
+    finally:
+        emu.terminate()
+        emu.wait(10)
+    assert emu.returncode == 0

@@ -1,0 +1,29 @@
+"""The README's quick start: exactly two commands, each self-contained in a virtual environment
+(PEP 668 systems refuse a bare `pip install`), and CI runs the second one as written."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _quick_start() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    return [b.strip() for b in re.findall(r"```bash\n(.*?)```", section, flags=re.S)]
+
+
+def test_quick_start_is_two_commands_that_make_their_own_venv():
+    cmds = _quick_start()
+    assert len(cmds) == 2 and all("\n" not in c for c in cmds), cmds
+    run, tests = cmds
+    for c in cmds:
+        assert c.startswith("python3 -m venv .venv && .venv/bin/pip install -e ")
+    assert run.endswith(".venv/bin/rt-ident run") and tests.endswith(".venv/bin/python -m pytest -q")
+
+
+def test_ci_runs_the_readme_test_command_as_written():
+    ci = (ROOT / ".ci" / "run").read_text().strip().splitlines()
+    assert ci[-1].strip() == _quick_start()[1]
