@@ -10,6 +10,8 @@ Errors name the offending field, e.g. ``loop.tick_hz: must be > 0``.
 
 from __future__ import annotations
 
+import math
+
 import tomllib
 from pathlib import Path
 from typing import Any, Literal, Optional
@@ -70,6 +72,13 @@ class EstimatorConfig(_Section):
     svf_memory_s: float = Field(0.05, gt=0)         # forgetting time constant of the per-sample estimate
     svf_quanta: Optional[tuple[float, float]] = None  # rad (theta1, theta2) for bias compensation;
                                                     # None: from the backend's encoder and scale resolution
+    # the model the loop also identifies per sample (rt_ident.estimators.friction): two-inertia (the
+    # linear frequency fit alone), two-inertia-friction (adds Fc1, Fv1, Fc2, Fv2, offset) or
+    # rigid-friction (J, Fv, Fc, offset); its friction feeds the controller ([control] friction_feedforward)
+    model: Literal["two-inertia", "two-inertia-friction", "rigid-friction"] = "two-inertia"
+    friction_hz: Optional[float] = Field(None, gt=0)  # its filter corner; None: 800 Hz (two-inertia-friction:
+    #                                                   passes the resonance), 100 Hz (rigid-friction)
+    friction_memory_s: float = Field(math.inf, gt=0)  # its forgetting time constant (inf: none)
 
 
 class ControlConfig(_Section):
@@ -87,6 +96,7 @@ class ControlConfig(_Section):
     max_error_m: float = Field(2e-4, gt=0)            # tracking error bound -> conservative fallback
     fallback_timeout_s: float = Field(0.5, gt=0)      # fallback not recovered by then -> safe stop
     feedforward: bool = True                          # inertia feedforward from the reference acceleration
+    friction_feedforward: bool = True                 # Fc, Fv feedforward from [estimator] model's friction
     trust_tolerance: float = Field(0.05, gt=0)        # per-sample estimate vs frequency fit: trusted when within
     probe_scale_trusted: float = Field(1.0, gt=0, le=1)  # probing amplitude x this while the estimate is trusted
     delay_ticks: int = Field(1, ge=1, le=5)           # ticks from the newest sample until the torque lands
@@ -122,6 +132,10 @@ class SafetyConfig(_Section):
     window: tuple[float, float] = (-0.04, 0.04)  # table position window [m] on the scale
     max_decel: float = Field(2.0e4, gt=0)        # rad/s^2 the motor can brake at (stopping distance)
     watchdog_ticks: int = Field(20, ge=1)        # ticks without fresh feedback before a safe stop
+    # N m: a motor encoder that does not move counts as stuck only while |torque| exceeds this. None: the
+    # sim's configured breakaway torque Fs1 + Fs2 (both sides stick together), else 0 (any torque).
+    # Set it to the breakaway torque of a real axis with friction.
+    stuck_torque: Optional[float] = Field(None, ge=0)
 
 
 class TelemetryConfig(_Section):
@@ -153,6 +167,18 @@ class RunConfig(_Section):
     telemetry: TelemetryConfig = TelemetryConfig()
     recording: RecordingConfig = RecordingConfig()
     source: Optional[str] = None
+
+    def stuck_torque(self) -> float:
+        """``[safety] stuck_torque``, or the sim plant's breakaway torque when friction is configured."""
+        if self.safety.stuck_torque is not None:
+            return float(self.safety.stuck_torque)
+        fr = self.backend.options().get("friction") if self.backend.name == "sim" else None
+        if not fr:
+            return 0.0
+        from rt_ident.axis.friction import Friction
+
+        f = Friction.from_mapping(fr, where="plant.friction")
+        return float((f.Fs1 or 0.0) + (f.Fs2 or 0.0))
 
     def axis_params(self) -> AxisParams:
         return AxisParams.from_mapping(self.axis, where="axis") if self.axis else thomson_x()

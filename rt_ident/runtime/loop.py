@@ -37,6 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from drivers.base import Backend, SampleBlock
+from rt_ident.errors import RtIdentError
 from rt_ident.runtime.safety import SafetyMonitor
 from rt_ident.runtime.scheduler import LatenessHistogram, Ticker
 
@@ -93,7 +94,8 @@ class IdentificationLoop:
                  tick_hook: Callable[[int], None] | None = None,
                  max_sleep_s: float | None = 100e-6, control=None, ticker: Ticker | None = None,
                  probe_period: int | None = None, on_fit: Callable[[float, Any], Any] | None = None,
-                 on_loop_gain: Callable[[float, Any, Any], Any] | None = None) -> None:
+                 on_loop_gain: Callable[[float, Any, Any], Any] | None = None, friction=None,
+                 friction_feedforward: bool = True) -> None:
         self.backend = backend
         self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hz = tick_hz
@@ -102,6 +104,7 @@ class IdentificationLoop:
         self.est = estimator
         self.worker = fit_worker
         self.safety = safety
+        self._stuck_torque = float(getattr(safety, "stuck_torque", 0.0))   # see SafetyMonitor.stuck_torque
         self.duration = duration
         self.on_block = on_block
         self.on_telemetry = on_telemetry
@@ -116,6 +119,8 @@ class IdentificationLoop:
         self.stats = LoopStats()
         self.identification = None          # latest Identification (or None before the first period)
         self.control = control              # the host's position controller (None: excitation only)
+        self.friction = friction            # per-sample friction-model estimator ([estimator] model), or None
+        self.friction_feedforward = friction_feedforward
         self._next_seq = 0
         self._seq0: int | None = None       # first sequence number: the control clock starts there
         self._per_tick = max(1, int(round(1.0 / (tick_hz * backend.sample_period))))
@@ -184,6 +189,8 @@ class IdentificationLoop:
         ctl = self.control
         if ctl is not None:                             # the per-sample estimator, every sample
             ctl.observe(block.theta1, block.theta2, torque, block.lost > 0 or int(block.seq[0]) != self._next_seq)
+        if self.friction is not None:
+            self._friction(block, torque, ctl, stats.ticks)
         if self.worker is not None and stats.ticks % 10 == 0:
             latest = self.worker.poll()
             if latest is not None:
@@ -196,10 +203,31 @@ class IdentificationLoop:
         if ctl is not None:
             self._control(ctl, block, states)
         self.safety.check(n, float(block.theta1[-1]), float(block.theta2[-1]), float(states.omega[-1, 1]),
-                          abs(self.backend.last_torque) > 0.0)
+                          abs(self.backend.last_torque) > self._stuck_torque)
         self._next_seq = int(block.seq[-1]) + 1
         if self.on_telemetry is not None:
             self._collect_telemetry(block, states, lateness_s)
+
+    _FRICTION_EVERY = 100   # ticks between friction estimates handed to the controller's feedforward
+
+    def _friction(self, block: SampleBlock, torque, ctl, tick: int) -> None:
+        """Feed the friction-model estimator every sample; every 100 ticks its Fc, Fv become the
+        controller's friction feedforward (rt_ident.control.feedforward) when that is on."""
+        fr = self.friction
+        fr.update_block(block.theta1, None if fr.model == "rigid-friction" else block.theta2, torque)
+        if ctl is None or not self.friction_feedforward or tick % self._FRICTION_EVERY:
+            return
+        est = fr.estimate()
+        if est is None:
+            return
+        from rt_ident.control.feedforward import FrictionFeedforward
+
+        try:
+            ff = FrictionFeedforward.from_parameters(est)
+        except RtIdentError:
+            return
+        if all(math.isfinite(v) for v in (ff.Fc, ff.Fv)):
+            ctl.law.friction = ff
 
     def _control(self, ctl, block: SampleBlock, states) -> None:
         """The controller's torque from the newest sample's state estimate; it lands ``delay`` ticks

@@ -95,7 +95,8 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
     """
     from drivers import make_backend
-    from rt_ident.runtime.run import _excitation, _quanta, _warmup, backend_options, controller_for
+    from rt_ident.runtime.run import (_excitation, _quanta, _warmup, backend_options, controller_for, friction_estimator,
+                                      friction_summary)
 
     if cfg.backend.name != "sim":
         raise ConfigError("backend.name", "the offline loop runs the sim backend only")
@@ -114,13 +115,15 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     ctl = controller_for(cfg, backend, InlineWorker(redesign, clock, latency=0.05, min_interval=0.0), (q1, q2))
     _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
     safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
-                           watchdog_ticks=cfg.safety.watchdog_ticks)
+                           watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque())
     loop = IdentificationLoop(backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf,
                               estimator=est, safety=safety, duration=cfg.loop.duration, fit_worker=fit,
                               clock=clock, control=ctl, probe_period=ex.period_samples,
                               ticker=Ticker(1.0 / cfg.loop.tick_hz, clock=clock, sleeper=clock.sleep, spin_s=0.0,
                                             max_sleep_s=None),
-                              tick_hook=None if tick_hook is None else (lambda _n: tick_hook(loop)))
+                              tick_hook=None if tick_hook is None else (lambda _n: tick_hook(loop)),
+                              friction=friction_estimator(cfg, dt, (q1, q2)),
+                              friction_feedforward=cfg.control.friction_feedforward)
     stop = None
     with backend:
         backend.activate()
@@ -132,6 +135,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     x_end = float(truth.lead * backend.plant.state[2])      # the true table position when the run ended
     out: dict[str, Any] = {"stop": stop, "loop": loop.stats.as_dict(), "table_end_m": x_end,
                            "control": ctl.summary() if ctl is not None else {"mode": "off"},
+                           "friction": friction_summary(loop),
                            "truth": {"I1": now.I1, "I2": now.I2, "B": now.B, "K": now.K, **modal_parameters(now)}}
     ident = loop.identification
     if ident is not None:

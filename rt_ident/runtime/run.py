@@ -66,6 +66,29 @@ def per_sample_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float])
     return est
 
 
+def friction_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float]):
+    """The per-sample friction-model estimator of ``[estimator] model`` (None for ``two-inertia``)."""
+    e = cfg.estimator
+    if e.model == "two-inertia":
+        return None
+    from rt_ident.estimators.friction import RecursiveFrictionEstimator
+
+    hz = e.friction_hz or (800.0 if e.model == "two-inertia-friction" else 100.0)
+    hz = min(hz, 0.25 / dt)
+    return RecursiveFrictionEstimator(dt, e.model, filter_hz=hz, memory_s=e.friction_memory_s, quanta=quanta)
+
+
+def friction_summary(loop) -> dict[str, Any] | None:
+    """``{"model", "parameters", "feedforward"}`` of the loop's friction-model estimate, or None."""
+    est = getattr(loop, "friction", None)
+    if est is None:
+        return None
+    p = est.estimate()
+    ff = getattr(getattr(loop.control, "law", None), "friction", None) if loop.control is not None else None
+    return {"model": est.model, "parameters": p,
+            "feedforward": None if ff is None else {"Fc": ff.Fc, "Fv": ff.Fv}}
+
+
 def controller_for(cfg: RunConfig, backend, worker, quanta: tuple[float, float]):
     """The host's position controller for ``cfg`` (None with ``control.mode = "off"``), redesigning
     through ``worker`` (a process worker here, an inline one in :mod:`rt_ident.runtime.offline`)."""
@@ -182,7 +205,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
             control, ctl_worker = _controller(cfg, backend, stack, (q1, q2))
             safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
-                                   watchdog_ticks=cfg.safety.watchdog_ticks)
+                                   watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque())
             watch = HelperWatch({"telemetry": telemetry, "fit": worker, "control": ctl_worker},
                                 restartable=("telemetry", "fit", "control"))
             user_hook = tick_hook
@@ -203,7 +226,9 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
                 stop_event=stop, tick_hook=hooks,
                 max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
-                control=control, probe_period=ex.period_samples)
+                control=control, probe_period=ex.period_samples,
+                friction=friction_estimator(cfg, dt, _quanta(cfg)),
+                friction_feedforward=cfg.control.friction_feedforward)
             if recorder is not None:
                 recorder.wait_ready(30.0)               # its files exist and take bytes before the device moves
             if telemetry is not None:
@@ -275,6 +300,9 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     if loop is not None:
         summary["loop"] = {**loop.stats.as_dict(), "host": host}
         summary["control"] = loop.control.summary() if loop.control is not None else {"mode": "off"}
+        fr = friction_summary(loop)
+        if fr is not None:
+            summary["friction"] = fr
         ident = loop.identification
         if ident is not None:
             summary.update(_ident_summary(ident))

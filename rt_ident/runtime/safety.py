@@ -26,6 +26,9 @@ class SafetyMonitor:
     window: tuple[float, float]       # m
     max_decel: float                  # rad/s^2 on theta2 the axis can brake at
     watchdog_ticks: int
+    # |torque| above which a motionless motor encoder counts as stuck: 0 for a frictionless axis; an
+    # axis with friction legitimately sticks under any torque below its breakaway torque
+    stuck_torque: float = 0.0
     stale_ticks: int = 0
     stuck_ticks: int = 0
     _last_theta1: float = math.nan
