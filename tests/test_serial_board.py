@@ -246,8 +246,22 @@ def test_silent_board_raises_device_timeout_and_ends_disabled(rig):
     be.write(0.01)
     read_for(be, 0.01)
     board.faults.silent = True
-    with pytest.raises(DeviceTimeout, match="no valid frame"):
+    with pytest.raises(DeviceTimeout, match="no valid frame") as e:
         read_for(be, 1.0)
+    assert_de_energized(board)
+    if "busy host" not in str(e.value):      # the host read every ~1 ms: the board is named as the silent one
+        assert "the board sent nothing" in str(e.value)
+
+
+def test_a_timeout_after_the_host_itself_stopped_reading_says_busy_host(rig):
+    board, be = rig({"read_timeout": 0.05})
+    read_for(be, 0.02)
+    board.faults.silent = True
+    time.sleep(0.005)
+    be.read()                                    # what the board sent before it fell silent
+    time.sleep(0.2)                              # the host does not read for 4 read_timeouts
+    with pytest.raises(DeviceTimeout, match="a busy host"):
+        be.read()
     assert_de_energized(board)
 
 

@@ -182,6 +182,7 @@ class SerialBoardBackend(Backend):
     def _read(self) -> SampleBlock:
         cfg = self.config
         now = self.clock()
+        prev_read, self._last_read = getattr(self, "_last_read", now), now
         if now - self._last_tx >= cfg.heartbeat_period:
             self._send(sp.encode_heartbeat(self._heartbeats))
             self._heartbeats += 1
@@ -200,8 +201,15 @@ class SerialBoardBackend(Backend):
                                            f"bytes in one read (garbage_storm_limit={cfg.garbage_storm_limit})"))
         if samples.shape[0] == 0:
             if now - self._last_frame > cfg.read_timeout:
+                # whose silence: the host's (it had not read for most of the timeout: a busy host; the
+                # frames would be in the buffer had the board sent them, so the board was silent too,
+                # but the host cannot tell how long) or the board's (the host kept reading)
+                gap = now - prev_read
+                who = (f"the host itself had not read for {gap:.3f} s: a busy host" if gap > 0.5 * cfg.read_timeout
+                       else f"the host kept reading (last read {1e3 * gap:.1f} ms before): the board sent nothing")
                 raise self._fail(DeviceTimeout(f"serial port {self.port!r}: no valid frame for "
-                                               f"{now - self._last_frame:.3f} s (read_timeout={cfg.read_timeout})"))
+                                               f"{now - self._last_frame:.3f} s (read_timeout={cfg.read_timeout}); "
+                                               + who))
             return SampleBlock.empty(with_measured=True)
         self._last_frame = now
         u = self._unwrap.update(samples)
