@@ -201,10 +201,31 @@ def _grid(lo_hz: float, hi_hz: float, y_lo: float, y_hi: float, y_step: float, y
     return strips, labels, np.array(pts, dtype=float).reshape(-1, 2), pt_labels
 
 
-def _bode_pair(rec: Any, rr: Any, base: str, f_model: np.ndarray, curves: list[tuple[str, np.ndarray, np.ndarray,
-               tuple[int, int, int]]], f_meas: np.ndarray | None, meas: tuple[np.ndarray, np.ndarray] | None,
-               marks: list[tuple[float, str]], mag_floor: float | None = None) -> None:
-    """Draw one magnitude and one phase panel under ``base`` (see the module docstring)."""
+def _strips(rec: Any, rr: Any, path: str, t: float, strips: list[np.ndarray], color: tuple[int, int, int],
+            width: float, labels: list[str] | None = None) -> None:
+    """One row of ``LineStrips2D`` at time ``t``, sent columnar like the time series: ``rec.log``
+    of these views made the telemetry process grow with every draw; ``send_columns`` does not."""
+    n = len(strips)
+    cols = rr.LineStrips2D.columns(strips=strips, colors=[color] * n, radii=[-width] * n,   # < 0: UI points
+                                   labels=labels if labels is not None else [""] * n,
+                                   show_labels=[labels is not None] * n).partition([n])
+    rec.send_columns(path, indexes=[rr.TimeColumn("time", duration=[t])], columns=cols)
+
+
+def _points(rec: Any, rr: Any, path: str, t: float, pts: np.ndarray, color: tuple[int, int, int], size: float,
+            labels: list[str] | None = None) -> None:
+    n = len(pts)
+    cols = rr.Points2D.columns(positions=pts, colors=[color] * n, radii=[-size] * n,
+                               labels=labels if labels is not None else [""] * n,
+                               show_labels=[labels is not None] * n).partition([n])
+    rec.send_columns(path, indexes=[rr.TimeColumn("time", duration=[t])], columns=cols)
+
+
+def _bode_pair(rec: Any, rr: Any, t: float, base: str, f_model: np.ndarray,
+               curves: list[tuple[str, np.ndarray, np.ndarray, tuple[int, int, int]]], f_meas: np.ndarray | None,
+               meas: tuple[np.ndarray, np.ndarray] | None, marks: list[tuple[float, str]],
+               mag_floor: float | None = None) -> None:
+    """Draw one magnitude and one phase panel under ``base`` at time ``t`` (see the module docstring)."""
     lo_hz, hi_hz = float(np.min(f_model)), float(np.max(f_model))
     for part, k, step, scale, unit in (("magnitude", 0, 20.0, _Y_PER_DB, "dB"), ("phase", 1, 90.0, _Y_PER_DEG, "deg")):
         ys = [c[1 + k] for c in curves]
@@ -219,31 +240,27 @@ def _bode_pair(rec: Any, rr: Any, base: str, f_model: np.ndarray, curves: list[t
             y_lo = max(y_lo, mag_floor)
         y_lo, y_hi = math.floor(y_lo / step) * step, math.ceil(y_hi / step) * step
         path = f"{base}/{part}"
-        strips, labels, pts, pt_labels = _grid(lo_hz, hi_hz, y_lo, y_hi, step, scale, unit)
-        rec.log(f"{path}/grid", rr.LineStrips2D(strips, colors=[(90, 90, 90)], radii=rr.Radius.ui_points(0.5)),
-                rr.Points2D(pts, labels=pt_labels, radii=rr.Radius.ui_points(0.1), colors=[(170, 170, 170)],
-                            show_labels=True))
+        strips, _, pts, pt_labels = _grid(lo_hz, hi_hz, y_lo, y_hi, step, scale, unit)
+        _strips(rec, rr, f"{path}/grid", t, strips, (90, 90, 90), 0.5)
+        _points(rec, rr, f"{path}/grid_labels", t, pts, (170, 170, 170), 0.1, pt_labels)
         for name, *vals, color in curves:
             if not np.any(np.isfinite(vals[k])):
                 continue
             y = -scale * np.clip(vals[k], y_lo - step, y_hi + step)
-            rec.log(f"{path}/{name}", rr.LineStrips2D([_strip(_x(f_model), y)], colors=[color],
-                                                      radii=rr.Radius.ui_points(1.5 if "band" not in name else 0.8)))
+            _strips(rec, rr, f"{path}/{name}", t, [_strip(_x(f_model), y)], color, 0.8 if "band" in name else 1.5)
         if meas is not None and f_meas is not None:
             y = -scale * np.asarray(meas[k], dtype=float)
-            rec.log(f"{path}/measured", rr.Points2D(_strip(_x(f_meas), y), colors=[_RED],
-                                                    radii=rr.Radius.ui_points(3.0)))
+            _points(rec, rr, f"{path}/measured", t, _strip(_x(f_meas), y), _RED, 3.0)
         y0, y1 = -scale * y_hi, -scale * y_lo
         mk = [(f, text) for f, text in marks if math.isfinite(f) and lo_hz <= f <= hi_hz]
         if mk:
-            rec.log(f"{path}/marks", rr.LineStrips2D([np.array([[float(_x(np.array([f]))[0]), y0],
-                                                               [float(_x(np.array([f]))[0]), y1]]) for f, _ in mk],
-                                                     labels=[text for _, text in mk], colors=[_PURPLE],
-                                                     radii=rr.Radius.ui_points(1.0), show_labels=True))
+            xs = [float(_x(np.array([f]))[0]) for f, _ in mk]
+            _strips(rec, rr, f"{path}/marks", t, [np.array([[x, y0], [x, y1]]) for x in xs], _PURPLE, 1.0,
+                    [text for _, text in mk])
 
 
-def draw_fit_frf(rec: Any, rr: Any, view: Mapping[str, np.ndarray]) -> None:
-    """The measured FRFs of theta1 and theta2 with the model and its 95 % band (one fit)."""
+def draw_fit_frf(rec: Any, rr: Any, t: float, view: Mapping[str, np.ndarray]) -> None:
+    """The measured FRFs of theta1 and theta2 with the model and its 95 % band (one fit, at time t)."""
     f_res, f_anti = (float(v) for v in view["marks_hz"][:2])
     for j, name in ((1, "theta1"), (2, "theta2")):
         g = f"g{j}"
@@ -253,12 +270,12 @@ def draw_fit_frf(rec: Any, rr: Any, view: Mapping[str, np.ndarray]) -> None:
         marks = [(f_res, f"resonance {f_res:.0f} Hz")]
         if j == 1:
             marks.append((f_anti, f"anti-resonance {f_anti:.0f} Hz"))
-        _bode_pair(rec, rr, f"{FRF}/{name}", view["f_model"], curves, view["f_meas"],
+        _bode_pair(rec, rr, t, f"{FRF}/{name}", view["f_model"], curves, view["f_meas"],
                    (view[f"m{j}_db"], view[f"p{j}_deg"]), marks)
 
 
-def draw_loop_gain(rec: Any, rr: Any, view: Mapping[str, np.ndarray], margins: Mapping[str, float]) -> None:
-    """The active controller's loop gain, 0 dB and -180 deg lines, crossover and margins."""
+def draw_loop_gain(rec: Any, rr: Any, t: float, view: Mapping[str, np.ndarray], margins: Mapping[str, float]) -> None:
+    """The active controller's loop gain, 0 dB and -180 deg lines, crossover and margins (at time t)."""
     f, mag, ph = (np.asarray(view[k], dtype=float) for k in ("f_hz", "mag_db", "phase_deg"))
     zero = np.zeros_like(f)
     curves = [("loop_gain", mag, ph, _EST_COLOR), ("reference_0db_m180", zero, zero - 180.0, _GREY)]
@@ -268,7 +285,7 @@ def draw_loop_gain(rec: Any, rr: Any, view: Mapping[str, np.ndarray], margins: M
     if gm is not None and math.isfinite(gm):
         text += f", GM {gm:.1f} dB"
     marks = [(float(f[cross[0]]), text)] if cross.size else []
-    _bode_pair(rec, rr, f"{FRF}/loop", f, curves, None, None, marks, mag_floor=-80.0)
+    _bode_pair(rec, rr, t, f"{FRF}/loop", f, curves, None, None, marks, mag_floor=-80.0)
 
 
 def default_blueprint() -> Any:
