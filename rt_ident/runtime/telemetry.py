@@ -385,21 +385,6 @@ class _Sender:
             draw_loop_gain(rec, rr, t, view, margins)
 
 
-_TRIM_EVERY_S = 10.0   # child: hand freed heap back to the system this often (see _trim_heap)
-
-
-def _trim_heap() -> None:
-    """``malloc_trim(0)``: return the heap glibc keeps after frees. Rerun's worker threads and the
-    per-batch numpy arrays free memory in many arenas that glibc otherwise keeps mapped, and the
-    child's RSS crept up with the data sent (10-min soak: +26 %). No-op without glibc."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
 def _disk_full(path: str | None, min_free: int) -> str | None:
     """Why an .rrd sink cannot go on writing (its filesystem is full), or None. Rerun's file sink
     writes in a thread of its own and reports a failed write only to its log, never to the caller:
@@ -432,7 +417,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     truth = dict(truth)
     sender = _Sender(rec, rr)
     pending: list[dict[str, np.ndarray]] = []
-    last_send = last_trim = time.monotonic()
+    last_send = time.monotonic()
     while True:
         closed = ring.writer_closed or watch.gone   # read before draining: nothing can follow a close
         msgs = ring.get(_MAX_COALESCE)
@@ -458,9 +443,6 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
             last_send = now
         if sender.views:
             sender.draw_views(final)
-        if now - last_trim >= _TRIM_EVERY_S:
-            _trim_heap()
-            last_trim = now
         if not msgs:
             if closed and not pending:
                 sender.finish(truth)
