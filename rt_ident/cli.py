@@ -285,6 +285,8 @@ def run(
     summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
     if json_out:
         typer.echo(json.dumps(summary, indent=2, default=_json_default))
+    elif "axes" in summary:
+        _print_axes(summary)
     else:
         _print_run(summary)
     raise typer.Exit(exit_code(summary))
@@ -376,6 +378,52 @@ def _print_run(s: dict) -> None:
     elif files.get("recording"):
         out.print(f"recording: {files['recording']}   (re-identify: rt-ident identify {files['recording']})")
     _print_stop(s)
+
+
+def _print_axes(s: dict) -> None:
+    """A run with several axes: each axis's parameters, trust and tracking, then the shared loop."""
+    for name, ax in s["axes"].items():
+        params = ax.get("parameters") or {}
+        tab = _param_table(f"axis {name} - method {ax.get('method')}", bool(ax.get("error_pct")))
+        ci = ax.get("ci95") or {}
+        for k, v in params.items():
+            row = [k, UNITS.get(k, ""), _fmt(v), _interval(ci.get(k))]
+            if ax.get("error_pct"):
+                row += [_fmt(ax["truth"][k]), f"{ax['error_pct'][k]:+.3f}"]
+            tab.add_row(*row)
+        out.print(tab)
+        if params:
+            _print_trust(ax.get("trust"), ax.get("trusted"))
+        elif ax.get("final_fit_error"):
+            out.print(f"no estimate: {ax['final_fit_error']}")
+        ctl = ax.get("control") or {}
+        if ctl.get("mode") not in (None, "off"):
+            rd = ctl.get("redesigns") or {}
+            out.print(f"control {name}: {ctl['mode']}, table error rms {_fmt(_um(ctl.get('rms_error_m')))} um, "
+                      f"max {_fmt(_um(ctl.get('max_error_m')))} um; redesigns accepted {rd.get('accepted', 0)}, "
+                      f"rejected {rd.get('rejected', 0)}; running the {ctl.get('controller')} controller")
+        files = ax.get("files") or {}
+        for key, what in (("rrd", "dashboard"), ("recording", "recording")):
+            if files.get(key):
+                out.print(f"{what} {name}: {files[key]}")
+    c = s.get("contour")
+    if c:
+        out.print(f"contour: circular deviation G {_fmt(c.get('circular_deviation_um'))} um, hysteresis H "
+                  f"{_fmt(c.get('circular_hysteresis_um'))} um, radius deviation {_fmt(c.get('radius_deviation_um'))} um"
+                  + (f"; polar plot {c['plot']}" if c.get("plot") else ""))
+    loop = s.get("loop") or {}
+    if loop:
+        work, lat = loop.get("work_us") or {}, loop.get("lateness_us") or {}
+        out.print(f"loop (all axes): {loop.get('ticks', 0)} ticks, {loop.get('samples', 0)} samples, "
+                  f"{loop.get('overruns', 0)} overruns; tick work p50 {_fmt(work.get('p50'))} us, "
+                  f"p99 {_fmt(work.get('p99'))} us; lateness p99 {_fmt(lat.get('p99'))} us")
+    if s.get("data_lost"):
+        out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
+    stop = s.get("stop") or {}
+    if stop.get("cause"):
+        where = f" on axis {stop['axis']}" if stop.get("axis") else ""
+        err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {stop.get('message')} - every axis at zero "
+                  "torque, disabled")
 
 
 def _print_trust(trust: dict | None, trusted: bool | None = None) -> None:

@@ -166,7 +166,40 @@ class RunConfig(_Section):
     plant: PlantConfig = PlantConfig()
     telemetry: TelemetryConfig = TelemetryConfig()
     recording: RecordingConfig = RecordingConfig()
+    # several axes in one run (an XY table): [axes.x], [axes.y], each overlaying the sections above
+    # (axis, backend, estimator, control, safety, reference, plant, excitation) on this config
+    axes: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    contour: dict[str, Any] = Field(default_factory=dict)   # [contour]: a coordinated XY reference
     source: Optional[str] = None
+
+    _AXIS_SECTIONS = ("axis", "backend", "emulator", "excitation", "estimator", "safety", "control", "reference",
+                      "plant")
+
+    def axis_configs(self) -> dict[str, "RunConfig"]:
+        """One validated config per ``[axes.NAME]`` (this config with the axis's sections laid over;
+        a table merges key by key, ``reference`` and ``axis`` are replaced whole). Empty for a
+        one-axis config. Errors name the field as ``axes.NAME.section.key``."""
+        out: dict[str, RunConfig] = {}
+        base = self.model_dump(exclude={"axes", "contour", "source"})
+        for name, overlay in self.axes.items():
+            if not isinstance(overlay, dict):
+                raise ConfigError(f"axes.{name}", "must be a table")
+            bad = sorted(set(overlay) - set(self._AXIS_SECTIONS))
+            if bad:
+                raise ConfigError(f"axes.{name}.{bad[0]}", f"not a per-axis section (per-axis: "
+                                                           f"{', '.join(self._AXIS_SECTIONS)})")
+            data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
+            for key, value in overlay.items():
+                if isinstance(value, dict) and isinstance(data.get(key), dict) and key not in ("reference", "axis"):
+                    data[key] = {**data[key], **value}
+                else:
+                    data[key] = value
+            try:
+                out[name] = from_mapping(data, source=self.source)
+            except ConfigError as exc:
+                msg = str(exc)[len(exc.field) + 2:] if str(exc).startswith(f"{exc.field}: ") else str(exc)
+                raise ConfigError(f"axes.{name}.{exc.field}", msg) from None
+        return out
 
     def stuck_torque(self) -> float:
         """``[safety] stuck_torque``, or the sim plant's breakaway torque when friction is configured."""
@@ -212,6 +245,8 @@ def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfi
         first = exc.errors()[0]
         raise ConfigError(_field_name(first) or "config", first["msg"]) from None
     cfg.axis_params()  # validate physical values now, naming the field
+    if cfg.axes:
+        cfg.axis_configs()   # every axis validated now, errors naming axes.NAME...
     return cfg
 
 

@@ -78,6 +78,20 @@ class LoopStats:
                 "work_cpu_us": {"p50": cpu["p50"], "p99": cpu["p99"], "max": cpu["max"]}}
 
 
+def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
+    """A tick's timing counters: an overrun is charged to the previous tick's CPU time when that
+    exceeded the period (its own work), else to a late start."""
+    stats.ticks += 1
+    if info.skipped:
+        stats.overruns += 1
+        stats.skipped_periods += info.skipped
+        if last_cpu > period:
+            stats.overruns_work += 1
+        else:
+            stats.overruns_late_start += 1
+    stats.lateness.record(info.lateness_s)
+
+
 class IdentificationLoop:
     """Joins a backend, a state estimator, a streaming estimator and the hand-offs.
 
@@ -148,15 +162,7 @@ class IdentificationLoop:
             info = self.ticker.wait_next()
             t0 = clock()
             c0 = cpu_clock()
-            stats.ticks += 1
-            if info.skipped:
-                stats.overruns += 1
-                stats.skipped_periods += info.skipped
-                if last_cpu > period:
-                    stats.overruns_work += 1
-                else:
-                    stats.overruns_late_start += 1
-            stats.lateness.record(info.lateness_s)
+            _count_tick(stats, info, last_cpu, period)
             block = backend.read()
             self._process(block, info.lateness_s)
             self._write_plan()
@@ -376,3 +382,63 @@ class IdentificationLoop:
             self.on_telemetry(tick)
         self._tel_n = self._tick_n = 0
         self._tel_hat_ok = True
+
+
+class MultiAxisLoop:
+    """One loop for several axes (an XY table): each tick reads every axis's block first, then
+    estimates and controls each axis, then writes every axis's plan - no thread per axis, one ticker.
+
+    ``axes``: name -> :class:`IdentificationLoop` (its backend, estimators, controller, safety,
+    telemetry; its own ``run`` is not used). A safety trip or device error on any axis ends the loop
+    (the caller stops every axis). ``stats`` holds the shared timing (lateness, work, overruns) and
+    the samples of all axes; each axis's ``stats`` its own samples, estimates and lateness.
+    """
+
+    def __init__(self, axes: dict[str, IdentificationLoop], *, tick_hz: float, duration: float,
+                 stop_event: threading.Event | None = None, clock: Callable[[], float] = time.perf_counter,
+                 ticker: Ticker | None = None, max_sleep_s: float | None = 100e-6,
+                 tick_hook: Callable[[int], None] | None = None) -> None:
+        if not axes:
+            raise ValueError("MultiAxisLoop needs at least one axis")
+        self.axes = dict(axes)
+        self.tick_hz = tick_hz
+        self.duration = duration
+        self.stop_event = stop_event or threading.Event()
+        self.clock = clock
+        self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
+        self.tick_hook = tick_hook
+        self.stats = LoopStats()
+
+    def run(self) -> LoopStats:
+        axes = list(self.axes.values())
+        stats, clock, cpu_clock = self.stats, self.clock, time.thread_time
+        period = 1.0 / self.tick_hz
+        for ax in axes:
+            ax._write_plan()
+        last_cpu = 0.0
+        self.ticker.start()
+        try:
+            for _ in range(int(round(self.duration * self.tick_hz))):
+                if self.stop_event.is_set():
+                    break
+                info = self.ticker.wait_next()
+                t0, c0 = clock(), cpu_clock()
+                _count_tick(stats, info, last_cpu, period)
+                blocks = [ax.backend.read() for ax in axes]      # every axis's samples of this tick first
+                for ax, block in zip(axes, blocks):
+                    _count_tick(ax.stats, info, last_cpu, period)
+                    ax._process(block, info.lateness_s)
+                for ax in axes:
+                    ax._write_plan()
+                stats.work.record(clock() - t0)
+                last_cpu = cpu_clock() - c0
+                stats.work_cpu.record(last_cpu)
+                if self.tick_hook is not None:
+                    self.tick_hook(stats.ticks)
+        finally:
+            stats.samples = sum(ax.stats.samples for ax in axes)
+            stats.lost_samples = sum(ax.stats.lost_samples for ax in axes)
+            stats.estimates = sum(ax.stats.estimates for ax in axes)
+        for ax in axes:
+            ax._flush_telemetry()
+        return stats

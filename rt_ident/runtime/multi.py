@@ -1,0 +1,258 @@
+"""Several axes in one run (an XY table): the composition root for a config with ``[axes.NAME]``.
+
+Each axis gets what a one-axis run has (:func:`rt_ident.runtime.run.run`): its backend, state
+estimator, streaming estimator and fit worker, controller and redesign worker, safety monitor,
+recorder (``<name>-<axis>.parquet``) and telemetry (``<name>-<axis>.rrd``). One
+:class:`~rt_ident.runtime.loop.MultiAxisLoop` ticks them all: every axis's block is read, then each
+axis is estimated and controlled, then every plan is written. A trip or a device error on any axis
+stops every axis (zero torque, disabled), and the summary says which axis it came from.
+
+Backends: the sim backend only, for now. Two CiA 402 drives on one bus need one SYNC producer for
+both and a bus budget counting both (issue #15 item 2, not built yet): refused in one line.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from drivers import make_backend
+from rt_ident.axis.modal import modal_parameters
+from rt_ident.config import RunConfig
+from rt_ident.errors import ConfigError, RtIdentError
+from rt_ident.estimators import make_streaming
+from rt_ident.estimators.state_estimation import AxisStateEstimator
+from rt_ident.runtime.fit_worker import make_fit_worker
+from rt_ident.runtime.helper_guard import HelperWatch
+from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
+from rt_ident.runtime.outputs import check_methods, prepare_outputs, remove_empty_outputs
+from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _excitation, _final_fit,
+                                  _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, _realtime,
+                                  _warmup, backend_options, friction_estimator, friction_summary)
+from rt_ident.runtime.safety import SafetyMonitor
+
+log = logging.getLogger(__name__)
+
+
+def _axis_path(path: str | None, axis: str) -> str | None:
+    """``runs/run-X.rrd`` -> ``runs/run-X-x.rrd``: one file per axis."""
+    if not path:
+        return None
+    p = Path(path)
+    return str(p.with_name(f"{p.stem}-{axis}{p.suffix}"))
+
+
+def check_axes(cfg: RunConfig) -> dict[str, RunConfig]:
+    """The per-axis configs, refused in one line before anything starts when they cannot run."""
+    axes = cfg.axis_configs()
+    if len(axes) < 1:
+        raise ConfigError("axes", "no axis configured")
+    for name, acfg in axes.items():
+        if acfg.backend.name != "sim":
+            raise ConfigError(f"axes.{name}.backend.name", "several axes in one run need the sim backend for now "
+                                                            "(two drives on one CAN bus are not built yet)")
+        check_methods(acfg)
+        from rt_ident.control.reference import make_reference
+
+        try:
+            make_reference(acfg.reference)            # a bad reference is refused before anything starts
+        except ConfigError as exc:
+            raise ConfigError(f"axes.{name}.{exc.field}", str(exc)[len(exc.field) + 2:]) from None
+    return axes
+
+
+def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
+             connect_url: str | None = None, stop_event: threading.Event | None = None, tick_hook=None,
+             overwrite: bool = False) -> dict[str, Any]:
+    """Run every ``[axes.NAME]`` of ``cfg`` in one loop; returns ``{"axes": {name: summary}, "loop",
+    "stop", "files", ...}`` (each axis's summary has the fields of a one-axis run)."""
+    from rt_ident.runtime.recording import RecorderProcess
+    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+
+    stop = stop_event or threading.Event()
+    axes_cfg = check_axes(cfg)
+    sink = sink or cfg.telemetry.sink
+    if sink not in ("rrd", "off"):
+        raise ConfigError("telemetry.sink", "a run with several axes writes .rrd files (one per axis) or none")
+    rrd_base, rec_base = prepare_outputs(cfg, rrd, record, sink, overwrite)
+    paths = {name: (_axis_path(rrd_base, name), _axis_path(rec_base, name)) for name in axes_cfg}
+    for name, (r, p) in paths.items():              # the per-axis files must not exist either
+        prepare_outputs(axes_cfg[name], r, p, sink, overwrite)
+    backends = {name: make_backend("sim", backend_options(acfg)) for name, acfg in axes_cfg.items()}
+    summary: dict[str, Any] = {"config": cfg.source, "axes": {}}
+    loops: dict[str, IdentificationLoop] = {}
+    parts: dict[str, dict[str, Any]] = {name: {} for name in axes_cfg}
+    host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None}
+    stop_cause = stop_message = stop_axis = None
+    multi = None
+    old_signals = _install_signals(stop)
+    try:
+        with contextlib.ExitStack() as stack:
+            helpers: dict[str, Any] = {}
+            for name, acfg in axes_cfg.items():
+                backend, part = backends[name], parts[name]
+                truth = acfg.axis_params()
+                ex = acfg.excitation
+                dt = backend.sample_period
+                rrd_path, rec_path = paths[name]
+                if sink == "rrd":
+                    tel = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=rrd_path,
+                                                           application_id=f"rt_ident-{name}")).start()
+                    tel.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
+                                   **modal_parameters(truth)})
+                    part["telemetry"] = tel
+                    helpers[f"telemetry-{name}"] = tel
+                if rec_path:
+                    meta = {"backend": "sim", "sample_period": dt, "axis": truth.as_dict(), "axis_name": name,
+                            "excitation": ex.model_dump(), "method": acfg.estimator.method,
+                            "warmup_periods": acfg.loop.warmup_periods, "forgetting": acfg.estimator.forgetting}
+                    part["recorder"] = RecorderProcess(rec_path, meta, overwrite=overwrite).start()
+                q1, q2 = _quanta(acfg)
+                kf = AxisStateEstimator(dt, q1, q2, acfg.estimator.kalman_process_noise)
+                est = make_streaming(acfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
+                                     warmup_periods=acfg.loop.warmup_periods, forgetting=acfg.estimator.forgetting,
+                                     lead=truth.lead, quanta=(q1, q2),
+                                     process_noise=acfg.estimator.kalman_process_noise)
+                worker = make_fit_worker(acfg.estimator.method, lead=truth.lead).start()
+                stack.callback(worker.close)
+                helpers[f"fit-{name}"] = worker
+                _warmup(kf, est, (acfg.loop.warmup_periods + 2) * ex.period_samples)
+                control, ctl_worker = _controller(acfg, backend, stack, (q1, q2))
+                if ctl_worker is not None:
+                    helpers[f"control-{name}"] = ctl_worker
+                safety = SafetyMonitor(lead=truth.lead, window=tuple(acfg.safety.window),
+                                       max_decel=acfg.safety.max_decel, watchdog_ticks=acfg.safety.watchdog_ticks,
+                                       stuck_torque=acfg.stuck_torque())
+                tel, rec = part.get("telemetry"), part.get("recorder")
+                loops[name] = IdentificationLoop(
+                    backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(acfg), state_estimator=kf,
+                    estimator=est, safety=safety, duration=cfg.loop.duration, fit_worker=worker,
+                    on_block=rec.put if rec else None, on_telemetry=tel.publish if tel else None,
+                    on_fit=tel.publish_fit if tel else None, on_loop_gain=tel.publish_loop_gain if tel else None,
+                    publish_every=cfg.telemetry.publish_every_ticks,
+                    telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
+                    stop_event=stop, control=control, probe_period=ex.period_samples,
+                    friction=friction_estimator(acfg, dt, (q1, q2)),
+                    friction_feedforward=acfg.control.friction_feedforward)
+            watch = HelperWatch(helpers, restartable=tuple(k for k in helpers if not k.startswith("recorder")))
+            summary["_watch"] = watch
+
+            def hooks(n: int) -> None:
+                watch(n)
+                if tick_hook is not None:
+                    tick_hook(n)
+
+            multi = MultiAxisLoop(loops, tick_hz=cfg.loop.tick_hz, duration=cfg.loop.duration, stop_event=stop,
+                                  max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
+                                  tick_hook=hooks)
+            for part in parts.values():
+                if part.get("recorder") is not None:
+                    part["recorder"].wait_ready(30.0)
+                if part.get("telemetry") is not None:
+                    part["telemetry"].wait_ready(10.0)
+            for w in helpers.values():
+                if hasattr(w, "wait_ready") and not isinstance(w, TelemetryProcess):
+                    w.wait_ready(30.0)
+            pids = [getattr(x, "pid", None) for x in helpers.values()]
+            pids += [getattr(p.get("recorder"), "pid", None) for p in parts.values()]
+            summary["helper_processes"] = _keep_off_loop_cpu([p for p in pids if p], cfg.loop.realtime)
+            for backend in backends.values():
+                stack.enter_context(backend)           # open(); on exit (any axis's error too): safe stop, close
+            summary["realtime"] = _realtime(cfg)
+            switch_interval = sys.getswitchinterval()
+            stack.callback(sys.setswitchinterval, switch_interval)
+            sys.setswitchinterval(5e-5)
+            for backend in backends.values():
+                backend.activate()
+            steal = _HostSteal()
+            try:
+                multi.run()
+            finally:
+                host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
+                watch.freeze()
+            for backend in backends.values():
+                backend.safe_stop()                    # every axis at zero torque before the final fits
+            for name, loop in loops.items():
+                parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
+    except RtIdentError as exc:
+        stop_cause = getattr(exc, "cause", "error")
+        stop_axis = next((n for n, lp in loops.items() if lp.safety is not None and _tripped(lp, exc)), None)
+        stop_message = str(exc)
+        log.info("run stopped: %s", exc)
+        for name, loop in loops.items():
+            parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
+    finally:
+        import gc
+
+        for sig, handler in old_signals.items():
+            import signal
+
+            signal.signal(sig, handler)
+        gc.enable()
+        watch = summary.pop("_watch", None)
+        files: dict[str, Any] = {}
+        for name, part in parts.items():
+            ax: dict[str, Any] = {}
+            if part.get("recorder") is not None:
+                ax["recording"] = part["recorder"].close()
+                if not ax["recording"]["complete"]:
+                    r = ax["recording"]
+                    ax["data_lost"] = f"recording {r['path']} incomplete: {r['rows_written']} of {r['samples_put']}"
+                    summary["data_lost"] = "; ".join(filter(None, [summary.get("data_lost"), f"{name}: {ax['data_lost']}"]))
+            tel = part.get("telemetry")
+            if tel is not None:
+                t = tel.close()
+                ax["telemetry"] = {"dropped": tel.dropped, "sent": tel.sent, **t}
+                if t.get("write_error"):
+                    summary["data_lost"] = "; ".join(filter(None, [summary.get("data_lost"),
+                                                                  f"{name} dashboard: {t['write_error']}"]))
+            else:
+                ax["telemetry"] = {"dropped": 0, "sent": 0, "sink": "off"}
+            files[name] = {"rrd": paths[name][0] if sink == "rrd" else None, "recording": paths[name][1]}
+            ax["files"] = files[name]
+            summary["axes"][name] = ax
+        summary["files"] = files
+        if watch is not None:
+            summary["helpers"] = watch.summary()
+        if multi is None or multi.stats.samples == 0:      # read nothing: leave no empty files behind
+            for name in files:
+                remove_empty_outputs(summary["axes"][name], files[name])
+    summary["stop"] = {"cause": stop_cause, "message": stop_message, "axis": stop_axis,
+                       "interrupted": stop.is_set(),
+                       "final_torque": {n: b.last_torque for n, b in backends.items()},
+                       "backend_state": {n: b.state.value for n, b in backends.items()}}
+    if multi is not None:
+        summary["loop"] = {**multi.stats.as_dict(), "host": host}
+    for name, loop in loops.items():
+        ax = summary["axes"][name]
+        acfg = axes_cfg[name]
+        ax.update({"backend": "sim", "method": acfg.estimator.method, "loop": loop.stats.as_dict(),
+                   "final_fit_error": parts[name].get("final_fit_error"),
+                   "backend_counters": _backend_counters(backends[name]),
+                   "control": loop.control.summary() if loop.control is not None else {"mode": "off"}})
+        fr = friction_summary(loop)
+        if fr is not None:
+            ax["friction"] = fr
+        if loop.identification is not None:
+            ax.update(_ident_summary(loop.identification))
+        ax.setdefault("parameters", None)
+        truth = getattr(backends[name], "current_params", None) or acfg.axis_params()
+        tr = {"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K, **modal_parameters(truth)}
+        ax["truth"] = tr
+        if ax["parameters"]:
+            ax["error_pct"] = {k: 100.0 * (ax["parameters"][k] - v) / v for k, v in tr.items()}
+    return summary
+
+
+def _tripped(loop: IdentificationLoop, exc: Exception) -> bool:
+    """Whether ``exc`` came from this axis (its backend's last error or its safety monitor's trip)."""
+    tb = exc.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_locals.get("self") in (loop, loop.safety, loop.backend):
+            return True
+        tb = tb.tb_next
+    return False

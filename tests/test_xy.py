@@ -1,0 +1,63 @@
+"""Several axes in one run (an XY table): the config's [axes.*], one loop ticking both axes, a
+trip on either axis stopping both, the JSON shape."""
+
+from __future__ import annotations
+
+import pytest
+
+from rt_ident.config import load
+from rt_ident.errors import ConfigError
+from rt_ident.runtime import run as run_mod
+
+
+def _xy(**over):
+    return load("configs/xy-sim.toml", **{"loop.realtime": False, "telemetry.sink": "off",
+                                          "recording.enabled": False, **over})
+
+
+def test_axes_overlay_the_shared_sections_and_name_the_bad_field():
+    cfg = _xy()
+    axes = cfg.axis_configs()
+    assert set(axes) == {"x", "y"}
+    assert axes["y"].axis_params().I2 == pytest.approx(3 * axes["x"].axis_params().I2, rel=0.01)
+    assert axes["x"].control.bandwidth_hz == axes["y"].control.bandwidth_hz == cfg.control.bandwidth_hz
+    assert axes["y"].backend.options()["seed"] == 1 and axes["x"].backend.name == "sim"
+    with pytest.raises(ConfigError) as e:
+        load("configs/xy-sim.toml", **{"axes.y": {"control": {"bandwidth_hz": -1}}})
+    assert e.value.field.startswith("axes.y.control.bandwidth_hz")
+    with pytest.raises(ConfigError) as e:
+        load("configs/xy-sim.toml", **{"axes.y": {"loop": {"duration": 1}}})
+    assert e.value.field == "axes.y.loop"
+
+
+def test_a_one_axis_config_has_no_axes_and_keeps_its_summary_shape():
+    assert load(None).axis_configs() == {}
+
+
+@pytest.mark.slow
+def test_one_loop_runs_both_axes_and_reports_each():
+    s = run_mod.run(_xy(**{"loop.duration": 2.0}))
+    assert s["stop"]["cause"] is None and run_mod.exit_code(s) == 0
+    assert set(s["axes"]) == {"x", "y"}
+    n = {name: ax["loop"]["samples"] for name, ax in s["axes"].items()}
+    assert n["x"] > 0 and abs(n["x"] - n["y"]) <= 2 * 34          # the same ticks read both axes
+    assert s["loop"]["samples"] == n["x"] + n["y"] and s["loop"]["ticks"] == s["axes"]["x"]["loop"]["ticks"]
+    for ax in s["axes"].values():
+        assert ax["control"]["rms_error_m"] is not None and ax["control"]["rms_error_m"] < 1e-4
+        assert "parameters" in ax and "truth" in ax
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_a_trip_on_either_axis_stops_both_at_zero_torque(axis):
+    window = {"axes." + axis: {"safety": {"window": [-0.001, 0.001]}}}     # the 5 mm circle leaves 1 mm
+    cfg = _xy(**{"loop.duration": 4.0})
+    data = cfg.model_dump(exclude={"source"})
+    data["axes"][axis] = {**data["axes"][axis], **window["axes." + axis]}
+    from rt_ident.config import from_mapping
+
+    s = run_mod.run(from_mapping(data))
+    assert s["stop"]["cause"] == "travel-limit" and s["stop"]["axis"] == axis
+    assert s["stop"]["final_torque"] == {"x": 0.0, "y": 0.0}
+    assert set(s["stop"]["backend_state"].values()) == {"closed"}
+    assert run_mod.exit_code(s) == 3
