@@ -282,6 +282,8 @@ def run(
     if not json_out:
         err.print(f"running {cfg.backend.name} for {cfg.loop.duration:g} s "
                   f"(method {cfg.estimator.method}, tick {cfg.loop.tick_hz:g} Hz); Ctrl-C stops safely")
+    if cfg.axes:                                 # an XY table: every axis in one loop
+        from rt_ident.runtime.multi import run_axes as run_loop
     summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
     if json_out:
         typer.echo(json.dumps(summary, indent=2, default=_json_default))

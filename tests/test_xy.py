@@ -8,6 +8,7 @@ import pytest
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
 from rt_ident.runtime import run as run_mod
+from rt_ident.runtime.multi import run_axes
 
 
 def _xy(**over):
@@ -36,7 +37,7 @@ def test_a_one_axis_config_has_no_axes_and_keeps_its_summary_shape():
 
 @pytest.mark.slow
 def test_one_loop_runs_both_axes_and_reports_each():
-    s = run_mod.run(_xy(**{"loop.duration": 2.0}))
+    s = run_axes(_xy(**{"loop.duration": 2.0}))
     assert s["stop"]["cause"] is None and run_mod.exit_code(s) == 0
     assert set(s["axes"]) == {"x", "y"}
     n = {name: ax["loop"]["samples"] for name, ax in s["axes"].items()}
@@ -56,7 +57,7 @@ def test_a_trip_on_either_axis_stops_both_at_zero_torque(axis):
     data["axes"][axis] = {**data["axes"][axis], **window["axes." + axis]}
     from rt_ident.config import from_mapping
 
-    s = run_mod.run(from_mapping(data))
+    s = run_axes(from_mapping(data))
     assert s["stop"]["cause"] == "travel-limit" and s["stop"]["axis"] == axis
     assert s["stop"]["final_torque"] == {"x": 0.0, "y": 0.0}
     assert set(s["stop"]["backend_state"].values()) == {"closed"}

@@ -146,11 +146,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached or Ctrl-C/SIGTERM)
     and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise.
     """
-    if cfg.axes:                                     # an XY table: rt_ident.runtime.multi
-        from rt_ident.runtime.multi import run_axes
-
-        return run_axes(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect_url, stop_event=stop_event,
-                        tick_hook=tick_hook, overwrite=overwrite)
+    if cfg.axes:
+        raise ConfigError("axes", "a config with several axes runs with rt_ident.runtime.multi.run_axes")
     from rt_ident.runtime.recording import RecorderProcess
     from rt_ident.runtime.telemetry import DEFAULT_PORT, TelemetryConfig, TelemetryProcess, serve_port
 
