@@ -202,10 +202,12 @@ class RunConfig(_Section):
         return out
 
     def stuck_torque(self) -> float:
-        """``[safety] stuck_torque``, or the sim plant's breakaway torque when friction is configured."""
+        """``[safety] stuck_torque``, or the simulated (sim or emulated) plant's breakaway torque when
+        friction is configured."""
         if self.safety.stuck_torque is not None:
             return float(self.safety.stuck_torque)
-        fr = self.backend.options().get("friction") if self.backend.name == "sim" else None
+        fr = (self.backend.options().get("friction") if self.backend.name == "sim"
+              else (self.emulator or {}).get("friction") if self.backend.emulate else None)
         if not fr:
             return 0.0
         from rt_ident.axis.friction import Friction
@@ -220,18 +222,23 @@ class RunConfig(_Section):
     @classmethod
     def _plant_friction_to_backend(cls, data: Any) -> Any:
         """``[plant.friction]`` goes to the sim backend as its ``friction`` option (an explicit
-        ``[backend] friction`` wins); other backends cannot take it."""
+        ``[backend] friction`` wins), or to an emulated device as ``[emulator] friction``; a real
+        device refuses it."""
         if not isinstance(data, dict):
             return data
         fr = (data.get("plant") or {}).get("friction") if isinstance(data.get("plant"), dict) else None
         if fr is None:
             return data
         backend = dict(data.get("backend") or {})
-        if backend.get("name", "sim") != "sim":
-            raise ValueError(f"plant.friction: only the sim backend simulates friction "
-                             f"(backend is {backend.get('name')!r})")
-        backend.setdefault("friction", dict(fr))
-        return {**data, "backend": backend}
+        if backend.get("name", "sim") == "sim":
+            backend.setdefault("friction", dict(fr))
+            return {**data, "backend": backend}
+        if backend.get("emulate"):                 # the emulated drive or board simulates it
+            emulator = dict(data.get("emulator") or {})
+            emulator.setdefault("friction", dict(fr))
+            return {**data, "emulator": emulator}
+        raise ValueError(f"plant.friction: a real {backend.get('name')!r} device has its own friction; only the sim "
+                         "backend and the emulated devices simulate it")
 
 
 def _field_name(err: dict) -> str:

@@ -55,3 +55,24 @@ def test_stuck_encoder_check_ignores_torque_below_the_sims_breakaway_torque():
     with pytest.raises(WatchdogTrip):
         for _ in range(10):
             mon.check(10, 0.5, 0.0, 0.0, torque_active=2.0 * cfg.stuck_torque() > mon.stuck_torque)
+
+
+def test_plant_friction_reaches_both_emulated_devices_and_a_real_device_refuses_it():
+    from drivers.cia402.emulator import build_emulator_for
+    from drivers.encoder_board.emulator import start_emulator_for as start_board
+    from rt_ident.errors import ConfigError
+
+    f = thomson_friction()
+    can = load("configs/canopen-virtual.toml", **{"plant.friction": {"preset": "thomson"}})
+    assert can.emulator["friction"] == {"preset": "thomson"}
+    assert can.stuck_torque() == pytest.approx(f.Fs1 + f.Fs2)
+    drive = build_emulator_for(can)
+    assert drive.plant.friction is not None and drive.plant.friction.Fc1 == pytest.approx(f.Fc1)
+    ser = load("configs/serial-virtual.toml", **{"plant.friction": {"preset": "thomson"}})
+    board = start_board(ser)
+    try:
+        assert board.friction is not None and board.friction.Fc2 == pytest.approx(f.Fc2)
+    finally:
+        board.stop()
+    with pytest.raises(ConfigError, match="plant.friction"):
+        load("configs/canopen-virtual.toml", **{"backend.emulate": False, "plant.friction": {"preset": "thomson"}})

@@ -53,6 +53,7 @@ class EmulatorConfig(BaseModel):
     #                                                blocking in-process (see drivers.cia402.frames.FrameIO)
     seed: int = 0
     faults: dict[str, Any] = Field(default_factory=dict)
+    friction: Optional[dict[str, Any]] = None       # rt_ident.axis.friction.Friction keys or preset = "thomson"
 
 
 def _sections(config: Any) -> tuple[dict, dict, AxisParams]:
@@ -93,9 +94,12 @@ def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
                            torque_process_noise=emu.torque_process_noise)
     controller = (HoldController(kp=DEFAULT_KP if emu.kp is None else emu.kp,
                                  kd=DEFAULT_KD if emu.kd is None else emu.kd) if emu.position_hold else None)
+    from rt_ident.axis.friction import Friction
+
+    friction = Friction.from_mapping(emu.friction, where="emulator.friction") if emu.friction else None
     plant = PlantSimulator(axis, cfg.sample_period, sensors=sensors, controller=controller,
                            torque_limit=emu.torque_limit or cfg.torque_limit, travel=emu.travel,
-                           integrator=emu.integrator, seed=emu.seed)
+                           integrator=emu.integrator, seed=emu.seed, friction=friction)
     bus = cfg.bus_kwargs()
     return EmulatedCia402Drive(emu.node_id or cfg.node_id, _eds_path(emu.eds or cfg.eds), bus, plant,
                                FaultConfig.from_mapping(emu.faults), counts_per_rev=cfg.counts_per_rev,

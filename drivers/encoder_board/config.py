@@ -95,6 +95,7 @@ class EmulatorConfig(BaseModel):
     stuck_encoder: bool = False
     silent: bool = False
     deaf: bool = False
+    friction: Optional[dict[str, Any]] = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
 
 
 def parse_emulator(data: Mapping[str, Any], where: str = "emulator") -> EmulatorConfig:

@@ -460,6 +460,8 @@ def start_emulator_for(config: Any) -> EmulatedBoard:
 def board_for(bcfg: SerialBoardConfig, ecfg: EmulatorConfig, params: AxisParams | None = None,
               **kwargs: Any) -> EmulatedBoard:
     """A (not started) board matching a validated serial backend config."""
+    if ecfg.friction is not None and "friction" not in kwargs:
+        kwargs["friction"] = Friction.from_mapping(ecfg.friction, where="emulator.friction")
     return EmulatedBoard(params, sample_rate_hz=bcfg.sample_rate_hz, counts_per_rev=bcfg.counts_per_rev,
                          scale_resolution=bcfg.scale_resolution, torque_constant=bcfg.torque_constant,
                          torque_limit=bcfg.torque_limit, emulator=ecfg, plan_capacity=bcfg.plan_capacity,

@@ -14,7 +14,9 @@ both and a bus budget counting both (issue #15 item 2, not built yet): refused i
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -186,13 +188,9 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
         for name, loop in loops.items():
             parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
     finally:
-        import gc
-
         for sig, handler in old_signals.items():
-            import signal
-
             signal.signal(sig, handler)
-        gc.enable()
+        gc.enable()                                    # the loop froze and disabled it (real time)
         watch = summary.pop("_watch", None)
         files: dict[str, Any] = {}
         for name, part in parts.items():
