@@ -42,7 +42,10 @@ def _check_stopped(summary: dict, emulators: list, causes: set) -> None:
 CANOPEN = [
     ("emcy", {"emcy_at_sample": 300, "emcy_code": 0x2310}, {"device-fault"}),
     ("heartbeat-loss", {"heartbeat_stop_at_s": 0.3}, {"device-fault"}),
-    ("stuck-encoder", {"stuck_encoder_at_sample": 300}, {"watchdog"}),
+    # a stuck motor encoder takes the host's omega1 damping away: on a starved host (the suite runs the
+    # loop without real-time scheduling, watchdog at 200 ticks for that) the travel limit's stopping
+    # distance check can stop the axis first. Either is a safe stop; the checks below hold for both.
+    ("stuck-encoder", {"stuck_encoder_at_sample": 300}, {"watchdog", "travel-limit"}),
     ("tpdos-dropped", {"drop_tpdo_every": 1, "tpdo_faults_from_sample": 300}, {"watchdog"}),
     ("tpdos-corrupted", {"corrupt_tpdo_every": 1, "tpdo_faults_from_sample": 300}, {"watchdog", "protocol"}),
 ]

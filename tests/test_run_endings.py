@@ -123,7 +123,10 @@ def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_
     helpers_log = logging.getLogger("rt_ident.runtime.helpers")
     helpers_log.addHandler(keep)
     rrd = tmp_path / "d.rrd"
-    cfg = load(None, **{"loop.duration": 4.0, "loop.realtime": False, "recording.enabled": False})
+    # what is tested is the helper watch, not the control: the drive holds the axis (a torque-mode axis
+    # with the host's loop starved by a CPU hog while processes are respawned could run to its limit)
+    cfg = load(None, **{"loop.duration": 4.0, "loop.realtime": False, "recording.enabled": False,
+                        "control.mode": "off", "backend.position_hold": True})
     try:
         s = run_mod.run(cfg, rrd=str(rrd), sink="rrd", tick_hook=hook)
     finally:

@@ -41,9 +41,22 @@ def start_ignoring_signals(proc: Any) -> None:
 
 
 def become_helper() -> "ParentWatch":
-    """First call in a helper's main: ignore the group's SIGINT/SIGTERM; returns the parent watch."""
+    """First call in a helper's main: ignore the group's SIGINT/SIGTERM, leave the loop's CPU; returns
+    the parent watch.
+
+    A helper restarted during the run is forked from the loop thread and inherits its single-CPU
+    affinity (its scheduling policy is reset: the loop sets SCHED_RESET_ON_FORK): it moves to every
+    other CPU here, as the helpers started before the loop were moved by the run."""
     for s in _GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
+    try:
+        mine = os.sched_getaffinity(0)
+        every = set(range(os.cpu_count() or 1))
+        parent_rt = os.sched_getscheduler(os.getppid()) == os.SCHED_FIFO
+        if parent_rt and len(mine) == 1 and len(every) > 1:
+            os.sched_setaffinity(0, every - mine)
+    except (AttributeError, OSError):
+        pass
     return ParentWatch()
 
 

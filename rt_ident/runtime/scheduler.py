@@ -338,7 +338,10 @@ def apply_realtime(
             lo = os.sched_get_priority_min(os.SCHED_FIFO)
             hi = os.sched_get_priority_max(os.SCHED_FIFO)
             prio = min(max(int(priority), lo), hi)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            # RESET_ON_FORK: a helper restarted from the loop thread (rt_ident.runtime.helper_guard) must
+            # not inherit SCHED_FIFO - importing numpy at FIFO 50 on the loop's CPU starved the loop for
+            # seconds and a torque-mode axis ran away (seen under a CPU hog, a fit worker killed mid-run)
+            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(prio))
             report["sched_fifo"] = True
             if prio != priority:
                 log.info("SCHED_FIFO priority %s clamped to %s", priority, prio)
