@@ -368,7 +368,7 @@ def _print_run(s: dict) -> None:
         out.print("real-time: " + ", ".join(f"{k}={'yes' if v is True else v}" for k, v in rt.items()))
     files = s.get("files") or {}
     if files.get("rrd"):
-        out.print(f"dashboard: {files['rrd']}   (open with: rerun {files['rrd']})")
+        out.print(f"dashboard: {files['rrd']}   (open with: rerun --bind 127.0.0.1 {files['rrd']})")
     for name, st in (s.get("helpers") or {}).items():
         if st.get("deaths"):
             out.print(f"[yellow]helper {name} died[/] {st['deaths']}x (exit codes {st['exitcodes']}); "

@@ -319,4 +319,7 @@ def default_blueprint() -> Any:
         rrb.TimeSeriesView(origin=OVERRUNS, name="loop overruns"),
         frf(f"{FRF}/theta2/phase", "FRF theta2/T phase [deg]"),
     ]
-    return rrb.Blueprint(rrb.Grid(*views, grid_columns=6), collapse_panels=True)
+    # "following": the time cursor stays at the newest data (live and when a finished .rrd opens), so
+    # the FRF and loop-gain views show the latest fit rather than the first one
+    return rrb.Blueprint(rrb.Grid(*views, grid_columns=6), rrb.TimePanel(timeline="time", state="collapsed", play_state="following"),
+                         collapse_panels=True)
