@@ -50,11 +50,14 @@ def become_helper() -> "ParentWatch":
     for s in _GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
     try:
+        ppid = os.getppid()
+        loop_cpus = os.sched_getaffinity(ppid)       # the parent's main thread: the loop, when it runs
         mine = os.sched_getaffinity(0)
         every = set(range(os.cpu_count() or 1))
-        parent_rt = os.sched_getscheduler(os.getppid()) == os.SCHED_FIFO
-        if parent_rt and len(mine) == 1 and len(every) > 1:
-            os.sched_setaffinity(0, every - mine)
+        # only a helper that inherited the real-time loop's own CPU moves (one the run already placed
+        # elsewhere stays where it is)
+        if (os.sched_getscheduler(ppid) == os.SCHED_FIFO and mine == loop_cpus and len(mine) < len(every)):
+            os.sched_setaffinity(0, every - loop_cpus)
     except (AttributeError, OSError):
         pass
     return ParentWatch()
