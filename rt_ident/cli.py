@@ -67,6 +67,19 @@ def _param_table(title: str, truth: bool = False) -> Table:
     return tab
 
 
+def _summary_table(title: str, s: dict) -> Table:
+    """The parameter table of a run's (or one axis's) summary: estimate, interval, truth and error."""
+    truth = bool(s.get("truth") and s.get("error_pct"))
+    tab = _param_table(title, truth)
+    ci = s.get("ci95") or {}
+    for k, v in (s.get("parameters") or {}).items():
+        row = [k, UNITS.get(k, ""), _fmt(v), _interval(ci.get(k))]
+        if truth:
+            row += [_fmt(s["truth"][k]), f"{s['error_pct'][k]:+.3f}"]
+        tab.add_row(*row)
+    return tab
+
+
 def _interval(ci) -> str:
     return "-" if not ci else f"{_fmt(ci[0])} .. {_fmt(ci[1])}"
 
@@ -316,15 +329,8 @@ def _print_run(s: dict) -> None:
             out.print("the run read no samples")
         return
     lat = loop.get("lateness_us") or {}
-    tab = _param_table(f"rt-ident run - {s['backend']} - method {s.get('method')}", bool(s.get("truth")))
     params = s.get("parameters") or {}
-    ci = s.get("ci95") or {}
-    for k, v in params.items():
-        row = [k, UNITS.get(k, ""), _fmt(v), _interval(ci.get(k))]
-        if s.get("truth"):
-            row += [_fmt(s["truth"][k]), f"{s['error_pct'][k]:+.3f}"]
-        tab.add_row(*row)
-    out.print(tab)
+    out.print(_summary_table(f"rt-ident run - {s['backend']} - method {s.get('method')}", s))
     if not params and s.get("final_fit_error"):
         out.print(f"no estimate: {s['final_fit_error']}")
     elif not params:
@@ -386,14 +392,7 @@ def _print_axes(s: dict) -> None:
     """A run with several axes: each axis's parameters, trust and tracking, then the shared loop."""
     for name, ax in s["axes"].items():
         params = ax.get("parameters") or {}
-        tab = _param_table(f"axis {name} - method {ax.get('method')}", bool(ax.get("error_pct")))
-        ci = ax.get("ci95") or {}
-        for k, v in params.items():
-            row = [k, UNITS.get(k, ""), _fmt(v), _interval(ci.get(k))]
-            if ax.get("error_pct"):
-                row += [_fmt(ax["truth"][k]), f"{ax['error_pct'][k]:+.3f}"]
-            tab.add_row(*row)
-        out.print(tab)
+        out.print(_summary_table(f"axis {name} - method {ax.get('method')}", ax))
         if params:
             _print_trust(ax.get("trust"), ax.get("trusted"))
         elif ax.get("final_fit_error"):
