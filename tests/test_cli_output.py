@@ -122,3 +122,18 @@ def test_a_frequency_fit_carries_its_frf_view_with_model_and_band():
     # ... inside its band, and the resonance mark is the model's damped frequency
     assert np.all(v["g1_lo"] <= v["g1_db"] + 1e-9) and np.all(v["g1_db"] <= v["g1_hi"] + 1e-9)
     assert v["marks_hz"][0] == pytest.approx(r.modal["wd"] / (2 * np.pi), rel=1e-9)
+
+
+def test_an_frf_view_of_a_fit_with_a_wild_covariance_never_raises():
+    """A fit with absurd intervals (early in a run) once overflowed in the band's parameter draws and
+    took the whole final fit down with it; the band then collapses onto the model instead."""
+    from rt_ident.axis.plant import HoldController, PlantSimulator
+    from rt_ident.estimators.frequency import compute_spectra
+    from rt_ident.estimators.frf import frf_view
+
+    p, dt = thomson_x(), 2.9481e-5
+    ms = schroeder_multisine(512, (1, 60), peak=0.3)
+    blk = PlantSimulator(p, dt, controller=HoldController(), seed=0).step_block(ms.periodic(4))
+    sp = compute_spectra(blk.theta1, blk.theta2, blk.torque_meas, dt, period=512)
+    v = frf_view(sp, np.log([p.I1, p.I2, p.B, p.K]), np.eye(4) * 1e6, "zoh")
+    assert all(np.all(np.isfinite(v[k])) for k in ("g1_db", "g1_lo", "g1_hi", "g2_db"))

@@ -67,11 +67,17 @@ def frf_view(sp: Any, x_log: np.ndarray, cov_log: np.ndarray | None, hold: str, 
         rng = np.random.default_rng(seed)
         try:
             L = np.linalg.cholesky(np.asarray(cov_log, dtype=float)[:4, :4] + 1e-18 * np.eye(4))
-            mags = np.empty((draws, 2, f_model.size))
-            for i in range(draws):
-                Gi = frequency_response(theta + L @ rng.standard_normal(4), z, sp.dt, hold)
-                mags[i] = _db(Gi).T
-            band = np.percentile(mags, [2.5, 97.5], axis=0)      # (2, 2, n_grid)
+            mags = []
+            for _ in range(draws):
+                x = theta + L @ rng.standard_normal(4)
+                if not np.all(np.abs(x - theta) < 20.0):        # a draw e^20 away: no model to draw
+                    continue
+                try:
+                    mags.append(_db(frequency_response(x, z, sp.dt, hold)).T)
+                except (ArithmeticError, np.linalg.LinAlgError):
+                    continue
+            if len(mags) >= 8:
+                band = np.percentile(np.array(mags), [2.5, 97.5], axis=0)      # (2, 2, n_grid)
         except np.linalg.LinAlgError:
             band = None
     for j, key in ((0, "g1"), (1, "g2")):

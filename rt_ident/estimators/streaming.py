@@ -179,7 +179,7 @@ def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.9
         ident = identification_from_fit(snap, fit, hold, lead=lead)
         try:                              # the dashboard's FRF view; a fit is never lost over it
             view = frf_view(snap, fit.x, fit.cov[:4, :4], hold)
-        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:   # OverflowError: a wild draw
             log.debug("frf view not built: %s", e)
             view = None
         return dataclasses.replace(ident, frf=view)
