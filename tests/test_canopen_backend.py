@@ -24,7 +24,7 @@ from drivers.cia402.config import bus_budget, validate
 from drivers.cia402.drive import Cia402Backend
 from drivers.cia402.emulator import start_emulator_for
 from drivers.cia402.profile import OPERATION_ENABLED, SWITCH_ON_DISABLED, decode_state, frame_bits
-from drivers.cia402.stream import CANCEL, ECHO, MARK, SampleAssembler, TorquePlan
+from drivers.cia402.stream import CANCEL, ECHO, MARK, SampleAssembler, SyncSender, TorquePlan
 from drivers.errors import DeviceConnectionError, DeviceFault, ProtocolError, WatchdogTrip
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.axis.plant import DEFAULT_KP
@@ -157,6 +157,43 @@ def _echo_assembler() -> tuple[SampleAssembler, collections.deque]:
     dq: collections.deque = collections.deque([(MARK, -1, -1.0, 0.0), (ECHO, 0.0)])
     _answer(dq, 99)
     return asm, dq
+
+
+def test_sync_sender_runs_fifo_above_a_loop_thread_that_resets_its_policy_on_fork():
+    """The loop thread runs SCHED_FIFO | SCHED_RESET_ON_FORK (a helper it restarts must not be real-time).
+    Threads it starts are then SCHED_OTHER; the SYNC sender must still end up one FIFO step above it,
+    or on the loop's CPU it runs only while the loop sleeps (half the samples were lost)."""
+    import os
+    import threading
+
+    flag = getattr(os, "SCHED_RESET_ON_FORK", None)
+    if flag is None:
+        pytest.skip("no SCHED_RESET_ON_FORK on this platform")
+    got: dict = {}
+
+    def loop_thread() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO | flag, os.sched_param(50))
+        except PermissionError:
+            got["skip"] = True
+            return
+        sender = SyncSender(lambda cob, data: None, 0.01, collections.deque(maxlen=100), TorquePlan(),
+                            lambda t: (0, 0.0), rpdo_cob=0x205)
+        sender.start()
+        try:
+            time.sleep(0.05)
+            tid = sender._thread.native_id
+            got["policy"] = os.sched_getscheduler(tid) & ~flag
+            got["prio"] = os.sched_getparam(tid).sched_priority
+        finally:
+            sender.stop()
+
+    t = threading.Thread(target=loop_thread)
+    t.start()
+    t.join(5.0)
+    if got.get("skip"):
+        pytest.skip("SCHED_FIFO not permitted here")
+    assert got == {"policy": os.SCHED_FIFO, "prio": 51}
 
 
 def test_echoed_sync_not_sender_marker_opens_the_window():
