@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
-from drivers.placement import device_placement, place
+from drivers.placement import device_placement, place, settle_heap
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
 
@@ -158,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    settle_heap()
     where = f"{backend.get('interface')}:{backend.get('channel')}" + (f" port {backend['port']}"
                                                                       if backend.get("port") else "")
     print(f"READY node {drive.node_id} on {where}" + (f" ({', '.join(f'{k} {v}' for k, v in placed.items())})"

@@ -490,11 +490,12 @@ def main(argv: list[str] | None = None) -> int:
         data["backend"]["sample_rate_hz"] = args.rate
     if args.seed is not None:
         data["emulator"]["seed"] = args.seed
-    from drivers.placement import device_placement, place
+    from drivers.placement import device_placement, place, settle_heap
 
     placed = place(device_placement(not args.no_realtime))   # as the loop places its own emulator child
     logging.getLogger(__name__).info("placement: %s", placed or "none")
     board = start_emulator_for(data)
+    settle_heap()
     print(board.port, flush=True)   # the one line a caller reads (CLI output, not logging)
     try:
         while True:

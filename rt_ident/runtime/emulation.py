@@ -29,7 +29,7 @@ import os
 import socket
 from typing import Any
 
-from drivers.placement import device_placement, place
+from drivers.placement import device_placement, place, settle_heap
 from rt_ident.errors import RtIdentError
 
 log = logging.getLogger(__name__)
@@ -46,6 +46,7 @@ def _serve(module: str, config: dict[str, Any], conn, placement: dict[str, Any] 
     except Exception as exc:  # noqa: BLE001 - reported to the parent
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    settle_heap()                            # no full collection stalls the device later (see there)
     try:
         conn.send(("ready", {"port": getattr(dev, "port", None), "placement": placed}))
         while True:
