@@ -14,6 +14,12 @@ on; ``write(values, start_seq=s)`` asks for ``values[i]`` to be applied to the
 sample whose sequence number is ``s + i`` (a plan; a newer plan replaces the
 rest of an older one; samples not covered hold the last value). That lets a
 1 kHz loop excite a 662 Hz mode at the backend's own sample rate.
+``write(values, start_seq=s, lease=n)`` bounds the hold: the plan's last value
+holds for ``n`` samples after the plan, then the torque is zero until a newer
+plan. A host that stops planning (stalled, or without fresh feedback) then
+leaves the axis coasting instead of accelerating it under a held torque: a
+drive in torque mode applies whatever it was last sent, for as long as it is
+enabled.
 """
 
 from __future__ import annotations
@@ -125,8 +131,13 @@ class Backend(ABC):
             raise BackendStateError(f"read() in state {self.state.value}")
         return self._read()
 
-    def write(self, torque: float | np.ndarray, *, start_seq: int | None = None) -> None:
-        """Send a torque command, clamped to ``torque_limit`` before it leaves the host."""
+    def write(self, torque: float | np.ndarray, *, start_seq: int | None = None, lease: int | None = None) -> None:
+        """Send a torque command, clamped to ``torque_limit`` before it leaves the host.
+
+        ``lease`` (plans only): samples the plan's last value holds after the plan ends before the
+        command drops to zero - sent now, as a one-value plan of 0 that far ahead (every backend's
+        plan keeps an older plan's last value across a gap, and a newer plan replaces it).
+        """
         if self.state is not State.ACTIVE:
             raise BackendStateError(f"write() in state {self.state.value}")
         values = np.asarray(torque, dtype=float)
@@ -146,6 +157,10 @@ class Backend(ABC):
             self._write_plan(values, int(start_seq))
             if values.size:
                 self.last_torque = float(values[-1])
+                if lease is not None:
+                    if lease < 0:
+                        raise DriverError(f"lease must be >= 0 samples, got {lease}")
+                    self._write_plan(np.zeros(1), int(start_seq) + values.size + int(lease))
 
     def safe_stop(self, cause: str | None = None) -> None:
         """Quick stop -> zero torque -> drive disabled. Idempotent; never raises.

@@ -136,6 +136,9 @@ class SafetyConfig(_Section):
     # sim's configured breakaway torque Fs1 + Fs2 (both sides stick together), else 0 (any torque).
     # Set it to the breakaway torque of a real axis with friction.
     stuck_torque: Optional[float] = Field(None, ge=0)
+    # s the loop's last planned torque is held past the end of its plan (about two ticks ahead) before the
+    # command drops to zero: a stalled host, or one without fresh feedback, leaves the axis coasting
+    torque_hold: float = Field(0.005, ge=0)
 
 
 class TelemetryConfig(_Section):

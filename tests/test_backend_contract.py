@@ -420,6 +420,41 @@ def test_torque_plan_needs_start_seq_and_lands_on_those_sample_numbers(rig: Rig)
     assert verified, "no plan was delivered around its sign change in 5 tries"
 
 
+def test_a_leased_plan_holds_its_last_value_for_the_lease_then_the_torque_is_zero(rig: Rig) -> None:
+    """``write(plan, start_seq=s, lease=n)`` and nothing more: the last value holds ``n`` samples past the
+    plan, then zero reaches the device - a host that stops planning leaves the axis coasting."""
+    be, c, tol = rig.backend, rig.command, rig.tol()
+    be.open()
+    be.activate()
+    dt = be.sample_period
+    q = max(2, math.ceil(0.0125 / dt))
+    plan = np.concatenate([np.full(2 * q, c), np.full(q, -c)])    # +c 2q, -c q, then -c held q: no net speed
+    verified = False
+    for _ in range(5):        # samples may be lost or the plan late on a loaded machine: up to 5 plans
+        blocks = pump(be, lambda b: len(b) >= 2 and len(b[-1]) <= max(2, 0.005 / dt))
+        assert blocks, f"no samples in {DEADLINE} s"
+        start = int(blocks[-1].seq[-1]) + max(10, math.ceil(0.1 / dt))
+        be.write(plan, start_seq=start, lease=q)
+        assert be.last_torque == -c                    # what the host last planned, not the lease's zero
+        end = start + plan.size + q
+
+        def done(b: list[SampleBlock]) -> bool:
+            return bool(b) and int(b[-1].seq[-1]) >= end + 5
+
+        blocks = pump(be, done)
+        assert done(blocks), "the samples after the lease did not arrive"
+        seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
+        held = (seq >= start + plan.size) & (seq < end)
+        after = seq >= end
+        assert np.allclose(cmd[after], 0.0, atol=tol), "the torque did not drop to zero when the lease ran out"
+        if np.any(held) and np.allclose(cmd[held], -c, atol=tol):   # the plan was on time: its hold is seen
+            verified = True
+            break
+    assert verified, "no plan's lease was seen holding its last value in 5 tries"
+    if rig.device is not None:
+        assert wait_until(lambda: abs(rig.device.torque()) <= tol), "the device still applies torque"
+
+
 def test_torque_command_reaches_the_device_within_bounded_reads(rig: Rig) -> None:
     be, c = rig.backend, rig.command
     be.open()

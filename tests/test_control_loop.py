@@ -189,7 +189,7 @@ def test_control_torque_with_a_two_tick_delay_lands_two_ticks_later():
 
 
 class _KF:
-    def filter_block(self, a, b):
+    def filter_block(self, a, b, seq=None):
         from types import SimpleNamespace
         z = np.column_stack((a, b))
         return SimpleNamespace(theta=z, omega=np.zeros_like(z), alpha=np.zeros_like(z))
@@ -225,13 +225,18 @@ class _GoesSilent:
     def __exit__(self, *exc):
         return self.inner.__exit__(*exc)
 
+    hidden: list  # blocks the device produced while the host saw nothing
+
     def read(self):
         self.reads += 1
         blk = self.inner.read()
-        return blk if self.reads <= self.after else SampleBlock.empty(with_measured=True)
+        if self.reads <= self.after:
+            return blk
+        self.__dict__.setdefault("hidden", []).append(blk)
+        return SampleBlock.empty(with_measured=True)
 
 
-def test_stale_feedback_holds_the_last_torque_then_the_watchdog_stops_the_axis():
+def test_stale_feedback_without_a_lease_holds_the_last_torque_until_the_watchdog_stops_the_axis():
     from drivers.errors import WatchdogTrip
     from rt_ident.runtime.loop import IdentificationLoop
     from rt_ident.runtime.safety import SafetyMonitor
@@ -258,3 +263,35 @@ def test_stale_feedback_holds_the_last_torque_then_the_watchdog_stops_the_axis()
         assert len(calls) == 300            # no control step from stale state: only fresh samples drive it
         assert loop.stats.ticks <= 300 + 21  # the watchdog stopped it within its 20 ticks
     assert backend.inner.last_torque == 0.0 and not backend.inner.drive_enabled
+
+
+def test_feedback_that_stops_ends_the_torque_at_the_lease_before_the_watchdog_trips():
+    """[safety] torque_hold: the loop's plans start at the first sample it has not read, so when
+    feedback stops the device sees the last planned torque for two ticks plus the lease, then zero -
+    long before the 20-tick watchdog. Without it the held torque accelerated the free axis."""
+    from drivers.errors import WatchdogTrip
+    from rt_ident.estimators.state_estimation import AxisStateEstimator
+    from rt_ident.runtime.loop import IdentificationLoop
+    from rt_ident.runtime.safety import SafetyMonitor
+
+    backend = _GoesSilent(after=300)
+    hold = 0.003
+    ctl = Supervisor(ControlSettings(), P, tick=1e-3, torque_limit=1.0, reference=Hold())
+    kf = AxisStateEstimator(backend.sample_period, 2 * math.pi / 2**17, 1e-7 / P.lead, 1e9)
+    safety = SafetyMonitor(lead=P.lead, window=(-0.04, 0.04), max_decel=1e4, watchdog_ticks=20, torque_hold=hold)
+    loop = IdentificationLoop(backend, tick_hz=1000, excitation=lambda s: 0.02 * (1 - 2 * (s % 2)),
+                              state_estimator=kf, estimator=_Est(), safety=safety, duration=1.0, control=ctl)
+    with backend:
+        backend.activate()
+        with pytest.raises(WatchdogTrip):
+            loop.run()
+        hidden = backend.hidden
+    seq = np.concatenate([b.seq for b in hidden])
+    cmd = np.concatenate([b.torque_cmd for b in hidden])
+    dt = backend.sample_period
+    first = int(seq[0])                          # the first sample the host never read
+    covered = first + loop._plan_len + math.ceil(hold / dt)
+    live = cmd[seq < covered]
+    assert np.all(np.abs(live) > 0.01)            # the last plan (its +-0.02 probe) holds right after the silence
+    assert np.all(cmd[seq >= covered] == 0.0), "torque still applied after plan + lease"
+    assert seq[-1] - covered > 0.01 / dt          # and the watchdog came well after the torque ended

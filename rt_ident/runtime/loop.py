@@ -16,7 +16,10 @@ Each tick (default 1 kHz):
 6. the torque plan for the next two ticks is written, keyed by sample sequence number: the
    control torque held per tick (the one computed now lands one tick after the newest
    sample, the one-tick delay the controller was designed with) plus the probing
-   excitation per sample, so the excitation is exact at the backend's sample rate;
+   excitation per sample, so the excitation is exact at the backend's sample rate.
+   The plan is leased (``[safety] torque_hold``): without a newer plan its last value
+   holds that long, then the torque is zero. The plan starts at the first sample not yet
+   read, so feedback that stops coming also ends the torque, not only a stalled loop;
 7. raw samples go to the recorder process and, every few ticks, a decimated
    block to the telemetry process — both through non-blocking hand-offs.
 
@@ -143,6 +146,8 @@ class IdentificationLoop:
         self._probe_period = probe_period   # excitation period [samples]: its amplitude changes on period edges
         self._probe = (1.0, 1.0, 0)         # (scale now, scale from seq on, that seq)
         self._plan_len = int(math.ceil(2.0 / (tick_hz * backend.sample_period))) + 2
+        hold = getattr(safety, "torque_hold", None)      # the plan's lease (see drivers.base.Backend.write)
+        self._lease = None if hold is None else int(math.ceil(hold / backend.sample_period))
         if on_telemetry is not None:
             self._telemetry_buffers()
 
@@ -186,7 +191,7 @@ class IdentificationLoop:
         if self.on_block is not None:               # record first: a block that trips a check is kept
             self.on_block(block)
         torque = block.torque
-        states = self.kf.filter_block(block.theta1, block.theta2)
+        states = self.kf.filter_block(block.theta1, block.theta2, block.seq)
         if self.est.update_block(block.theta1, block.theta2, torque, block.seq) and self.worker is not None:
             if self.worker.ready:                       # a snapshot only when the worker waits for one
                 self.worker.submit(self.est.snapshot())     # the fit runs in the worker process
@@ -264,7 +269,7 @@ class IdentificationLoop:
             for first, value in self._u_sched:
                 u[seq >= first] = value
             torque += u
-        self.backend.write(torque, start_seq=start)
+        self.backend.write(torque, start_seq=start, lease=self._lease)
 
     def _probe_amplitude(self, want: float, start: int) -> None:
         """Dual excitation: the probing amplitude follows ``want`` from the next period edge on

@@ -128,7 +128,8 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                     helpers[f"control-{name}"] = ctl_worker
                 safety = SafetyMonitor(lead=truth.lead, window=tuple(acfg.safety.window),
                                        max_decel=acfg.safety.max_decel, watchdog_ticks=acfg.safety.watchdog_ticks,
-                                       stuck_torque=acfg.stuck_torque())
+                                       stuck_torque=acfg.stuck_torque(),
+                                       torque_hold=acfg.safety.torque_hold)
                 tel, rec = part.get("telemetry"), part.get("recorder")
                 loops[name] = IdentificationLoop(
                     backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(acfg), state_estimator=kf,

@@ -207,7 +207,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
             control, ctl_worker = _controller(cfg, backend, stack, (q1, q2))
             safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
-                                   watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque())
+                                   watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque(),
+                                   torque_hold=cfg.safety.torque_hold)
             watch = HelperWatch({"telemetry": telemetry, "fit": worker, "control": ctl_worker},
                                 restartable=("telemetry", "fit", "control"))
             user_hook = tick_hook

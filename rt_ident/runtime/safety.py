@@ -6,6 +6,10 @@
 - Watchdog: no fresh feedback (no new samples) for ``watchdog_ticks`` ticks.
 - Stuck encoder: samples keep arriving but the motor angle has not changed
   for ``watchdog_ticks`` ticks while torque was commanded.
+- Command lease (``torque_hold``, applied by the loop when it writes its plan):
+  the torque drops to zero that long after the plan ends, before the
+  watchdog trips. Without it a 100 ms stretch of stale CANopen data once held
+  0.3 N m on the free axis and ran the table 430 mm past its window.
 
 Torque clamping happens in :class:`drivers.base.Backend.write` before a
 command leaves the host. The monitor raises; the loop turns any raise into a
@@ -29,6 +33,9 @@ class SafetyMonitor:
     # |torque| above which a motionless motor encoder counts as stuck: 0 for a frictionless axis; an
     # axis with friction legitimately sticks under any torque below its breakaway torque
     stuck_torque: float = 0.0
+    # s the last planned torque holds past the end of the loop's plan, then zero (Backend.write's lease);
+    # None: held until the next plan, as a bare backend does
+    torque_hold: float | None = None
     stale_ticks: int = 0
     stuck_ticks: int = 0
     _last_theta1: float = math.nan
