@@ -101,21 +101,11 @@ def test_run_safe_stops_with_exit_code_3_when_the_fallback_cannot_hold_the_bound
 @pytest.mark.parametrize("config,duration", [("canopen-virtual.toml", 3.0), ("serial-virtual.toml", 2.5)])
 def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, emulators, restore_scheduling):
     # real-time like a bench run: a loop that is not real-time loses CANopen samples next to pytest
-    # what is tested is the closed loop over each backend: a stale stretch of 10 ms (the shipped
-    # stale_limit) on this VM's udp_multicast exchange must not end it; 100 ms still would
+    # what is tested is the closed loop over each backend, not the drive's watchdog: a stale stretch of
+    # up to 100 ms on a loaded machine's udp_multicast exchange may not end it (the shipped limit is 10 ms)
     extra = {"backend.stale_limit": 200} if config.startswith("canopen") else {}
     cfg = load(CONFIG_DIR / config, **{**FAST, "loop.duration": duration, "loop.realtime": True, **extra})
     summary = run_mod.run(cfg)
-    if summary["stop"]["cause"] is not None and config.startswith("canopen"):
-        # Known weakness (issue #13): on this VM the two-process udp_multicast exchange at 2 kHz
-        # sometimes goes stale for long stretches; 2 of 4 fresh-clone CI runs on 2026-11-25 lost this case
-        # (a watchdog stop or, with the torque held stale, the travel limit). One more run is allowed; two
-        # failures in a row still fail the test. The stop is logged so the rate stays visible.
-        import logging
-
-        logging.getLogger(__name__).warning("canopen closed loop stopped (%s); running it once more",
-                                            summary["stop"])
-        summary = run_mod.run(cfg)
     assert summary["stop"]["cause"] is None, summary["stop"]
     ctl = summary["control"]
     assert ctl["mode"] == "adaptive"
@@ -125,7 +115,7 @@ def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, em
     assert ctl["max_error_m"] is not None and ctl["max_error_m"] < 1.5e-3 and ctl["rms_error_m"] < 300e-6, \
         (ctl, summary["loop"], summary.get("backend_counters"))
     assert summary["stop"]["final_torque"] == 0.0
-    emu = emulators[-1]                     # the last run's device (one more run after a stop: see above)
+    (emu,) = emulators
     assert emu.stats is not None and not emu.stats["enabled"]
 
 
