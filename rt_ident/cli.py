@@ -29,6 +29,15 @@ err = Console(stderr=True, soft_wrap=True)
 out = Console(soft_wrap=True)
 
 
+def _mount_fleet() -> None:
+    from rt_ident.fleet.commands import fleet_app
+
+    app.add_typer(fleet_app, name="fleet")
+
+
+_mount_fleet()
+
+
 def _version(value: bool) -> None:
     if value:
         from importlib.metadata import PackageNotFoundError, version

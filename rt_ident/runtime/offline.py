@@ -89,14 +89,16 @@ class InlineWorker:
 
 
 def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], None] | None = None,
-                fit_latency: float = 0.1) -> dict[str, Any]:
+                fit_latency: float = 0.1, record: str | None = None, overwrite: bool = False) -> dict[str, Any]:
     """Run ``cfg`` (a ``sim`` backend) on virtual time; returns identification, control and truth.
 
     ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
+    ``record``: write every sample to this ``.parquet`` with the metadata ``rt-ident run`` writes (in
+    this process: the recorder of :mod:`rt_ident.runtime.recording`, no helper process).
     """
     from drivers import make_backend
     from rt_ident.runtime.run import (_excitation, _quanta, _warmup, backend_options, controller_for, friction_estimator,
-                                      friction_summary)
+                                      friction_summary, recording_metadata)
 
     if cfg.backend.name != "sim":
         raise ConfigError("backend.name", "the offline loop runs the sim backend only")
@@ -115,7 +117,14 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     ctl = controller_for(cfg, backend, InlineWorker(redesign, clock, latency=0.05, min_interval=0.0), (q1, q2))
     _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
     safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
-                           watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque())
+                           watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque(),
+                           torque_hold=cfg.safety.torque_hold)
+    recorder = None
+    if record is not None:
+        from rt_ident.runtime.recording import Recorder
+
+        recorder = Recorder(record, recording_metadata(cfg, dt), flush_interval=1e9, overwrite=overwrite)
+        recorder.open()
     loop = IdentificationLoop(backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf,
                               estimator=est, safety=safety, duration=cfg.loop.duration, fit_worker=fit,
                               clock=clock, control=ctl, probe_period=ex.period_samples,
@@ -123,7 +132,9 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
                                             max_sleep_s=None),
                               tick_hook=None if tick_hook is None else (lambda _n: tick_hook(loop)),
                               friction=friction_estimator(cfg, dt, (q1, q2)),
-                              friction_feedforward=cfg.control.friction_feedforward)
+                              friction_feedforward=cfg.control.friction_feedforward,
+                              on_block=None if recorder is None else
+                              (lambda b: recorder.append(b.t, b.seq, b.theta1, b.theta2, b.torque_cmd, b.torque_meas)))
     stop = None
     with backend:
         backend.activate()
@@ -131,6 +142,9 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
             loop.run()
         except Exception as exc:  # noqa: BLE001 - a stop is a result here (the bench counts it)
             stop = f"{type(exc).__name__}: {exc}"
+        finally:
+            if recorder is not None:
+                recorder.close()
     now = getattr(backend, "current_params", None) or truth
     x_end = float(truth.lead * backend.plant.state[2])      # the true table position when the run ended
     out: dict[str, Any] = {"stop": stop, "loop": loop.stats.as_dict(), "table_end_m": x_end,

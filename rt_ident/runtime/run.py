@@ -191,9 +191,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                     telemetry.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
                                          **modal_parameters(truth)})
             dt = backend.sample_period                 # known from the config, before any I/O
-            meta = {"backend": cfg.backend.name, "sample_period": dt, "axis": truth.as_dict(),
-                    "excitation": ex.model_dump(), "method": cfg.estimator.method,
-                    "warmup_periods": cfg.loop.warmup_periods, "forgetting": cfg.estimator.forgetting}
+            meta = recording_metadata(cfg, dt)
             if rec_path:
                 recorder = RecorderProcess(rec_path, meta, overwrite=overwrite).start()
             q1, q2 = _quanta(cfg)
@@ -347,6 +345,13 @@ def _quanta(cfg: RunConfig) -> tuple[float, float]:
     cpr = int(opts.get("counts_per_rev", 2**17) or 2**17)
     res = float(opts.get("scale_resolution", 1e-7) or 1e-7)
     return encoder_quanta(cpr, res, lead)
+
+
+def recording_metadata(cfg, dt: float) -> dict[str, Any]:
+    """What a recording carries about its run: enough for ``rt-ident identify`` to replay the loop's estimator."""
+    return {"backend": cfg.backend.name, "sample_period": dt, "axis": cfg.axis_params().as_dict(),
+            "excitation": cfg.excitation.model_dump(), "method": cfg.estimator.method,
+            "warmup_periods": cfg.loop.warmup_periods, "forgetting": cfg.estimator.forgetting}
 
 
 def _warmup(kf, est, n: int) -> None:

@@ -1,0 +1,8 @@
+"""The fleet (issue #16): many axes' recordings identified on Dask, kept as a Parquet history, checked for drift.
+
+* :mod:`~rt_ident.fleet.manifest` - the CSV listing recordings (path, machine, axis, time);
+* :mod:`~rt_ident.fleet.identify` - one Dask task per recording, results appended to the history;
+* :mod:`~rt_ident.fleet.history` - DuckDB over the history's Parquet files;
+* :mod:`~rt_ident.fleet.drift` - CUSUM alarms per machine, axis and parameter;
+* :mod:`~rt_ident.fleet.report` - trend plots and the summary table.
+"""

@@ -1,0 +1,136 @@
+"""``rt-ident fleet identify | drift | report | query`` (mounted by :mod:`rt_ident.cli`)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+fleet_app = typer.Typer(no_args_is_help=True, help="Many axes' recordings: identify on Dask, keep a history, flag drift.")
+err = Console(stderr=True, soft_wrap=True)
+out = Console(soft_wrap=True)
+
+HISTORY = typer.Option(..., "--history", help="Folder of the fleet's Parquet history (created if missing).")
+
+
+@fleet_app.command("identify")
+def identify_cmd(
+    manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601)."),
+    history: Path = HISTORY,
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="A running Dask scheduler, e.g. "
+                                            "tcp://10.0.0.5:8786 (workers need rt-ident installed). Default: a "
+                                            "LocalCluster on 127.0.0.1."),
+    workers: int = typer.Option(2, "--workers", min=1, help="LocalCluster worker processes."),
+    method: Optional[str] = typer.Option(None, "--method", help="Estimator (default: the recording's own)."),
+    json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
+) -> None:
+    """Identify every recording of MANIFEST (one Dask task each); append new results to the history."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from rt_ident.fleet.identify import identify_fleet
+    from rt_ident.fleet.manifest import read_manifest
+
+    entries = read_manifest(manifest)
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                   TextColumn("failed {task.fields[failed]}"), TimeElapsedColumn(), console=err, transient=True)
+    state: dict[str, Any] = {"failed": 0}
+
+    def started(n: int, dashboard: str | None) -> None:
+        err.print(f"{n} recordings; Dask {'dashboard ' + dashboard if dashboard else 'dashboard: none (bokeh not installed)'}")
+        state["task"] = bar.add_task("identifying", total=n, failed=0)
+
+    def done(row: dict[str, Any]) -> None:
+        if row["status"] == "failed":
+            state["failed"] += 1
+        bar.update(state["task"], advance=1, failed=state["failed"])
+
+    with bar:
+        res = identify_fleet(entries, history, scheduler=scheduler, workers=workers, method=method,
+                             on_start=started, on_result=done)
+    if json_out:
+        typer.echo(json.dumps(res, indent=2))
+    else:
+        out.print(f"{res['identified']} identified, {res['skipped']} already in the history, {res['failed']} failed "
+                  f"-> {res['history']}")
+        for f in res["failures"]:
+            out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}")
+    if res["failed"]:
+        raise typer.Exit(1)
+
+
+@fleet_app.command("drift")
+def drift_cmd(
+    history: Path = HISTORY,
+    baseline: int = typer.Option(5, "--baseline", min=2, help="Recordings per series that set its baseline."),
+    h: float = typer.Option(5.0, "--h", min=0.5, help="CUSUM decision interval (in sigmas)."),
+    json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
+) -> None:
+    """Per machine, axis and parameter: alarms where the estimates leave their baseline (CUSUM)."""
+    from rt_ident.fleet.drift import DriftSettings, drift
+
+    res = drift(history, DriftSettings(baseline=baseline, h=h))
+    res.pop("_detail")
+    if json_out:
+        typer.echo(json.dumps(res, indent=2))
+        return
+    out.print(f"{res['series']} series, {res['checked']} parameter series checked ({res['method']})")
+    if not res["alarms"]:
+        out.print("no drift alarms")
+        return
+    tab = Table(title=f"{len(res['alarms'])} drift alarms, largest change first")
+    for c in ("machine", "axis", "parameter", "first alarm (UTC)", "change %", "recordings before"):
+        tab.add_column(c, no_wrap=c.startswith("first"))
+    for a in res["alarms"]:
+        tab.add_row(a["machine"], a["axis"], a["parameter"], a["first_time"][:16].replace("T", " "),
+                    f"{a['change_percent']:+.2f}",
+                    str(a["recordings_before"]))
+    out.print(tab)
+
+
+@fleet_app.command("report")
+def report_cmd(
+    history: Path = HISTORY,
+    out_dir: Path = typer.Option(..., "--out", help="Folder for the figures and the summary."),
+) -> None:
+    """Trend plots per axis (intervals, baseline band, alarms) and a one-page summary, worst first."""
+    from rt_ident.fleet.report import write_report
+
+    res = write_report(history, out_dir)
+    out.print(f"{res['series']} series, {res['alarms']} alarms: {res['summary_png']}, {res['summary_csv']} and "
+              f"{len(res['figures'])} trend figures in {out_dir}")
+
+
+def _cell(v: Any) -> str:
+    if isinstance(v, float):
+        return "-" if math.isnan(v) else f"{v:.6g}"
+    return str(v)
+
+
+@fleet_app.command("query")
+def query_cmd(
+    sql: str = typer.Argument(..., help='SQL on the view "history", e.g. "SELECT machine, axis, avg(K) FROM history '
+                                        'GROUP BY ALL".'),
+    history: Path = HISTORY,
+    json_out: bool = typer.Option(False, "--json", help="Rows as JSON objects on stdout."),
+) -> None:
+    """Run SQL (DuckDB) over the fleet history."""
+    from rt_ident.fleet.history import query
+
+    cols, rows = query(history, sql)
+    if json_out:
+        typer.echo(json.dumps([dict(zip(cols, r)) for r in rows], indent=2, default=str))
+        return
+    tab = Table()
+    for c in cols:
+        tab.add_column(c)
+    for r in rows:
+        tab.add_row(*(_cell(v) for v in r))
+    out.print(tab)
+
+
+__all__ = ["fleet_app"]

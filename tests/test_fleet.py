@@ -1,0 +1,154 @@
+"""The fleet (issue #16): recordings identified on a real dask.distributed cluster on 127.0.0.1, the Parquet
+history, re-runs that compute nothing twice, a corrupt recording among good ones, drift alarms on known wear,
+DuckDB queries, and the command line end to end.
+
+One small fleet is generated per module by ``tools/make_fleet.py`` (closed-loop runs of the product on the
+simulated axis): 2 machines x 1 axis x 10 days, one series wearing (K -0.5 %/day, B +2 %/day).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rt_ident.errors import ConfigError
+from rt_ident.fleet.drift import drift
+from rt_ident.fleet.history import query
+from rt_ident.fleet.identify import PARAMS, identify_fleet, identify_recording
+from rt_ident.fleet.manifest import read_manifest, write_manifest
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tools"))
+import make_fleet  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("fleet")
+    assert make_fleet.main([str(out), "--machines", "2", "--axes", "x", "--days", "10", "--worn", "0.5",
+                            "--duration", "0.35", "--seed", "3"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A real scheduler and two worker processes, confined to 127.0.0.1."""
+    from distributed import LocalCluster
+
+    c = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                     dashboard_address=None)
+    yield c
+    c.close()
+
+
+def _truth(fleet: Path) -> dict:
+    return json.loads((fleet / "truth.json").read_text())
+
+
+def test_results_on_a_real_scheduler_with_two_workers_equal_a_serial_run(fleet, cluster, tmp_path):
+    from distributed import Client
+
+    with Client(cluster.scheduler_address) as client:
+        info = client.scheduler_info()
+        addresses = [cluster.scheduler_address, *info["workers"]]
+        assert len(info["workers"]) == 2
+    assert all(a.startswith("tcp://127.0.0.1:") for a in addresses), addresses
+    entries = read_manifest(fleet / "manifest.csv")
+    res = identify_fleet(entries, tmp_path / "h", scheduler=cluster.scheduler_address)
+    assert res["identified"] == len(entries) == 20 and res["failed"] == 0
+    cols, rows = query(tmp_path / "h", "SELECT path, " + ", ".join(PARAMS) + " FROM history")
+    dist = {r[0]: r[1:] for r in rows}
+    for e in entries:
+        serial = identify_recording({"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time})
+        assert serial["status"] == "ok", serial["error"]
+        assert dist[e.path] == tuple(serial[k] for k in PARAMS)      # bit for bit: same code, same data
+
+
+def test_rerunning_a_manifest_identifies_nothing_twice(fleet, cluster, tmp_path):
+    entries = read_manifest(fleet / "manifest.csv")[:6]
+    first = identify_fleet(entries, tmp_path / "h", scheduler=cluster.scheduler_address)
+    again = identify_fleet(entries, tmp_path / "h", scheduler=cluster.scheduler_address)
+    assert first["identified"] == 6 and again["identified"] == 0 and again["skipped"] == 6
+    _, [(n,)] = query(tmp_path / "h", "SELECT count(*) FROM history")
+    assert n == 6
+
+
+def test_a_corrupt_recording_is_reported_and_the_others_succeed(fleet, cluster, tmp_path):
+    entries = read_manifest(fleet / "manifest.csv")[:4]
+    bad = tmp_path / "broken.parquet"
+    bad.write_bytes(b"PAR1 this is not a parquet file")
+    from rt_ident.fleet.manifest import Entry
+
+    entries.append(Entry(str(bad), "m09", "x", entries[0].time))
+    res = identify_fleet(entries, tmp_path / "h", scheduler=cluster.scheduler_address)
+    assert res["identified"] == 4 and res["failed"] == 1
+    (f,) = res["failures"]
+    assert f["path"] == str(bad) and f["machine"] == "m09" and f["error"]
+
+
+def test_drift_flags_the_worn_series_and_no_healthy_one(fleet, cluster, tmp_path):
+    res = identify_fleet(read_manifest(fleet / "manifest.csv"), tmp_path / "h", scheduler=cluster.scheduler_address)
+    assert res["failed"] == 0
+    out = drift(tmp_path / "h")
+    truth = _truth(fleet)
+    worn = {(s["machine"], s["axis"]) for s in truth["series"] if s["worn"]}
+    flagged = {(a["machine"], a["axis"]) for a in out["alarms"]}
+    assert worn and flagged == worn, (out["alarms"], truth["series"])
+    onset = {(s["machine"], s["axis"]): s["onset_day"] for s in truth["series"]}
+    for a in out["alarms"]:                     # never before the wear began
+        assert a["recordings_before"] >= onset[(a["machine"], a["axis"])]
+    assert out["checked"] == 2 * 6
+
+
+def test_manifest_errors_name_the_line():
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "m.csv"
+        p.write_text("path,machine,time\nx.parquet,m1,2026-11-01\n")
+        with pytest.raises(ConfigError, match="lacks axis"):
+            read_manifest(p)
+        p.write_text("path,machine,axis,time\nx.parquet,m1,x,yesterday\n")
+        with pytest.raises(ConfigError, match="line 2.*ISO 8601"):
+            read_manifest(p)
+
+
+def test_bad_sql_is_one_line_and_an_empty_history_is_refused(fleet, tmp_path):
+    with pytest.raises(ConfigError, match="no fleet history"):
+        query(tmp_path, "SELECT 1")
+
+
+def test_command_line_identify_drift_report_query_end_to_end(fleet, tmp_path):
+    entries = read_manifest(fleet / "manifest.csv")
+    m = tmp_path / "manifest.csv"
+    write_manifest(m, entries)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cli = [sys.executable, "-m", "rt_ident"]
+    r = subprocess.run([*cli, "fleet", "identify", str(m), "--history", str(tmp_path / "h"), "--workers", "2"],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "20 identified" in r.stdout and "tcp://" not in r.stderr      # the scheduler's INFO lines stay quiet
+    r = subprocess.run([*cli, "fleet", "drift", "--history", str(tmp_path / "h"), "--json"],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert d["checked"] == 12 and {a["machine"] for a in d["alarms"]} == {
+        s["machine"] for s in _truth(fleet)["series"] if s["worn"]}
+    r = subprocess.run([*cli, "fleet", "report", "--history", str(tmp_path / "h"), "--out", str(tmp_path / "rep")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "rep" / "summary.png").stat().st_size > 10_000
+    rows = (tmp_path / "rep" / "summary.csv").read_text().splitlines()
+    assert rows[1].split(",")[3] == "True"                    # worst first: an alarm heads the table
+    assert len(list((tmp_path / "rep").glob("m*-x.png"))) == 2
+    r = subprocess.run([*cli, "fleet", "query", "SELECT count(*) AS n FROM history", "--history",
+                        str(tmp_path / "h"), "--json"], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0 and json.loads(r.stdout) == [{"n": 20}]
+    r = subprocess.run([*cli, "fleet", "query", "SELECT nope FROM history", "--history", str(tmp_path / "h")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 2 and "error" in r.stderr and len(r.stderr.strip().splitlines()) <= 3
