@@ -417,10 +417,17 @@ def _print_axes(s: dict) -> None:
             if files.get(key):
                 out.print(f"{what} {name}: {files[key]}")
     c = s.get("contour")
-    if c:
-        out.print(f"contour: circular deviation G {_fmt(c.get('circular_deviation_um'))} um, hysteresis H "
-                  f"{_fmt(c.get('circular_hysteresis_um'))} um, radius deviation {_fmt(c.get('radius_deviation_um'))} um"
-                  + (f"; polar plot {c['plot']}" if c.get("plot") else ""))
+    if c and "radius_mm" in c:
+        parts = []
+        for d in ("ccw", "cw"):
+            f = c.get(d)
+            if f:
+                parts.append(f"{d.upper()} G {f['G_um']:.2f} um, F {f['F_min_um']:+.2f}/{f['F_max_um']:+.2f} um")
+        h = f"; H {c['H_um']:.2f} um" if c.get("H_um") is not None else ""
+        out.print(f"circular test (ISO 230-4), R {c['radius_mm']:g} mm at {c['feed_mm_min']:.0f} mm/min: "
+                  + "; ".join(parts) + h + (f"; polar plot {c['polar_png']}" if c.get("polar_png") else ""))
+    elif c:
+        out.print(f"circular test: {c.get('note')}")
     loop = s.get("loop") or {}
     if loop:
         work, lat = loop.get("work_us") or {}, loop.get("lateness_us") or {}

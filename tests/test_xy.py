@@ -62,3 +62,20 @@ def test_a_trip_on_either_axis_stops_both_at_zero_torque(axis):
     assert s["stop"]["final_torque"] == {"x": 0.0, "y": 0.0}
     assert set(s["stop"]["backend_state"].values()) == {"closed"}
     assert run_mod.exit_code(s) == 3
+
+
+@pytest.mark.slow
+def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(tmp_path, restore_scheduling):
+    cfg = load("configs/xy-circle.toml", **{"loop.realtime": True, "telemetry.sink": "off", "loop.duration": 5.0,
+                                            "recording.enabled": True, "recording.path": str(tmp_path / "c.parquet")})
+    s = run_axes(cfg)
+    assert s["stop"]["cause"] is None, s["stop"]
+    c = s["contour"]
+    assert c["complete"] == {"ccw": True, "cw": True} and c["radius_mm"] == 5.0
+    for d in ("ccw", "cw"):
+        f = c[d]
+        # idle VM: G 16 / 12 um, mostly the 0.1 N m probing multisine; a loaded machine's late torque adds some
+        assert 0.0 < f["G_um"] < 100.0 and f["F_min_um"] <= 0.0 <= f["F_max_um"]
+        assert f["points"] > 1500                       # one point per tick over each 2 s direction
+    assert 0.0 < c["H_um"] < 100.0
+    assert c["polar_png"] == str(tmp_path / "c-contour.png") and (tmp_path / "c-contour.png").stat().st_size > 10_000

@@ -16,11 +16,14 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import math
 import signal
 import sys
 import threading
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from drivers import make_backend
 from rt_ident.axis.modal import modal_parameters
@@ -46,6 +49,57 @@ def _axis_path(path: str | None, axis: str) -> str | None:
         return None
     p = Path(path)
     return str(p.with_name(f"{p.stem}-{axis}{p.suffix}"))
+
+
+class ContourTrace:
+    """The table's path on X and Y, one point per tick, when both axes follow a :class:`Circle` reference
+    (``kind = "circle"``, ``axis = "x"`` / ``"y"``): afterwards, the circular test's figures (ISO 230-4 G,
+    F, H: :mod:`rt_ident.control.contour`) and its polar plot. Preallocated; a tick stores six floats."""
+
+    def __init__(self, loops: dict[str, IdentificationLoop], n_ticks: int) -> None:
+        from rt_ident.control.reference import Circle
+
+        self.ctl = {}
+        refs = {}
+        for name in ("x", "y"):
+            lp = loops.get(name)
+            ref = getattr(getattr(lp, "control", None), "reference", None)
+            if isinstance(ref, Circle) and ref.axis == name:
+                self.ctl[name], refs[name] = lp.control, ref
+        self.active = len(self.ctl) == 2 and refs["x"].radius == refs["y"].radius and \
+            refs["x"].windows() == refs["y"].windows()
+        self.ref = refs.get("x")
+        n = n_ticks + 8 if self.active else 0
+        self.buf = np.full((n, 3), np.nan)        # t, x, y of the table
+        self.n = 0
+
+    def __call__(self) -> None:
+        if not self.active or self.n >= self.buf.shape[0]:
+            return
+        cx, cy = self.ctl["x"], self.ctl["y"]
+        self.buf[self.n] = (cx.t, cx.x_ref + cx.error, cy.x_ref + cy.error)
+        self.n += 1
+
+    def result(self, png: str | None) -> dict[str, Any] | None:
+        if not self.active or self.n < 16:
+            return None
+        from rt_ident.control.contour import circle_figures, polar_plot
+
+        t, x, y = self.buf[:self.n].T
+        R = self.ref.radius
+        paths = {}
+        for d, (t0, t1) in self.ref.windows().items():
+            sel = (t >= t0) & (t <= t1) & np.isfinite(x) & np.isfinite(y)
+            if sel.sum() >= 16:
+                paths[d] = (x[sel], y[sel])
+        if not paths:
+            return {"note": "the run ended before the circle began"}
+        fig = circle_figures(paths, R, (0.0, -R))
+        fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * self.ref.frequency_hz
+        fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.windows()[d][1] for d in ("ccw", "cw")}
+        if png:
+            fig["polar_png"] = polar_plot(paths, R, (0.0, -R), fig, png, title="XY circular test (table scale)")
+        return fig
 
 
 def check_axes(cfg: RunConfig) -> dict[str, RunConfig]:
@@ -91,6 +145,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None}
     stop_cause = stop_message = stop_axis = None
     multi = None
+    trace: ContourTrace | None = None
     old_signals = _install_signals(stop)
     try:
         with contextlib.ExitStack() as stack:
@@ -144,7 +199,10 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             watch = HelperWatch(helpers, restartable=tuple(k for k in helpers if not k.startswith("recorder")))
             summary["_watch"] = watch
 
+            trace = ContourTrace(loops, int(round(cfg.loop.duration * cfg.loop.tick_hz)))
+
             def hooks(n: int) -> None:
+                trace()
                 watch(n)
                 if tick_hook is not None:
                     tick_hook(n)
@@ -226,6 +284,12 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                        "backend_state": {n: b.state.value for n, b in backends.items()}}
     if multi is not None:
         summary["loop"] = {**multi.stats.as_dict(), "host": host}
+    if trace is not None:
+        out = next((f for f in (files.get("x") or {}).values() if f), None)
+        png = str(Path(out).with_name(Path(out).stem.rsplit("-", 1)[0] + "-contour.png")) if out else None
+        contour = trace.result(png)
+        if contour is not None:
+            summary["contour"] = contour
     for name, loop in loops.items():
         ax = summary["axes"][name]
         acfg = axes_cfg[name]
