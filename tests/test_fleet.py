@@ -152,3 +152,15 @@ def test_command_line_identify_drift_report_query_end_to_end(fleet, tmp_path):
     r = subprocess.run([*cli, "fleet", "query", "SELECT nope FROM history", "--history", str(tmp_path / "h")],
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 2 and "error" in r.stderr and len(r.stderr.strip().splitlines()) <= 3
+
+
+def test_the_history_can_live_behind_an_fsspec_url(fleet, cluster):
+    """Object storage through fsspec (here its in-memory filesystem): written by pyarrow, read by DuckDB."""
+    url = "memory://rt-ident-fleet-test/history"
+    entries = read_manifest(fleet / "manifest.csv")[:5]
+    res = identify_fleet(entries, url, scheduler=cluster.scheduler_address)
+    assert res["identified"] == 5
+    again = identify_fleet(entries, url, scheduler=cluster.scheduler_address)
+    assert again["skipped"] == 5 and again["identified"] == 0
+    _, [(n, machines)] = query(url, "SELECT count(*), count(DISTINCT machine) FROM history")
+    assert (n, machines) == (5, 1)

@@ -15,13 +15,14 @@ fleet_app = typer.Typer(no_args_is_help=True, help="Many axes' recordings: ident
 err = Console(stderr=True, soft_wrap=True)
 out = Console(soft_wrap=True)
 
-HISTORY = typer.Option(..., "--history", help="Folder of the fleet's Parquet history (created if missing).")
+HISTORY = typer.Option(..., "--history", help="The fleet's Parquet history: a folder (created if missing) or an "
+                       "fsspec URL such as s3://bucket/fleet.")
 
 
 @fleet_app.command("identify")
 def identify_cmd(
     manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601)."),
-    history: Path = HISTORY,
+    history: str = HISTORY,
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="A running Dask scheduler, e.g. "
                                             "tcp://10.0.0.5:8786 (workers need rt-ident installed). Default: a "
                                             "LocalCluster on 127.0.0.1."),
@@ -65,7 +66,7 @@ def identify_cmd(
 
 @fleet_app.command("drift")
 def drift_cmd(
-    history: Path = HISTORY,
+    history: str = HISTORY,
     baseline: int = typer.Option(5, "--baseline", min=2, help="Recordings per series that set its baseline."),
     h: float = typer.Option(5.0, "--h", min=0.5, help="CUSUM decision interval (in sigmas)."),
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
@@ -94,7 +95,7 @@ def drift_cmd(
 
 @fleet_app.command("report")
 def report_cmd(
-    history: Path = HISTORY,
+    history: str = HISTORY,
     out_dir: Path = typer.Option(..., "--out", help="Folder for the figures and the summary."),
 ) -> None:
     """Trend plots per axis (intervals, baseline band, alarms) and a one-page summary, worst first."""
@@ -115,7 +116,7 @@ def _cell(v: Any) -> str:
 def query_cmd(
     sql: str = typer.Argument(..., help='SQL on the view "history", e.g. "SELECT machine, axis, avg(K) FROM history '
                                         'GROUP BY ALL".'),
-    history: Path = HISTORY,
+    history: str = HISTORY,
     json_out: bool = typer.Option(False, "--json", help="Rows as JSON objects on stdout."),
 ) -> None:
     """Run SQL (DuckDB) over the fleet history."""

@@ -1,5 +1,8 @@
 """The fleet's history, queried with DuckDB straight over its Parquet files (no scans of our own).
 
+The history is a local folder or any fsspec URL (``s3://bucket/fleet``: object storage, with the
+filesystem installed, e.g. ``s3fs``); DuckDB reads a URL through the registered fsspec filesystem.
+
 :func:`connect` gives an in-memory DuckDB connection with one view, ``history``: every row ever
 identified (hive partition ``machine`` included). ``rt-ident fleet query "SQL"`` runs the user's SQL on it.
 """
@@ -12,14 +15,35 @@ from typing import Any
 from rt_ident.errors import ConfigError
 
 
+def is_url(history: str | Path) -> bool:
+    return "://" in str(history)
+
+
+def has_history(history: str | Path) -> bool:
+    """Whether ``history`` (a folder, or an fsspec URL: ``s3://bucket/fleet``) holds any Parquet file."""
+    if is_url(history):
+        import fsspec
+
+        fs, root = fsspec.core.url_to_fs(str(history))
+        return bool(fs.glob(root.rstrip("/") + "/**/*.parquet"))
+    root = Path(history)
+    return root.is_dir() and any(root.glob("**/*.parquet"))
+
+
 def connect(history: str | Path):
     import duckdb
 
-    root = Path(history)
-    if not root.is_dir() or not any(root.glob("**/*.parquet")):
-        raise ConfigError("--history", f"{root} holds no fleet history (run `rt-ident fleet identify` first)")
+    if not has_history(history):
+        raise ConfigError("--history", f"{history} holds no fleet history (run `rt-ident fleet identify` first)")
     con = duckdb.connect(":memory:")
-    pattern = str(root / "**" / "*.parquet").replace("'", "''")
+    if is_url(history):          # DuckDB reads it through the fsspec filesystem (s3fs, gcsfs ... installed)
+        import fsspec
+
+        con.register_filesystem(fsspec.core.url_to_fs(str(history))[0])
+        pattern = str(history).rstrip("/") + "/**/*.parquet"
+    else:
+        pattern = str(Path(history) / "**" / "*.parquet")
+    pattern = pattern.replace("'", "''")
     con.execute(f"CREATE VIEW history AS SELECT * FROM read_parquet('{pattern}', hive_partitioning = true, "
                 "union_by_name = true)")
     return con

@@ -120,18 +120,27 @@ def append_history(history: str | Path, rows: list[dict[str, Any]]) -> int:
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
         return 0
+    from rt_ident.fleet.history import is_url
+
     schema = _schema()
     table = pa.Table.from_pylist([{f.name: r.get(f.name) for f in schema} for r in ok], schema=schema)
-    Path(history).mkdir(parents=True, exist_ok=True)
-    pq.write_to_dataset(table, root_path=str(history), partition_cols=["machine"],
+    fs = None
+    root = str(history)
+    if is_url(history):                       # object storage through fsspec (s3://, gs://, memory:// ...)
+        import fsspec
+
+        fs, root = fsspec.core.url_to_fs(root)
+    else:
+        Path(history).mkdir(parents=True, exist_ok=True)
+    pq.write_to_dataset(table, root_path=root, partition_cols=["machine"], filesystem=fs,
                         basename_template=f"batch-{uuid.uuid4().hex}-{{i}}.parquet")
     return len(ok)
 
 
 def known_hashes(history: str | Path) -> frozenset[str]:
-    from rt_ident.fleet.history import connect
+    from rt_ident.fleet.history import connect, has_history
 
-    if not any(Path(history).glob("**/*.parquet")):
+    if not has_history(history):
         return frozenset()
     con = connect(history)
     return frozenset(h for (h,) in con.execute("SELECT DISTINCT hash FROM history").fetchall())
