@@ -65,7 +65,9 @@ def test_h_is_the_largest_radial_gap_between_the_two_directions():
     ccw = _path(lambda th: R + 2e-6 * np.sin(th))
     cw = _path(lambda th: R - 2e-6 * np.sin(th))
     fig = circle_figures({"ccw": ccw, "cw": cw}, R, (0.0, -R))
-    assert fig["H_um"] == pytest.approx(4.0, abs=0.05)
+    assert fig["H_um"] == pytest.approx(4.0, abs=0.05) == fig["circular_hysteresis_um"]
+    assert fig["circular_deviation_um"] == pytest.approx(max(fig["ccw"]["G_um"], fig["cw"]["G_um"]))
+    assert fig["radius_deviation_um"] == pytest.approx(2.0, abs=0.01)      # the largest |F|, either direction
     assert circle_figures({"ccw": ccw, "cw": ccw}, R, (0.0, -R))["H_um"] < 1e-6
 
 

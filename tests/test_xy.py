@@ -55,6 +55,8 @@ def test_a_trip_on_either_axis_stops_both_at_zero_torque(axis):
     cfg = _xy(**{"loop.duration": 4.0})
     data = cfg.model_dump(exclude={"source"})
     data["axes"][axis] = {**data["axes"][axis], **window["axes." + axis]}
+    for name in ("x", "y"):                                              # the circle from 0.5 s, not 4 s
+        data["axes"][name]["reference"] = {**data["axes"][name]["reference"], "start": 0.5}
     from rt_ident.config import from_mapping
 
     s = run_axes(from_mapping(data))

@@ -61,6 +61,12 @@ def circle_figures(paths: dict[str, tuple[np.ndarray, np.ndarray]], radius: floa
         r1 = _radius_at(*paths["ccw"], cx, cy, grid)
         r2 = _radius_at(*paths["cw"], cx, cy, grid)
         out["H_um"] = 1e6 * float(np.max(np.abs(r1 - r2)))
+    # the three headline figures, over both directions
+    dirs = [out[d] for d in ("ccw", "cw") if d in out]
+    if dirs:
+        out["circular_deviation_um"] = max(f["G_um"] for f in dirs)
+        out["radius_deviation_um"] = max(max(f["F_max_um"], -f["F_min_um"]) for f in dirs)
+    out["circular_hysteresis_um"] = out.get("H_um")
     return out
 
 
