@@ -38,6 +38,9 @@ from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
+_ZERO = np.zeros(1)     # the lease's one-value plan (backends copy what they keep; written every tick)
+_ZERO.flags.writeable = False
+
 
 @dataclass(frozen=True)
 class SampleBlock:
@@ -160,7 +163,7 @@ class Backend(ABC):
                 if lease is not None:
                     if lease < 0:
                         raise DriverError(f"lease must be >= 0 samples, got {lease}")
-                    self._write_plan(np.zeros(1), int(start_seq) + values.size + int(lease))
+                    self._write_plan(_ZERO, int(start_seq) + values.size + int(lease))
 
     def safe_stop(self, cause: str | None = None) -> None:
         """Quick stop -> zero torque -> drive disabled. Idempotent; never raises.
