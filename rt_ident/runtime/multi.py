@@ -37,7 +37,8 @@ from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.runtime.outputs import check_methods, prepare_outputs, remove_empty_outputs
 from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _excitation, _final_fit,
                                   _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, _realtime,
-                                  _warmup, backend_options, friction_estimator, friction_summary)
+                                  _warmup, backend_options, friction_estimator, friction_summary,
+                                  recording_metadata)
 from rt_ident.runtime.safety import SafetyMonitor
 
 log = logging.getLogger(__name__)
@@ -54,7 +55,7 @@ def _axis_path(path: str | None, axis: str) -> str | None:
 class ContourTrace:
     """The table's path on X and Y, one point per tick, when both axes follow a :class:`Circle` reference
     (``kind = "circle"``, ``axis = "x"`` / ``"y"``): afterwards, the circular test's figures (ISO 230-4 G,
-    F, H: :mod:`rt_ident.control.contour`) and its polar plot. Preallocated; a tick stores six floats."""
+    F, H: :mod:`rt_ident.control.contour`) and its polar plot. Preallocated; a tick stores three floats."""
 
     def __init__(self, loops: dict[str, IdentificationLoop], n_ticks: int) -> None:
         from rt_ident.control.reference import Circle
@@ -164,9 +165,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                     part["telemetry"] = tel
                     helpers[f"telemetry-{name}"] = tel
                 if rec_path:
-                    meta = {"backend": "sim", "sample_period": dt, "axis": truth.as_dict(), "axis_name": name,
-                            "excitation": ex.model_dump(), "method": acfg.estimator.method,
-                            "warmup_periods": acfg.loop.warmup_periods, "forgetting": acfg.estimator.forgetting}
+                    meta = {**recording_metadata(acfg, dt), "axis_name": name}
                     part["recorder"] = RecorderProcess(rec_path, meta, overwrite=overwrite).start()
                 q1, q2 = _quanta(acfg)
                 kf = AxisStateEstimator(dt, q1, q2, acfg.estimator.kalman_process_noise)
