@@ -128,12 +128,39 @@ class BusBudget:
         return max(0.0, (max_load * self.bitrate - self.background_bps) / self.bits_per_sync)
 
 
-def bus_budget(sync_rate_hz: float, bitrate: int, heartbeat_ms: int = 100) -> BusBudget:
-    """Load of SYNC + RPDO1 + TPDO1 + TPDO2 per SYNC plus two heartbeats per ``heartbeat_ms``."""
-    sizes = (SYNC_BYTES, *RPDO_BYTES, *TPDO_BYTES)
+def bus_budget(sync_rate_hz: float, bitrate: int, heartbeat_ms: int = 100, drives: int = 1) -> BusBudget:
+    """Load of one SYNC plus RPDO1 + TPDO1 + TPDO2 of each of ``drives`` drives per SYNC, and the
+    heartbeats of the host and of each drive every ``heartbeat_ms``."""
+    sizes = (SYNC_BYTES, *(RPDO_BYTES + TPDO_BYTES) * drives)
     bits = sum(frame_bits(n) for n in sizes)
-    background = 2 * frame_bits(HEARTBEAT_BYTES) * 1000.0 / heartbeat_ms
+    background = (1 + drives) * frame_bits(HEARTBEAT_BYTES) * 1000.0 / heartbeat_ms
     return BusBudget(len(sizes), bits, background, bits * sync_rate_hz + background, bitrate)
+
+
+def check_shared_bus(cfgs: list[Cia402Config], where: str = "backend") -> BusBudget:
+    """Several drives on one bus (one SYNC for all): same bus settings, distinct node ids, and a
+    SYNC rate the bit rate carries with every drive's PDOs counted."""
+    first = cfgs[0]
+    for cfg in cfgs[1:]:
+        for field in ("interface", "channel", "port", "bitrate", "sync_rate_hz", "heartbeat_ms", "master_node_id"):
+            if getattr(cfg, field) != getattr(first, field):
+                raise ConfigError(f"{where}.{field}", f"drives on one bus share it: node {first.node_id} has "
+                                  f"{getattr(first, field)!r}, node {cfg.node_id} {getattr(cfg, field)!r}")
+    ids = [c.node_id for c in cfgs]
+    if len(set(ids)) != len(ids):
+        raise ConfigError(f"{where}.node_id", f"each drive on a bus needs its own node id, got {ids}")
+    n = len(cfgs)
+    b = bus_budget(first.sync_rate_hz, first.bitrate, first.heartbeat_ms, drives=n)
+    limit = min(c.max_bus_load for c in cfgs)
+    if b.load > limit:
+        one = bus_budget(first.sync_rate_hz, first.bitrate, first.heartbeat_ms).max_rate(limit)
+        raise ConfigError(
+            f"{where}.sync_rate_hz",
+            f"{first.sync_rate_hz:g} Hz for {n} drives on one bus needs {b.required_bps:,.0f} bit/s = "
+            f"{100 * b.load:.1f} % of the {first.bitrate:,} bit/s bus ({b.frames_per_sync} frames per SYNC, "
+            f"{b.bits_per_sync} bits worst case, plus heartbeats); the limit is {100 * limit:.0f} % "
+            f"(max_bus_load): at most {b.max_rate(limit):.0f} Hz for {n} drives ({one:.0f} Hz for one)")
+    return b
 
 
 def check_bus_budget(cfg: Cia402Config) -> BusBudget:
@@ -165,4 +192,4 @@ def validate(config: Mapping[str, Any] | None) -> Cia402Config:
     return cfg
 
 
-__all__ = ["Cia402Config", "BusBudget", "bus_budget", "check_bus_budget", "validate"]
+__all__ = ["Cia402Config", "BusBudget", "bus_budget", "check_bus_budget", "check_shared_bus", "validate"]

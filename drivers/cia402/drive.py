@@ -23,7 +23,6 @@ import collections
 import logging
 import math
 import struct
-import sys
 import time
 from typing import Any, Mapping
 
@@ -33,7 +32,7 @@ from drivers.base import Backend, SampleBlock
 from drivers.cia402 import profile as p402
 from drivers.cia402.config import Cia402Config, validate
 from drivers.cia402.setup import NodeSetup
-from drivers.cia402.stream import ECHO, SampleAssembler, SyncSender, TorquePlan
+from drivers.cia402.stream import ECHO, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
 from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -53,7 +52,8 @@ class Cia402Backend(Backend):
         self._setup: NodeSetup | None = None
         self._deque: collections.deque = collections.deque(maxlen=max(8192, int(8 * cfg.sync_rate_hz)))
         self._plan = TorquePlan()
-        self._sender: SyncSender | None = None
+        self._sender: SyncSender | None = None    # the bus's (shared with the other drives on it)
+        self._channel: RpdoChannel | None = None  # this drive's RPDO in the sender's cycle
         self._asm: SampleAssembler | None = None
         self.rated_torque = cfg.rated_torque or math.nan
         self._k0 = 0                  # SYNC index of seq 0
@@ -65,7 +65,6 @@ class Cia402Backend(Backend):
         self._hb_operational = False  # a heartbeat reported OPERATIONAL since NMT start was sent
         self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
         self.statusword = 0
-        self._switch_interval: float | None = None   # the interpreter's, while the SYNC sender runs
 
     # ----- properties -------------------------------------------------------------------
     @property
@@ -103,8 +102,8 @@ class Cia402Backend(Backend):
         elif self._hb_operational:
             self._hb_not_operational += 1
 
-    def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self._deque.append((ECHO, timestamp))
+    def _on_sync_echo(self, timestamp: float, ordinal: int) -> None:
+        self._deque.append((ECHO, timestamp, ordinal))
 
     def _on_emcy(self, entry) -> None:
         if entry.code & 0xFF00 and self._emcy is None:
@@ -137,11 +136,8 @@ class Cia402Backend(Backend):
         cfg, setup = self.config, self._setup
         assert setup is not None and self._asm is not None
         self._plan.hold(0.0)
-        sender = SyncSender(setup.send, cfg.sample_period, self._deque, self._plan, self._torque_to_permille,
-                            rpdo_cob=setup.rpdo_cob)
-        sender.controlword = p402.CW_SHUTDOWN
-        self._sender = sender
-        self._asm.host_missed = lambda: sender.overruns
+        channel = RpdoChannel(setup.rpdo_cob, self._plan, self._torque_to_permille, self._deque, p402.CW_SHUTDOWN)
+        self._channel = channel
         try:
             # Heartbeats sent before the drive saw NMT start may still be queued (python-can's cyclic
             # sender also sends missed heartbeats in a burst after a stall, e.g. while this process
@@ -152,10 +148,9 @@ class Cia402Backend(Backend):
                 setup.receive_in_caller()
             setup.nmt_operational()
             self._hb_time = time.monotonic()
-            if cfg.gil_switch_interval_us is not None and self._switch_interval is None:
-                self._switch_interval = sys.getswitchinterval()
-                sys.setswitchinterval(min(self._switch_interval, 1e-6 * cfg.gil_switch_interval_us))
-            sender.start()
+            # one SYNC producer per bus: started by the first drive, joined by the others
+            sender = self._sender = setup.conn.join_sync(channel, cfg.gil_switch_interval_us)
+            self._asm.host_missed = lambda: sender.overruns
             self._enable(sender)
         except BaseException:
             self._stop_drive()
@@ -170,7 +165,7 @@ class Cia402Backend(Backend):
 
     def _enable(self, sender: SyncSender) -> None:
         """Walk the 402 state machine by controlword until the statusword says OPERATION ENABLED."""
-        cfg, asm = self.config, self._asm
+        cfg, asm, ch = self.config, self._asm, self._channel
         deadline = time.monotonic() + cfg.startup_timeout
         resets, toggle_at = 0, 0.0
         hold = max(0.02, 10 * cfg.sample_period)    # each controlword long enough for several SYNCs
@@ -188,17 +183,17 @@ class Cia402Backend(Backend):
                 # fault reset = rising edge of bit 7: hold 0x80, then 0x00, each for `hold` seconds
                 if time.monotonic() >= toggle_at:
                     toggle_at = time.monotonic() + hold
-                    if sender.controlword & p402.CW_FAULT_RESET:
-                        sender.controlword = p402.CW_DISABLE_VOLTAGE
+                    if ch.controlword & p402.CW_FAULT_RESET:
+                        ch.controlword = p402.CW_DISABLE_VOLTAGE
                     else:
                         resets += 1
                         if resets > 3:
                             raise DeviceFault(f"node {cfg.node_id} stays in FAULT after {resets - 1} fault resets "
                                               f"(statusword 0x{sw:04X})")
                         log.warning("canopen: node %d in FAULT at start-up; sending fault reset", cfg.node_id)
-                        sender.controlword = p402.CW_FAULT_RESET
+                        ch.controlword = p402.CW_FAULT_RESET
             elif state is not None:
-                sender.controlword = p402.next_controlword(state, sender.controlword)
+                ch.controlword = p402.next_controlword(state, ch.controlword)
             if time.monotonic() > deadline:
                 if sw is None:
                     raise DeviceTimeout(
@@ -286,9 +281,9 @@ class Cia402Backend(Backend):
 
     def _stop_drive(self) -> None:
         """Quick stop, torque 0, disable voltage, stop SYNC. Bounded in time; never raises."""
-        cfg, sender = self.config, self._sender
+        cfg, sender, ch = self.config, self._sender, self._channel
         self._plan.hold(0.0)
-        if sender is None:          # never activated: the drive was not enabled by us
+        if sender is None or ch is None:          # never activated: the drive was not enabled by us
             return
         if not sender.running:
             self._sdo_disable()
@@ -296,30 +291,29 @@ class Cia402Backend(Backend):
         try:
             asm = self._asm
             asm.statusword = None       # only answers to the stop commands count
-            sender.controlword = p402.CW_QUICK_STOP
+            ch.controlword = p402.CW_QUICK_STOP
             if not self._wait_state((p402.QUICK_STOP_ACTIVE, p402.SWITCH_ON_DISABLED, p402.FAULT),
                                     cfg.stop_timeout):
                 log.warning("canopen: node %d did not confirm quick stop within %.3f s",
                             cfg.node_id, cfg.stop_timeout)
-            sender.controlword = p402.CW_DISABLE_VOLTAGE
+            ch.controlword = p402.CW_DISABLE_VOLTAGE
             if not self._wait_state((p402.SWITCH_ON_DISABLED, p402.FAULT), cfg.stop_timeout):
                 log.warning("canopen: node %d did not confirm disable voltage within %.3f s",
                             cfg.node_id, cfg.stop_timeout)
         finally:
-            sender.stop()
-            self._restore_switch_interval()
+            self._leave_sync()
             self._setup.receive_in_thread()     # SDO (close) needs a receiver again
             self._deque.clear()
 
-    def _restore_switch_interval(self) -> None:
-        if self._switch_interval is not None:
-            sys.setswitchinterval(self._switch_interval)
-            self._switch_interval = None
+    def _leave_sync(self) -> None:
+        """This drive's RPDO out of the SYNC cycle (the last drive's leave stops the SYNC)."""
+        if self._setup is not None and self._setup.conn is not None and self._channel is not None:
+            self._setup.conn.leave_sync(self._channel)
 
     def _sdo_disable(self) -> None:
         """Without a running SYNC stream, write the controlword by SDO (best effort)."""
         if self._setup is not None:
-            self._restore_switch_interval()
+            self._leave_sync()
             self._setup.receive_in_thread()     # SDO needs a receiver
             self._setup.try_download(p402.CONTROLWORD, 0, struct.pack("<H", p402.CW_DISABLE_VOLTAGE))
 
@@ -327,9 +321,7 @@ class Cia402Backend(Backend):
         self._stop_drive()
 
     def _close(self) -> None:
-        if self._sender is not None:
-            self._sender.stop()
-        self._restore_switch_interval()
+        self._leave_sync()
         if self._setup is not None:
             self._setup.teardown(drive_consumer_off=True)
             self._setup = None

@@ -109,13 +109,59 @@ def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
                                poll_s="auto" if emu.poll_us is None else 1e-6 * emu.poll_us)
 
 
-def start_emulator_for(config: Any) -> "EmulatedCia402Drive":
+class EmulatedDrives:
+    """Several emulated drives on one bus in one process (the two axes of an XY table): each is an
+    :class:`EmulatedCia402Drive` with its own node id, plant and faults, on its own socket of the bus.
+    ``stop()`` stops them all; ``stats()`` reports each by node id."""
+
+    def __init__(self, drives: list[EmulatedCia402Drive]) -> None:
+        ids = [d.node_id for d in drives]
+        if len(set(ids)) != len(ids):
+            raise ConfigError("emulator.node_id", f"two emulated drives with one node id: {ids}")
+        self.drives = drives
+
+    @property
+    def node_id(self) -> str:
+        return "+".join(str(d.node_id) for d in self.drives)
+
+    def start(self) -> "EmulatedDrives":
+        started = []
+        try:
+            for d in self.drives:
+                started.append(d.start())
+        except BaseException:
+            for d in started:
+                d.stop()
+            raise
+        return self
+
+    def stop(self) -> None:
+        for d in self.drives:
+            d.stop()
+
+    def stats(self) -> dict[str, Any]:
+        return {f"node {d.node_id}": d.stats() for d in self.drives}
+
+    def __getitem__(self, node_id: int) -> EmulatedCia402Drive:
+        return next(d for d in self.drives if d.node_id == node_id)
+
+    def __enter__(self) -> "EmulatedDrives":
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+def start_emulator_for(config: Any) -> "EmulatedCia402Drive | EmulatedDrives":
     """Build and start the emulated drive for a run configuration.
 
     ``config``: a mapping with ``backend`` (the canopen backend options), optional
     ``emulator`` (:class:`EmulatorConfig`) and ``axis`` tables, or an
-    :class:`rt_ident.config.RunConfig`. The caller stops it (``drive.stop()``).
+    :class:`rt_ident.config.RunConfig`; or ``{"drives": [such mappings]}`` for several drives
+    on one bus in this process (:class:`EmulatedDrives`). The caller stops it (``.stop()``).
     """
+    if isinstance(config, dict) and "drives" in config:
+        return EmulatedDrives([build_emulator_for(c) for c in config["drives"]]).start()
     return build_emulator_for(config).start()
 
 
@@ -171,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["EmulatorConfig", "build_emulator_for", "start_emulator_for", "main"]
+__all__ = ["EmulatorConfig", "EmulatedDrives", "build_emulator_for", "start_emulator_for", "main"]
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import logging
 import struct
+import sys
+import threading
 import time
 from typing import Any, Callable
 
@@ -27,10 +29,169 @@ from drivers.cia402 import profile as p402
 from drivers.cia402.bus import open_bus
 from drivers.cia402.config import Cia402Config
 from drivers.cia402.frames import FrameIO, stop_periodic
+from drivers.cia402.stream import RpdoChannel, SyncSender
 from drivers.errors import DeviceConnectionError, DeviceTimeout, ProtocolError
 from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
+
+
+class BusConnection:
+    """One CAN interface, opened once per process and shared by every drive on it.
+
+    A bus has one SYNC producer and one host heartbeat, whatever the number of drives: the
+    two axes of an XY table on one bus are two :class:`NodeSetup` (and two backends) on one
+    connection. It owns the python-can bus, the ``canopen.Network`` (each drive adds its
+    ``RemoteNode``), the :class:`~drivers.cia402.frames.FrameIO` reading it (whichever backend
+    pumps it delivers every drive's frames), the host heartbeat and the
+    :class:`~drivers.cia402.stream.SyncSender`: the first drive to activate starts it, the
+    others join it (:meth:`join_sync`), the last to leave stops it (:meth:`leave_sync`).
+    Connections are keyed by interface, channel and port, and counted: the last
+    :meth:`release` closes the bus.
+
+    Echoes of this host's SYNCs (``udp_multicast``) are counted here, so that each drive's
+    deque can tell the SYNCs sent before its channel joined from its own (``(ECHO, t, n)``).
+    """
+
+    _open: dict[tuple, "BusConnection"] = {}
+    _registry = threading.Lock()
+
+    def __init__(self, cfg: Cia402Config) -> None:
+        self.cfg = cfg
+        self.key = self.key_of(cfg)
+        self.refs = 0
+        self.network: canopen.Network | None = None
+        self.io: FrameIO | None = None
+        self.sender: SyncSender | None = None
+        self.syncs_sent = 0                    # by senders that have stopped
+        self.syncs_seen = 0                    # SYNC echoes read back
+        self._echo_subscribers: list[Callable] = []
+        self._hb_task: Any = None
+        self._lock = threading.Lock()
+        self._switch_interval: float | None = None
+
+    @staticmethod
+    def key_of(cfg: Cia402Config) -> tuple:
+        kw = cfg.bus_kwargs()
+        return (kw.get("interface"), str(kw.get("channel")), kw.get("port"))
+
+    @classmethod
+    def acquire(cls, cfg: Cia402Config) -> "BusConnection":
+        """The open connection to ``cfg``'s bus, opened now if it is not; one reference more."""
+        with cls._registry:
+            conn = cls._open.get(cls.key_of(cfg))
+            if conn is None:
+                conn = cls(cfg)
+                conn._connect()
+                cls._open[conn.key] = conn
+            else:
+                conn._check_compatible(cfg)
+            conn.refs += 1
+            return conn
+
+    def release(self) -> None:
+        """One reference less; the last closes the bus (never raises)."""
+        with self._registry:
+            self.refs -= 1
+            if self.refs > 0:
+                return
+            if self._open.get(self.key) is self:
+                del self._open[self.key]
+        self._shutdown()
+
+    def _check_compatible(self, cfg: Cia402Config) -> None:
+        mine = self.cfg
+        for field in ("bitrate", "sync_rate_hz", "master_node_id", "heartbeat_ms"):
+            if getattr(cfg, field) != getattr(mine, field):
+                raise ConfigError(f"backend.{field}", f"node {cfg.node_id} asks for {getattr(cfg, field)} on "
+                                  f"{mine.interface}:{mine.channel}, where node {mine.node_id} already runs "
+                                  f"{getattr(mine, field)}; drives on one bus share it")
+
+    def _connect(self) -> None:
+        cfg = self.cfg
+        try:
+            bus = open_bus(cfg.bus_kwargs())
+        except Exception as exc:  # noqa: BLE001 - python-can raises many types here
+            raise DeviceConnectionError(f"cannot open CAN interface {cfg.interface!r} channel {cfg.channel!r}: "
+                                        f"{type(exc).__name__}: {exc}") from exc
+        net = canopen.Network(bus)
+        self.network = net
+        self.io = FrameIO(bus, self._dispatch, bus_kwargs=cfg.bus_kwargs(), send_lock=net.send_lock,
+                          name=f"canopen-rx-{cfg.channel}").start()
+        if self.io.udp:
+            net.subscribe(0x80, self._on_sync_echo)
+        self._hb_task = net.send_periodic(0x700 + cfg.master_node_id, bytes([0x05]), cfg.heartbeat_ms / 1000.0)
+
+    def _dispatch(self, frames: list) -> None:
+        notify = self.network.notify
+        for cob, data, t in frames:
+            notify(cob, data, t)
+
+    def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self.syncs_seen += 1
+        n = self.syncs_seen
+        for cb in self._echo_subscribers:
+            cb(timestamp, n)
+
+    def subscribe_echo(self, callback: Callable[[float, int], None]) -> None:
+        self._echo_subscribers.append(callback)
+
+    def unsubscribe_echo(self, callback: Callable[[float, int], None]) -> None:
+        if callback in self._echo_subscribers:
+            self._echo_subscribers.remove(callback)
+
+    # ----- the one SYNC producer --------------------------------------------------------
+    def join_sync(self, channel: RpdoChannel, gil_switch_interval_us: float | None) -> SyncSender:
+        """Start the bus's SYNC sender with this channel, or add the channel to the running one."""
+        with self._lock:
+            sender = self.sender
+            if sender is not None and sender.running:
+                sender.join(channel)
+                return sender
+            if sender is not None:
+                self.syncs_sent += sender.sent
+            sender = SyncSender.for_channel(self.io.send, self.cfg.sample_period, channel,
+                                            sent_before=self.syncs_sent)
+            self.sender = sender
+            if gil_switch_interval_us is not None and self._switch_interval is None:
+                self._switch_interval = sys.getswitchinterval()
+                sys.setswitchinterval(min(self._switch_interval, 1e-6 * gil_switch_interval_us))
+            sender.start()
+            return sender
+
+    def leave_sync(self, channel: RpdoChannel) -> None:
+        """Stop sending this channel; the last channel's leave stops the SYNC (idempotent, never raises)."""
+        with self._lock:
+            sender = self.sender
+            if sender is None:
+                return
+            sender.leave(channel)
+            if sender.channels > 0 and sender.running:
+                return
+            sender.stop()
+            if self._switch_interval is not None:
+                sys.setswitchinterval(self._switch_interval)
+                self._switch_interval = None
+
+    def _shutdown(self) -> None:
+        if self.sender is not None:
+            self.sender.stop()
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None
+        net = self.network
+        if net is None:
+            return
+        for step in (lambda: stop_periodic(self._hb_task),
+                     lambda: self.io.close() if self.io is not None else None,
+                     net.disconnect):
+            try:
+                step()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("canopen: closing the bus failed: %s", exc)
+        self._hb_task = None
+        self.io = None
+        self.network = None
 
 
 class NodeSetup:
@@ -43,10 +204,10 @@ class NodeSetup:
         self._on_heartbeat = on_heartbeat
         self._on_emcy = on_emcy
         self._on_sync_echo = on_sync_echo
+        self.conn: BusConnection | None = None
         self.network: canopen.Network | None = None
         self.io: FrameIO | None = None
         self.node: canopen.RemoteNode | None = None
-        self._hb_task: Any = None
         self.rpdo_cob = 0x200 + cfg.node_id
         self.tpdo_cobs: list[int] = []
         self.tpdo_layouts: list[tuple[int, struct.Struct]] = []
@@ -125,11 +286,6 @@ class NodeSetup:
         """Send one frame (thread-safe; a fraction of the cost of ``Network.send_message``, used per SYNC)."""
         self.io.send(cob_id, data)
 
-    def _dispatch(self, frames: list) -> None:
-        notify = self.network.notify
-        for cob, data, t in frames:
-            notify(cob, data, t)
-
     def receive_in_caller(self) -> None:
         """Stop the receive thread: from now on the caller reads the bus with :meth:`pump` (echo mode)."""
         self.io.stop()
@@ -164,24 +320,21 @@ class NodeSetup:
             raise ConfigError("backend.eds", f"cannot read EDS {path}: not a valid EDS file "
                                              f"({type(exc).__name__})") from None
         self._check_od()
-        try:
-            bus = open_bus(cfg.bus_kwargs())
-        except Exception as exc:  # noqa: BLE001 - python-can raises many types here
-            raise DeviceConnectionError(f"cannot open CAN interface {cfg.interface!r} channel {cfg.channel!r}: "
-                                        f"{type(exc).__name__}: {exc}") from exc
-        net = canopen.Network(bus)
-        self.network = net
-        self.io = FrameIO(bus, self._dispatch, bus_kwargs=cfg.bus_kwargs(), send_lock=net.send_lock,
-                          name=f"canopen-rx-{cfg.node_id}").start()
+        conn = BusConnection.acquire(cfg)        # shared with any other drive on this bus
+        self.conn = conn
+        net = self.network = conn.network
+        self.io = conn.io
+        if net.nodes.get(cfg.node_id) is not None:
+            raise ConfigError("backend.node_id", f"node {cfg.node_id} is configured twice on "
+                                                 f"{cfg.interface}:{cfg.channel}")
         if self.echo:
-            net.subscribe(0x80, self._on_sync_echo)
+            conn.subscribe_echo(self._on_sync_echo)
         node = canopen.RemoteNode(cfg.node_id, self._od)
         net.add_node(node)
         node.sdo.RESPONSE_TIMEOUT = cfg.sdo_timeout
         self.node = node
         net.subscribe(0x700 + cfg.node_id, self._on_heartbeat)
         node.emcy.add_callback(self._on_emcy)
-        self._hb_task = net.send_periodic(0x700 + cfg.master_node_id, bytes([0x05]), cfg.heartbeat_ms / 1000.0)
         node.nmt.send_command(0x80)                       # PRE-OPERATIONAL: SDO on, PDOs off
         t0 = time.monotonic()
         try:
@@ -286,22 +439,26 @@ class NodeSetup:
     # ----- shutdown ---------------------------------------------------------------------
     def teardown(self, drive_consumer_off: bool) -> None:
         """Consumer heartbeat off (so the drive does not fault when ours stops), NMT PRE-OPERATIONAL,
-        heartbeat producer off, network down. Idempotent; never raises."""
-        net, node = self.network, self.node
-        if net is None:
+        this node off the shared network, then the bus connection released (the last drive's release
+        stops the host heartbeat and closes the bus). Idempotent; never raises."""
+        net, node, conn = self.network, self.node, self.conn
+        if net is None or conn is None:
             return
         self.receive_in_thread()
         if drive_consumer_off and node is not None:
             self.try_download(p402.CONSUMER_HEARTBEAT, 1, struct.pack("<I", 0))
+        cfg = self.cfg
         for step in (lambda: node.nmt.send_command(0x80) if node is not None else None,
-                     lambda: stop_periodic(self._hb_task),
-                     lambda: self.io.close() if self.io is not None else None,
-                     net.disconnect):
+                     lambda: conn.unsubscribe_echo(self._on_sync_echo),
+                     lambda: net.unsubscribe(0x700 + cfg.node_id, self._on_heartbeat),
+                     *[(lambda c=cob: net.unsubscribe(c, self._on_tpdo)) for cob in self.tpdo_cobs],
+                     lambda: net.__delitem__(cfg.node_id) if node is not None and cfg.node_id in net.nodes else None):
             try:
                 step()
             except Exception as exc:  # noqa: BLE001
                 log.warning("canopen: teardown step failed: %s", exc)
-        self._hb_task = None
         self.io = None
         self.network = None
         self.node = None
+        self.conn = None
+        conn.release()

@@ -55,8 +55,9 @@ from drivers.errors import ProtocolError, WatchdogTrip
 log = logging.getLogger(__name__)
 
 MARK = -1                      # first element of a SYNC marker in the deque: (MARK, k, t_sent, torque)
-ECHO = -2                      # this host's SYNC read back from the bus: (ECHO, t_arrival)
+ECHO = -2                      # this host's SYNC read back from the bus: (ECHO, t_arrival[, ordinal])
 CANCEL = -3                    # SYNC k was not sent after all (bus error): (CANCEL, k)
+SKIP = -4                      # (SKIP, n): this deque's markers start after the n-th SYNC of its bus connection
 _MAX_PENDING = 4096            # SYNC records waiting for their echo before echoes count as missing
 _RPDO = struct.Struct("<Hh")   # controlword (UNSIGNED16), target torque (INTEGER16, per mille)
 
@@ -127,11 +128,36 @@ class TorquePlan:
             return self._last
 
 
+class RpdoChannel:
+    """One drive's share of the SYNC cycle: its RPDO1 (COB-ID, controlword), its torque plan, its deque.
+
+    ``controlword`` is read by the sender every cycle (the backend walks the 402 state machine
+    by setting it); ``encode(T) -> (int per mille, T_quantized)``.
+    """
+
+    __slots__ = ("rpdo_cob", "plan", "encode", "sink", "controlword")
+
+    def __init__(self, rpdo_cob: int, plan: TorquePlan, encode: Callable[[float], tuple[int, float]],
+                 sink: collections.deque, controlword: int = 0) -> None:
+        self.rpdo_cob = rpdo_cob
+        self.plan = plan
+        self.encode = encode
+        self.sink = sink
+        self.controlword = controlword
+
+
 class SyncSender:
-    """Sends RPDO1 then SYNC every ``period`` seconds on absolute deadlines, in its own thread.
+    """Sends every channel's RPDO1, then one SYNC, every ``period`` seconds on absolute deadlines, in its own thread.
+
+    One SYNC producer per bus: several drives on one bus (an XY table's two axes) are several
+    :class:`RpdoChannel` of one sender, so both drives sample and apply torque at the same SYNC.
+    The constructor makes the first channel (``sink``, ``plan``, ``torque_to_permille``,
+    ``rpdo_cob``; its ``controlword`` is this object's); :meth:`join` / :meth:`leave` add and
+    remove others at a period boundary. Each channel's deque gets ``(SKIP, n)`` when it joins:
+    its first marker belongs to the SYNC after the ``n``-th this bus connection has sent
+    (``sent_before`` counts those of earlier senders), so echoes of earlier SYNCs are not its own.
 
     ``send(cob_id, data)`` must be thread-safe (``canopen.Network.send_message`` is).
-    ``controlword`` is read every cycle; ``torque_to_permille(T) -> (int, T_quantized)``.
     On overrun whole periods are skipped (counted in ``overruns``), never sent in a burst.
     The thread needs the GIL at each deadline: its jitter is bounded by the interpreter's
     switch interval while the loop thread computes (``sys.setswitchinterval``).
@@ -140,16 +166,17 @@ class SyncSender:
 
     def __init__(self, send: Callable[[int, bytes], None], period: float, sink: collections.deque,
                  plan: TorquePlan, torque_to_permille: Callable[[float], tuple[int, float]],
-                 rpdo_cob: int, sync_cob: int = 0x80, clock: Callable[[], float] = time.monotonic) -> None:
+                 rpdo_cob: int, sync_cob: int = 0x80, clock: Callable[[], float] = time.monotonic,
+                 sent_before: int = 0) -> None:
         self._send = send
         self.period = float(period)
-        self._sink = sink
-        self._plan = plan
-        self._encode = torque_to_permille
-        self._rpdo_cob = rpdo_cob
+        self.primary = RpdoChannel(rpdo_cob, plan, torque_to_permille, sink)
+        self._channels: list[RpdoChannel] = [self.primary]
+        self._changes: list[tuple[bool, RpdoChannel]] = []     # (join?, channel), applied by the thread
+        self._lock = threading.Lock()
         self._sync_cob = sync_cob
         self._clock = clock
-        self.controlword = 0
+        self.sent_before = int(sent_before)
         self.next_index = 0          # SYNC index of the next cycle
         self.sent = 0
         self.overruns = 0
@@ -160,15 +187,59 @@ class SyncSender:
         self._thread: threading.Thread | None = None
         self._creator: tuple[int, int] | None = None
 
+    @classmethod
+    def for_channel(cls, send: Callable[[int, bytes], None], period: float, channel: RpdoChannel,
+                    sent_before: int = 0) -> "SyncSender":
+        sender = cls(send, period, channel.sink, channel.plan, channel.encode, channel.rpdo_cob,
+                     sent_before=sent_before)
+        sender.primary = channel
+        sender._channels = [channel]
+        return sender
+
+    @property
+    def controlword(self) -> int:
+        return self.primary.controlword
+
+    @controlword.setter
+    def controlword(self, value: int) -> None:
+        self.primary.controlword = value
+
     @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def channels(self) -> int:
+        """Channels sending now or about to (joins and leaves not yet applied counted)."""
+        with self._lock:
+            n = len(self._channels)
+            for join, ch in self._changes:
+                n += 1 if join else -1
+            return n
+
+    def join(self, channel: RpdoChannel) -> None:
+        """Add a drive's channel from the next period on (a no-op if it sends already)."""
+        with self._lock:
+            if self.running:
+                self._changes.append((True, channel))
+            elif channel not in self._channels:
+                self._channels.append(channel)
+
+    def leave(self, channel: RpdoChannel) -> None:
+        """Stop sending this channel's RPDO from the next period on (idempotent)."""
+        with self._lock:
+            if self.running:
+                self._changes.append((False, channel))
+            elif channel in self._channels:
+                self._channels.remove(channel)
 
     def start(self) -> None:
         if self.running:
             return
         self._stop.clear()
         self._creator = _scheduling()          # the loop thread's: the sender runs one step above it
+        for ch in self._channels:
+            ch.sink.append((SKIP, self.sent_before + self.sent))
         self._thread = threading.Thread(target=self._run, name="canopen-sync", daemon=True)
         self._thread.start()
 
@@ -179,10 +250,28 @@ class SyncSender:
             if self._thread.is_alive():
                 log.error("SYNC sender thread did not stop within %.2f s", timeout)
             self._thread = None
+        with self._lock:                        # joins and leaves the thread did not get to
+            for join, ch in self._changes:
+                if join and ch not in self._channels:
+                    self._channels.append(ch)
+                elif not join and ch in self._channels:
+                    self._channels.remove(ch)
+            self._changes = []
+
+    def _apply_changes(self, channels: list[RpdoChannel]) -> None:
+        with self._lock:
+            changes, self._changes = self._changes, []
+            for join, ch in changes:
+                if join and ch not in channels:
+                    ch.sink.append((SKIP, self.sent_before + self.sent))
+                    channels.append(ch)
+                elif not join and ch in channels:
+                    channels.remove(ch)
 
     def _run(self) -> None:
         _preempt_creator(self._creator)
         period, clock, stop = self.period, self._clock, self._stop
+        channels, send, pack, sync_cob = self._channels, self._send, _RPDO.pack, self._sync_cob
         deadline = clock()
         k = self.next_index
         while not stop.is_set():
@@ -196,15 +285,23 @@ class SyncSender:
                 k += skip
                 deadline += skip * period
                 self.overruns += skip
-            permille, torque = self._encode(self._plan.take(k))
-            self._sink.append((MARK, k, clock(), torque))
+            if self._changes:
+                self._apply_changes(channels)
+            t = clock()
+            frames = []
+            for ch in channels:
+                permille, torque = ch.encode(ch.plan.take(k))
+                ch.sink.append((MARK, k, t, torque))
+                frames.append((ch.rpdo_cob, pack(ch.controlword & 0xFFFF, permille)))
             try:
-                self._send(self._rpdo_cob, _RPDO.pack(self.controlword & 0xFFFF, permille))
-                self._send(self._sync_cob, b"")
+                for cob, data in frames:
+                    send(cob, data)
+                send(sync_cob, b"")
                 self.sent += 1
                 self.consecutive_errors = 0
             except Exception as exc:  # noqa: BLE001 - a sender thread must not die on a bus error
-                self._sink.append((CANCEL, k))
+                for ch in channels:
+                    ch.sink.append((CANCEL, k))
                 self.send_errors += 1
                 self.consecutive_errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
@@ -260,6 +357,7 @@ class SampleAssembler:
         self.echo = echo
         self._records: collections.deque = collections.deque()   # echo mode: SYNCs sent, echo not yet read
         self.echoes = 0
+        self._echo_floor = 0                  # echoes with an ordinal up to this are older than our markers
         self._marker: tuple | None = None
         self._frames: dict[int, list[tuple]] = {}     # cob -> [(cob, t_received, data)]
         self.statusword: int | None = None   # latest valid statusword
@@ -328,6 +426,8 @@ class SampleAssembler:
                     raise ProtocolError(f"{len(self._records)} SYNCs sent without reading them back from the "
                                         f"bus ({self.echoes} read so far); window markers are missing")
             elif kind == ECHO:
+                if len(item) > 2 and item[2] <= self._echo_floor:
+                    continue                   # a SYNC sent before this drive's channel joined the sender
                 if not self._records:          # a SYNC of an earlier session
                     continue
                 self.echoes += 1
@@ -335,6 +435,8 @@ class SampleAssembler:
                     self._close(deliver)
                 self._marker = self._records.popleft()
                 self._frames = {}
+            elif kind == SKIP:
+                self._echo_floor = item[1]
             elif kind == CANCEL:
                 if echo and self._records and self._records[-1][1] == item[1]:
                     self._records.pop()        # never on the bus: no echo will come

@@ -168,3 +168,22 @@ def start_emulator(cfg) -> Any:
     config = {"backend": {**opts, "port": port}, "emulator": dict(cfg.emulator),
               "axis": cfg.axis_params().as_dict()}
     return EmulatorProcess(module, config, placement=placement, port=port)
+
+
+def start_bus_emulator(cfgs: list, realtime: bool) -> Any:
+    """One emulated device process for several CiA 402 drives on one bus (an XY table's axes):
+    ``cfgs`` are the axes' run configs, on one ``udp_multicast`` group and port (picked here when
+    unset: the caller passes ``.port`` to every backend). Each drive keeps its node id, plant,
+    emulator options and faults. On an in-process bus (``virtual``) they run in this process."""
+    module = EMULATORS["canopen"]
+    opts = [c.backend.options() for c in cfgs]
+    drives = [{"backend": o, "emulator": dict(c.emulator), "axis": c.axis_params().as_dict()}
+              for o, c in zip(opts, cfgs)]
+    if opts[0].get("interface") != "udp_multicast":
+        log.warning("emulated drives on %r run in the loop's process (only udp_multicast reaches a child "
+                    "process); expect late samples", opts[0].get("interface"))
+        return importlib.import_module(module).start_emulator_for({"drives": drives})
+    port = opts[0].get("port") or free_udp_port()
+    for d in drives:
+        d["backend"] = {**d["backend"], "port": port}
+    return EmulatorProcess(module, {"drives": drives}, placement=device_placement(realtime), port=port)

@@ -1,0 +1,198 @@
+"""Two CiA 402 drives on one CAN bus (the XY table's axes): one bus connection and one SYNC producer for
+both, the echo bookkeeping of a drive that joins a running SYNC, the shared bus budget, and the whole
+run against two emulated drives with a fault injected on each axis in turn."""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+import uuid
+
+import numpy as np
+import pytest
+
+from drivers.cia402.config import bus_budget, check_shared_bus, validate
+from drivers.cia402.drive import Cia402Backend
+from drivers.cia402.emulator import start_emulator_for
+from drivers.cia402.setup import BusConnection
+from drivers.cia402.stream import ECHO, MARK, SKIP, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
+from rt_ident.config import load
+from rt_ident.errors import ConfigError
+from rt_ident.runtime import run as run_mod
+from rt_ident.runtime.multi import run_axes
+from tests.test_canopen_backend import assert_drive_safe, backend_cfg
+
+TPDO1, TPDO2 = 0x185, 0x285
+
+
+def _layouts():
+    import struct
+
+    return [(TPDO1, struct.Struct("<Hih")), (TPDO2, struct.Struct("<i"))]
+
+
+def _frames(pos: int) -> list[tuple]:
+    import struct
+
+    return [(TPDO1, 0.0, struct.pack("<Hih", 0x0637, pos, 0)), (TPDO2, 0.0, struct.pack("<i", pos))]
+
+
+def test_a_drive_joining_a_running_sync_ignores_the_echoes_of_syncs_sent_before_it_joined():
+    # The bus had sent 2 SYNCs when this drive's channel joined: its deque gets (SKIP, 2), then its first
+    # marker (SYNC k = 7). The echoes of SYNCs 1 and 2 (and an answer of another session) are read from the
+    # socket only after that marker: they must not open the window of SYNC 7.
+    asm = SampleAssembler(_layouts(), stale_limit=5, stuck_permille=0.0, echo=True)
+    asm.first_k = 7
+    dq = collections.deque([(SKIP, 2), (MARK, 7, 0.0, 0.0), (ECHO, 0.0, 1), *_frames(111), (ECHO, 0.0, 2),
+                            *_frames(222), (ECHO, 0.0, 3), *_frames(333), (MARK, 8, 0.0, 0.0), (ECHO, 0.0, 4),
+                            *_frames(444)])
+    asm.feed(dq, deliver=True)
+    rows = asm.take_rows()
+    assert rows["k"] == [7, 8]
+    assert rows["pos"][0] == 333 and rows["pos"][1] - rows["pos"][0] == 444 - 333
+
+
+def test_one_sender_sends_every_drives_rpdo_before_one_sync_and_marks_where_a_joining_drive_starts():
+    frames: list[tuple[int, bytes]] = []
+    lock = threading.Lock()
+
+    def send(cob, data):
+        with lock:
+            frames.append((cob, bytes(data)))
+
+    def encode(t):
+        return int(round(t * 1000)), t
+
+    a = RpdoChannel(0x205, TorquePlan(), encode, collections.deque(), controlword=0x000F)
+    b = RpdoChannel(0x206, TorquePlan(), encode, collections.deque(), controlword=0x0007)
+    sender = SyncSender.for_channel(send, 0.002, a, sent_before=5)
+    sender.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while sender.sent < 5 and time.monotonic() < deadline:
+            time.sleep(0.002)
+        sender.join(b)
+        while not any(x[0] == MARK for x in b.sink) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        while sender.sent < 15 and time.monotonic() < deadline:
+            time.sleep(0.002)
+        sender.leave(b)
+        n_left = sender.sent
+        while sender.sent < n_left + 5 and time.monotonic() < deadline:
+            time.sleep(0.002)
+    finally:
+        sender.stop()
+    with lock:
+        cobs = [c for c, _ in frames]
+    syncs = [i for i, c in enumerate(cobs) if c == 0x80]
+    assert len(syncs) == sender.sent and sender.send_errors == 0
+    # between two SYNCs: A's RPDO, and B's too while it was a member - never a second SYNC, never B alone
+    groups, start = [], 0
+    for i in syncs:
+        groups.append(tuple(cobs[start:i]))
+        start = i + 1
+    assert set(groups) <= {(0x205,), (0x205, 0x206)}
+    assert (0x205, 0x206) in groups and groups[-1] == (0x205,)
+    skip = b.sink[0]
+    assert skip[0] == SKIP
+    first_b = next(i for i, g in enumerate(groups) if g == (0x205, 0x206))
+    assert skip[1] == 5 + first_b          # SYNCs of this connection before B's first marker
+    assert a.sink[0] == (SKIP, 5)
+    marks_b = [x[1] for x in b.sink if x[0] == MARK]
+    assert marks_b == list(range(marks_b[0], marks_b[0] + len(marks_b)))
+
+
+def test_shared_bus_budget_counts_both_drives_and_names_the_rate_each_bus_allows():
+    one, two = bus_budget(1000, 1_000_000, 50), bus_budget(1000, 1_000_000, 50, drives=2)
+    assert one.bits_per_sync == 380 and two.bits_per_sync == 705 and two.frames_per_sync == 7
+    x = validate(backend_cfg("b", node_id=5, sync_rate_hz=1000))
+    y = validate(backend_cfg("b", node_id=6, sync_rate_hz=1000))
+    assert check_shared_bus([x, y]).load == pytest.approx(two.load)
+    fast = [validate(backend_cfg("b", node_id=n, sync_rate_hz=2000)) for n in (5, 6)]
+    with pytest.raises(ConfigError, match=r"at most 1129 Hz for 2 drives \(2098 Hz for one\)"):
+        check_shared_bus(fast)
+    with pytest.raises(ConfigError, match="own node id"):
+        check_shared_bus([x, x])
+    with pytest.raises(ConfigError) as e:
+        check_shared_bus([x, validate(backend_cfg("other", node_id=6))])
+    assert e.value.field == "backend.channel"
+
+
+def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_safe():
+    channel = f"t-{uuid.uuid4().hex[:10]}"
+    cfgs = [{"backend": backend_cfg(channel, node_id=n), "emulator": {"position_hold": True, "seed": n}}
+            for n in (5, 6)]
+    drives = start_emulator_for({"drives": cfgs})
+    try:
+        x, y = Cia402Backend(cfgs[0]["backend"]), Cia402Backend(cfgs[1]["backend"])
+        with x, y:
+            x.activate()
+            y.activate()
+            assert x._setup.conn is y._setup.conn and x._sender is y._sender
+            got = {5: [], 6: []}
+            end = time.monotonic() + 0.5
+            while time.monotonic() < end:
+                time.sleep(0.001)
+                for be, n in ((x, 5), (y, 6)):
+                    blk = be.read()
+                    if len(blk):
+                        got[n].append(blk)
+                        nxt = int(blk.seq[-1]) + 1
+                        be.write(np.full(8, 0.02 if n == 5 else -0.02), start_seq=nxt)
+            assert all(len(v) > 10 for v in got.values())
+            assert x.counters["sync_sent"] == y.counters["sync_sent"] > 100
+            # each drive applied its own torque: X turned one way, Y the other
+            dx = got[5][-1].theta1[-1] - got[5][0].theta1[0]
+            dy = got[6][-1].theta1[-1] - got[6][0].theta1[0]
+            assert dx * dy < 0, (dx, dy)
+        for n in (5, 6):
+            assert_drive_safe(drives[n])
+        assert BusConnection.key_of(validate(cfgs[0]["backend"])) not in BusConnection._open
+    finally:
+        drives.stop()
+
+
+def _xy_canopen(**over):
+    # real time as on the bench; a stale stretch on a loaded machine's udp_multicast exchange must not end
+    # the run (what is tested is the two drives on one bus, not the watchdog)
+    return load("configs/xy-canopen-virtual.toml", **{"loop.realtime": True, "telemetry.sink": "off",
+                                                      "recording.enabled": False, "backend.stale_limit": 200,
+                                                      **over})
+
+
+@pytest.mark.slow
+def test_two_emulated_drives_on_one_bus_run_both_axes_in_one_loop(restore_scheduling):
+    s = run_axes(_xy_canopen(**{"loop.duration": 3.0}))
+    assert s["stop"]["cause"] is None, s["stop"]
+    assert run_mod.exit_code(s) == 0
+    cx, cy = s["axes"]["x"]["backend_counters"], s["axes"]["y"]["backend_counters"]
+    assert cx["sync_sent"] == cy["sync_sent"] > 2000              # one SYNC producer for both drives
+    emu = s["emulator"]
+    assert set(emu) == {"node 5", "node 6"}
+    for node in emu.values():
+        assert node["samples"] > 2000 and not node["enabled"] and node["applied_torque"] == 0.0
+    for ax in s["axes"].values():
+        assert ax["backend"] == "canopen" and ax["loop"]["samples"] > 2000
+        assert ax["control"]["max_error_m"] is not None and ax["control"]["max_error_m"] < 1.5e-3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("axis,node", [("x", 5), ("y", 6)])
+def test_a_drive_fault_on_either_axis_stops_both_drives(axis, node, restore_scheduling):
+    cfg = _xy_canopen(**{"loop.duration": 4.0})
+    from rt_ident.config import from_mapping
+
+    data = cfg.model_dump(exclude={"source"})
+    data["axes"][axis] = {**data["axes"][axis], "emulator": {**(data["axes"][axis].get("emulator") or {}),
+                                                             "faults": {"emcy_at_sample": 1500}}}
+    s = run_axes(from_mapping(data))
+    assert s["stop"]["cause"] == "device-fault", s["stop"]
+    assert s["stop"]["axis"] == axis and f"node {node}" in s["stop"]["message"]
+    assert s["stop"]["final_torque"] == {"x": 0.0, "y": 0.0}
+    assert set(s["stop"]["backend_state"].values()) == {"closed"}
+    assert run_mod.exit_code(s) == 3
+    for name, st in s["emulator"].items():                   # both drives: torque 0, not enabled
+        assert st["applied_torque"] == 0.0 and not st["enabled"], (name, st)
+    other = s["emulator"]["node 6" if node == 5 else "node 5"]
+    assert other["state"] == "SWITCH ON DISABLED" and other["samples"] > 1000
