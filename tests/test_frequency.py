@@ -296,3 +296,17 @@ def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy
     finally:
         worker.close(timeout=5.0)
     assert worker.pid is not None and not worker._proc.is_alive()
+
+
+def test_a_resonance_above_nyquist_is_not_taken_for_its_alias():
+    # Two drives on one 1 Mbit/s CAN bus sample at 1 kHz: X's 662 Hz resonance lies above Nyquist and a
+    # held (zoh) sampled mode at w aliases onto 2 pi / dt - w = 338 Hz. The linear start picks the alias
+    # (K -75 %); the fit must end at the true mode.
+    p, dt, N = thomson_x(), 1e-3, 256
+    ms = schroeder_multisine(N, (4, 127), peak=0.3)
+    sensors = SensorConfig(counts_per_rev=2**17, scale_resolution=1e-7, torque_meas_noise=0.005 * ms.rms)
+    blk = PlantSimulator(p, dt, sensors=sensors, controller=HoldController(), seed=3).step_block(ms.periodic(9))
+    assert modal_parameters(p)["wn"] * dt > math.pi                     # above Nyquist
+    r = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt, period=N)
+    err = _err(r, p)
+    assert np.max(np.abs(err)) < 0.01, err
