@@ -245,3 +245,18 @@ def test_blueprint_has_a_view_for_every_entity() -> None:
     for path in paths:
         assert any(path == o or path.startswith(o + "/") for o in origins), path
     assert set(dashboard.SERIES_STYLES) >= set(dashboard.BLOCK_ENTITIES.values())
+
+
+@pytest.mark.parametrize("last,new", [([0.0], [0.0]), ([0.0], [660.0]), ([np.nan], [660.0]), ([], [660.0])])
+def test_a_wild_fits_resonance_mark_never_ends_the_telemetry_process(monkeypatch, last, new) -> None:
+    # a loaded non-real-time XY run: a fit with a 0 Hz resonance, then another -> ZeroDivisionError killed
+    # both telemetry processes; the FRF must be drawn (or waited for), never raise
+    from rt_ident.runtime import telemetry
+
+    sender = telemetry._Sender(rec=None, rr=None)
+    drawn = []
+    monkeypatch.setattr(sender, "_draw_view", lambda kind, msg: drawn.append((kind, msg)))
+    sender.view_marks = np.array(last)
+    sender.views["frf:"] = {"frf:marks_hz": np.array(new), "frf:t": np.array([1.0])}
+    sender.draw_views()
+    assert [k for k, _ in drawn] == ["frf:"] and sender.view_marks.tolist() == new

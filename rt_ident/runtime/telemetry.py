@@ -239,6 +239,18 @@ def _thin(t: np.ndarray, v: np.ndarray, every: int, envelope: bool) -> tuple[np.
     return t[idx], v[idx]
 
 
+def _view_moved(marks: np.ndarray | None, last: np.ndarray | None) -> bool:
+    """Whether a fit's resonance moved by more than :data:`_VIEW_MOVED` since the FRF last drawn.
+    Any mark (a wild fit's 0 Hz or NaN, an empty array) is an answer, never an exception: one
+    ended the telemetry process with a ZeroDivisionError (a loaded, non-real-time XY run)."""
+    if marks is None or last is None or len(marks) == 0 or len(last) == 0:
+        return True
+    a, b = float(marks[0]), float(last[0])
+    if not (math.isfinite(a) and math.isfinite(b)) or b == 0.0:
+        return a != b
+    return abs(a / b - 1.0) > _VIEW_MOVED
+
+
 class _Sender:
     """Sends coalesced blocks with one ``send_columns`` per entity per batch.
 
@@ -356,10 +368,7 @@ class _Sender:
             # a new controller's loop gain is drawn at once (rare); fit FRFs are rate-limited
             age = now - self.view_drawn.get(kind, -math.inf)
             if kind == "frf:" and not final:
-                marks = self.views[kind].get("frf:marks_hz")
-                last = self.view_marks
-                moved = (last is None or marks is None
-                         or abs(float(marks[0]) / float(last[0]) - 1.0) > _VIEW_MOVED)
+                moved = _view_moved(self.views[kind].get("frf:marks_hz"), self.view_marks)
                 if age < (_VIEW_EVERY_S if moved else _VIEW_STEADY_S):
                     continue
             elif not (final or kind == "lg:" or age >= _VIEW_EVERY_S):
