@@ -375,7 +375,7 @@ def test_master_heartbeat_loss_faults_the_drive():
             with be:
                 be.activate()
                 pump(be, 0.1, square(0.1))
-                be._setup.conn._hb_task.stop()              # the host's heartbeat dies
+                be._sender.heartbeat = None                # the host's heartbeat dies (sent by the SYNC thread)
                 pump(be, 2.0, square(0.1))
         assert 0x8130 in drive.emcy_codes
         assert_drive_safe(drive)

@@ -103,6 +103,25 @@ def test_one_sender_sends_every_drives_rpdo_before_one_sync_and_marks_where_a_jo
     assert marks_b == list(range(marks_b[0], marks_b[0] + len(marks_b)))
 
 
+def test_the_sync_thread_sends_the_host_heartbeat_every_n_periods_right_after_a_sync():
+    frames: list[int] = []
+    ch = RpdoChannel(0x205, TorquePlan(), lambda t: (0, t), collections.deque())
+    sender = SyncSender.for_channel(lambda cob, data: frames.append(cob), 0.002, ch, heartbeat=(0x77F, 4))
+    sender.start()
+    deadline = time.monotonic() + 10.0
+    while sender.sent < 21 and time.monotonic() < deadline:
+        time.sleep(0.002)
+    sender.stop()
+    hb = [i for i, c in enumerate(frames) if c == 0x77F]
+    assert len(hb) == sender.heartbeats >= sender.sent // 4 > 0
+    assert all(frames[i - 1] == 0x80 for i in hb)
+    syncs_between = np.diff([frames[:i].count(0x80) for i in hb])
+    # every 4 periods; fewer SYNCs between two only where a loaded host made the sender skip periods
+    assert np.all((syncs_between >= 1) & (syncs_between <= 4))
+    if sender.overruns == 0:
+        assert np.all(syncs_between == 4)
+
+
 def test_shared_bus_budget_counts_both_drives_and_names_the_rate_each_bus_allows():
     one, two = bus_budget(1000, 1_000_000, 50), bus_budget(1000, 1_000_000, 50, drives=2)
     assert one.bits_per_sync == 380 and two.bits_per_sync == 705 and two.frames_per_sync == 7
@@ -130,6 +149,8 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
             x.activate()
             y.activate()
             assert x._setup.conn is y._setup.conn and x._sender is y._sender
+            # the host heartbeat comes from the (real-time) SYNC thread, not canopen's ordinary periodic thread
+            assert x._setup.conn._hb_task is None and x._sender.heartbeat == (0x77F, 50)
             got = {5: [], 6: []}
             end = time.monotonic() + 0.5
             while time.monotonic() < end:
@@ -146,8 +167,10 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
             dx = got[5][-1].theta1[-1] - got[5][0].theta1[0]
             dy = got[6][-1].theta1[-1] - got[6][0].theta1[0]
             assert dx * dy < 0, (dx, dy)
+        assert x._sender.heartbeats >= x._sender.sent // 50 - 1 > 0
         for n in (5, 6):
             assert_drive_safe(drives[n])
+            assert 0x8130 not in drives[n].emcy_codes
         assert BusConnection.key_of(validate(cfgs[0]["backend"])) not in BusConnection._open
     finally:
         drives.stop()

@@ -150,9 +150,12 @@ class BusConnection:
                 return sender
             if sender is not None:
                 self.syncs_sent += sender.sent
-            sender = SyncSender.for_channel(self.io.send, self.cfg.sample_period, channel,
-                                            sent_before=self.syncs_sent)
+            cfg = self.cfg
+            every = max(1, int(round(cfg.heartbeat_ms / 1000.0 / cfg.sample_period)))
+            sender = SyncSender.for_channel(self.io.send, cfg.sample_period, channel, sent_before=self.syncs_sent,
+                                            heartbeat=(0x700 + cfg.master_node_id, every))
             self.sender = sender
+            self._heartbeat_task(False)         # the sender's thread sends the host's heartbeat now
             if gil_switch_interval_us is not None and self._switch_interval is None:
                 self._switch_interval = sys.getswitchinterval()
                 sys.setswitchinterval(min(self._switch_interval, 1e-6 * gil_switch_interval_us))
@@ -169,9 +172,23 @@ class BusConnection:
             if sender.channels > 0 and sender.running:
                 return
             sender.stop()
+            self._heartbeat_task(True)
             if self._switch_interval is not None:
                 sys.setswitchinterval(self._switch_interval)
                 self._switch_interval = None
+
+    def _heartbeat_task(self, run: bool) -> None:
+        """The host's heartbeat from canopen's periodic task (while no SYNC runs), or not (never raises)."""
+        try:
+            if run and self._hb_task is None and self.network is not None:
+                cfg = self.cfg
+                self._hb_task = self.network.send_periodic(0x700 + cfg.master_node_id, bytes([0x05]),
+                                                           cfg.heartbeat_ms / 1000.0)
+            elif not run and self._hb_task is not None:
+                stop_periodic(self._hb_task)
+                self._hb_task = None
+        except Exception as exc:  # noqa: BLE001
+            log.warning("canopen: host heartbeat task: %s", exc)
 
     def _shutdown(self) -> None:
         if self.sender is not None:

@@ -167,7 +167,7 @@ class SyncSender:
     def __init__(self, send: Callable[[int, bytes], None], period: float, sink: collections.deque,
                  plan: TorquePlan, torque_to_permille: Callable[[float], tuple[int, float]],
                  rpdo_cob: int, sync_cob: int = 0x80, clock: Callable[[], float] = time.monotonic,
-                 sent_before: int = 0) -> None:
+                 sent_before: int = 0, heartbeat: tuple[int, int] | None = None) -> None:
         self._send = send
         self.period = float(period)
         self.primary = RpdoChannel(rpdo_cob, plan, torque_to_permille, sink)
@@ -177,6 +177,8 @@ class SyncSender:
         self._sync_cob = sync_cob
         self._clock = clock
         self.sent_before = int(sent_before)
+        self.heartbeat = heartbeat    # (COB-ID, every n SYNC periods): the host's heartbeat, sent by this thread
+        self.heartbeats = 0
         self.next_index = 0          # SYNC index of the next cycle
         self.sent = 0
         self.overruns = 0
@@ -189,9 +191,9 @@ class SyncSender:
 
     @classmethod
     def for_channel(cls, send: Callable[[int, bytes], None], period: float, channel: RpdoChannel,
-                    sent_before: int = 0) -> "SyncSender":
+                    sent_before: int = 0, heartbeat: tuple[int, int] | None = None) -> "SyncSender":
         sender = cls(send, period, channel.sink, channel.plan, channel.encode, channel.rpdo_cob,
-                     sent_before=sent_before)
+                     sent_before=sent_before, heartbeat=heartbeat)
         sender.primary = channel
         sender._channels = [channel]
         return sender
@@ -274,6 +276,7 @@ class SyncSender:
         channels, send, pack, sync_cob = self._channels, self._send, _RPDO.pack, self._sync_cob
         deadline = clock()
         k = self.next_index
+        next_hb = k
         while not stop.is_set():
             now = clock()
             if now < deadline:
@@ -305,6 +308,17 @@ class SyncSender:
                 self.send_errors += 1
                 self.consecutive_errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
+            if k >= next_hb and self.heartbeat is not None:   # (set to None: the heartbeat stops)
+                hb_cob, hb_every = self.heartbeat
+                # The host's heartbeat from this thread (real-time, one step above the loop) while the
+                # SYNC runs: from an ordinary thread it waited behind the real-time threads of a loaded
+                # host for > 250 ms and both drives faulted on heartbeat loss (EMCY 0x8130).
+                next_hb = k + hb_every
+                try:
+                    send(hb_cob, b"\x05")
+                    self.heartbeats += 1
+                except Exception:  # noqa: BLE001 - counted with the SYNC's errors on the next cycle
+                    pass
             k += 1
             self.next_index = k
             deadline += period
