@@ -17,7 +17,7 @@ R = 0.005
 
 def test_the_circle_reference_goes_round_once_each_way_and_ends_where_it_began():
     cx, cy = Circle(R, 1.0, "x"), Circle(R, 1.0, "y")
-    t = np.linspace(0.0, 6.0, 600_001)
+    t = np.linspace(0.0, 8.0, 800_001)
     x, vx, ax = cx.at(t)
     y, vy, ay = cy.at(t)
     assert np.allclose(np.hypot(x, y + R), R, rtol=0, atol=1e-12)          # on the circle, centre (0, -R)
@@ -32,6 +32,22 @@ def test_the_circle_reference_goes_round_once_each_way_and_ends_where_it_began()
     cross = lambda sel: np.mean(x[sel] * vy[sel] - (y[sel] + R) * vx[sel])  # noqa: E731 - z of r x v
     assert cross(mid_ccw) > 0 > cross(mid_cw)                               # counter-clockwise, then clockwise
     assert max(np.max(np.abs(vx)), np.max(np.abs(vy))) == pytest.approx(2 * math.pi * R, rel=1e-3)
+
+
+def test_the_measured_turns_are_at_constant_feed_between_half_turn_overshoot_arcs():
+    # ISO 230-4: start and stop overshoot arcs outside the measured turn, which is a full turn at the feed
+    cx, cy = Circle(R, 1.0, "x", turns=1, start=0.5), Circle(R, 1.0, "y", turns=1, start=0.5)
+    for d, (t0, t1) in cx.measured().items():
+        t = np.linspace(t0, t1, 10_001)
+        phi, om, al = cx.phase(t)
+        assert np.allclose(np.abs(om), 2 * math.pi, rtol=0, atol=1e-9) and np.allclose(al, 0.0, atol=1e-9)
+        assert abs(phi[-1] - phi[0]) == pytest.approx(2 * math.pi, rel=1e-9)          # one full turn measured
+        w0, w1 = cx.windows()[d]
+        ramp = cx.phase(np.array([w0, t0]))[0]
+        assert abs(ramp[1] - ramp[0]) == pytest.approx(math.pi, rel=1e-9)              # a 180 degree start arc
+        x, vx, _ = cx.at(t)
+        y, vy, _ = cy.at(t)
+        assert np.allclose(np.hypot(vx, vy), 2 * math.pi * R, rtol=1e-9)              # the feed, all along
 
 
 def test_a_circle_reference_names_its_bad_field():

@@ -68,7 +68,8 @@ def test_a_trip_on_either_axis_stops_both_at_zero_torque(axis):
 
 @pytest.mark.slow
 def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(tmp_path, restore_scheduling):
-    cfg = load("configs/xy-circle.toml", **{"loop.realtime": True, "telemetry.sink": "off", "loop.duration": 5.0,
+    cfg = load("configs/xy-circle.toml", **{"loop.realtime": True, "telemetry.sink": "rrd", "loop.duration": 7.0,
+                                            "telemetry.rrd": str(tmp_path / "c.rrd"),
                                             "recording.enabled": True, "recording.path": str(tmp_path / "c.parquet")})
     s = run_axes(cfg)
     assert s["stop"]["cause"] is None, s["stop"]
@@ -78,6 +79,20 @@ def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(
         f = c[d]
         # idle VM: G 16 / 12 um, mostly the 0.1 N m probing multisine; a loaded machine's late torque adds some
         assert 0.0 < f["G_um"] < 100.0 and f["F_min_um"] <= 0.0 <= f["F_max_um"]
-        assert f["points"] > 1500                       # one point per tick over each 2 s direction
+        assert f["points"] > 800                        # one point per tick over each 1 s measured turn
     assert 0.0 < c["H_um"] < 100.0
     assert c["polar_png"] == str(tmp_path / "c-contour.png") and (tmp_path / "c-contour.png").stat().st_size > 10_000
+    # one dashboard for both axes: the XY path against the reference, the ballbar trace, the radial deviation
+    # along the circle (one value per measured point) and the figures
+    assert c["rrd"] == str(tmp_path / "c-contour.rrd")
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(c["rrd"]).stream():
+        ent = chunk.entity_path.lstrip("/")
+        rows[ent] = rows.get(ent, 0) + chunk.to_record_batch().num_rows
+    for ent in ("contour/xy/reference", "contour/xy/table_ccw", "contour/xy/table_cw", "contour/ballbar/ccw",
+                "contour/ballbar/cw", "contour/ballbar/nominal", "contour/figures"):
+        assert rows.get(ent, 0) >= 1, (ent, sorted(rows))
+    for d in ("ccw", "cw"):
+        assert rows[f"contour/radial_error/{d}"] == c[d]["points"]

@@ -24,7 +24,7 @@ def _run(mode: str, args) -> dict:
     circle = {"kind": "circle", "radius": 0.005, "frequency_hz": 1.0, "turns": 1, "start": args.circle_at}
     cfg = load("configs/xy-circle.toml", **{
         "loop.realtime": not args.no_realtime, "telemetry.sink": "off", "recording.enabled": False,
-        "loop.duration": args.circle_at + 4.6, "control.mode": mode,
+        "loop.duration": args.circle_at + 6.6, "control.mode": mode,
         "axes.x": {"reference": {**circle, "axis": "x"}},
         "axes.y": {"reference": {**circle, "axis": "y"}, "axis": {"I1": 2.7e-5, "I2": 2.5e-5, "B": 2.1e-3,
                                                                   "K": 1.1e2, "lead": 7.96e-4},

@@ -202,11 +202,14 @@ class Sine:
 @dataclass(frozen=True)
 class Circle:
     """One axis's share of a circular test (ISO 230-4): the table goes round a circle of ``radius``
-    counter-clockwise ``turns`` times, dwells ``dwell`` s, then clockwise back, each direction's angular
-    speed rising and falling as a raised cosine over ``1 / frequency_hz`` s (position, velocity and
-    acceleration continuous). The circle starts and ends at the origin, its centre at (0, -radius):
-    X = -R sin(phi), Y = R (cos(phi) - 1). Give the same numbers to ``[axes.x]`` (``axis = "x"``) and
-    ``[axes.y]`` (``axis = "y"``)."""
+    counter-clockwise ``turns`` times at the feed ``2 pi radius frequency_hz``, dwells ``dwell`` s, then
+    clockwise back. As ISO 230-4 asks, the turns measured are at constant feed: the angular speed rises
+    on a start overshoot arc before them and falls on a stop overshoot arc after them, each half a turn
+    (180 degrees) of raised-cosine ramp over ``1 / frequency_hz`` s (position, velocity and acceleration
+    continuous). :meth:`measured` gives the constant-feed windows the figures are taken over,
+    :meth:`windows` the whole motion of each direction. The circle starts and ends at the origin, its
+    centre at (0, -radius): X = -R sin(phi), Y = R (cos(phi) - 1). Give the same numbers to ``[axes.x]``
+    (``axis = "x"``) and ``[axes.y]`` (``axis = "y"``)."""
 
     radius: float
     frequency_hz: float
@@ -223,15 +226,15 @@ class Circle:
         if not (math.isfinite(self.frequency_hz) and self.frequency_hz > 0):
             raise ConfigError("reference.frequency_hz", f"must be > 0, got {self.frequency_hz!r}")
         if self.turns < 1.0:
-            raise ConfigError("reference.turns", f"must be >= 1 (the ramps take half a turn each), got {self.turns!r}")
+            raise ConfigError("reference.turns", f"must be >= 1 (ISO 230-4 measures a full turn), got {self.turns!r}")
         if self.axis not in ("x", "y"):
             raise ConfigError("reference.axis", f"must be 'x' or 'y', got {self.axis!r}")
 
     @property
     def _times(self) -> tuple[float, float, float]:
         """(ramp time, constant-speed time, one direction's time)."""
-        tr = 1.0 / self.frequency_hz
-        tc = self.turns / self.frequency_hz - tr
+        tr = 1.0 / self.frequency_hz          # each ramp: half a turn (the overshoot arc)
+        tc = self.turns / self.frequency_hz   # the measured turns, at constant feed
         return tr, tc, 2 * tr + tc
 
     def windows(self) -> dict[str, tuple[float, float]]:
@@ -239,6 +242,12 @@ class Circle:
         _, _, d = self._times
         t0 = self.start
         return {"ccw": (t0, t0 + d), "cw": (t0 + d + self.dwell, t0 + 2 * d + self.dwell)}
+
+    def measured(self) -> dict[str, tuple[float, float]]:
+        """The constant-feed windows of the two directions (the overshoot arcs excluded): ``turns`` full
+        turns each, over which ISO 230-4's figures are taken."""
+        tr, tc, _ = self._times
+        return {k: (t0 + tr, t0 + tr + tc) for k, (t0, _) in self.windows().items()}
 
     def _phase1(self, t: float) -> tuple[float, float, float]:
         """(phi, phi', phi'') at one time: the loop asks for two points a tick, where the vectorized

@@ -323,3 +323,73 @@ def default_blueprint() -> Any:
     # the FRF and loop-gain views show the latest fit rather than the first one
     return rrb.Blueprint(rrb.Grid(*views, grid_columns=6), rrb.TimePanel(timeline="time", state="collapsed", play_state="following"),
                          collapse_panels=True)
+
+
+# ----- the XY circular test (issue #15): one recording for both axes ---------------------------------
+CONTOUR_XY = "contour/xy"                  # the table's path and the reference circle [mm]
+CONTOUR_BALLBAR = "contour/ballbar"        # each direction's radial deviation, magnified, around the circle
+CONTOUR_RADIAL = "contour/radial_error"    # radial deviation [um] against the angle on the circle
+CONTOUR_FIGURES = "contour/figures"        # G, F, H as text
+_DIR_COLOR = {"ccw": (31, 119, 180), "cw": (214, 39, 40)}
+
+
+def write_contour_rrd(path: str, reference: tuple[np.ndarray, np.ndarray],
+                      paths: dict[str, tuple[np.ndarray, np.ndarray]], radius: float,
+                      centre: tuple[float, float], figures: Mapping[str, Any]) -> str:
+    """The circular test's dashboard, both axes in one recording: the XY path of the table against the
+    reference (``reference``: the commanded X and Y over the whole run, ``paths``: the measured table
+    per direction over its measured turn, all in m), the ballbar trace (radial deviation magnified as
+    in :func:`rt_ident.control.contour.polar_plot`), the deviation against the angle on the timeline
+    ``angle`` (tenths of a degree, counter-clockwise from +X about the nominal centre) and the figures.
+    Written after the run (the loop's samples of both axes are in hand then); returns ``path``."""
+    import os
+
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    os.environ.setdefault("CI", "1")        # rerun: no analytics config written under HOME
+    rec = rr.RecordingStream("rt_ident-xy-contour")
+    bp = rrb.Blueprint(rrb.Horizontal(
+        rrb.Spatial2DView(origin=CONTOUR_XY, name="XY path: reference vs table [mm]"),
+        rrb.Spatial2DView(origin=CONTOUR_BALLBAR, name="ballbar: radial deviation, magnified"),
+        rrb.Vertical(rrb.TimeSeriesView(origin=CONTOUR_RADIAL, name="radial deviation [um] along the circle"),
+                     rrb.TextDocumentView(origin=CONTOUR_FIGURES, name="ISO 230-4 figures"))),
+        rrb.TimePanel(timeline="angle", state="collapsed"))
+    rec.save(path, default_blueprint=bp)
+    try:
+        cx, cy = centre
+        xr, yr = reference
+        ok = np.isfinite(xr) & np.isfinite(yr)
+        rec.log(f"{CONTOUR_XY}/reference", rr.LineStrips2D([np.column_stack([xr[ok], -yr[ok]]) * 1e3],
+                                                           colors=[(128, 128, 128)], radii=[0.01]), static=True)
+        devs = {d: np.hypot(x - cx, y - cy) - radius for d, (x, y) in paths.items()}
+        span = max((float(np.max(np.abs(v))) for v in devs.values() if v.size), default=1e-6) or 1e-6
+        scale = 10 ** math.ceil(math.log10(span * 1e6))       # um per half ring, as the PNG
+        ring = np.linspace(0.0, 2 * math.pi, 361)
+        rec.log(f"{CONTOUR_BALLBAR}/nominal", rr.LineStrips2D(
+            [np.column_stack([np.cos(ring), -np.sin(ring)]) * r for r in (0.5, 1.0, 1.5)],
+            colors=[(200, 200, 200), (128, 128, 128), (200, 200, 200)], radii=[0.004]), static=True)
+        for d, (x, y) in paths.items():
+            color = _DIR_COLOR.get(d, (0, 0, 0))
+            rec.log(f"{CONTOUR_XY}/table_{d}", rr.LineStrips2D([np.column_stack([x, -y]) * 1e3], colors=[color],
+                                                               radii=[0.01]), static=True)
+            ang = np.arctan2(y - cy, x - cx)
+            rho = 1.0 + devs[d] * 1e6 / scale
+            rec.log(f"{CONTOUR_BALLBAR}/{d}", rr.LineStrips2D([np.column_stack([rho * np.cos(ang), -rho * np.sin(ang)])],
+                                                             colors=[color], radii=[0.006]), static=True)
+            tenth = np.round(np.degrees(np.mod(ang, 2 * math.pi)) * 10).astype(np.int64)
+            order = np.argsort(tenth, kind="stable")
+            rec.send_columns(f"{CONTOUR_RADIAL}/{d}", indexes=[rr.TimeColumn("angle", sequence=tenth[order])],
+                             columns=rr.Scalars.columns(scalars=1e6 * devs[d][order]))
+        lines = [f"circle R {1e3 * radius:g} mm; ballbar rings: -{scale / 2:g}, 0, +{scale / 2:g} um"]
+        for d in ("ccw", "cw"):
+            f = figures.get(d)
+            if f:
+                lines.append(f"{d.upper()}: G {f['G_um']:.2f} um, F {f['F_min_um']:+.2f} .. {f['F_max_um']:+.2f} um")
+        if figures.get("H_um") is not None:
+            lines.append(f"H {figures['H_um']:.2f} um")
+        rec.log(CONTOUR_FIGURES, rr.TextDocument("\n\n".join(lines)), static=True)
+    finally:
+        rec.flush()
+        rec.disconnect()
+    return path

@@ -39,7 +39,7 @@ from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.runtime.fit_worker import make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
-from rt_ident.runtime.outputs import check_methods, prepare_outputs, remove_empty_outputs
+from rt_ident.runtime.outputs import _check_output, check_methods, prepare_outputs, remove_empty_outputs
 from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _excitation, _final_fit,
                                   _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, _realtime,
                                   _warmup, backend_options, friction_estimator, friction_summary,
@@ -47,6 +47,11 @@ from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _e
 from rt_ident.runtime.safety import SafetyMonitor
 
 log = logging.getLogger(__name__)
+
+
+def _sibling(path: str | None, suffix: str) -> str | None:
+    """``runs/run-X.parquet`` -> ``runs/run-X-contour.png``: a file of the whole run beside its outputs."""
+    return str(Path(path).with_name(Path(path).stem + suffix)) if path else None
 
 
 def _axis_path(path: str | None, axis: str) -> str | None:
@@ -76,25 +81,25 @@ class ContourTrace:
             refs["x"].windows() == refs["y"].windows()
         self.ref = refs.get("x")
         n = n_ticks + 8 if self.active else 0
-        self.buf = np.full((n, 3), np.nan)        # t, x, y of the table
+        self.buf = np.full((n, 5), np.nan)        # t, x, y of the table, x, y of the reference
         self.n = 0
 
     def __call__(self) -> None:
         if not self.active or self.n >= self.buf.shape[0]:
             return
         cx, cy = self.ctl["x"], self.ctl["y"]
-        self.buf[self.n] = (cx.t, cx.x_ref + cx.error, cy.x_ref + cy.error)
+        self.buf[self.n] = (cx.t, cx.x_ref + cx.error, cy.x_ref + cy.error, cx.x_ref, cy.x_ref)
         self.n += 1
 
-    def result(self, png: str | None) -> dict[str, Any] | None:
+    def result(self, png: str | None, rrd: str | None = None) -> dict[str, Any] | None:
         if not self.active or self.n < 16:
             return None
         from rt_ident.control.contour import circle_figures, polar_plot
 
-        t, x, y = self.buf[:self.n].T
+        t, x, y, xr, yr = self.buf[:self.n].T
         R = self.ref.radius
         paths = {}
-        for d, (t0, t1) in self.ref.windows().items():
+        for d, (t0, t1) in self.ref.measured().items():          # constant feed: overshoot arcs excluded
             sel = (t >= t0) & (t <= t1) & np.isfinite(x) & np.isfinite(y)
             if sel.sum() >= 16:
                 paths[d] = (x[sel], y[sel])
@@ -102,9 +107,18 @@ class ContourTrace:
             return {"note": "the run ended before the circle began"}
         fig = circle_figures(paths, R, (0.0, -R))
         fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * self.ref.frequency_hz
-        fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.windows()[d][1] for d in ("ccw", "cw")}
+        fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.measured()[d][1] for d in ("ccw", "cw")}
+        fig["overshoot_deg"] = 180.0
         if png:
             fig["polar_png"] = polar_plot(paths, R, (0.0, -R), fig, png, title="XY circular test (table scale)")
+        if rrd:
+            from rt_ident.runtime.dashboard import write_contour_rrd
+
+            try:
+                fig["rrd"] = write_contour_rrd(rrd, (xr, yr), paths, R, (0.0, -R), fig)
+            except Exception as exc:  # noqa: BLE001 - the figures are in hand; the dashboard is extra
+                log.warning("contour dashboard %s not written: %s", rrd, exc)
+                fig["rrd_error"] = f"{type(exc).__name__}: {exc}"
         return fig
 
 
@@ -153,6 +167,10 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     paths = {name: (_axis_path(rrd_base, name), _axis_path(rec_base, name)) for name in axes_cfg}
     for name, (r, p) in paths.items():              # the per-axis files must not exist either
         prepare_outputs(axes_cfg[name], r, p, sink, overwrite)
+    contour_rrd = _sibling(rrd_base, "-contour.rrd")          # the circular test's dashboard, both axes
+    contour_png = _sibling(rec_base or rrd_base, "-contour.png")
+    _check_output(contour_rrd, ".rrd", "--rrd / telemetry.rrd (the contour dashboard beside it)", overwrite)
+    _check_output(contour_png, ".png", "the contour plot beside the recording", overwrite)
     opts = {name: backend_options(acfg) for name, acfg in axes_cfg.items()}
     backends: dict[str, Any] = {}
     emulator = None
@@ -313,9 +331,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     if multi is not None:
         summary["loop"] = {**multi.stats.as_dict(), "host": host}
     if trace is not None:
-        out = next((f for f in (files.get("x") or {}).values() if f), None)
-        png = str(Path(out).with_name(Path(out).stem.rsplit("-", 1)[0] + "-contour.png")) if out else None
-        contour = trace.result(png)
+        contour = trace.result(contour_png, contour_rrd)
         if contour is not None:
             summary["contour"] = contour
     for name, loop in loops.items():
