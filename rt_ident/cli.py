@@ -543,10 +543,16 @@ def bench(
     estimator: bool = typer.Option(False, "--estimator",
                                    help="Instead: the per-sample estimator's bias and tracking on bench-like data "
                                         "in closed loop."),
+    xy: bool = typer.Option(False, "--xy", help="Instead: the XY table's tick budget, both axes in one loop "
+                                                "(configs/xy-sim.toml) against X alone, real time."),
+    xy_seconds: float = typer.Option(10.0, "--xy-seconds", min=1.0, help="Seconds of each --xy run."),
 ) -> None:
     """Speed of our kernels vs peers (padasip, filterpy, numpy, scipy) and the loop's capacity, in one run."""
     if estimator:
         _bench_estimator(json_out)
+        return
+    if xy:
+        _bench_xy(xy_seconds, json_out)
         return
     if control:
         _bench_control(json_out, quick, figure)
@@ -594,6 +600,31 @@ def _bench_control(json_out: bool, quick: bool, figure: Optional[Path]) -> None:
         out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
     if figure is not None:
         out.print(f"figure: {figure}")
+
+
+def _bench_xy(seconds: float, json_out: bool) -> None:
+    from rt_ident.reports.bench_xy import xy_budget
+
+    res = xy_budget(seconds, progress=lambda s: err.print(f"xy bench: {s}", highlight=False))
+    if json_out:
+        typer.echo(json.dumps(res, indent=2, default=_json_default))
+        return
+    tab = Table(title=f"tick work [us], {seconds:g} s real time at the sim's 34 k samples/s per axis, 1 ms tick")
+    for col in ("run", "p50", "p99", "max", "samples", "overruns", "stop"):
+        tab.add_column(col, justify="right")
+    for name, key in (("X and Y in one loop", "two_axes"), ("X alone", "one_axis")):
+        r = res[key]
+        w = r.get("work_us") or {}
+        tab.add_row(name, _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), str(r.get("samples")),
+                    str(r.get("overruns")), str(r.get("stop") or "-"))
+    for axis, w in (res["two_axes"].get("per_axis_work_us") or {}).items():
+        tab.add_row(f"  axis {axis}'s share", _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), "", "", "")
+    out.print(tab)
+    ratio = res.get("p99_ratio_two_over_one")
+    out.print(f"p99 two axes / one axis: {_fmt(ratio)}")
+    p99 = (res["two_axes"].get("work_us") or {}).get("p99")
+    out.print(f"{'met' if res['met'] else 'NOT met'}: p99 of the two-axis tick <= {res['target_p99_us']:g} us "
+              f"(40 % of the tick): {_fmt(p99)} us")
 
 
 def _bench_estimator(json_out: bool) -> None:

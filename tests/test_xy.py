@@ -96,3 +96,19 @@ def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(
         assert rows.get(ent, 0) >= 1, (ent, sorted(rows))
     for d in ("ccw", "cw"):
         assert rows[f"contour/radial_error/{d}"] == c[d]["points"]
+
+
+@pytest.mark.slow
+def test_the_xy_budget_bench_times_both_axes_against_one_and_each_axis_share():
+    from rt_ident.reports.bench_xy import TARGET_P99_US, xy_budget
+
+    res = xy_budget(1.5, realtime=False)
+    two, one = res["two_axes"], res["one_axis"]
+    assert two["stop"] is None and one["stop"] is None
+    assert two["samples"] > 1.5 * one["samples"] > 0                   # both axes read, one axis alone
+    shares = two["per_axis_work_us"]
+    assert set(shares) == {"x", "y"}
+    for w in shares.values():                                          # each axis's share is part of the tick
+        assert 0.0 < w["p50"] < two["work_us"]["p50"]
+    assert res["met"] == (two["work_us"]["p99"] <= TARGET_P99_US)
+    assert res["p99_ratio_two_over_one"] == pytest.approx(two["work_us"]["p99"] / one["work_us"]["p99"])

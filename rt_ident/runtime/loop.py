@@ -421,6 +421,7 @@ class MultiAxisLoop:
         for ax in axes:
             ax._write_plan()
         last_cpu = 0.0
+        spent = [0.0] * len(axes)
         self.ticker.start()
         try:
             for _ in range(int(round(self.duration * self.tick_hz))):
@@ -429,12 +430,22 @@ class MultiAxisLoop:
                 info = self.ticker.wait_next()
                 t0, c0 = clock(), cpu_clock()
                 _count_tick(stats, info, last_cpu, period)
-                blocks = [ax.backend.read() for ax in axes]      # every axis's samples of this tick first
-                for ax, block in zip(axes, blocks):
+                # every axis's samples of this tick first; each axis's share of the work is timed
+                # (its read, its processing, its plan) into its own ``work_us``
+                blocks = []
+                for i, ax in enumerate(axes):
+                    t1 = clock()
+                    blocks.append(ax.backend.read())
+                    spent[i] = clock() - t1
+                for i, (ax, block) in enumerate(zip(axes, blocks)):
                     _count_tick(ax.stats, info, last_cpu, period)
+                    t1 = clock()
                     ax._process(block, info.lateness_s)
-                for ax in axes:
+                    spent[i] += clock() - t1
+                for i, ax in enumerate(axes):
+                    t1 = clock()
                     ax._write_plan()
+                    ax.stats.work.record(spent[i] + clock() - t1)
                 stats.work.record(clock() - t0)
                 last_cpu = cpu_clock() - c0
                 stats.work_cpu.record(last_cpu)

@@ -1,0 +1,56 @@
+"""The XY table's tick budget (issue #15 item 6): both axes at the sim's 34 k samples/s each, with
+per-sample estimation and control, in one loop - against one axis alone, in the same run.
+
+``rt-ident bench --xy``: the two-axis run is ``configs/xy-sim.toml`` as shipped (its circle, dashboards
+and recordings written into a temporary directory, real time), cut to ``seconds``; the one-axis run is
+its X axis alone (the same sections, no ``[axes]``). Reported: the tick's work (read, estimate,
+control, plan of every axis; ``loop.work_us``) at p50/p99/max, each axis's share, overruns, and the
+target (p99 <= 40 % of the 1 ms tick).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from rt_ident.axis.params import CONFIG_DIR
+
+TARGET_P99_US = 400.0
+
+
+def _trial(summary: dict[str, Any]) -> dict[str, Any]:
+    loop = summary.get("loop") or {}
+    out = {"work_us": loop.get("work_us"), "samples": loop.get("samples"), "overruns": loop.get("overruns"),
+           "lost_samples": loop.get("lost_samples"), "stop": (summary.get("stop") or {}).get("cause")}
+    if "axes" in summary:
+        out["per_axis_work_us"] = {n: ax["loop"]["work_us"] for n, ax in summary["axes"].items()}
+    return out
+
+
+def xy_budget(seconds: float = 10.0, *, realtime: bool = True, progress=None) -> dict[str, Any]:
+    from rt_ident.config import from_mapping, load
+    from rt_ident.runtime.multi import run_axes
+    from rt_ident.runtime.run import run
+
+    say = progress or (lambda s: None)
+    with tempfile.TemporaryDirectory(prefix="rt_ident-xy-bench-") as tmp:
+        over = {"loop.duration": seconds, "loop.realtime": realtime}
+        cfg = load(CONFIG_DIR / "xy-sim.toml", **over, **{"telemetry.rrd": str(Path(tmp) / "xy.rrd"),
+                                                         "recording.path": str(Path(tmp) / "xy.parquet")})
+        say(f"two axes, {seconds:g} s")
+        xy = _trial(run_axes(cfg))
+        data = cfg.axis_configs()["x"].model_dump(exclude={"source"})
+        data["telemetry"]["rrd"] = str(Path(tmp) / "x.rrd")
+        data["recording"]["path"] = str(Path(tmp) / "x.parquet")
+        one_cfg = from_mapping(data, source=f"{cfg.source} [axes.x] alone")
+        say(f"X alone, {seconds:g} s")
+        one = _trial(run(one_cfg))
+    p99 = (xy.get("work_us") or {}).get("p99")
+    one99 = (one.get("work_us") or {}).get("p99")
+    return {"seconds": seconds, "realtime": realtime, "two_axes": xy, "one_axis": one,
+            "target_p99_us": TARGET_P99_US, "met": p99 is not None and p99 <= TARGET_P99_US,
+            "p99_ratio_two_over_one": (p99 / one99) if p99 and one99 else None}
+
+
+__all__ = ["TARGET_P99_US", "xy_budget"]
