@@ -3,6 +3,7 @@ trip on either axis stopping both, the JSON shape."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from rt_ident.config import load
@@ -112,3 +113,25 @@ def test_the_xy_budget_bench_times_both_axes_against_one_and_each_axis_share():
         assert 0.0 < w["p50"] < two["work_us"]["p50"]
     assert res["met"] == (two["work_us"]["p99"] <= TARGET_P99_US)
     assert res["p99_ratio_two_over_one"] == pytest.approx(two["work_us"]["p99"] / one["work_us"]["p99"])
+
+
+@pytest.mark.slow
+def test_the_axes_hand_their_telemetry_windows_over_on_different_ticks(tmp_path, monkeypatch):
+    # a window's hand-off is the tick's largest single cost: X and Y at once set the two-axis tick's p99
+    from rt_ident.runtime.loop import IdentificationLoop
+
+    flushes: dict[int, list[int]] = {}
+    original = IdentificationLoop._flush_telemetry
+
+    def spy(self):
+        if self._tick_n:
+            flushes.setdefault(id(self), []).append(self.stats.ticks)
+        original(self)
+
+    monkeypatch.setattr(IdentificationLoop, "_flush_telemetry", spy)
+    s = run_axes(_xy(**{"loop.duration": 1.0, "telemetry.sink": "rrd", "telemetry.rrd": str(tmp_path / "t.rrd")}))
+    assert s["stop"]["cause"] is None
+    a, b = [ticks[:-1] for ticks in flushes.values()]          # the last: the final flush after the loop
+    every = load("configs/xy-sim.toml").telemetry.publish_every_ticks
+    assert len(a) > 10 and len(b) > 10 and not set(a) & set(b)
+    assert set(np.diff(a)) == set(np.diff(b)) == {every}
