@@ -609,7 +609,7 @@ def _bench_xy(seconds: float, json_out: bool) -> None:
     if json_out:
         typer.echo(json.dumps(res, indent=2, default=_json_default))
         return
-    tab = Table(title=f"tick work [us], {seconds:g} s real time at the sim's 34 k samples/s per axis, 1 ms tick")
+    tab = Table(title=f"tick work (µs), {seconds:g} s real time at the sim's 34 k samples/s per axis, 1 ms tick")
     for col in ("run", "p50", "p99", "max", "samples", "overruns", "stop"):
         tab.add_column(col, justify="right")
     for name, key in (("X and Y in one loop", "two_axes"), ("X alone", "one_axis")):
