@@ -162,3 +162,24 @@ def test_a_diverging_frequency_fit_withholds_trust_but_does_not_trigger_a_fallba
     sup, w = _supervisor(_fake_svf(P))
     sup.offer(_ident(AxisParams(I1=P.I1, I2=1e-12, B=1e-9, K=1e-5)), False)
     assert w.requests == [] and sup.stats.fallbacks == 0
+
+
+def test_a_finished_design_for_an_axis_that_has_since_changed_is_not_applied():
+    # the XY circular test after Y's I2 x 3: a design requested before the change came back 0.93 s after
+    # it; applied, it drove the table 215 um off and into the fallback
+    from rt_ident.control.adaptation import model_controller
+
+    est = _fake_svf(P)
+    sup, w = _supervisor(est)
+    before = sup.controller
+    design = model_controller(P, 1e-3, ControlSettings())
+    sup._pending = True
+    w.poll = lambda: {"accepted": True, "controller": design, "seq": 1}
+    est.params = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)          # the axis changed meanwhile
+    sup.poll()
+    assert sup.controller is before and sup.stats.accepted == 0 and sup.stats.rejected == 1
+    assert "stale" in sup.stats.reasons[0] and "I2" in sup.stats.reasons[0]
+    sup._pending = True
+    est.params = AxisParams(I1=P.I1, I2=1.01 * P.I2, B=P.B, K=P.K)       # unchanged (within 5 %): applied
+    sup.poll()
+    assert sup.controller.gains is design.gains and sup.stats.accepted == 1

@@ -25,6 +25,7 @@ def _run(mode: str, args) -> dict:
     cfg = load("configs/xy-circle.toml", **{
         "loop.realtime": not args.no_realtime, "telemetry.sink": "off", "recording.enabled": False,
         "loop.duration": args.circle_at + 6.6, "control.mode": mode,
+        "estimator.forgetting": args.forgetting,
         "axes.x": {"reference": {**circle, "axis": "x"}},
         "axes.y": {"reference": {**circle, "axis": "y"}, "axis": {"I1": 2.7e-5, "I2": 2.5e-5, "B": 2.1e-3,
                                                                   "K": 1.1e2, "lead": 7.96e-4},
@@ -44,6 +45,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--change-at", type=float, default=1.0)
     ap.add_argument("--circle-at", type=float, default=4.0)
     ap.add_argument("--no-realtime", action="store_true")
+    ap.add_argument("--forgetting", type=float, default=0.9,
+                    help="frequency fit forgetting per excitation period (as configs/sim-load-change.toml: the "
+                         "estimate follows the change; 1.0 keeps the data from before it forever)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     if not 0 <= args.change_at < args.circle_at:

@@ -291,6 +291,12 @@ class Supervisor:
             return
         self._pending = False
         st = self.stats
+        stale = self._stale(res["controller"].model) if res.get("accepted") else None
+        if stale is not None:
+            # the design took its time (~1 s on a loaded host): the axis it was made for may be gone. A
+            # design for Y's inertia before a change, applied 0.93 s after it, drove the table 215 um off
+            # and into the fallback (the XY circular test after Y's I2 x 3)
+            res = {"accepted": False, "reason": stale}
         if res.get("accepted"):
             st.accepted += 1
             st.events.append((self.t, "accepted", _params_text(res["controller"].model)))
@@ -303,6 +309,20 @@ class Supervisor:
             reason = str(res.get("reason"))
             st.reasons.append(reason)
             st.events.append((self.t, "rejected", reason))
+
+    def _stale(self, model: AxisParams) -> str | None:
+        """Why a finished design no longer fits the axis (the per-sample estimate now differs from the
+        model it was designed for by more than ``trust_tolerance``), or None."""
+        est = self.per_sample
+        if est is None or not est.ready:
+            return None
+        p = est.params
+        worst = max(KEYS, key=lambda k: abs(getattr(p, k) / getattr(model, k) - 1.0))
+        rel = abs(getattr(p, worst) / getattr(model, worst) - 1.0)
+        if rel <= self.s.trust_tolerance:
+            return None
+        return (f"stale: designed for {worst} = {getattr(model, worst):.4g}, the axis now reads "
+                f"{getattr(p, worst):.4g} ({100 * rel:.0f} % off)")
 
     # --------------------------------------------------------------- summary
     def _per_sample_summary(self) -> dict[str, Any] | None:
