@@ -192,3 +192,13 @@ def test_soak_reports_every_helper_process_and_flags_one_that_grows():
     assert set(out) == {"telemetry", "recorder", "pid 13"}          # named by the run's helper order
     assert out["recorder"]["growth_after_10pct_pct"] == 0.0
     assert out["telemetry"]["growth_after_10pct_pct"] > 50.0         # 100 -> 195 MB: a leak shows
+
+
+def test_soak_names_helpers_by_pid_when_there_is_no_recorder():
+    """Recording off (as in the soak): the fit worker is the second helper, not a recorder."""
+    from rt_ident.reports.bench_loop import _helper_growth
+
+    series = [(t, {"11": 100_000, "12": 100_000, "13": 20_000}) for t in range(0, 20_000, 1000)]
+    out = _helper_growth({"helpers_rss": series, "helper_processes": {
+        "pids": [11, 12, 13], "names": {"11": "telemetry", "12": "fit", "13": "control"}}})
+    assert set(out) == {"telemetry", "fit", "control"}

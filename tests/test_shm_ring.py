@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing as mp
+import sys
 
 import numpy as np
 import pytest
@@ -138,3 +139,36 @@ def test_a_spawned_consumer_receives_every_message_the_producer_wrote() -> None:
         proc.join(5.0)
         if proc.is_alive():
             proc.terminate()
+
+
+def _ring_resident_kb(ring: MessageRing, result) -> None:
+    """In the child: (resident kB, size kB) of the mapping that holds the ring's data."""
+    import ctypes
+
+    addr = ctypes.addressof(ring._data)
+    with open("/proc/self/smaps") as fh:
+        lines = fh.read().splitlines()
+    for i, line in enumerate(lines):
+        lo, _, hi = line.split(" ", 1)[0].partition("-")
+        if hi and all(c in "0123456789abcdef" for c in lo + hi) and int(lo, 16) <= addr < int(hi, 16):
+            fields = {ln.split(":")[0]: ln.split()[1] for ln in lines[i + 1:i + 25] if ln.endswith(" kB")}
+            result.send((int(fields["Rss"]), int(fields["Size"])))
+            return
+    result.send(None)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/smaps")
+def test_a_child_maps_the_whole_ring_when_it_attaches() -> None:
+    """A helper's resident set holds the whole ring from the start, not one more page each time the
+    ring's position first reaches it (which grew a fit worker's RSS for minutes, like a leak)."""
+    ctx = mp.get_context("spawn")
+    ring = MessageRing(4 << 20, ctx=ctx)
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_ring_resident_kb, args=(ring, child), daemon=True)
+    proc.start()
+    try:
+        assert parent.poll(30.0), "child did not answer"
+        rss_kb, size_kb = parent.recv()
+        assert size_kb >= 4 << 10 and rss_kb >= 4 << 10, (rss_kb, size_kb)
+    finally:
+        proc.join(5.0)

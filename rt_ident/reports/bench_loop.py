@@ -157,7 +157,9 @@ def _helper_growth(res: dict[str, Any]) -> dict[str, Any]:
     """RSS of every helper process over the run: first, 10 % in, last, and growth after 10 %."""
     series = res.get("helpers_rss") or []
     pids = (res.get("helper_processes") or {}).get("pids") or []
-    names = dict(zip(pids, ("telemetry", "recorder", "fit", "control")))
+    # the run names its helpers by pid; older summaries only listed them, in this order
+    names = {int(p): n for p, n in ((res.get("helper_processes") or {}).get("names") or {}).items()} or dict(
+        zip(pids, ("telemetry", "recorder", "fit", "control")))
     out: dict[str, Any] = {}
     for pid in sorted({int(p) for _, d in series for p in d}):
         pts = [(t, d[str(pid)] if str(pid) in d else d.get(pid)) for t, d in series]

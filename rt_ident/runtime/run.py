@@ -237,10 +237,13 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             for w in (worker, ctl_worker):               # imported and waiting before the device is active
                 if w is not None and not w.wait_ready(30.0):
                     log.warning("%s not ready after 30 s: live estimates/redesigns will start late", w.name)
-            helpers = [getattr(x, "pid", None) for x in (telemetry, recorder, worker, ctl_worker) if x is not None]
+            named = [(n, getattr(x, "pid", None)) for n, x in (("telemetry", telemetry), ("recorder", recorder),
+                                                               ("fit", worker), ("control", ctl_worker)) if x is not None]
             device = getattr(emulator, "pid", None)
-            summary["helper_processes"] = _keep_off_loop_cpu([p for p in helpers if p], cfg.loop.realtime,
+            summary["helper_processes"] = _keep_off_loop_cpu([p for _, p in named if p], cfg.loop.realtime,
                                                              device=device)
+            # pid -> helper, so that a report never names them by position (there is no recorder without recording)
+            summary["helper_processes"]["names"] = {str(p): n for n, p in named if p}
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
             stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
             summary["realtime"] = _realtime(cfg)

@@ -22,7 +22,8 @@ with :meth:`TelemetryProcess.set_truth`, are drawn as a second series beside eac
 child sends the true value at the first and last time of every batch that holds that estimate
 (a horizontal line over the estimate's time span).
 
-Sinks: ``"rrd"`` file (complete after ``close()``, which disconnects the stream); ``"spawn"``
+Sinks: ``"rrd"`` file (complete after ``close()``, which disconnects the stream; written without
+rerun's footer, whose per-chunk manifest grew the process without bound: see ``_open_sink``); ``"spawn"``
 starts ``rerun --bind <bind_ip> --port <port>`` (never 0.0.0.0 unless configured) and connects;
 ``"connect"`` connects to ``connect_url``; ``"serve"`` hosts a gRPC server with
 ``GrpcServerSink(bind_ip=bind_ip)``; ``"off"`` starts nothing. The child sets ``CI=1`` (rerun
@@ -73,8 +74,8 @@ _NRMSE_WINDOW_S = 1.0  # Eq. 18 reconstruction NRMSE over the last second of sam
 # drawn at most this often (the newest one wins; the last one is always drawn at close).
 _EXTEND_S = 5.0
 _VIEW_EVERY_S = 2.0        # ... while the model moves (its resonance by > _VIEW_MOVED since the last draw)
-_VIEW_STEADY_S = 10.0      # ... once it has settled. Each FRF draw costs the rerun SDK ~0.05 MB it
-_VIEW_MOVED = 0.005        # keeps (a 10-min soak drawing every 2 s grew the process by ~15 %)
+_VIEW_STEADY_S = 10.0      # ... once it has settled. (A draw is 24 chunks, ~0.05 MB of .rrd; the ~0.05 MB
+_VIEW_MOVED = 0.005        # per draw the process used to keep was the footer's manifest: see _open_sink)
 _POLL_S = 0.01       # child: sleep between polls of an empty ring
 
 
@@ -187,7 +188,16 @@ def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
     if cfg.sink == "rrd":
         assert cfg.rrd_path is not None
         Path(cfg.rrd_path).parent.mkdir(parents=True, exist_ok=True)
-        rec.save(cfg.rrd_path, default_blueprint=bp)
+        # No footer: with rerun's default (write_footer=True) the file sink keeps one manifest entry
+        # per chunk in memory until the stream closes, to write them as the footer. That was the
+        # telemetry process's growth, for as long as the run lasted: ~1.6 kB per chunk at ~55
+        # chunks/s (one per entity per batch, 24 per FRF draw), +15 % in 6 minutes of a soak at
+        # 34 k samples/s. A probe driving _Sender at that rate: +19 % over 10 minutes with the
+        # footer; without it 116 -> 119 MB by minute 10, then flat to minute 60. The .rrd is
+        # still a complete stream (the viewer, RrdReader.stream() and `rerun rrd print` read it);
+        # the random-access RrdReader.store() and `rerun rrd verify` want the manifest, which
+        # `rerun rrd optimize` writes (and compacts the chunks).
+        rec.save(cfg.rrd_path, default_blueprint=bp, write_footer=False)
     elif cfg.sink == "connect":
         rec.connect_grpc(cfg.connect_url, default_blueprint=bp)
     elif cfg.sink == "serve":
@@ -416,6 +426,8 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     (or the run's main process dies: the .rrd is then finished with what arrived)."""
     watch = become_helper()
     os.environ.setdefault("CI", "1")  # rerun: no analytics config written under HOME
+    if cfg.sink == "rrd":   # rerun's own default ("info") but for the warning that the .rrd has no footer (_open_sink)
+        os.environ.setdefault("RUST_LOG", "info,re_log_encoding::rrd::file_sink=error")
     import rerun as rr
 
     rec = rr.RecordingStream(cfg.application_id)
