@@ -536,6 +536,8 @@ def bench(
                                        help="Instead: one loop run this long (e.g. 600) and its memory (RSS) over time."),
     soak_rate: float = typer.Option(170_000.0, "--soak-rate", min=1000.0, help="Samples/s of the --soak run."),
     soak_sink: str = typer.Option("rrd", "--soak-sink", help="Telemetry of the --soak run: rrd or off."),
+    soak_record: bool = typer.Option(True, "--soak-record/--soak-no-record",
+                                     help="The --soak run records a Parquet too (its recorder process is sampled)."),
     control: bool = typer.Option(False, "--control",
                                  help="Instead: fixed vs adaptive vs oracle control after load changes, and the "
                                       "nominal design on 100 random plants."),
@@ -558,7 +560,7 @@ def bench(
         _bench_control(json_out, quick, figure)
         return
     if soak_seconds > 0:
-        _soak(soak_seconds, soak_rate, soak_sink, json_out)
+        _soak(soak_seconds, soak_rate, soak_sink, json_out, soak_record)
         return
     from rt_ident.reports.bench import bench_main
 
@@ -653,13 +655,13 @@ def _bench_estimator(json_out: bool) -> None:
         out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
 
 
-def _soak(seconds: float, rate: float, sink: str, json_out: bool) -> None:
+def _soak(seconds: float, rate: float, sink: str, json_out: bool, record: bool = True) -> None:
     from rt_ident.reports.bench_loop import soak
 
     if sink not in ("rrd", "off"):
         raise RtIdentError(f"--soak-sink must be rrd or off, got {sink!r}")
     err.print(f"soak: {seconds:g} s at {rate / 1e3:g} k samples/s, telemetry {sink} ...")
-    res = soak(seconds, rate, sink)
+    res = soak(seconds, rate, sink, record=record)
     if json_out:
         typer.echo(json.dumps(res, indent=2, default=_json_default))
         return

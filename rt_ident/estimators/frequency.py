@@ -345,7 +345,7 @@ def _residual(m: _Model, x: np.ndarray, sp: Spectra, Li: np.ndarray, jac: bool
 
 
 def fit_spectra(sp: Spectra, hold: str = "zoh", *, transient: bool = True, x0: np.ndarray | None = None,
-                max_iter: int = 50, tol: float = _TOL) -> FitResult:
+                max_iter: int = 50, tol: float = _TOL, quiet: bool = False) -> FitResult:
     """Gauss-Newton on the exact sampled model, warm-started from ``x0`` or the linear fit.
 
     Weights are recomputed at each iterate and held fixed within its step-halving
@@ -362,14 +362,15 @@ def fit_spectra(sp: Spectra, hold: str = "zoh", *, transient: bool = True, x0: n
             # lower one (measured: X's 662 Hz resonance sampled at 1 kHz started at 338 Hz, K -75 %,
             # and Gauss-Newton stayed in that basin: cost 33 276 against 18 at the true values). Both
             # are fitted and the lower cost kept: the hold's own response tells them apart.
-            fits = []
-            for start in (x, mirror):
-                try:
-                    fits.append(fit_spectra(sp, hold, transient=transient, x0=start, max_iter=max_iter, tol=tol))
-                except EstimationError:
-                    pass
-            if fits:
-                return min(fits, key=lambda f: (not f.converged, f.cost))
+            # The mirrored fit must converge and halve the cost to win: early in a run, on a few noisy
+            # periods, a spurious minimum could otherwise beat the true one by a hair (the aliased case
+            # differs by orders of magnitude).
+            first = fit_spectra(sp, hold, transient=transient, x0=x, max_iter=max_iter, tol=tol)
+            try:
+                alt = fit_spectra(sp, hold, transient=transient, x0=mirror, max_iter=max_iter, tol=tol, quiet=True)
+            except EstimationError:
+                return first
+            return alt if alt.converged and (alt.cost < 0.5 * first.cost or not first.converged) else first
     else:
         x = np.array(x0, dtype=float)[:n_x]
         if x.size < n_x:
@@ -407,7 +408,7 @@ def fit_spectra(sp: Spectra, hold: str = "zoh", *, transient: bool = True, x0: n
     # the weights are absolute noise levels (period scatter + quantization model): s2 < 1 does
     # not narrow the intervals, s2 > 1 (model error, deterministic quantization) widens them
     cov, s2 = covariance_from_jacobian(J, r, min_scale=1.0)
-    if not converged:
+    if not converged and not quiet:
         logger.warning("frequency: Gauss-Newton stopped after %d iterations without converging", it)
     return FitResult(x, cov, s2, float(r @ r), int(r.size - x.size), it, converged)
 

@@ -95,7 +95,8 @@ def _growth_after(series: list, frac: float) -> float | None:
     return 100.0 * (series[-1][1] - start) / start if start else None
 
 
-def trial_config(rate: float, seconds: float, sink: str, method: str = "frequency") -> dict[str, Any]:
+def trial_config(rate: float, seconds: float, sink: str, method: str = "frequency",
+                 record: bool = False) -> dict[str, Any]:
     """The run config of one trial (see the module docstring).
 
     The multisine period scales with the rate so that the excitation keeps the default config's
@@ -108,16 +109,17 @@ def trial_config(rate: float, seconds: float, sink: str, method: str = "frequenc
             "loop": {"tick_hz": 1000.0, "duration": float(seconds), "realtime": True},
             "estimator": {"method": method},
             "telemetry": {"sink": sink},
-            "recording": {"enabled": False}}
+            # record: the recorder process too, into the trial's temporary directory (its cwd)
+            "recording": {"enabled": True, "path": "bench.parquet"} if record else {"enabled": False}}
 
 
 def loop_trial(rate: float, seconds: float, sink: str, *, method: str = "frequency",
-               timeout: float | None = None) -> dict[str, Any]:
+               timeout: float | None = None, record: bool = False) -> dict[str, Any]:
     """Run one loop trial in a subprocess; returns its summary, RSS and whether it ran clean."""
     with tempfile.TemporaryDirectory(prefix="rt-ident-bench-") as tmp:
         rrd = str(Path(tmp) / "bench.rrd") if sink == "rrd" else ""
         env = dict(os.environ, CI="1")   # CI: the rerun SDK writes no analytics config under HOME
-        cmd = [sys.executable, "-c", _CHILD, json.dumps(trial_config(rate, seconds, sink, method)), rrd]
+        cmd = [sys.executable, "-c", _CHILD, json.dumps(trial_config(rate, seconds, sink, method, record)), rrd]
         try:
             proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp,
                                   timeout=timeout or seconds + 180.0)
@@ -234,14 +236,15 @@ def bench_loop(seconds: float = 60.0, rates: tuple[int, ...] = DEFAULT_RATES, si
 
 
 def soak(seconds: float = 600.0, rate: float = 170_000, sink: str = "rrd",
-         method: str = "frequency") -> dict[str, Any]:
+         method: str = "frequency", record: bool = True) -> dict[str, Any]:
     """One long trial (default 10 min at 170 k samples/s, streaming to an .rrd): is RSS flat?
 
     ``rss_growth_pct`` compares the resident set at the first tick with the last sample (every
     1000 ticks); ``rss_growth_after_10pct_pct`` starts after the first tenth of the run, when
     every buffer has been touched. The issue's criterion is +-5 %.
     """
-    res = loop_trial(rate, seconds, sink, method=method)
+    res = loop_trial(rate, seconds, sink, method=method, record=record)
+    res["record"] = record
     growth = res.get("rss_growth_pct")
     res["rss_flat_within_5pct"] = None if growth is None else abs(growth) <= 5.0
     grow = [h.get("growth_after_10pct_pct") for h in (res.get("helpers") or {}).values()]
