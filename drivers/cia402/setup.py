@@ -36,6 +36,15 @@ from rt_ident.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
+def _best_effort(what: str, steps) -> None:
+    """Run every step of a stop path; a failing one is logged and the next still runs."""
+    for step in steps:
+        try:
+            step()
+        except Exception as exc:  # noqa: BLE001 - a stop path must reach its end
+            log.warning("canopen: %s step failed: %s", what, exc)
+
+
 class BusConnection:
     """One CAN interface, opened once per process and shared by every drive on it.
 
@@ -199,20 +208,16 @@ class BusConnection:
         net = self.network
         if net is None:
             return
-        for step in (lambda: stop_periodic(self._hb_task),
-                     lambda: self.io.close() if self.io is not None else None,
-                     net.disconnect):
-            try:
-                step()
-            except Exception as exc:  # noqa: BLE001
-                log.warning("canopen: closing the bus failed: %s", exc)
+        _best_effort("closing the bus", (lambda: stop_periodic(self._hb_task),
+                                         lambda: self.io.close() if self.io is not None else None,
+                                         net.disconnect))
         self._hb_task = None
         self.io = None
         self.network = None
 
 
 class NodeSetup:
-    """Owns the bus, the ``canopen.Network`` and the ``RemoteNode`` of one drive."""
+    """Owns the ``RemoteNode`` of one drive and its SDO set-up, on a shared :class:`BusConnection`."""
 
     def __init__(self, cfg: Cia402Config, *, on_tpdo: Callable, on_heartbeat: Callable,
                  on_emcy: Callable, on_sync_echo: Callable | None = None) -> None:
@@ -465,15 +470,12 @@ class NodeSetup:
         if drive_consumer_off and node is not None:
             self.try_download(p402.CONSUMER_HEARTBEAT, 1, struct.pack("<I", 0))
         cfg = self.cfg
-        for step in (lambda: node.nmt.send_command(0x80) if node is not None else None,
-                     lambda: conn.unsubscribe_echo(self._on_sync_echo),
-                     lambda: net.unsubscribe(0x700 + cfg.node_id, self._on_heartbeat),
-                     *[(lambda c=cob: net.unsubscribe(c, self._on_tpdo)) for cob in self.tpdo_cobs],
-                     lambda: net.__delitem__(cfg.node_id) if node is not None and cfg.node_id in net.nodes else None):
-            try:
-                step()
-            except Exception as exc:  # noqa: BLE001
-                log.warning("canopen: teardown step failed: %s", exc)
+        _best_effort("teardown", (
+            lambda: node.nmt.send_command(0x80) if node is not None else None,
+            lambda: conn.unsubscribe_echo(self._on_sync_echo),
+            lambda: net.unsubscribe(0x700 + cfg.node_id, self._on_heartbeat),
+            *[(lambda c=cob: net.unsubscribe(c, self._on_tpdo)) for cob in self.tpdo_cobs],
+            lambda: net.__delitem__(cfg.node_id) if node is not None and cfg.node_id in net.nodes else None))
         self.io = None
         self.network = None
         self.node = None

@@ -39,7 +39,7 @@ from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.runtime.fit_worker import make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
-from rt_ident.runtime.outputs import _check_output, check_methods, prepare_outputs, remove_empty_outputs
+from rt_ident.runtime.outputs import check_output, check_methods, prepare_outputs, remove_empty_outputs
 from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _excitation, _final_fit,
                                   _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, _realtime,
                                   _warmup, backend_options, friction_estimator, friction_summary,
@@ -169,8 +169,8 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
         prepare_outputs(axes_cfg[name], r, p, sink, overwrite)
     contour_rrd = _sibling(rrd_base, "-contour.rrd")          # the circular test's dashboard, both axes
     contour_png = _sibling(rec_base or rrd_base, "-contour.png")
-    _check_output(contour_rrd, ".rrd", "--rrd / telemetry.rrd (the contour dashboard beside it)", overwrite)
-    _check_output(contour_png, ".png", "the contour plot beside the recording", overwrite)
+    check_output(contour_rrd, ".rrd", "--rrd / telemetry.rrd (the contour dashboard beside it)", overwrite)
+    check_output(contour_png, ".png", "the contour plot beside the recording", overwrite)
     opts = {name: backend_options(acfg) for name, acfg in axes_cfg.items()}
     backends: dict[str, Any] = {}
     emulator = None

@@ -31,7 +31,7 @@ def default_paths(stamp: str | None = None) -> tuple[Path, Path]:
 MIN_FREE_BYTES = 32 << 20
 
 
-def _check_output(path: str | None, suffix: str, what: str, overwrite: bool) -> None:
+def check_output(path: str | None, suffix: str, what: str, overwrite: bool) -> None:
     """One line, before anything is energized: the suffix, no silent overwrite, a writable
     directory with room."""
     if not path:
@@ -65,8 +65,8 @@ def prepare_outputs(cfg: RunConfig, rrd: str | None, record: str | None, sink: s
     if sink != "rrd":
         rrd_path = None
     rec_path = record or cfg.recording.path or (str(rec_default) if cfg.recording.enabled else None)
-    _check_output(rrd_path, ".rrd", "--rrd / telemetry.rrd", overwrite)
-    _check_output(rec_path, ".parquet", "--record / recording.path", overwrite)
+    check_output(rrd_path, ".rrd", "--rrd / telemetry.rrd", overwrite)
+    check_output(rec_path, ".parquet", "--record / recording.path", overwrite)
     if rrd_path and rec_path and Path(rrd_path).resolve() == Path(rec_path).resolve():
         raise ConfigError("--rrd", "the dashboard and the recording cannot be the same file")
     return rrd_path, rec_path
