@@ -426,8 +426,8 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     (or the run's main process dies: the .rrd is then finished with what arrived)."""
     watch = become_helper()
     os.environ.setdefault("CI", "1")  # rerun: no analytics config written under HOME
-    if cfg.sink == "rrd":   # rerun's own default ("info") but for the warning that the .rrd has no footer (_open_sink)
-        os.environ.setdefault("RUST_LOG", "info,re_log_encoding::rrd::file_sink=error")
+    if cfg.sink == "rrd":   # warnings only (an INFO line reached the terminal), and not the missing-footer one (_open_sink)
+        os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
     import rerun as rr
 
     rec = rr.RecordingStream(cfg.application_id)
