@@ -243,6 +243,12 @@ class Circle:
         t0 = self.start
         return {"ccw": (t0, t0 + d), "cw": (t0 + d + self.dwell, t0 + 2 * d + self.dwell)}
 
+    @property
+    def overshoot_deg(self) -> float:
+        """Each overshoot arc: the angle turned while the speed ramps (half a turn by construction)."""
+        tr, _, _ = self._times
+        return math.degrees(2 * math.pi * self.frequency_hz * tr / 2)
+
     def measured(self) -> dict[str, tuple[float, float]]:
         """The constant-feed windows of the two directions (the overshoot arcs excluded): ``turns`` full
         turns each, over which ISO 230-4's figures are taken."""

@@ -108,7 +108,7 @@ class ContourTrace:
         fig = circle_figures(paths, R, (0.0, -R))
         fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * self.ref.frequency_hz
         fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.measured()[d][1] for d in ("ccw", "cw")}
-        fig["overshoot_deg"] = 180.0
+        fig["overshoot_deg"] = self.ref.overshoot_deg
         if png:
             fig["polar_png"] = polar_plot(paths, R, (0.0, -R), fig, png, title="XY circular test (table scale)")
         if rrd:
