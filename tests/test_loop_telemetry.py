@@ -14,8 +14,10 @@ class _Backend:
 
 
 def _loop(published: list) -> IdentificationLoop:
-    def keep(block):               # the loop hands out views of its window buffers: copy, as publish() does
-        published.append({k: v.copy() for k, v in block.items()})
+    def keep(block, window=None):  # the loop hands out views of its window buffers: copy, as publish() does
+        out = {k: v.copy() for k, v in block.items()}
+        out.update({k: np.full(block["t_tick"].shape, v) for k, v in (window or {}).items()})
+        published.append(out)
 
     return IdentificationLoop(_Backend(), tick_hz=1000.0, excitation=lambda seq: np.zeros(seq.size),
                               state_estimator=None, estimator=None, safety=None, duration=1.0,

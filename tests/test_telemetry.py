@@ -106,6 +106,49 @@ def test_rrd_holds_dashboard_entities_with_the_values_sent(tmp_path: Path) -> No
     assert np.all(v == 2.5e5) and t.min() <= blocks[0]["t_tick"][0] and t.max() >= blocks[-1]["t_tick"][0]
 
 
+def test_window_values_are_drawn_as_the_arrays_they_stand_for(tmp_path: Path) -> None:
+    """The loop sends the signals that hold over a window as one vector; the dashboard must not tell."""
+    window_keys = ("I1", "K", "wn")
+
+    def run(name: str, as_window: bool) -> dict:
+        path = tmp_path / name
+        tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256)).start()
+        assert tp.wait_ready(20.0)
+        for k in range(40):
+            b = _block(k, n=35)
+            b["t_tick"] = b["t"][[16, 33, 34]]                 # three ticks per block
+            for key in ("lateness_us", "overruns"):
+                b[key] = np.repeat(b[key], 3)
+            vals = {key: float(b.pop(key)[0]) for key in window_keys}
+            if k >= 20:
+                vals["zeta"] = 0.01 * k                         # a second set of names half-way
+            if as_window:
+                assert tp.publish(b, vals)
+            else:
+                assert tp.publish({**b, **{key: np.full(3, v) for key, v in vals.items()}})
+        summary = tp.close(timeout=10.0)
+        assert summary["sent"] == 40 and summary["dropped"] == 0 and summary["exitcode"] == 0
+        return _read_rrd(path)
+
+    arrays, window = run("arrays.rrd", False), run("window.rrd", True)
+    for key in window_keys + ("zeta",):
+        ent = dashboard.estimate_path(key)
+        np.testing.assert_array_equal(window[ent][0], arrays[ent][0])
+        np.testing.assert_array_equal(window[ent][1], arrays[ent][1])
+    t, v = window[dashboard.estimate_path("I1")]
+    assert t.size >= 40 and np.array_equal(np.unique(v), 0.01 + np.arange(40))
+    t, v = window[dashboard.estimate_path("zeta")]
+    assert t.min() >= _block(20, n=35)["t"][16] - 1e-12 and v[-1] == pytest.approx(0.39)
+
+
+def test_window_values_need_tick_times_and_tick_signal_names() -> None:
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="/nonexistent/never-started.rrd"))
+    with pytest.raises(DataError, match="t_tick"):
+        tp.publish({"t": np.zeros(3)}, {"I1": 1.0})
+    with pytest.raises(DataError, match="theta1"):
+        tp.publish({"t": np.zeros(3), "t_tick": np.zeros(1)}, {"theta1": 1.0})
+
+
 def test_blocks_are_batched_into_few_chunks_per_entity(tmp_path: Path) -> None:
     """One chunk per entity per batch, not per block: rerun stores each send as a chunk, and tiny
     chunks were most of an .rrd's size."""

@@ -151,8 +151,9 @@ class Supervisor:
 
     # ------------------------------------------------------------------ tick
     def tick(self, t: float, th1: float, w1: float, th2: float, w2: float) -> float:
-        x, v, a = self.reference.at(np.array([t, t + 1.5 * self.tick_s]))
-        xr, vr, ar, a_ff = float(x[0]), float(v[0]), float(a[0]), float(a[1])
+        ref = self.reference
+        xr, vr, ar = ref.point(t)
+        a_ff = ref.point(t + 1.5 * self.tick_s)[2]
         self.t, self.x_ref = t, xr
         self._last_state, self._last_ref = (th1, w1, th2, w2), (xr, vr, ar)
         err = self.lead * th2 - xr

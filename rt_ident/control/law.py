@@ -64,10 +64,12 @@ class StateFeedback:
         self.limit = float(torque_limit)
         self.feedforward = feedforward
         self.controller = controller
-        self._g = np.array(controller.gains, dtype=float)
-        self.delay = self._g.size - 5
+        # gains as floats and the torques in flight as a list: the law is a dozen multiply-adds, and on
+        # numpy scalars and a 1-element array their per-call overhead was most of its cost in the tick
+        self._g = tuple(float(v) for v in np.asarray(controller.gains, dtype=float))
+        self.delay = len(self._g) - 5
         self.xi = 0.0               # integral of the table-angle error [rad s]
-        self.in_flight = np.zeros(self.delay)   # feedback torques in flight, oldest first [N m]
+        self.in_flight = [0.0] * self.delay   # feedback torques in flight, oldest first [N m]
         self.u = 0.0                # last total control torque [N m]
         self.u_ff = 0.0
         self.saturated = 0          # ticks the command hit the limit
@@ -100,8 +102,10 @@ class StateFeedback:
         else:
             self.saturated += 1
         if self.delay > 1:
-            self.in_flight[:-1] = self.in_flight[1:]
-        self.in_flight[-1] = u - u_ff
+            del self.in_flight[0]
+            self.in_flight.append(u - u_ff)
+        else:
+            self.in_flight[-1] = u - u_ff
         self.u_ff = u_ff
         self.u = u
         return u
@@ -111,12 +115,12 @@ class StateFeedback:
         """Adopt ``controller``; returns the feedback torque step it would have caused without
         re-seeding (0 after re-seeding, up to round-off)."""
         old = self.feedback_torque(th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
-        g = np.array(controller.gains, dtype=float)
-        if g.size != self._g.size:
-            raise ValueError(f"controller for a delay of {g.size - 5} ticks, the law runs {self.delay}")
+        g = tuple(float(v) for v in np.asarray(controller.gains, dtype=float))
+        if len(g) != len(self._g):
+            raise ValueError(f"controller for a delay of {len(g) - 5} ticks, the law runs {self.delay}")
         self.controller = controller
         e1, e2, e3, e4 = self._errors(th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
-        rest = g[0] * e1 + g[1] * e2 + g[2] * e3 + g[3] * e4 + float(g[4:-1] @ self.in_flight)
+        rest = g[0] * e1 + g[1] * e2 + g[2] * e3 + g[3] * e4 + _dot(g[4:-1], self.in_flight)
         if abs(g[-1]) > 0.0 and math.isfinite(old):
             self.xi = (-old - rest) / g[-1]          # same feedback torque under the new gains
         self._g = g
@@ -127,4 +131,11 @@ class StateFeedback:
         """The feedback part of the law at this state (no side effects)."""
         g = self._g
         e1, e2, e3, e4 = self._errors(th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
-        return -(g[0] * e1 + g[1] * e2 + g[2] * e3 + g[3] * e4 + float(g[4:-1] @ self.in_flight) + g[-1] * self.xi)
+        return -(g[0] * e1 + g[1] * e2 + g[2] * e3 + g[3] * e4 + _dot(g[4:-1], self.in_flight) + g[-1] * self.xi)
+
+
+def _dot(a, b) -> float:
+    s = 0.0
+    for x, y in zip(a, b):
+        s += x * y
+    return float(s)

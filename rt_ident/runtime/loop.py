@@ -95,6 +95,9 @@ def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
     stats.lateness.record(info.lateness_s)
 
 
+_WINDOW_CI_KEYS = frozenset(("I1", "I2", "B", "K", "wn", "wd", "zeta"))
+
+
 class IdentificationLoop:
     """Joins a backend, a state estimator, a streaming estimator and the hand-offs.
 
@@ -105,7 +108,7 @@ class IdentificationLoop:
     def __init__(self, backend: Backend, *, tick_hz: float, excitation: Callable[[np.ndarray], np.ndarray],
                  state_estimator, estimator, safety: SafetyMonitor, duration: float, fit_worker=None,
                  on_block: Callable[[SampleBlock], None] | None = None,
-                 on_telemetry: Callable[[dict[str, np.ndarray]], None] | None = None,
+                 on_telemetry: Callable[..., Any] | None = None,
                  publish_every: int = 20, telemetry_stride: int = 34,
                  stop_event: threading.Event | None = None, clock: Callable[[], float] = time.perf_counter,
                  tick_hook: Callable[[int], None] | None = None,
@@ -130,6 +133,8 @@ class IdentificationLoop:
         self._shown_controller: Any = None
         self.publish_every = max(1, publish_every)
         self._flush_at = self.publish_every      # ticks in the current telemetry window (MultiAxisLoop staggers)
+        self.fit_phase = 3                       # the fit exchange's 10-tick cycle starts here (_fit_exchange)
+        self._fit_stage: list[Any] = [None, None, None]   # snapshot to send, result to offer, FRF to draw
         self.stride = max(1, telemetry_stride)
         self.stop_event = stop_event or threading.Event()
         self.clock = clock
@@ -147,6 +152,9 @@ class IdentificationLoop:
         self._probe_period = probe_period   # excitation period [samples]: its amplitude changes on period edges
         self._probe = (1.0, 1.0, 0)         # (scale now, scale from seq on, that seq)
         self._plan_len = int(math.ceil(2.0 / (tick_hz * backend.sample_period))) + 2
+        # a periodic probe is tabulated once (a period and a plan's length more): the plan slices it
+        self._ex_table = (None if not probe_period else
+                          np.asarray(excitation(np.arange(probe_period + self._plan_len)), dtype=float))
         hold = getattr(safety, "torque_hold", None)      # the plan's lease (see drivers.base.Backend.write)
         self._lease = None if hold is None else int(math.ceil(hold / backend.sample_period))
         if on_telemetry is not None:
@@ -195,7 +203,7 @@ class IdentificationLoop:
         states = self.kf.filter_block(block.theta1, block.theta2, block.seq)
         if self.est.update_block(block.theta1, block.theta2, torque, block.seq) and self.worker is not None:
             if self.worker.ready:                       # a snapshot only when the worker waits for one
-                self.worker.submit(self.est.snapshot())     # the fit runs in the worker process
+                self._fit_stage[0] = self.est.snapshot()    # taken now, sent on this axis's send tick
             else:
                 self.worker.skipped += 1
         ctl = self.control
@@ -203,15 +211,8 @@ class IdentificationLoop:
             ctl.observe(block.theta1, block.theta2, torque, block.lost > 0 or int(block.seq[0]) != self._next_seq)
         if self.friction is not None:
             self._friction(block, torque, ctl, stats.ticks)
-        if self.worker is not None and stats.ticks % 10 == 0:
-            latest = self.worker.poll()
-            if latest is not None:
-                self.identification = latest
-                stats.estimates += 1
-                if self.on_fit is not None and latest.frf is not None:
-                    self.on_fit(float(block.t[-1]), latest.frf)
-                if ctl is not None:
-                    ctl.offer(latest, bool(latest.trusted))
+        if self.worker is not None:
+            self._fit_exchange(ctl, float(block.t[-1]), stats.ticks)
         if ctl is not None:
             self._control(ctl, block, states)
         self.safety.check(n, float(block.theta1[-1]), float(block.theta2[-1]), float(states.omega[-1, 1]),
@@ -219,6 +220,35 @@ class IdentificationLoop:
         self._next_seq = int(block.seq[-1]) + 1
         if self.on_telemetry is not None:
             self._collect_telemetry(block, states, lateness_s)
+
+    def _fit_exchange(self, ctl, t: float, tick: int) -> None:
+        """The exchange with the fit worker, one step per tick of a 10-tick cycle: send the snapshot
+        taken at the end of an excitation period, look for a result, hand a result to the
+        controller, draw its FRF. Each step costs tens of microseconds (pickling, unpickling,
+        cross-checks, copying the view); done on one tick they and a telemetry hand-off made the
+        tick's p99. ``fit_phase`` shifts the cycle (MultiAxisLoop gives each axis its own ticks)."""
+        step = (tick - self.fit_phase) % 10
+        stage = self._fit_stage
+        if step == 0:
+            if stage[0] is not None:
+                self.worker.submit(stage[0])            # the fit runs in the worker process
+                stage[0] = None
+        elif step == 1:
+            latest = self.worker.poll()
+            if latest is not None:
+                self.identification = latest
+                self.stats.estimates += 1
+                stage[1] = latest
+        elif step == 2:
+            latest, stage[1] = stage[1], None
+            if latest is not None:
+                if ctl is not None:
+                    ctl.offer(latest, bool(latest.trusted))
+                stage[2] = latest
+        elif step == 3:
+            latest, stage[2] = stage[2], None
+            if latest is not None and self.on_fit is not None and latest.frf is not None:
+                self.on_fit(t, latest.frf)
 
     _FRICTION_EVERY = 100   # ticks between friction estimates handed to the controller's feedforward
 
@@ -257,20 +287,35 @@ class IdentificationLoop:
         sched.append((last + 1 + ctl.law.delay * self._per_tick, u))
 
     def _write_plan(self) -> None:
-        start = self._next_seq
-        seq = np.arange(start, start + self._plan_len)
-        torque = self.excitation(seq)
+        start, n = self._next_seq, self._plan_len
+        torque = self._excitation_window(start)
         ctl = self.control
         if ctl is not None:
             self._probe_amplitude(ctl.probe_scale, start)
             now, later, edge = self._probe
             if now != 1.0 or later != 1.0:
-                torque *= np.where(seq < edge, now, later)
-            u = np.full(seq.shape, self._u_base)
+                cut = min(max(edge - start, 0), n)
+                torque[:cut] *= now
+                torque[cut:] *= later
+            torque += self._u_base                      # the control torque: piecewise constant over the plan
+            level = self._u_base
             for first, value in self._u_sched:
-                u[seq >= first] = value
-            torque += u
+                cut = max(first - start, 0)
+                if cut >= n:
+                    break
+                torque[cut:] += value - level
+                level = value
         self.backend.write(torque, start_seq=start, lease=self._lease)
+
+    def _excitation_window(self, start: int) -> np.ndarray:
+        """The probing excitation for seq [start, start + plan length), a new array. A periodic
+        excitation (``probe_period`` given) is read from one period tabulated up front, as a slice."""
+        n = self._plan_len
+        table = self._ex_table
+        if table is None:
+            return np.array(self.excitation(np.arange(start, start + n)), dtype=float)
+        i = start % self._probe_period
+        return table[i:i + n].copy()
 
     def _probe_amplitude(self, want: float, start: int) -> None:
         """Dual excitation: the probing amplitude follows ``want`` from the next period edge on
@@ -344,8 +389,10 @@ class IdentificationLoop:
     def _flush_telemetry(self) -> None:
         """Publish the window: the decimated samples, per-tick lateness and the current estimate.
 
-        ``on_telemetry`` gets views of the window buffers, valid only during the call (it copies,
-        as :meth:`rt_ident.runtime.telemetry.TelemetryProcess.publish` does into its ring).
+        ``on_telemetry(block)`` gets the samples, then ``on_telemetry(ticks, window)`` the per-tick
+        signals and, in ``window`` (name -> float), those that hold one value over the whole window.
+        The arrays are views of the window buffers, valid only during the call (it copies, as
+        :meth:`rt_ident.runtime.telemetry.TelemetryProcess.publish` does into its ring).
         """
         if self.on_telemetry is None or (self._tel_n == 0 and self._tick_n == 0):
             return
@@ -354,39 +401,42 @@ class IdentificationLoop:
             out = {key: v[:n] for key, v in self._tel_buf.items() if key != "torque_hat" or self._tel_hat_ok}
             self.on_telemetry(out)
         if k:
-            tick = {"t": self._tick_t[:k], "t_tick": self._tick_t[:k], "lateness_us": self._tick_late[:k],
-                    "overruns": np.full(k, float(self.stats.overruns))}
+            tick = {"t": self._tick_t[:k], "t_tick": self._tick_t[:k], "lateness_us": self._tick_late[:k]}
+            # the signals that hold one value over the window go as one vector (``window``), not as
+            # ~35 arrays of k equal values: building and copying those was most of a window's hand-off
+            win: dict[str, float] = {"overruns": float(self.stats.overruns)}
             ident = self.identification
             if ident is not None:
-                for key in ("I1", "I2", "B", "K"):
-                    tick[key] = np.full(k, getattr(ident.params, key))
-                for key in ("wn", "wd", "zeta"):
-                    tick[key] = np.full(k, ident.modal[key])
+                p = ident.params
+                win["I1"], win["I2"], win["B"], win["K"] = p.I1, p.I2, p.B, p.K
+                modal = ident.modal
+                win["wn"], win["wd"], win["zeta"] = modal["wn"], modal["wd"], modal["zeta"]
                 for key, (lo, hi) in (ident.ci95 or {}).items():
-                    if key in ("I1", "I2", "B", "K", "wn", "wd", "zeta"):
-                        tick[f"lo_{key}"] = np.full(k, lo)
-                        tick[f"hi_{key}"] = np.full(k, hi if math.isfinite(hi) else np.nan)
+                    if key in _WINDOW_CI_KEYS:
+                        win[f"lo_{key}"] = lo
+                        win[f"hi_{key}"] = hi if math.isfinite(hi) else math.nan
             ctl = self.control
             if ctl is not None:
-                tick.update({key: v[:k] for key, v in self._tick_ctl.items()})
+                for key, v in self._tick_ctl.items():
+                    tick[key] = v[:k]
                 st, c = ctl.stats, ctl.controller
                 if self.on_loop_gain is not None and c is not self._shown_controller:
                     self._shown_controller = c
                     self.on_loop_gain(float(self._tick_t[k - 1]), c.loop_view,
                                       {"pm_deg": (c.margins or {}).get("pm_deg"), "gm_db": c.gain_margin_db})
-                tick["n_accepted"] = np.full(k, float(st.accepted))
-                tick["n_rejected"] = np.full(k, float(st.rejected))
-                tick["fallbacks"] = np.full(k, float(st.fallbacks))
-                tick["gain_theta2"] = np.full(k, float(c.gains[2]))
-                tick["gain_omega1"] = np.full(k, float(c.gains[1]))
+                win["n_accepted"] = float(st.accepted)
+                win["n_rejected"] = float(st.rejected)
+                win["fallbacks"] = float(st.fallbacks)
+                win["gain_theta2"] = float(c.gains[2])
+                win["gain_omega1"] = float(c.gains[1])
                 pm = (c.margins or {}).get("pm_deg")
-                tick["pm_deg"] = np.full(k, np.nan if pm is None else float(pm))
-                tick["gm_db"] = np.full(k, float(c.gain_margin_db))
+                win["pm_deg"] = math.nan if pm is None else float(pm)
+                win["gm_db"] = float(c.gain_margin_db)
                 svf = getattr(ctl, "per_sample", None)
                 if svf is not None:
                     for key, v in svf.values().items():
-                        tick[f"svf_{key}"] = np.full(k, v)
-            self.on_telemetry(tick)
+                        win[f"svf_{key}"] = v
+            self.on_telemetry(tick, win)
         self._tel_n = self._tick_n = 0
         self._tel_hat_ok = True
 
@@ -425,6 +475,8 @@ class MultiAxisLoop:
             # the axes' telemetry windows end on different ticks: a window's hand-off to the telemetry
             # process (~200 us) is the tick's largest single cost, and all axes at once set its p99
             ax._flush_at = max(1, ax.publish_every * (i + 1) // len(axes))
+            # ... and their fit exchanges (four steps in a 10-tick cycle) on other ticks still
+            ax.fit_phase = 1 + (4 * i) % 9
         last_cpu = 0.0
         spent = [0.0] * len(axes)
         self.ticker.start()

@@ -252,6 +252,11 @@ class MessageRing:
         return out
 
     @staticmethod
+    def is_object(msg: Mapping[str, np.ndarray]) -> bool:
+        """Whether ``msg`` was sent with :meth:`put_object`."""
+        return _OBJECT_KEY in msg
+
+    @staticmethod
     def unpickle(msg: Mapping[str, np.ndarray]) -> Any:
         """The object of a :meth:`put_object` message."""
         return pickle.loads(msg[_OBJECT_KEY].tobytes())

@@ -67,6 +67,9 @@ STEP_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("overruns", "g
 _MAX_COALESCE = 256  # blocks taken from the ring per poll
 _MAX_PENDING = 2048  # blocks held in the child before a send even if batch_seconds has not passed
 _TRUTH = "truth:"    # key prefix of a truth message in the ring
+_WINDOW = "window"           # the window values of a tick block (publish(window=...)), one vector
+_WINDOW_ID = "window_id"     # ... and the id of their names, sent before as {_WINDOW_SCHEMA: (id, names)}
+_WINDOW_SCHEMA = "window_schema"
 _VIEWS = ("frf:", "lg:")  # key prefixes of a fit's FRF view and of a controller's loop-gain view
 _NRMSE_WINDOW_S = 1.0  # Eq. 18 reconstruction NRMSE over the last second of samples
 # Every send_columns is a chunk of its own (~1-2 kB of overhead in the .rrd). A step signal that did
@@ -420,6 +423,18 @@ def _disk_full(path: str | None, min_free: int) -> str | None:
     return None
 
 
+def _expand_window(m: dict[str, np.ndarray], schemas: Mapping[int, tuple[str, ...]]) -> None:
+    """A tick block's window vector back into one array per name, its value at every tick."""
+    values = m.pop(_WINDOW)
+    names = schemas.get(int(m.pop(_WINDOW_ID)[0]))
+    if names is None:                                  # cannot happen: the names go first, in order
+        log.warning("telemetry: window values without their names; dropped")
+        return
+    n = m["t_tick"].shape[0]
+    for name, v in zip(names, values):
+        m[name] = np.full(n, v)
+
+
 def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: Any, truth: dict[str, float],
                     failed: Any = None) -> None:
     """Body of the telemetry process: poll the ring, send what is there, stop when the writer closes
@@ -438,11 +453,20 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     truth = dict(truth)
     sender = _Sender(rec, rr)
     pending: list[dict[str, np.ndarray]] = []
+    schemas: dict[int, tuple[str, ...]] = {}      # window id -> its names (publish(window=...))
     last_send = time.monotonic()
     while True:
         closed = ring.writer_closed or watch.gone   # read before draining: nothing can follow a close
         msgs = ring.get(_MAX_COALESCE)
         for m in msgs:
+            if MessageRing.is_object(m):
+                obj = MessageRing.unpickle(m)
+                if isinstance(obj, dict) and _WINDOW_SCHEMA in obj:
+                    wid, names = obj[_WINDOW_SCHEMA]
+                    schemas[int(wid)] = tuple(names)
+                continue
+            if _WINDOW in m:
+                _expand_window(m, schemas)
             if any(k.startswith(_TRUTH) for k in m):
                 truth.update({k[len(_TRUTH):]: float(v[0]) for k, v in m.items()})
             elif any(k.startswith(_VIEWS) for k in m):
@@ -498,6 +522,7 @@ class TelemetryProcess:
         self._ready: Any = None
         self._truth: dict[str, float] = {}
         self._truth_pending = False
+        self._schemas: dict[tuple[str, ...], int] = {}   # window names sent to the child -> their id
         self._closed = False
         self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
         self._sent_before = 0
@@ -646,19 +671,42 @@ class TelemetryProcess:
                 out[key] = a[start::dec] if dec > 1 else a
         return out
 
-    def publish(self, block: Mapping[str, Any]) -> bool:
+    def publish(self, block: Mapping[str, Any], window: Mapping[str, float] | None = None) -> bool:
         """Queue one block without waiting. False (and ``dropped`` += 1) if it could not be queued.
+
+        ``window``: tick signals (keys of ``TICK_KEYS``) that hold one value at every tick of the
+        block's ``t_tick``, as name -> float. They travel as one vector (their names once, when the
+        set of names changes) and are drawn exactly as if each were an array of that value.
 
         With ``sink == "off"`` the block is accepted and discarded (True, no counters change).
         """
         if self.config.sink == "off":
             return True
         msg = self._prepare(block)
+        schema = None
+        if window:
+            if "t_tick" not in msg:
+                raise DataError("publish(): window values need the block's 't_tick'")
+            names = tuple(window)
+            wid = self._schemas.get(names)
+            if wid is None:
+                bad = [k for k in names if k not in TICK_KEYS or k in msg]
+                if bad:
+                    raise DataError(f"publish(): window key {bad[0]!r} is not a tick signal or is also in the block")
+                wid = len(self._schemas)
+                schema = {_WINDOW_SCHEMA: (wid, names)}
+            msg[_WINDOW_ID] = np.array([wid], dtype=np.int64)
+            msg[_WINDOW] = np.fromiter(window.values(), dtype=np.float64, count=len(names))
         if self._ring is None or self._closed:
             self._dropped += 1
             return False
         if self._truth_pending:
             self._push_truth()
+        if schema is not None:
+            if not self._ring.put_object(schema):
+                self._dropped += 1
+                return False
+            self._schemas[names] = wid      # the child has the names before the first vector that uses them
         if not self._ring.put(msg):
             self._dropped += 1
             return False
