@@ -237,26 +237,43 @@ class Recorder:
         self.close()
 
 
-def _block_columns(block: Any) -> dict[str, np.ndarray]:
-    """The recording columns of a SampleBlock or a mapping (``torque_meas`` left out when None)."""
-    if isinstance(block, Mapping):
-        values = [block.get(name, None) for name in COLUMNS]
+def _block_message(block: Any) -> dict[str, np.ndarray]:
+    """A SampleBlock or a mapping as one ring message: ``seq`` (int64) and ``floats``, the float
+    columns of ``COLUMNS`` back to back (``torque_meas`` left out when None). Two fields instead of
+    six: each field of a message is a few microseconds of the loop's tick (:func:`_message_columns`
+    undoes it in the recorder)."""
+    # a dict or another mapping, else a SampleBlock (checked in this order: for a SampleBlock, typing's
+    # isinstance(block, Mapping) alone cost microseconds of the tick)
+    if isinstance(block, dict) or (not hasattr(block, "seq") and isinstance(block, Mapping)):
+        get = block.get
     else:
-        values = [getattr(block, name, None) for name in COLUMNS]
-    cols: dict[str, np.ndarray] = {}
-    n = None
-    for name, v in zip(COLUMNS, values):
+        get = (lambda name, _d=None: getattr(block, name, None))
+    seq = get("seq", None)
+    if seq is None:
+        raise DataError("RecorderProcess.put(): block has no 'seq'")
+    seq = np.asarray(seq, dtype=np.int64)
+    parts = []
+    for name in _FLOAT_COLUMNS:
+        v = get(name, None)
         if v is None:
             if name != COLUMNS[-1]:
                 raise DataError(f"RecorderProcess.put(): block has no {name!r}")
             continue
-        a = np.asarray(v, dtype=np.int64 if name == "seq" else np.float64)
-        if n is None:
-            n = a.shape
-        elif a.shape != n:  # checked here so that a bad block fails in the caller, not in the recorder
-            raise DataError(f"RecorderProcess.put(): {name!r} has shape {a.shape}, 't' has {n}")
-        cols[name] = a
-    return cols
+        a = np.asarray(v, dtype=np.float64)
+        if a.shape != seq.shape:  # checked here so that a bad block fails in the caller, not in the recorder
+            raise DataError(f"RecorderProcess.put(): {name!r} has shape {a.shape}, 'seq' has {seq.shape}")
+        parts.append(a)
+    return {"seq": seq, "floats": np.concatenate(parts)}
+
+
+_FLOAT_COLUMNS = tuple(c for c in COLUMNS if c != "seq")
+
+
+def _message_columns(m: Mapping[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """(t, seq, theta1, theta2, torque_cmd, torque_meas or None) of a :func:`_block_message`."""
+    seq = m["seq"]
+    f = m["floats"].reshape(-1, seq.shape[0]) if seq.shape[0] else np.empty((len(_FLOAT_COLUMNS) - 1, 0))
+    return f[0], seq, f[1], f[2], f[3], (f[4] if f.shape[0] > 4 else None)
 
 
 def _os_reason(exc: OSError, path: str) -> str:
@@ -296,7 +313,7 @@ def _recorder_main(
             closed = ring.writer_closed or watch.gone
             msgs = ring.get()
             for m in msgs:
-                rec.append(m["t"], m["seq"], m["theta1"], m["theta2"], m["torque_cmd"], m.get("torque_meas"))
+                rec.append(*_message_columns(m))
             if rec.flush_if_due(time.monotonic()):
                 rows_written.value = rec.rows_written
             if closed and not msgs:
@@ -443,7 +460,7 @@ class RecorderProcess:
 
     def put(self, block: Any) -> None:
         """Hand one block (``SampleBlock`` or mapping with the recording columns) to the recorder."""
-        cols = _block_columns(block)
+        cols = _block_message(block)
         if self._closed or self._ring is None:
             raise RtIdentError("RecorderProcess.put(): not started or already closed")
         self._check_alive()
