@@ -310,3 +310,50 @@ def test_a_resonance_above_nyquist_is_not_taken_for_its_alias():
     r = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt, period=N)
     err = _err(r, p)
     assert np.max(np.abs(err)) < 0.01, err
+
+
+def test_fit_worker_sends_the_frf_view_at_most_every_view_interval():
+    import time
+
+    from rt_ident.estimators.streaming import make_streaming
+    from rt_ident.runtime.fit_worker import make_fit_worker
+
+    p, dt, N = thomson_x(), 2.5e-4, 512
+    ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
+    blk = PlantSimulator(p, dt, controller=HoldController(), seed=4).step_block(ms.periodic(5))
+    est = make_streaming("frequency", dt=dt, period=N, band=(int(ms.harmonics[0]), int(ms.harmonics[-1])),
+                         warmup_periods=1, lead=p.lead)
+    est.update_block(blk.theta1, blk.theta2, blk.torque_meas, np.arange(blk.theta1.size))
+    snap = est.snapshot()
+    worker = make_fit_worker("frequency", lead=p.lead, min_interval=0.0, view_interval=60.0).start()
+    got = []
+    try:
+        deadline = time.monotonic() + 60.0
+        while len(got) < 3 and time.monotonic() < deadline:
+            if worker.ready:
+                worker.submit(snap)
+            r = worker.poll()
+            if r is not None:
+                got.append(r)
+            time.sleep(0.01)
+    finally:
+        worker.close(timeout=5.0)
+    assert len(got) == 3 and worker.errors == 0
+    assert got[0].frf is not None and set(got[0].frf) >= {"f_meas", "g1_db"}     # the first view goes out
+    assert got[1].frf is None and got[2].frf is None                             # then not for 60 s
+    assert got[1].params == got[0].params                                        # the fit itself comes every time
+
+
+def test_spectra_sent_as_fields_come_back_bit_for_bit():
+    from rt_ident.estimators.frequency import Spectra
+
+    rng = np.random.default_rng(3)
+    H = 7
+    sp = Spectra(np.arange(2, 2 + H), 512, 2.5e-4, rng.normal(size=(3, H)) + 1j * rng.normal(size=(3, H)),
+                 rng.normal(size=(H, 3, 3)) + 1j * rng.normal(size=(H, 3, 3)), 5.5, 4.25, 6, np.array([1e-5, 2e-7]))
+    back = Spectra.from_fields({k: v.copy() for k, v in sp.to_fields().items()})
+    assert back.N == sp.N and back.dt == sp.dt and back.periods == sp.periods
+    assert (back.weight, back.weight2) == (sp.weight, sp.weight2)
+    for name in ("harmonics", "mean", "cov", "quantum"):
+        a, b = getattr(sp, name), getattr(back, name)
+        assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)

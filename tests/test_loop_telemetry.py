@@ -33,17 +33,19 @@ def _block(start: int, n: int) -> SampleBlock:
 def test_a_window_publishes_every_stride_th_sample_and_each_ticks_lateness():
     published: list = []
     loop = _loop(published)
-    blocks = [_block(100 * k, 100) for k in range(4)]
-    for k, b in enumerate(blocks):
+    blocks = [_block(100 * k, 100) for k in range(5)]
+    for k, b in enumerate(blocks[:4]):
         loop._collect_telemetry(b, None, lateness_s=k * 1e-6)
-    samples, ticks = published
-    t_all = np.concatenate([b.t for b in blocks])
-    np.testing.assert_array_equal(samples["t"], np.concatenate([b.t[::10] for b in blocks]))
+    (samples,) = published                     # the window's samples at its end ...
+    loop._collect_telemetry(blocks[4], None, lateness_s=4e-6)
+    ticks = published[1]                       # ... its per-tick signals one tick later (with that tick)
+    np.testing.assert_array_equal(samples["t"], np.concatenate([b.t[::10] for b in blocks[:4]]))
     np.testing.assert_array_equal(samples["theta1"], np.sin(samples["t"]))
     assert samples["t"].size == 40 and "torque_hat" not in samples      # no estimate yet: no Eq. 18 torque
-    np.testing.assert_allclose(ticks["lateness_us"], [0.0, 1.0, 2.0, 3.0])
+    np.testing.assert_allclose(ticks["lateness_us"], [0.0, 1.0, 2.0, 3.0, 4.0])
     np.testing.assert_array_equal(ticks["t_tick"], [b.t[-1] for b in blocks])
-    assert ticks["t_tick"][-1] == t_all[-1]
+    loop._flush_telemetry()                    # the run's end: what is left goes, nothing twice
+    assert len(published) == 2 + 1 and published[2]["t"].size == 10 and "t_tick" not in published[2]
 
 
 def test_a_burst_after_a_stall_flushes_first_and_keeps_its_newest_samples():
@@ -60,3 +62,30 @@ def test_a_burst_after_a_stall_flushes_first_and_keeps_its_newest_samples():
     expect = burst.t[::10][-cap:]
     np.testing.assert_array_equal(second["t"], expect)
     assert np.all(np.diff(second["t"]) > 0)
+
+
+def test_one_sample_a_tick_keeps_each_blocks_first_sample_and_its_eq18_torque():
+    from types import SimpleNamespace
+
+    from rt_ident.axis.modal import modal_parameters
+    from rt_ident.axis.params import thomson_x
+
+    published: list = []
+    loop = _loop(published)
+    loop.stride = 100                                  # one sample of each 100-sample tick
+    p = thomson_x()
+    loop.identification = SimpleNamespace(params=p, modal=modal_parameters(p), ci95=None)
+    rng = np.random.default_rng(1)
+    blocks, states = [], []
+    for k in range(4):
+        blocks.append(_block(100 * k, 100))
+        states.append(SimpleNamespace(theta=rng.normal(size=(100, 2)), omega=rng.normal(size=(100, 2)),
+                                      alpha=rng.normal(size=(100, 2))))
+        loop._collect_telemetry(blocks[-1], states[-1], 0.0)
+    samples = published[0]
+    np.testing.assert_array_equal(samples["t"], [b.t[0] for b in blocks])
+    np.testing.assert_array_equal(samples["theta2"], [b.theta2[0] for b in blocks])
+    np.testing.assert_array_equal(samples["torque_cmd"], [b.torque_cmd[0] for b in blocks])
+    want = [p.I1 * st.alpha[0, 0] + p.B * (st.omega[0, 0] - st.omega[0, 1]) + p.K * (st.theta[0, 0] - st.theta[0, 1])
+            for st in states]
+    np.testing.assert_allclose(samples["torque_hat"], want, rtol=1e-15, atol=0)

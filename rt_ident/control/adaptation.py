@@ -228,6 +228,8 @@ class Supervisor:
 
     def _cross_check(self, ident, trusted: bool) -> tuple[AxisParams | None, Any, bool, str | None]:
         """(estimate, its 95 % intervals, trusted, why it diverged) for a new frequency fit ``ident``.
+        The intervals may be a callable that computes them (they cost ~60 us and are needed only for
+        a redesign).
 
         With a per-sample estimator, *it* is the estimate the controller follows, and it is trusted
         when the frequency fit (independent data use, the worker's Gauss-Newton) agrees with it within
@@ -247,7 +249,7 @@ class Supervisor:
         st = self.stats
         if rel <= self.s.trust_tolerance:
             st.checks_agreed += 1
-            return p, est.ci95(), True, None
+            return p, est.ci95, True, None        # the intervals (a 4x4 inverse) only if a redesign is asked
         st.checks_disagreed += 1
         st.last_disagreement = f"t={self.t:.3f} s: {worst} per-sample {getattr(p, worst):.4g} vs frequency fit " \
                                f"{getattr(ident.params, worst):.4g} ({100 * rel:.1f} %)"
@@ -277,6 +279,8 @@ class Supervisor:
         if not self.worker.ready:
             return
         self._req += 1
+        if callable(ci95):
+            ci95 = ci95()
         req = {"params": {**{k: float(getattr(params, k)) for k in KEYS}, "lead": float(params.lead)},
                "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}

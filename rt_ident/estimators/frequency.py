@@ -100,6 +100,23 @@ class Spectra:
         return cls(np.asarray(harmonics), int(N), float(dt), mean, cov, float(W), float(W2),
                    int(periods), np.asarray(quantum, float))
 
+    def to_fields(self) -> dict[str, np.ndarray]:
+        """The spectra as flat arrays (a shared-memory ring message, :meth:`from_fields` undoes it):
+        the loop hands a snapshot to the fit worker this way, without pickling it."""
+        return {"harmonics": np.ascontiguousarray(self.harmonics, dtype=np.int64),
+                "mean": np.ascontiguousarray(self.mean, dtype=complex).view(np.float64).ravel(),
+                "cov": np.ascontiguousarray(self.cov, dtype=complex).view(np.float64).ravel(),
+                "quantum": np.asarray(self.quantum, dtype=np.float64).ravel(),
+                "scalars": np.array([self.N, self.dt, self.weight, self.weight2, self.periods], dtype=np.float64)}
+
+    @classmethod
+    def from_fields(cls, f: dict[str, np.ndarray]) -> "Spectra":
+        h = np.asarray(f["harmonics"], dtype=np.int64)
+        N, dt, W, W2, periods = (float(v) for v in f["scalars"])
+        mean = np.ascontiguousarray(f["mean"], dtype=np.float64).view(complex).reshape(3, h.size)
+        cov = np.ascontiguousarray(f["cov"], dtype=np.float64).view(complex).reshape(h.size, 3, 3)
+        return cls(h, int(N), dt, mean, cov, W, W2, int(periods), np.asarray(f["quantum"], dtype=np.float64))
+
 
 def detect_period(x: np.ndarray, *, min_period: int = 4, threshold: float = 0.8) -> int:
     """Period in samples of a periodic signal, from its autocorrelation.

@@ -9,10 +9,13 @@ both ways through shared-memory rings (:mod:`rt_ident.runtime.shm_ring`).
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing as mp
 from dataclasses import dataclass
 from functools import partial
 from typing import Any, Callable
+
+import numpy as np
 
 from rt_ident.estimators.streaming import fit_snapshot
 from rt_ident.runtime.helper_guard import become_helper, start_ignoring_signals
@@ -23,10 +26,13 @@ log = logging.getLogger(__name__)
 _WORKER_POLL_S = 0.002  # fit worker: sleep between polls of an empty inbox
 
 
-def _worker_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing, min_interval: float) -> None:
+def _worker_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing, min_interval: float,
+                 view_interval: float = 0.0) -> None:
+    import dataclasses
     import time
 
     watch = become_helper()
+    last_view = -math.inf
     inbox.flag = 1                                   # ready for a snapshot
     while True:
         if watch.gone:                               # the run's main process died: nobody to answer
@@ -38,12 +44,19 @@ def _worker_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageR
             time.sleep(_WORKER_POLL_S)
             continue
         inbox.flag = 0                               # busy: the loop keeps its snapshots
-        _, snap = inbox.get_object()
+        snap = _decode(inbox.get(1)[0])
         t0 = time.monotonic()
         try:
             result: Any = job(snap)
         except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
             result = exc
+        if getattr(result, "frf", None) is not None and dataclasses.is_dataclass(result):
+            # the dashboard's FRF view is 16 of a result's 17 kB: unpickling it cost the loop's tick
+            # ~100 us, and the dashboard draws one at most every few seconds - send one that often
+            if time.monotonic() - last_view < view_interval:
+                result = dataclasses.replace(result, frf=None)
+            else:
+                last_view = time.monotonic()
         try:
             ok = outbox.put_object(result)
         except Exception as exc:  # noqa: BLE001 - e.g. an exception that does not pickle
@@ -55,6 +68,24 @@ def _worker_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageR
         while time.monotonic() - t0 < min_interval and not inbox.writer_closed:
             time.sleep(0.01)
         inbox.flag = 1
+
+
+_CODECS = ("Spectra",)   # snapshot classes sent as their fields (to_fields / from_fields)
+_CODEC = "codec"     # ring key naming the class of a snapshot sent as its fields (see JobWorker.submit)
+
+
+def _decoders() -> dict[str, Callable[[dict], Any]]:
+    from rt_ident.estimators.frequency import Spectra
+
+    return {"Spectra": Spectra.from_fields}
+
+
+def _decode(msg: dict) -> Any:
+    """A snapshot from its ring message: pickled, or as the fields of a class with ``from_fields``."""
+    if MessageRing.is_object(msg):
+        return MessageRing.unpickle(msg)
+    name = bytes(msg.pop(_CODEC)).decode("ascii")
+    return _decoders()[name](msg)
 
 
 @dataclass
@@ -70,6 +101,7 @@ class JobWorker:
     job: Callable[[Any], Any]       # picklable (a module-level function or a partial of one)
     name: str = "rt_ident-job"
     min_interval: float = 0.25      # s between jobs
+    view_interval: float = 0.0      # s between results that keep their ``frf`` view (others: frf=None)
     ring_bytes: int = 4 << 20       # per direction; a snapshot is a few kB
 
     def __post_init__(self) -> None:
@@ -84,7 +116,8 @@ class JobWorker:
         ctx = mp.get_context("spawn")
         self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
         self._out = MessageRing(self.ring_bytes, ctx=ctx)
-        self._proc = ctx.Process(target=_worker_main, args=(self.job, self._in, self._out, self.min_interval),
+        self._proc = ctx.Process(target=_worker_main, args=(self.job, self._in, self._out, self.min_interval,
+                                                                 self.view_interval),
                                  name=self.name, daemon=True)
 
     def start(self) -> "JobWorker":
@@ -137,16 +170,37 @@ class JobWorker:
         """Send ``snap`` if the worker is ready for it (True), else count it as skipped."""
         if snap is None:
             return False
-        if not self.ready or not self._in.put_object(snap):
+        if not self.ready or not self._put(snap):
             self.skipped += 1
             return False
         return True
 
+    def _put(self, snap: Any) -> bool:
+        # a snapshot class the worker knows goes as flat arrays: pickling a Spectra cost the loop's
+        # tick ~100 us (its arrays through pickle's reduce machinery), its fields a few
+        name = type(snap).__name__
+        if hasattr(snap, "to_fields") and name in _CODECS:
+            fields = snap.to_fields()
+            fields[_CODEC] = np.frombuffer(name.encode("ascii"), dtype=np.uint8)
+            return self._in.put(fields)
+        return self._in.put_object(snap)
+
     def poll(self) -> Any:
         """The newest result the worker has returned since the last poll, or None."""
+        return self.unpack(self.take())
+
+    def take(self) -> list:
+        """The results returned since the last call, still packed (:meth:`unpack` opens them): the
+        loop takes them on one tick and unpickles them on the next, each step tens of microseconds."""
         if not self._out.pending_messages:
+            return []
+        return self._out.get()
+
+    def unpack(self, msgs: list) -> Any:
+        """The newest result of ``msgs`` (from :meth:`take`), or None; counts fits and errors."""
+        if not msgs:
             return None
-        return newest_result(self, (MessageRing.unpickle(msg) for msg in self._out.get()))
+        return newest_result(self, (MessageRing.unpickle(msg) for msg in msgs))
 
     def close(self, timeout: float = 5.0) -> None:
         self._in.close_writer()
@@ -171,7 +225,8 @@ def newest_result(worker: Any, items: Any) -> Any:
 
 
 def make_fit_worker(method: str, hold: str = "zoh", lead: float = 7.96e-4, min_interval: float = 0.25,
-              ring_bytes: int = 4 << 20) -> JobWorker:
-    """The fit worker: :func:`rt_ident.estimators.streaming.fit_snapshot` of one method, per snapshot."""
+              ring_bytes: int = 4 << 20, view_interval: float = 2.0) -> JobWorker:
+    """The fit worker: :func:`rt_ident.estimators.streaming.fit_snapshot` of one method, per snapshot.
+    A fit's FRF view (for the dashboard) comes back at most every ``view_interval`` seconds."""
     return JobWorker(partial(fit_snapshot, method, hold=hold, lead=lead), name="rt_ident-fit",
-                     min_interval=min_interval, ring_bytes=ring_bytes)
+                     min_interval=min_interval, ring_bytes=ring_bytes, view_interval=view_interval)

@@ -134,7 +134,8 @@ class IdentificationLoop:
         self.publish_every = max(1, publish_every)
         self._flush_at = self.publish_every      # ticks in the current telemetry window (MultiAxisLoop staggers)
         self.fit_phase = 3                       # the fit exchange's 10-tick cycle starts here (_fit_exchange)
-        self._fit_stage: list[Any] = [None, None, None]   # snapshot to send, result to offer, FRF to draw
+        # snapshot to send, results taken, result to offer, FRF to draw (_fit_exchange)
+        self._fit_stage: list[Any] = [None, None, None, None]
         self.stride = max(1, telemetry_stride)
         self.stop_event = stop_event or threading.Event()
         self.clock = clock
@@ -223,10 +224,10 @@ class IdentificationLoop:
 
     def _fit_exchange(self, ctl, t: float, tick: int) -> None:
         """The exchange with the fit worker, one step per tick of a 10-tick cycle: send the snapshot
-        taken at the end of an excitation period, look for a result, hand a result to the
-        controller, draw its FRF. Each step costs tens of microseconds (pickling, unpickling,
-        cross-checks, copying the view); done on one tick they and a telemetry hand-off made the
-        tick's p99. ``fit_phase`` shifts the cycle (MultiAxisLoop gives each axis its own ticks)."""
+        taken at the end of an excitation period; take a result from the worker's ring; unpickle
+        it; hand it to the controller; draw its FRF. Each step costs tens of microseconds; done on
+        one tick they and a telemetry hand-off made the tick's p99. ``fit_phase`` shifts the cycle
+        (MultiAxisLoop gives each axis its own ticks)."""
         step = (tick - self.fit_phase) % 10
         stage = self._fit_stage
         if step == 0:
@@ -234,19 +235,22 @@ class IdentificationLoop:
                 self.worker.submit(stage[0])            # the fit runs in the worker process
                 stage[0] = None
         elif step == 1:
-            latest = self.worker.poll()
+            stage[1] = self.worker.take() if hasattr(self.worker, "take") else self.worker.poll()
+        elif step == 2:
+            got, stage[1] = stage[1], None
+            latest = self.worker.unpack(got) if isinstance(got, list) else got
             if latest is not None:
                 self.identification = latest
                 self.stats.estimates += 1
-                stage[1] = latest
-        elif step == 2:
-            latest, stage[1] = stage[1], None
-            if latest is not None:
-                if ctl is not None:
-                    ctl.offer(latest, bool(latest.trusted))
                 stage[2] = latest
         elif step == 3:
             latest, stage[2] = stage[2], None
+            if latest is not None:
+                if ctl is not None:
+                    ctl.offer(latest, bool(latest.trusted))
+                stage[3] = latest
+        elif step == 4:
+            latest, stage[3] = stage[3], None
             if latest is not None and self.on_fit is not None and latest.frf is not None:
                 self.on_fit(t, latest.frf)
 
@@ -339,12 +343,61 @@ class IdentificationLoop:
         self._tel_buf = {k: np.empty(cap) for k in self._SAMPLE_KEYS}
         self._tel_n = 0
         self._tel_hat_ok = True
-        self._tick_t = np.empty(self.publish_every)
-        self._tick_late = np.empty(self.publish_every)
-        self._tick_ctl = {k: np.empty(self.publish_every) for k in self._CONTROL_TICK_KEYS}
+        self._tick_t = np.empty(self.publish_every + 1)          # a tick window may be one tick longer
+        self._tick_late = np.empty(self.publish_every + 1)
+        self._tick_ctl = {k: np.empty(self.publish_every + 1) for k in self._CONTROL_TICK_KEYS}
         self._tick_n = 0
+        self._win_ticks = 0                     # ticks in the current sample window
+        self._win_next: dict[str, float] | None = None      # window values gathered for the next tick
+        self._win_ident: tuple[Any, dict[str, float]] = (None, {})   # the estimate's window values
 
     def _collect_telemetry(self, block: SampleBlock, states, lateness_s: float) -> None:
+        if len(block) <= self.stride and self._tel_n < self._tel_buf["t"].shape[0]:
+            self._collect_one(block, states)        # the usual tick at the usual rate: one sample kept
+        else:
+            self._collect_slices(block, states)
+        k = self._tick_n
+        self._tick_t[k] = block.t[-1]
+        self._tick_late[k] = lateness_s * 1e6
+        ctl = self.control
+        if ctl is not None:
+            c = self._tick_ctl
+            c["x_ref"][k] = ctl.x_ref
+            c["x_table"][k] = ctl.x_ref + ctl.error
+            c["error_m"][k] = ctl.error
+            c["u_control"][k] = ctl.law.u
+        self._tick_n = k + 1
+        self._win_ticks += 1
+        # the samples go when a window ends, the per-tick signals one tick later: each hand-off costs
+        # tens of microseconds, and both on one tick made it the slowest tick of all but a few
+        if self._win_ticks >= self._flush_at:
+            self._flush_telemetry(ticks=False)
+            self._flush_at = self.publish_every
+        elif self._tick_n > self.publish_every or (self._win_ticks == 1 and self._tick_n > 1):
+            self._flush_telemetry(samples=False)
+
+    def _collect_one(self, block: SampleBlock, states) -> None:
+        """:meth:`_collect_slices` for a block that keeps one sample (its first), in floats: at the
+        telemetry's default rate of one sample a tick, a dozen slicing calls became scalar copies."""
+        buf, i = self._tel_buf, self._tel_n
+        buf["t"][i] = block.t[0]
+        buf["theta1"][i] = block.theta1[0]
+        buf["theta2"][i] = block.theta2[0]
+        buf["torque_meas"][i] = block.torque[0]
+        buf["torque_cmd"][i] = block.torque_cmd[0]
+        ident = self.identification
+        if ident is not None:
+            p = ident.params
+            th, om, al = states.theta[0], states.omega[0], states.alpha[0]
+            # Eq. (18), motor row: T_hat = I1 th1'' + B (th1' - th2') + K (th1 - th2)
+            buf["torque_hat"][i] = (p.I1 * float(al[0]) + p.B * (float(om[0]) - float(om[1]))
+                                    + p.K * (float(th[0]) - float(th[1])))
+        else:
+            self._tel_hat_ok = False
+        self._tel_n = i + 1
+
+    def _collect_slices(self, block: SampleBlock, states) -> None:
+        """Every ``stride``-th sample of the block (from its first) into the window buffers."""
         s = slice(None, None, self.stride)
         t = block.t[s]
         m = t.shape[0]
@@ -371,22 +424,8 @@ class IdentificationLoop:
         else:
             self._tel_hat_ok = False
         self._tel_n = j
-        k = self._tick_n
-        self._tick_t[k] = block.t[-1]
-        self._tick_late[k] = lateness_s * 1e6
-        ctl = self.control
-        if ctl is not None:
-            c = self._tick_ctl
-            c["x_ref"][k] = ctl.x_ref
-            c["x_table"][k] = ctl.x_ref + ctl.error
-            c["error_m"][k] = ctl.error
-            c["u_control"][k] = ctl.law.u
-        self._tick_n = k + 1
-        if self._tick_n >= self._flush_at:
-            self._flush_telemetry()
-            self._flush_at = self.publish_every
 
-    def _flush_telemetry(self) -> None:
+    def _flush_telemetry(self, samples: bool = True, ticks: bool = True) -> None:
         """Publish the window: the decimated samples, per-tick lateness and the current estimate.
 
         ``on_telemetry(block)`` gets the samples, then ``on_telemetry(ticks, window)`` the per-tick
@@ -394,51 +433,73 @@ class IdentificationLoop:
         The arrays are views of the window buffers, valid only during the call (it copies, as
         :meth:`rt_ident.runtime.telemetry.TelemetryProcess.publish` does into its ring).
         """
-        if self.on_telemetry is None or (self._tel_n == 0 and self._tick_n == 0):
+        if self.on_telemetry is None:
             return
-        n, k = self._tel_n, self._tick_n
+        n = self._tel_n if samples else 0
+        k = self._tick_n if ticks else 0
+        if samples:
+            self._win_ticks = 0
         if n:
             out = {key: v[:n] for key, v in self._tel_buf.items() if key != "torque_hat" or self._tel_hat_ok}
             self.on_telemetry(out)
+        if samples and not ticks:
+            # the window values are gathered now, the per-tick signals go on the next tick: this
+            # tick's hand-off is the smaller one, so the two ticks carry about the same extra work
+            self._win_next = self._window_values(self._tick_n)
         if k:
             tick = {"t": self._tick_t[:k], "t_tick": self._tick_t[:k], "lateness_us": self._tick_late[:k]}
-            # the signals that hold one value over the window go as one vector (``window``), not as
-            # ~35 arrays of k equal values: building and copying those was most of a window's hand-off
-            win: dict[str, float] = {"overruns": float(self.stats.overruns)}
-            ident = self.identification
-            if ident is not None:
-                p = ident.params
-                win["I1"], win["I2"], win["B"], win["K"] = p.I1, p.I2, p.B, p.K
-                modal = ident.modal
-                win["wn"], win["wd"], win["zeta"] = modal["wn"], modal["wd"], modal["zeta"]
-                for key, (lo, hi) in (ident.ci95 or {}).items():
-                    if key in _WINDOW_CI_KEYS:
-                        win[f"lo_{key}"] = lo
-                        win[f"hi_{key}"] = hi if math.isfinite(hi) else math.nan
-            ctl = self.control
-            if ctl is not None:
+            if self.control is not None:
                 for key, v in self._tick_ctl.items():
                     tick[key] = v[:k]
-                st, c = ctl.stats, ctl.controller
-                if self.on_loop_gain is not None and c is not self._shown_controller:
-                    self._shown_controller = c
-                    self.on_loop_gain(float(self._tick_t[k - 1]), c.loop_view,
-                                      {"pm_deg": (c.margins or {}).get("pm_deg"), "gm_db": c.gain_margin_db})
-                win["n_accepted"] = float(st.accepted)
-                win["n_rejected"] = float(st.rejected)
-                win["fallbacks"] = float(st.fallbacks)
-                win["gain_theta2"] = float(c.gains[2])
-                win["gain_omega1"] = float(c.gains[1])
-                pm = (c.margins or {}).get("pm_deg")
-                win["pm_deg"] = math.nan if pm is None else float(pm)
-                win["gm_db"] = float(c.gain_margin_db)
-                svf = getattr(ctl, "per_sample", None)
-                if svf is not None:
-                    for key, v in svf.values().items():
-                        win[f"svf_{key}"] = v
+            win = self._win_next if self._win_next is not None else self._window_values(k)
+            self._win_next = None
             self.on_telemetry(tick, win)
-        self._tel_n = self._tick_n = 0
-        self._tel_hat_ok = True
+        if samples:
+            self._tel_n = 0
+            self._tel_hat_ok = True
+        if ticks:
+            self._tick_n = 0
+
+    def _window_values(self, k: int) -> dict[str, float]:
+        """The signals that hold one value over a telemetry window (the estimate, its intervals, the
+        controller's figures). They go as one vector (``window``), not as ~35 arrays of k equal
+        values: building and copying those was most of a window's hand-off. The estimate's part is
+        built once per estimate."""
+        win: dict[str, float] = {"overruns": float(self.stats.overruns)}
+        ident = self.identification
+        if ident is not None:
+            if self._win_ident[0] is not ident:
+                part: dict[str, float] = {}
+                p = ident.params
+                part["I1"], part["I2"], part["B"], part["K"] = p.I1, p.I2, p.B, p.K
+                modal = ident.modal
+                part["wn"], part["wd"], part["zeta"] = modal["wn"], modal["wd"], modal["zeta"]
+                for key, (lo, hi) in (ident.ci95 or {}).items():
+                    if key in _WINDOW_CI_KEYS:
+                        part[f"lo_{key}"] = lo
+                        part[f"hi_{key}"] = hi if math.isfinite(hi) else math.nan
+                self._win_ident = (ident, part)
+            win.update(self._win_ident[1])
+        ctl = self.control
+        if ctl is not None:
+            st, c = ctl.stats, ctl.controller
+            if self.on_loop_gain is not None and c is not self._shown_controller and k:
+                self._shown_controller = c
+                self.on_loop_gain(float(self._tick_t[k - 1]), c.loop_view,
+                                  {"pm_deg": (c.margins or {}).get("pm_deg"), "gm_db": c.gain_margin_db})
+            win["n_accepted"] = float(st.accepted)
+            win["n_rejected"] = float(st.rejected)
+            win["fallbacks"] = float(st.fallbacks)
+            win["gain_theta2"] = float(c.gains[2])
+            win["gain_omega1"] = float(c.gains[1])
+            pm = (c.margins or {}).get("pm_deg")
+            win["pm_deg"] = math.nan if pm is None else float(pm)
+            win["gm_db"] = float(c.gain_margin_db)
+            svf = getattr(ctl, "per_sample", None)
+            if svf is not None:
+                for key, v in svf.values().items():
+                    win[f"svf_{key}"] = v
+        return win
 
 
 class MultiAxisLoop:
@@ -475,8 +536,9 @@ class MultiAxisLoop:
             # the axes' telemetry windows end on different ticks: a window's hand-off to the telemetry
             # process (~200 us) is the tick's largest single cost, and all axes at once set its p99
             ax._flush_at = max(1, ax.publish_every * (i + 1) // len(axes))
-            # ... and their fit exchanges (four steps in a 10-tick cycle) on other ticks still
-            ax.fit_phase = 1 + (4 * i) % 9
+            # ... and their fit exchanges (five steps in a 10-tick cycle; a step's last one, drawing an
+            # FRF, is rare: a view comes every few seconds) on other ticks still
+            ax.fit_phase = 2 + (4 * i) % 10
         last_cpu = 0.0
         spent = [0.0] * len(axes)
         self.ticker.start()
