@@ -183,3 +183,20 @@ def test_a_finished_design_for_an_axis_that_has_since_changed_is_not_applied():
     est.params = AxisParams(I1=P.I1, I2=1.01 * P.I2, B=P.B, K=P.K)       # unchanged (within 5 %): applied
     sup.poll()
     assert sup.controller.gains is design.gains and sup.stats.accepted == 1
+
+
+def test_recovering_on_a_fallback_that_no_longer_suits_the_axis_switches_to_the_redesigned_one():
+    from rt_ident.control.adaptation import model_controller, rigid_controller
+
+    heavy = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
+    est = _fake_svf(heavy)
+    sup, w = _supervisor(est)
+    sup._fall_back(0.0, "test")
+    assert sup.in_fallback and sup.controller is sup.conservative
+    s = ControlSettings()
+    design, fallback = model_controller(heavy, 1e-3, s), rigid_controller(heavy, 1e-3, s)
+    sup._pending = True
+    w.poll = lambda: {"accepted": True, "controller": design, "fallback": fallback, "fallback_reason": "why", "seq": 1}
+    sup.poll()
+    assert sup.conservative is fallback and sup.controller.gains is fallback.gains      # not the model design yet
+    assert [e[1] for e in sup.stats.events[-2:]] == ["accepted", "fallback redesigned"]

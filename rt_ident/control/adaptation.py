@@ -87,7 +87,40 @@ def redesign(request: dict[str, Any]) -> dict[str, Any]:
     out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": request.get("seq")}
     if check.ok:
         out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict(), ctrl.loop_view)
+        cons = request.get("conservative")
+        if cons is not None:
+            out["fallback"], out["fallback_reason"] = _fallback_for(np.asarray(cons, dtype=float), p, tick, s,
+                                                                    request.get("ci95"))
     return out
+
+
+def _fallback_for(gains: np.ndarray, p: AxisParams, tick: float, s: ControlSettings,
+                  ci95) -> tuple[Controller | None, str | None]:
+    """A conservative controller that suits the estimate ``p``, when the one in force does not
+    (None when it does, or when nothing better passes). The rigid-body controller is designed for
+    the nominal inertia: after Y took a workpiece (I2 x 3) it was unstable on Y, its mode (375 Hz)
+    sitting where one tick of delay turns the collocated velocity feedback round. Tried in turn:
+    the rigid-body controller for the estimate's I1 + I2, then the model controller at the
+    conservative bandwidth; the first that passes the family check is taken."""
+    kw = {"gm_db": s.gain_margin_db, "pm_deg": s.phase_margin_deg, "factors": tuple(s.family_factors), "ci95": ci95}
+    if loop_margins(gains, p, tick).meets(s.gain_margin_db, s.phase_margin_deg):
+        return None, None
+    bw = s.conservative_bandwidth_hz
+    tries = (("rigid", lambda: design_rigid(p.I1 + p.I2, tick, bw, s.effort, s.delay_ticks)),
+             ("model", lambda: design_lqr(p, tick, bw, s.effort, s.delay_ticks)))
+    why = []
+    for name, make in tries:
+        try:
+            g = make()
+        except Exception as exc:  # noqa: BLE001 - a design that fails is one fewer candidate
+            why.append(f"{name}: {exc}")
+            continue
+        chk = check_family(g, p, tick, **kw)
+        if chk.ok:
+            return (Controller(g, p, "conservative", bw, chk.nominal.as_dict(), loop_gain_view(g, p, tick)),
+                    f"the conservative controller in force fails on the estimate; now {name} at {bw:g} Hz")
+        why.append(f"{name}: {chk.reason}")
+    return None, "the conservative controller fails on the estimate and no replacement passed: " + "; ".join(why)
 
 
 @dataclass
@@ -281,7 +314,8 @@ class Supervisor:
         self._req += 1
         if callable(ci95):
             ci95 = ci95()
-        req = {"params": {**{k: float(getattr(params, k)) for k in KEYS}, "lead": float(params.lead)},
+        req = {"conservative": [float(v) for v in self.conservative.gains],
+               "params": {**{k: float(getattr(params, k)) for k in KEYS}, "lead": float(params.lead)},
                "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}
         if self.worker.submit(req):
@@ -304,11 +338,18 @@ class Supervisor:
             res = {"accepted": False, "reason": stale}
         if res.get("accepted"):
             st.accepted += 1
-            st.events.append((self.t, "accepted", _params_text(res["controller"].model)))
-            if self.in_fallback:                 # not while the conservative controller recovers
-                st.events[-1] = (self.t, "accepted", st.events[-1][2] + " (not applied: in fallback)")
-            else:
+            text = _params_text(res["controller"].model)
+            st.events.append((self.t, "accepted", text + (" (not applied: in fallback)" if self.in_fallback else "")))
+            fb = res.get("fallback")
+            if fb is not None:                   # the fallback itself no longer suited the axis
+                self.conservative = fb
+                st.events.append((self.t, "fallback redesigned", str(res.get("fallback_reason"))))
+            elif res.get("fallback_reason"):
+                st.events.append((self.t, "fallback kept", str(res["fallback_reason"])))
+            if not self.in_fallback:
                 self._switch(res["controller"])
+            elif fb is not None:                 # recovering: onto the conservative controller that suits the axis
+                self._switch(fb)
         else:
             st.rejected += 1
             reason = str(res.get("reason"))

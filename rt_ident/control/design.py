@@ -189,9 +189,20 @@ def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
     if not np.all(np.isfinite(Gr)):
         return Margins(math.inf, -math.inf, math.inf, -math.inf)
     L = ct.ss(Az, Bz, Gr, np.zeros((1, 1)), tick)
-    gm, pm, _, _, _, _ = ct.stability_margins(L, returnall=True)
-    gm = np.atleast_1d(np.asarray(gm, dtype=float))
-    pm = np.atleast_1d(np.asarray(pm, dtype=float))
+    gm, pm, _, w_pc, w_gc, _ = ct.stability_margins(L, returnall=True)
+    gm, w_pc = np.atleast_1d(np.asarray(gm, dtype=float)), np.atleast_1d(np.asarray(w_pc, dtype=float))
+    pm, w_gc = np.atleast_1d(np.asarray(pm, dtype=float)), np.atleast_1d(np.asarray(w_gc, dtype=float))
+    # python-control 0.10.2 finds a discrete loop's crossings as polynomial roots on the unit circle,
+    # and near a lightly damped mode it reports crossings that are not there (issues #465, #523): on
+    # the heavier Y axis it gave a "gain crossing" at 362.7 Hz with a phase margin of 2 deg where
+    # |L| = 0.42 - every design for that axis was refused over it. Each crossing is checked on L itself.
+    resp = _loop_response(Az, Bz, Gr, tick)
+    if pm.size:
+        Lg = resp(w_gc)
+        pm = pm[np.abs(np.abs(Lg) - 1.0) <= _CROSSING_TOL]
+    if gm.size:
+        Lp = resp(w_pc)
+        gm = gm[(np.abs(Lp.imag) <= _CROSSING_TOL * np.maximum(np.abs(Lp), 1e-300)) & (Lp.real < 0)]
     gm = gm[np.isfinite(gm) & (gm > 0)]
     up = gm[gm > 1.0]
     down = gm[gm < 1.0]
@@ -200,6 +211,30 @@ def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
     pm = pm[np.isfinite(pm)]
     pm_min = float(np.abs(pm).min()) if pm.size else math.inf
     return Margins(radius, gm_up, gm_down, pm_min)
+
+
+_CROSSING_TOL = 0.02   # a reported crossing is kept when |L| is within 2 % of 1 (gain) or L within 2 % of real (phase)
+
+
+def _loop_response(Az: np.ndarray, Bz: np.ndarray, Gr: np.ndarray, tick: float):
+    """w [rad/s] -> L(e^{j w T}) = G (zI - A)^{-1} B, evaluated directly (no polynomial form)."""
+    n = Az.shape[0]
+    eye = np.eye(n)
+
+    def resp(w: np.ndarray) -> np.ndarray:
+        out = np.empty(w.shape, dtype=complex)
+        for i, wi in enumerate(w):
+            if not np.isfinite(wi):
+                out[i] = np.nan
+                continue
+            z = np.exp(1j * wi * tick)
+            try:
+                out[i] = (Gr @ np.linalg.solve(z * eye - Az, Bz))[0, 0]
+            except np.linalg.LinAlgError:         # on a pole (the integrators at w = 0): no crossing
+                out[i] = np.nan
+        return out
+
+    return resp
 
 
 @dataclass(frozen=True)
