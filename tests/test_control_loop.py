@@ -63,7 +63,8 @@ def test_error_above_the_bound_falls_back_to_the_conservative_controller_once():
     assert sup.stats.fallbacks == 1
     back = 2e-6 / P.lead
     sup.tick(0.002, back, 0.0, back, 0.0)                 # back below half the bound: recovered
-    assert not sup.in_fallback and sup.stats.events[-1][1] == "recovered"
+    assert not sup.in_fallback and [e[1] for e in sup.stats.events[-2:]] == ["recovered", "applied"]
+    assert sup.controller.kind == "model"                 # the model controller it fell back from (it fits)
 
 
 def test_fallback_that_does_not_recover_asks_for_a_safe_stop():

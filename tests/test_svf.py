@@ -185,7 +185,7 @@ def test_a_finished_design_for_an_axis_that_has_since_changed_is_not_applied():
     assert sup.controller.gains is design.gains and sup.stats.accepted == 1
 
 
-def test_recovering_on_a_fallback_that_no_longer_suits_the_axis_switches_to_the_redesigned_one():
+def test_a_fallback_that_no_longer_suits_the_axis_is_replaced_and_the_held_design_applied_on_recovery():
     from rt_ident.control.adaptation import model_controller, rigid_controller
 
     heavy = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
@@ -200,3 +200,24 @@ def test_recovering_on_a_fallback_that_no_longer_suits_the_axis_switches_to_the_
     sup.poll()
     assert sup.conservative is fallback and sup.controller.gains is fallback.gains      # not the model design yet
     assert [e[1] for e in sup.stats.events[-2:]] == ["accepted", "fallback redesigned"]
+    sup._watch(0.1, 0.1 * s.max_error_m)                 # back within the bound: the held design goes in
+    assert not sup.in_fallback and sup.controller.gains is design.gains
+    assert [e[1] for e in sup.stats.events[-2:]] == ["recovered", "applied"]
+
+
+def test_a_tracking_error_fallback_goes_back_to_the_model_controller_that_still_fits_at_recovery():
+    from rt_ident.control.adaptation import model_controller
+
+    est = _fake_svf(P)
+    sup, w = _supervisor(est)
+    design = model_controller(P, 1e-3, ControlSettings())
+    sup.adopt(design)
+    bound = sup.s.max_error_m
+    sup._watch(0.0, 1.5 * bound)                           # the error passes the bound: fallback
+    assert sup.in_fallback and sup.controller is sup.conservative
+    sup._watch(0.05, 0.2 * bound)                          # recovered: the design still fits the axis
+    assert sup.controller.gains is design.gains
+    sup._watch(0.10, 1.5 * bound)
+    est.params = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)   # meanwhile the axis changed: not again
+    sup._watch(0.15, 0.2 * bound)
+    assert not sup.in_fallback and sup.controller is sup.conservative

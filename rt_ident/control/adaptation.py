@@ -167,6 +167,7 @@ class Supervisor:
         self.law = StateFeedback(initial, tick=tick, torque_limit=torque_limit, feedforward=settings.feedforward)
         self.stats = ControlStats()
         self.in_fallback = False
+        self._held: Controller | None = None     # the model controller to go back to at the recovery
         self._fallback_since: float | None = None
         self._last_request_t = -math.inf
         self._pending = False
@@ -208,7 +209,8 @@ class Supervisor:
         s = self.s
         if abs_err > s.max_error_m:
             if self.controller.kind != "conservative":
-                self._fall_back(t, f"tracking error {abs_err * 1e6:.1f} um > {s.max_error_m * 1e6:.1f} um")
+                self._fall_back(t, f"tracking error {abs_err * 1e6:.1f} um > {s.max_error_m * 1e6:.1f} um",
+                                hold_current=True)
             elif self._fallback_since is None:
                 self._fallback_since = t
         elif abs_err <= 0.5 * s.max_error_m and self._fallback_since is not None:
@@ -216,11 +218,23 @@ class Supervisor:
             if self.in_fallback:
                 self.in_fallback = False
                 self.stats.events.append((t, "recovered", f"error {abs_err * 1e6:.1f} um"))
+                held, self._held = self._held, None
+                if held is not None and self._stale(held.model) is None:
+                    # a design accepted while recovering waited for this: without it the axis stayed
+                    # on the (slower) fallback until the next design, a second or more
+                    self._switch(held)
+                    self.stats.events.append((t, "applied", "the model controller held through the fallback"))
         if self._fallback_since is not None and t - self._fallback_since > s.fallback_timeout_s:
             raise ControlFallbackStop(f"tracking error above {s.max_error_m * 1e6:.1f} um for more than "
                                       f"{s.fallback_timeout_s:g} s on the conservative controller")
 
-    def _fall_back(self, t: float, why: str) -> None:
+    def _fall_back(self, t: float, why: str, hold_current: bool = False) -> None:
+        """Onto the conservative controller. ``hold_current`` (a tracking-error fallback): the model
+        controller in force goes back in at the recovery if it still fits the estimate then - a
+        switch onto a fresh design while the old one had let the error grow tripped the fallback
+        14 ms later, and the axis then ran the slower fallback for a second, through a circle."""
+        if hold_current and self.controller.kind == "model" and self._held is None:
+            self._held = self.controller
         self.in_fallback = True
         self._fallback_since = t
         self.stats.fallbacks += 1
@@ -348,7 +362,9 @@ class Supervisor:
                 st.events.append((self.t, "fallback kept", str(res["fallback_reason"])))
             if not self.in_fallback:
                 self._switch(res["controller"])
-            elif fb is not None:                 # recovering: onto the conservative controller that suits the axis
+            else:
+                self._held = res["controller"]
+            if self.in_fallback and fb is not None:                 # recovering: onto the conservative controller that suits the axis
                 self._switch(fb)
         else:
             st.rejected += 1
