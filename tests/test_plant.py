@@ -234,3 +234,17 @@ def test_sensor_and_controller_configs_are_validated(cls: type, kw: dict, field:
     with pytest.raises(ConfigError) as info:
         cls(**kw)
     assert info.value.field == field
+
+
+def test_the_compiled_finite_check_finds_the_first_bad_sample_in_any_of_three_arrays():
+    from rt_ident.axis.kernels import first_non_finite3, first_non_finite3_py
+
+    a, b, c = np.zeros(50), np.ones(50), np.full(50, 2.0)
+    for f in (first_non_finite3, first_non_finite3_py):
+        assert f(a, b, c) == -1 and f(a[:0], b[:0], c[:0]) == -1
+    for arr, bad, at in ((a, np.nan, 31), (b, np.inf, 7), (c, -np.inf, 49)):
+        x = [a.copy(), b.copy(), c.copy()]
+        x[[id(a), id(b), id(c)].index(id(arr))][at] = bad
+        x[2][40] = np.nan                                   # a later bad sample does not hide the first
+        want = min(at, 40)
+        assert first_non_finite3(*x) == first_non_finite3_py(*x) == want

@@ -35,7 +35,8 @@ import numpy as np
 
 from rt_ident.axis.integrators import Newmark, check_dt, check_x0, zoh_matrices
 from rt_ident.axis.friction import Friction, friction_matrices, friction_par
-from rt_ident.axis.kernels import plant_block, plant_block_friction, plant_block_friction_py, plant_block_py
+from rt_ident.axis.kernels import (first_non_finite3, plant_block, plant_block_friction, plant_block_friction_py,
+                                    plant_block_py)
 from rt_ident.axis.params import AxisParams
 from rt_ident.errors import ConfigError, DataError
 
@@ -319,6 +320,4 @@ class PlantSimulator:
 
 
 def _first_non_finite(a: np.ndarray) -> int:
-    if a.size and not np.isfinite(a.sum()):
-        return int(np.flatnonzero(~np.isfinite(a))[0])
-    return -1
+    return int(first_non_finite3(a, a, a)) if a.size else -1     # one compiled pass (see kernels)

@@ -27,6 +27,7 @@ import math
 import numba
 import numpy as np
 
+from rt_ident.axis.kernels import first_non_finite3
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
 from rt_ident.estimators.frequency import (DEFAULT_LEAD, FitResult, Spectra, check_hold, fit_spectra,
@@ -161,7 +162,7 @@ class StreamingFrequencyEstimator:
         c = np.ascontiguousarray(torque, dtype=np.float64)
         if a.ndim != 1 or a.shape != b.shape or a.shape != c.shape:
             raise DataError("theta1/theta2/torque: blocks must be 1-D and of equal length")
-        if not (np.isfinite(a.sum()) and np.isfinite(b.sum()) and np.isfinite(c.sum())):
+        if first_non_finite3(a, b, c) >= 0:
             raise DataError("theta1/theta2/torque: block contains non-finite values")
         self._n += a.size
         return int(self._kernel(a, b, c, self.harmonics, self._table, self._idx, self._acc, self._S1,
