@@ -145,9 +145,10 @@ class Backend(ABC):
             raise BackendStateError(f"write() in state {self.state.value}")
         values = np.asarray(torque, dtype=float)
         lim = self.torque_limit
-        if values.size:
-            # two reductions instead of isfinite/abs/compare/any (a NaN or an inf shows in max or min):
-            # this runs every tick for every axis, on a plan of a few dozen values
+        # this runs every tick for every axis, on a plan of a few dozen values. Fast path, one dot
+        # product: a sum of squares within limit^2 bounds every |value| by the limit, and a NaN or an
+        # inf makes the sum NaN or inf (so does overflow: then the exact check below decides)
+        if values.size and not float(values.ravel() @ values.ravel()) <= lim * lim:
             hi, lo = float(values.max()), float(values.min())
             if not (math.isfinite(hi) and math.isfinite(lo)):
                 raise DriverError("non-finite torque command refused")

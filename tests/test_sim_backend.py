@@ -226,3 +226,26 @@ def test_registry_builds_sim_backend_with_axis_and_defaults() -> None:
     assert b.sample_period == PAPER_DT and b.torque_limit == 1.0 and b.has_measured_torque
     assert SimBackend().true_params == thomson_x()
     assert SimBackend({"has_measured_torque": False, "paced": False}).has_measured_torque is False
+
+
+def test_the_plan_check_refuses_nan_and_clamps_only_values_beyond_the_limit():
+    from drivers.errors import DriverError
+    from drivers.sim import SimBackend
+
+    be = SimBackend({"torque_limit": 1.0, "paced": False})
+    with be:
+        be.activate()
+        start = be.samples_produced
+        big = np.full(72, 0.9)                           # sum of squares 58 > limit^2: the exact check runs
+        be.write(big, start_seq=start)
+        assert be.clamped == 0 and be.last_torque == 0.9
+        be.write(np.r_[np.full(71, 0.1), 1.0 + 1e-12], start_seq=start)
+        assert be.clamped == 1 and be.last_torque == 1.0
+        be.write(np.r_[0.1, -1.5, 0.1], start_seq=start)
+        assert be.clamped == 2
+        for bad in (np.nan, np.inf, -np.inf):
+            with pytest.raises(DriverError, match="non-finite"):
+                be.write(np.r_[np.zeros(10), bad], start_seq=start)
+        with pytest.warns(RuntimeWarning, match="overflow"):   # finite, but the sum of squares overflows: clamped
+            be.write(np.full(4, 1e200), start_seq=start)
+        assert be.clamped == 6 and be.last_torque == 1.0
