@@ -81,9 +81,10 @@ class LoopStats:
                 "work_cpu_us": {"p50": cpu["p50"], "p99": cpu["p99"], "max": cpu["max"]}}
 
 
-def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
+def _count_tick(stats: LoopStats, info, last_cpu: float, period: float, lateness: bool = True) -> None:
     """A tick's timing counters: an overrun is charged to the previous tick's CPU time when that
-    exceeded the period (its own work), else to a late start."""
+    exceeded the period (its own work), else to a late start. ``lateness=False``: the caller records
+    the lateness later (after the plans are out)."""
     stats.ticks += 1
     if info.skipped:
         stats.overruns += 1
@@ -92,7 +93,8 @@ def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
             stats.overruns_work += 1
         else:
             stats.overruns_late_start += 1
-    stats.lateness.record(info.lateness_s)
+    if lateness:
+        stats.lateness.record(info.lateness_s)
 
 
 _WINDOW_CI_KEYS = frozenset(("I1", "I2", "B", "K", "wn", "wd", "zeta"))
@@ -557,15 +559,18 @@ class MultiAxisLoop:
                     blocks.append(ax.backend.read())
                     spent[i] = clock() - t1
                 for i, (ax, block) in enumerate(zip(axes, blocks)):
-                    _count_tick(ax.stats, info, last_cpu, period)
+                    _count_tick(ax.stats, info, last_cpu, period, lateness=False)
                     t1 = clock()
                     ax._process(block, info.lateness_s)
                     spent[i] += clock() - t1
                 for i, ax in enumerate(axes):
                     t1 = clock()
                     ax._write_plan()
-                    ax.stats.work.record(spent[i] + clock() - t1)
+                    spent[i] += clock() - t1
                 stats.work.record(clock() - t0)
+                for i, ax in enumerate(axes):      # the per-axis bookkeeping once every plan is out
+                    ax.stats.work.record(spent[i])
+                    ax.stats.lateness.record(info.lateness_s)
                 last_cpu = cpu_clock() - c0
                 stats.work_cpu.record(last_cpu)
                 if self.tick_hook is not None:
