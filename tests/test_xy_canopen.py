@@ -162,7 +162,11 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
                         nxt = int(blk.seq[-1]) + 1
                         be.write(np.full(8, 0.02 if n == 5 else -0.02), start_seq=nxt)
             assert all(len(v) > 10 for v in got.values())
-            assert x.counters["sync_sent"] == y.counters["sync_sent"] > 100
+            # one SYNC producer: both count the same sender's SYNCs (read one after the other while it
+            # runs, so Y's count may be a SYNC or two ahead - under a CPU hog it once was)
+            sx = x.counters["sync_sent"]
+            sy = y.counters["sync_sent"]
+            assert sx > 100 and 0 <= sy - sx <= 2
             # each drive applied its own torque: X turned one way, Y the other
             dx = got[5][-1].theta1[-1] - got[5][0].theta1[0]
             dy = got[6][-1].theta1[-1] - got[6][0].theta1[0]
