@@ -70,11 +70,11 @@ def _worker_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageR
         inbox.flag = 1
 
 
-_CODECS = ("Spectra",)   # snapshot classes sent as their fields (to_fields / from_fields)
 _CODEC = "codec"     # ring key naming the class of a snapshot sent as its fields (see JobWorker.submit)
 
 
 def _decoders() -> dict[str, Callable[[dict], Any]]:
+    """Snapshot classes sent as their fields (``to_fields`` here, ``from_fields`` in the worker), by name."""
     from rt_ident.estimators.frequency import Spectra
 
     return {"Spectra": Spectra.from_fields}
@@ -179,7 +179,7 @@ class JobWorker:
         # a snapshot class the worker knows goes as flat arrays: pickling a Spectra cost the loop's
         # tick ~100 us (its arrays through pickle's reduce machinery), its fields a few
         name = type(snap).__name__
-        if hasattr(snap, "to_fields") and name in _CODECS:
+        if name in _decoders():
             fields = snap.to_fields()
             fields[_CODEC] = np.frombuffer(name.encode("ascii"), dtype=np.uint8)
             return self._in.put(fields)

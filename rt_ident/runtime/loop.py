@@ -237,10 +237,10 @@ class IdentificationLoop:
                 self.worker.submit(stage[0])            # the fit runs in the worker process
                 stage[0] = None
         elif step == 1:
-            stage[1] = self.worker.take() if hasattr(self.worker, "take") else self.worker.poll()
+            stage[1] = self.worker.take()
         elif step == 2:
             got, stage[1] = stage[1], None
-            latest = self.worker.unpack(got) if isinstance(got, list) else got
+            latest = self.worker.unpack(got) if got else None
             if latest is not None:
                 self.identification = latest
                 self.stats.estimates += 1

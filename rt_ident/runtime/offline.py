@@ -77,12 +77,19 @@ class InlineWorker:
         return True
 
     def poll(self) -> Any:
+        return self.unpack(self.take())
+
+    def take(self) -> list:
+        """The results due by now (as :meth:`rt_ident.runtime.fit_worker.JobWorker.take`)."""
         now = self.clock()
         n = 0
         while n < len(self._due) and self._due[n][0] <= now:
             n += 1
         done, self._due = self._due[:n], self._due[n:]
-        return newest_result(self, (item for _, item in done))
+        return [item for _, item in done]
+
+    def unpack(self, items: list) -> Any:
+        return newest_result(self, items) if items else None
 
     def close(self) -> None:
         self._due.clear()
