@@ -263,19 +263,26 @@ def test_model_derivatives_match_finite_differences(hold):
 
 
 # --------------------------------------------------------------------------- fit worker process
-def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy():
-    import time
-
-    from rt_ident.estimators.streaming import fit_snapshot, make_streaming
-    from rt_ident.runtime.fit_worker import make_fit_worker
+def _stream_snapshot():
+    """Table 1 held by the drive, five periods of a multisine: the streaming estimator's snapshot."""
+    from rt_ident.estimators.streaming import make_streaming
 
     p, dt, N = thomson_x(), 2.5e-4, 512
     ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
     blk = PlantSimulator(p, dt, controller=HoldController(), seed=4).step_block(ms.periodic(5))
     est = make_streaming("frequency", dt=dt, period=N, band=(int(ms.harmonics[0]), int(ms.harmonics[-1])),
-                                   warmup_periods=1, lead=p.lead)
+                         warmup_periods=1, lead=p.lead)
     assert est.update_block(blk.theta1, blk.theta2, blk.torque_meas, np.arange(blk.theta1.size))
-    snap = est.snapshot()
+    return p, est.snapshot()
+
+
+def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy():
+    import time
+
+    from rt_ident.estimators.streaming import fit_snapshot
+    from rt_ident.runtime.fit_worker import make_fit_worker
+
+    p, snap = _stream_snapshot()
     worker = make_fit_worker("frequency", lead=p.lead, min_interval=5.0).start()
     try:
         deadline = time.monotonic() + 30.0
@@ -315,16 +322,9 @@ def test_a_resonance_above_nyquist_is_not_taken_for_its_alias():
 def test_fit_worker_sends_the_frf_view_at_most_every_view_interval():
     import time
 
-    from rt_ident.estimators.streaming import make_streaming
     from rt_ident.runtime.fit_worker import make_fit_worker
 
-    p, dt, N = thomson_x(), 2.5e-4, 512
-    ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
-    blk = PlantSimulator(p, dt, controller=HoldController(), seed=4).step_block(ms.periodic(5))
-    est = make_streaming("frequency", dt=dt, period=N, band=(int(ms.harmonics[0]), int(ms.harmonics[-1])),
-                         warmup_periods=1, lead=p.lead)
-    est.update_block(blk.theta1, blk.theta2, blk.torque_meas, np.arange(blk.theta1.size))
-    snap = est.snapshot()
+    p, snap = _stream_snapshot()
     worker = make_fit_worker("frequency", lead=p.lead, min_interval=0.0, view_interval=60.0).start()
     got = []
     try:

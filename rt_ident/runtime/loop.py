@@ -81,10 +81,9 @@ class LoopStats:
                 "work_cpu_us": {"p50": cpu["p50"], "p99": cpu["p99"], "max": cpu["max"]}}
 
 
-def _count_tick(stats: LoopStats, info, last_cpu: float, period: float, lateness: bool = True) -> None:
+def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
     """A tick's timing counters: an overrun is charged to the previous tick's CPU time when that
-    exceeded the period (its own work), else to a late start. ``lateness=False``: the caller records
-    the lateness later (after the plans are out)."""
+    exceeded the period (its own work), else to a late start."""
     stats.ticks += 1
     if info.skipped:
         stats.overruns += 1
@@ -93,11 +92,15 @@ def _count_tick(stats: LoopStats, info, last_cpu: float, period: float, lateness
             stats.overruns_work += 1
         else:
             stats.overruns_late_start += 1
-    if lateness:
-        stats.lateness.record(info.lateness_s)
+    stats.lateness.record(info.lateness_s)
 
 
 _WINDOW_CI_KEYS = frozenset(("I1", "I2", "B", "K", "wn", "wd", "zeta"))
+
+
+def _eq18(p, th1, th2, w1, w2, a1):
+    """Eq. (18), motor row: T_hat = I1 th1'' + B (th1' - th2') + K (th1 - th2); floats or arrays."""
+    return p.I1 * a1 + p.B * (w1 - w2) + p.K * (th1 - th2)
 
 
 class IdentificationLoop:
@@ -389,11 +392,9 @@ class IdentificationLoop:
         buf["torque_cmd"][i] = block.torque_cmd[0]
         ident = self.identification
         if ident is not None:
-            p = ident.params
             th, om, al = states.theta[0], states.omega[0], states.alpha[0]
-            # Eq. (18), motor row: T_hat = I1 th1'' + B (th1' - th2') + K (th1 - th2)
-            buf["torque_hat"][i] = (p.I1 * float(al[0]) + p.B * (float(om[0]) - float(om[1]))
-                                    + p.K * (float(th[0]) - float(th[1])))
+            buf["torque_hat"][i] = _eq18(ident.params, float(th[0]), float(th[1]), float(om[0]), float(om[1]),
+                                         float(al[0]))
         else:
             self._tel_hat_ok = False
         self._tel_n = i + 1
@@ -421,8 +422,7 @@ class IdentificationLoop:
         if ident is not None:
             p = ident.params
             th, om, al = states.theta[s], states.omega[s], states.alpha[s]
-            # Eq. (18), motor row: T_hat = I1 th1'' + B (th1' - th2') + K (th1 - th2)
-            buf["torque_hat"][i:j] = p.I1 * al[:, 0] + p.B * (om[:, 0] - om[:, 1]) + p.K * (th[:, 0] - th[:, 1])
+            buf["torque_hat"][i:j] = _eq18(p, th[:, 0], th[:, 1], om[:, 0], om[:, 1], al[:, 0])
         else:
             self._tel_hat_ok = False
         self._tel_n = j
@@ -559,7 +559,7 @@ class MultiAxisLoop:
                     blocks.append(ax.backend.read())
                     spent[i] = clock() - t1
                 for i, (ax, block) in enumerate(zip(axes, blocks)):
-                    _count_tick(ax.stats, info, last_cpu, period, lateness=False)
+                    _count_tick(ax.stats, info, last_cpu, period)
                     t1 = clock()
                     ax._process(block, info.lateness_s)
                     spent[i] += clock() - t1
@@ -568,9 +568,8 @@ class MultiAxisLoop:
                     ax._write_plan()
                     spent[i] += clock() - t1
                 stats.work.record(clock() - t0)
-                for i, ax in enumerate(axes):      # the per-axis bookkeeping once every plan is out
+                for i, ax in enumerate(axes):
                     ax.stats.work.record(spent[i])
-                    ax.stats.lateness.record(info.lateness_s)
                 last_cpu = cpu_clock() - c0
                 stats.work_cpu.record(last_cpu)
                 if self.tick_hook is not None:
