@@ -172,3 +172,11 @@ def test_a_redesign_replaces_a_fallback_controller_that_fails_on_the_new_estimat
     assert check_family(out["fallback"].gains, Y_HEAVY, 1e-3).ok
     same = redesign({**req, "params": {"I1": Y.I1, "I2": Y.I2, "B": Y.B, "K": Y.K, "lead": Y.lead}})
     assert same["accepted"] and same.get("fallback") is None                 # it suits the light Y: kept
+
+
+def test_a_redesign_reports_the_worker_cpu_it_took():
+    s = ControlSettings()
+    req = {"settings": s, "tick": 1e-3,
+           "params": {"I1": Y.I1, "I2": Y.I2, "B": Y.B, "K": Y.K, "lead": Y.lead}}
+    out = redesign(req)
+    assert out["accepted"] and 0.0 < out["cpu_s"] < 30.0

@@ -186,7 +186,36 @@ def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_prio
             assert os.getpriority(os.PRIO_PROCESS, int(tid)) == 10
         for tid in os.listdir(f"/proc/{device.pid}/task"):     # as started: this process's nice value
             assert os.getpriority(os.PRIO_PROCESS, int(tid)) == os.getpriority(os.PRIO_PROCESS, 0)
+        # by role: the control worker (rare, urgent) above the fit worker (refits without pause)
+        _keep_off_loop_cpu([helper.pid], realtime=False, roles={helper.pid: "fit"})
+        assert {os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{helper.pid}/task")} == {15}
+        report = _keep_off_loop_cpu([device.pid], realtime=False, roles={device.pid: "control"})
+        assert {os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{device.pid}/task")} == {5}
+        assert report["nice"] == {str(device.pid): 5}
     finally:
         for p in (helper, device):
             p.kill()
             p.wait()
+
+
+def _report_env(q):
+    q.put({k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")})
+
+
+def test_helpers_are_spawned_with_single_threaded_blas_and_this_process_keeps_its_environment(monkeypatch):
+    # two OpenBLAS threads that only spin made a redesign cost the control worker 5x its CPU
+    import multiprocessing as mp
+
+    from rt_ident.runtime.helper_guard import start_ignoring_signals
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")                   # the user's own setting is kept
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    proc = ctx.Process(target=_report_env, args=(q,))
+    start_ignoring_signals(proc)
+    try:
+        assert q.get(timeout=60) == {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "3"}
+    finally:
+        proc.join(10)
+    assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["OMP_NUM_THREADS"] == "3"

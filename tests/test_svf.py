@@ -221,3 +221,22 @@ def test_a_tracking_error_fallback_goes_back_to_the_model_controller_that_still_
     est.params = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)   # meanwhile the axis changed: not again
     sup._watch(0.15, 0.2 * bound)
     assert not sup.in_fallback and sup.controller is sup.conservative
+
+
+def test_the_summary_reports_each_redesign_request_its_cause_and_its_latency():
+    # the adaptation latency after a load change is request -> answer; the summary carries it
+    from rt_ident.control.adaptation import model_controller
+
+    moved = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
+    sup, w = _supervisor(_fake_svf(moved))
+    sup.adopt(model_controller(P, 1e-3, ControlSettings()))
+    sup.t = 2.0
+    sup.offer(_ident(AxisParams(I1=P.I1, I2=2.95 * P.I2, B=P.B, K=P.K)), False)
+    assert len(w.requests) == 1
+    design = model_controller(moved, 1e-3, ControlSettings())
+    w.poll = lambda: {"accepted": True, "controller": design, "cpu_s": 0.07}
+    sup.t = 2.3
+    sup.poll()
+    r = sup.summary()["redesigns"]
+    assert r["requested"] == 1 and r["requested_for"] == {"I2": 1} and r["accepted"] == 1
+    assert r["latency_s"]["max"] == pytest.approx(0.3) and r["worker_cpu_s"]["last"] == pytest.approx(0.07)

@@ -17,6 +17,7 @@ plant when the estimate is wrong:
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -73,8 +74,15 @@ def model_controller(p: AxisParams, tick: float, s: ControlSettings, kind: str =
 def redesign(request: dict[str, Any]) -> dict[str, Any]:
     """Worker job: design for ``request["params"]`` and check it over the family.
 
-    Returns ``{"accepted", "reason", "controller" (when accepted), "check", "seq"}``.
+    Returns ``{"accepted", "reason", "controller" (when accepted), "check", "seq", "cpu_s"}``.
     """
+    c0 = time.process_time()
+    out = _redesign(request)
+    out["cpu_s"] = time.process_time() - c0       # the worker's CPU for this job (the summary's "redesigns")
+    return out
+
+
+def _redesign(request: dict[str, Any]) -> dict[str, Any]:
     s: ControlSettings = request["settings"]
     tick = request["tick"]
     p = AxisParams(**{k: request["params"][k] for k in KEYS}, lead=request["params"].get("lead", 7.96e-4))
@@ -137,6 +145,10 @@ class ControlStats:
     n_err_after: int = 0
     max_err_after: float = 0.0
     max_step_nm: float = 0.0     # largest torque step a switch would have caused without re-seeding
+    requests: int = 0            # redesigns asked of the control worker
+    why_requested: dict[str, int] = field(default_factory=dict)   # the parameter that moved most, per request
+    latency_s: list[float] = field(default_factory=list)   # request -> answer, loop time
+    cpu_s: list[float] = field(default_factory=list)       # the worker's CPU per redesign
     checks_agreed: int = 0       # cross-checks of the per-sample estimate against the frequency fit
     checks_disagreed: int = 0
     last_disagreement: str = ""
@@ -320,7 +332,8 @@ class Supervisor:
         if self.t - self._last_request_t < self.s.redesign_interval_s:
             return
         cur = self.controller.model
-        changed = max(abs(getattr(params, k) / getattr(cur, k) - 1.0) for k in KEYS)
+        moved = max(KEYS, key=lambda k: abs(getattr(params, k) / getattr(cur, k) - 1.0))
+        changed = abs(getattr(params, moved) / getattr(cur, moved) - 1.0)
         if self.controller.kind == "model" and changed < self.s.min_change:
             return
         if not self.worker.ready:
@@ -335,6 +348,10 @@ class Supervisor:
         if self.worker.submit(req):
             self._pending = True
             self._last_request_t = self.t
+            st = self.stats
+            st.requests += 1
+            why = moved if self.controller.kind == "model" else self.controller.kind
+            st.why_requested[why] = st.why_requested.get(why, 0) + 1
 
     def poll(self) -> None:
         if self.worker is None or not self._pending:
@@ -344,6 +361,9 @@ class Supervisor:
             return
         self._pending = False
         st = self.stats
+        st.latency_s.append(self.t - self._last_request_t)
+        if res.get("cpu_s") is not None:
+            st.cpu_s.append(float(res["cpu_s"]))
         stale = self._stale(res["controller"].model) if res.get("accepted") else None
         if stale is not None:
             # the design took its time (~1 s on a loaded host): the axis it was made for may be gone. A
@@ -403,7 +423,9 @@ class Supervisor:
                 "rms_error_after_change_m": after,
                 "max_error_after_change_m": st.max_err_after if st.n_err_after else None,
                 "redesigns": {"accepted": st.accepted, "rejected": st.rejected,
-                              "rejected_reasons": st.reasons[-10:]},
+                              "rejected_reasons": st.reasons[-10:], "requested": st.requests,
+                              "requested_for": dict(st.why_requested),
+                              "latency_s": _spread(st.latency_s), "worker_cpu_s": _spread(st.cpu_s)},
                 "fallbacks": st.fallbacks, "controller": self.controller.kind,
                 "controller_model": {k: float(getattr(self.controller.model, k)) for k in KEYS},
                 "gains": [float(g) for g in self.controller.gains],
@@ -411,6 +433,13 @@ class Supervisor:
                 "max_switch_step_nm": st.max_step_nm,
                 "per_sample": self._per_sample_summary(),
                 "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
+
+
+def _spread(values: list[float]) -> dict[str, float] | None:
+    """{"mean", "max", "last"} of a list of durations [s], or None when empty."""
+    if not values:
+        return None
+    return {"mean": sum(values) / len(values), "max": max(values), "last": values[-1]}
 
 
 def _params_text(p: AxisParams) -> str:

@@ -27,14 +27,37 @@ _GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 _log = logging.getLogger("rt_ident.runtime.helpers")
 
 
+#: A helper's BLAS runs on one thread unless the user set otherwise. Its matrices are tiny (the control
+#: worker's 10-state loops, the fit worker's 4-parameter normal equations): extra OpenBLAS threads only
+#: spin between calls. With the default two threads on this 2-CPU host a redesign cost the control
+#: worker 0.36-0.65 s of CPU (measured, Y's I2 x 3 on configs/xy-sim.toml), the helpers' CPU was full
+#: and Y's redesign came 2 s after the load change had been identified. ``rt-ident`` sets the same in
+#: its own process (rt_ident.cli); this covers helpers started by any other caller too.
+HELPER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def _start_with_helper_env(proc: Any) -> None:
+    """``proc.start()`` with :data:`HELPER_ENV` in the environment the child is spawned with (a
+    variable the user set is kept); this process's environment is restored afterwards."""
+    added = [k for k in HELPER_ENV if k not in os.environ]
+    for k in added:
+        os.environ[k] = HELPER_ENV[k]
+    try:
+        proc.start()
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
 def start_ignoring_signals(proc: Any) -> None:
-    """``proc.start()`` with SIGINT/SIGTERM ignored, so the child is born ignoring them."""
+    """``proc.start()`` with SIGINT/SIGTERM ignored, so the child is born ignoring them (and with
+    :data:`HELPER_ENV`)."""
     if threading.current_thread() is not threading.main_thread():
-        proc.start()                  # cannot touch dispositions here; become_helper() covers the child
+        _start_with_helper_env(proc)  # cannot touch dispositions here; become_helper() covers the child
         return
     old = {s: signal.signal(s, signal.SIG_IGN) for s in _GROUP_SIGNALS}
     try:
-        proc.start()
+        _start_with_helper_env(proc)
     finally:
         for s, h in old.items():
             signal.signal(s, h)

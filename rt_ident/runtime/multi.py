@@ -41,7 +41,7 @@ from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.runtime.outputs import check_output, check_methods, prepare_outputs, remove_empty_outputs
 from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _excitation, _final_fit,
-                                  _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, _realtime,
+                                  _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, helper_role, _realtime,
                                   _warmup, backend_options, friction_estimator, friction_summary,
                                   recording_metadata)
 from rt_ident.runtime.safety import SafetyMonitor
@@ -261,10 +261,11 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             for w in helpers.values():
                 if hasattr(w, "wait_ready") and not isinstance(w, TelemetryProcess):
                     w.wait_ready(30.0)
-            pids = [getattr(x, "pid", None) for x in helpers.values()]
-            pids += [getattr(p.get("recorder"), "pid", None) for p in parts.values()]
-            summary["helper_processes"] = _keep_off_loop_cpu([p for p in pids if p], cfg.loop.realtime,
-                                                             device=getattr(emulator, "pid", None))
+            roles = {getattr(x, "pid", None): helper_role(n) for n, x in helpers.items()}
+            roles.update({getattr(p.get("recorder"), "pid", None): "recorder" for p in parts.values()})
+            roles.pop(None, None)
+            summary["helper_processes"] = _keep_off_loop_cpu(list(roles), cfg.loop.realtime,
+                                                             device=getattr(emulator, "pid", None), roles=roles)
             for backend in backends.values():
                 stack.enter_context(backend)           # open(); on exit (any axis's error too): safe stop, close
             summary["realtime"] = _realtime(cfg)

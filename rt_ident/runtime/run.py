@@ -241,7 +241,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                                                                ("fit", worker), ("control", ctl_worker)) if x is not None]
             device = getattr(emulator, "pid", None)
             summary["helper_processes"] = _keep_off_loop_cpu([p for _, p in named if p], cfg.loop.realtime,
-                                                             device=device)
+                                                             device=device, roles={p: n for n, p in named if p})
             # pid -> helper, so that a report never names them by position (there is no recorder without recording)
             summary["helper_processes"]["names"] = {str(p): n for n, p in named if p}
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
@@ -438,23 +438,43 @@ def _threads(pid: int) -> list[int]:
         return [pid]
 
 
-def _keep_off_loop_cpu(pids: list[int], realtime: bool, *, device: int | None = None) -> dict[str, Any]:
-    """Recorder, telemetry and fit worker: lower priority, and off the loop's CPU.
+#: Nice value of each helper role (any other helper: 10). The control worker answers a redesign
+#: request, rare and urgent: its latency is the time from a load change to the controller that fits
+#: it. At the same nice value as the fit workers, which refit without pause, it got a fifth of the
+#: helpers' CPU: a 0.2 s redesign answered 2.2 s after the request, while Y ran the controller that no
+#: longer fit it (measured on configs/xy-sim.toml with Y's I2 x 3). A fit worker's fit only waits
+#: longer; its next fit starts when it is done anyway.
+HELPER_NICE = {"control": 5, "telemetry": 10, "recorder": 10, "fit": 15}
 
-    Applied to every thread each process has started so far (rerun's and pyarrow's threads
-    exist by now); threads started later inherit it from the thread that creates them.
-    An emulated ``device`` (its pid) only leaves the loop's CPU: it stands for hardware that
+
+def helper_role(name: str) -> str:
+    """"fit-x" -> "fit": a helper's role from its name (the part before an axis suffix)."""
+    return name.split("-", 1)[0]
+
+
+def _keep_off_loop_cpu(pids: list[int], realtime: bool, *, device: int | None = None,
+                       roles: dict[int, str] | None = None) -> dict[str, Any]:
+    """Recorder, telemetry, fit and control workers: lower priority, and off the loop's CPU.
+
+    ``roles`` (pid -> "fit", "control", ...) sets each one's nice value from :data:`HELPER_NICE`
+    (10 when not given). Applied to every thread each process has started so far (rerun's and
+    pyarrow's threads exist by now); threads started later inherit it from the thread that creates
+    them. An emulated ``device`` (its pid) only leaves the loop's CPU: it stands for hardware that
     runs on its own, so it keeps its priority (niced next to the fit worker's 90 ms bursts, the
     serial board missed the host's 20-tick watchdog).
     """
     loop_cpu = _loop_cpu() if realtime else None
-    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None, "threads": 0, "device_pid": device}
+    roles = roles or {}
+    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None, "threads": 0, "device_pid": device,
+                              "nice": {}}
     for pid in pids + ([device] if device else []):
+        nice = HELPER_NICE.get(roles.get(pid, ""), 10)
         for tid in _threads(pid):
             report["threads"] += 1
             if pid != device:
                 try:
-                    os.setpriority(os.PRIO_PROCESS, tid, 10)
+                    os.setpriority(os.PRIO_PROCESS, tid, nice)
+                    report["nice"][str(pid)] = nice
                 except OSError:
                     report["niced"] = False
             if loop_cpu is not None:
