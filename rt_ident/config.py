@@ -93,6 +93,7 @@ class ControlConfig(_Section):
     family_factors: tuple[float, ...] = (0.7, 1.3)    # each parameter x these must keep the margins
     redesign_interval_s: float = Field(0.25, gt=0)
     min_change: float = Field(0.02, ge=0)             # relative change of the estimate that asks for a redesign
+    min_change_damping: float = Field(0.10, ge=0)     # the same for B alone (see ControlSettings)
     max_error_m: float = Field(2e-4, gt=0)            # tracking error bound -> conservative fallback
     fallback_timeout_s: float = Field(0.5, gt=0)      # fallback not recovered by then -> safe stop
     feedforward: bool = True                          # inertia feedforward from the reference acceleration

@@ -240,3 +240,15 @@ def test_the_summary_reports_each_redesign_request_its_cause_and_its_latency():
     r = sup.summary()["redesigns"]
     assert r["requested"] == 1 and r["requested_for"] == {"I2": 1} and r["accepted"] == 1
     assert r["latency_s"]["max"] == pytest.approx(0.3) and r["worker_cpu_s"]["last"] == pytest.approx(0.07)
+
+
+def test_a_small_move_of_b_alone_asks_for_no_redesign_but_the_same_move_of_i2_does():
+    from rt_ident.control.adaptation import model_controller
+
+    for moved, asked in ((AxisParams(I1=P.I1, I2=P.I2, B=1.06 * P.B, K=P.K), False),    # B's scatter
+                         (AxisParams(I1=P.I1, I2=1.06 * P.I2, B=P.B, K=P.K), True),
+                         (AxisParams(I1=P.I1, I2=P.I2, B=1.2 * P.B, K=P.K), True)):
+        sup, w = _supervisor(_fake_svf(moved))
+        sup.adopt(model_controller(P, 1e-3, ControlSettings()))
+        sup.offer(_ident(moved), False)
+        assert (len(w.requests) == 1) is asked, moved
