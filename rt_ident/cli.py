@@ -416,6 +416,11 @@ def _print_axes(s: dict) -> None:
         for key, what in (("rrd", "dashboard"), ("recording", "recording")):
             if files.get(key):
                 out.print(f"{what} {name}: {files[key]}")
+    if s.get("live_url"):
+        recs = [f"rt_ident-{n}" for n in s.get("axes") or {}]
+        if (s.get("contour") or {}).get("rrd"):
+            recs.append("rt_ident-xy-contour")
+        out.print(f"dashboard: live at {s['live_url']} (recordings {', '.join(recs)})")
     c = s.get("contour")
     if c and "radius_mm" in c:
         parts = []

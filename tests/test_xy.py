@@ -138,3 +138,73 @@ def test_the_axes_hand_their_telemetry_windows_over_on_different_ticks(tmp_path,
     assert len(runs) == 4 and all(len(r) > 10 for r in runs)
     assert len(set().union(*map(set, runs))) == sum(len(r) for r in runs)      # no tick has two hand-offs
     assert all(set(np.diff(r)) == {every} for r in runs)
+
+
+@pytest.fixture
+def rerun_server(tmp_path):
+    """A rerun gRPC server on 127.0.0.1 that saves what SDKs send it to an .rrd (stands in for the viewer)."""
+    import os
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "viewer.rrd"
+    proc = subprocess.Popen([sys.executable, "-m", "rerun_cli", "--save", str(out), "--port", str(port),
+                             "--bind", "127.0.0.1"], env=dict(os.environ, CI="1"),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            break
+        except OSError:
+            time.sleep(0.1)
+    try:
+        yield f"rerun+http://127.0.0.1:{port}/proxy", out, proc
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+def _recordings(path):
+    from rerun.chunk import RrdReader
+
+    r = RrdReader(path)
+    return {st.application_id: {ch.entity_path.lstrip("/") for ch in r.stream(store=st)} for st in r.recordings()}
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_a_live_xy_run_streams_both_axes_to_one_viewer(rerun_server):
+    url, out, server = rerun_server
+    s = run_axes(_xy(**{"loop.duration": 1.5}), sink="connect", connect_url=url)
+    assert s["stop"]["cause"] is None and s["live_url"] == url
+    assert all(f["rrd"] is None for f in s["files"].values())          # nothing written locally
+    server.terminate()
+    server.wait(10)
+    recs = _recordings(out)
+    for name in ("x", "y"):                                              # each axis its own recording
+        assert {"control/error", "angles"} <= recs[f"rt_ident-{name}"], sorted(recs)
+
+
+def test_the_contour_dashboard_goes_to_the_viewer_of_a_live_run(rerun_server):
+    from rt_ident.runtime.dashboard import write_contour_rrd
+
+    url, out, server = rerun_server
+    a = np.linspace(0.0, 2 * np.pi, 400)
+    path = (0.005 * np.cos(a), 0.005 * np.sin(a) - 0.005)
+    fig = {"ccw": {"G_um": 1.0, "F_min_um": -0.5, "F_max_um": 0.5}, "H_um": 0.2}
+    assert write_contour_rrd(None, path, {"ccw": path}, 0.005, (0.0, -0.005), fig, connect_url=url) == url
+    server.terminate()
+    server.wait(10)
+    assert {"contour/xy/table_ccw", "contour/figures"} <= _recordings(out)["rt_ident-xy-contour"]
+
+
+def test_an_xy_run_refuses_serve_and_a_connect_without_url():
+    with pytest.raises(ConfigError, match="server per axis"):
+        run_axes(_xy(), sink="serve")
+    with pytest.raises(ConfigError, match="connect_url"):
+        run_axes(_xy(), sink="connect")

@@ -333,15 +333,17 @@ CONTOUR_FIGURES = "contour/figures"        # G, F, H as text
 _DIR_COLOR = {"ccw": (31, 119, 180), "cw": (214, 39, 40)}
 
 
-def write_contour_rrd(path: str, reference: tuple[np.ndarray, np.ndarray],
+def write_contour_rrd(path: str | None, reference: tuple[np.ndarray, np.ndarray],
                       paths: dict[str, tuple[np.ndarray, np.ndarray]], radius: float,
-                      centre: tuple[float, float], figures: Mapping[str, Any]) -> str:
+                      centre: tuple[float, float], figures: Mapping[str, Any], *,
+                      connect_url: str | None = None) -> str:
     """The circular test's dashboard, both axes in one recording: the XY path of the table against the
     reference (``reference``: the commanded X and Y over the whole run, ``paths``: the measured table
     per direction over its measured turn, all in m), the ballbar trace (radial deviation magnified as
     in :func:`rt_ident.control.contour.polar_plot`), the deviation against the angle on the timeline
     ``angle`` (tenths of a degree, counter-clockwise from +X about the nominal centre) and the figures.
-    Written after the run (the loop's samples of both axes are in hand then); returns ``path``."""
+    Written after the run (the loop's samples of both axes are in hand then) to ``path``, or sent to
+    the viewer at ``connect_url`` (a live run: beside the axes' recordings); returns where it went."""
     import os
 
     import rerun as rr
@@ -355,7 +357,10 @@ def write_contour_rrd(path: str, reference: tuple[np.ndarray, np.ndarray],
         rrb.Vertical(rrb.TimeSeriesView(origin=CONTOUR_RADIAL, name="radial deviation [um] along the circle"),
                      rrb.TextDocumentView(origin=CONTOUR_FIGURES, name="ISO 230-4 figures"))),
         rrb.TimePanel(timeline="angle", state="collapsed"))
-    rec.save(path, default_blueprint=bp)
+    if connect_url is not None:
+        rec.connect_grpc(connect_url, default_blueprint=bp)
+    else:
+        rec.save(path, default_blueprint=bp)
     try:
         cx, cy = centre
         xr, yr = reference
@@ -392,4 +397,4 @@ def write_contour_rrd(path: str, reference: tuple[np.ndarray, np.ndarray],
     finally:
         rec.flush()
         rec.disconnect()
-    return path
+    return connect_url if connect_url is not None else path

@@ -91,7 +91,7 @@ class ContourTrace:
         self.buf[self.n] = (cx.t, cx.x_ref + cx.error, cy.x_ref + cy.error, cx.x_ref, cy.x_ref)
         self.n += 1
 
-    def result(self, png: str | None, rrd: str | None = None) -> dict[str, Any] | None:
+    def result(self, png: str | None, rrd: str | None = None, live_url: str | None = None) -> dict[str, Any] | None:
         if not self.active or self.n < 16:
             return None
         from rt_ident.control.contour import circle_figures, polar_plot
@@ -111,13 +111,13 @@ class ContourTrace:
         fig["overshoot_deg"] = self.ref.overshoot_deg
         if png:
             fig["polar_png"] = polar_plot(paths, R, (0.0, -R), fig, png, title="XY circular test (table scale)")
-        if rrd:
+        if rrd or live_url:
             from rt_ident.runtime.dashboard import write_contour_rrd
 
             try:
-                fig["rrd"] = write_contour_rrd(rrd, (xr, yr), paths, R, (0.0, -R), fig)
+                fig["rrd"] = write_contour_rrd(rrd, (xr, yr), paths, R, (0.0, -R), fig, connect_url=live_url)
             except Exception as exc:  # noqa: BLE001 - the figures are in hand; the dashboard is extra
-                log.warning("contour dashboard %s not written: %s", rrd, exc)
+                log.warning("contour dashboard %s not written: %s", rrd or live_url, exc)
                 fig["rrd_error"] = f"{type(exc).__name__}: {exc}"
         return fig
 
@@ -161,8 +161,16 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     stop = stop_event or threading.Event()
     axes_cfg = check_axes(cfg)
     sink = sink or cfg.telemetry.sink
-    if sink not in ("rrd", "off"):
-        raise ConfigError("telemetry.sink", "a run with several axes writes .rrd files (one per axis) or none")
+    if sink not in ("rrd", "off", "connect", "spawn"):
+        raise ConfigError("telemetry.sink", "a run with several axes writes .rrd files (one per axis), streams "
+                                            "to one viewer (--spawn, --connect URL) or sends nothing; --serve would "
+                                            "need a server per axis")
+    live_url = None             # --spawn / --connect: every axis's recording (and the contour's) goes to one viewer
+    if sink == "connect":
+        live_url = connect_url or cfg.telemetry.connect_url
+        if not live_url:
+            raise ConfigError("telemetry.connect_url", "--connect needs the viewer's URL (rerun+http://HOST:PORT/proxy)")
+        TelemetryConfig(sink="connect", connect_url=live_url)          # the URL's form, checked before anything starts
     rrd_base, rec_base = prepare_outputs(cfg, rrd, record, sink, overwrite)
     paths = {name: (_axis_path(rrd_base, name), _axis_path(rec_base, name)) for name in axes_cfg}
     for name, (r, p) in paths.items():              # the per-axis files must not exist either
@@ -184,6 +192,13 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     old_signals = _install_signals(stop)
     try:
         with contextlib.ExitStack() as stack:
+            if sink == "spawn":
+                from rt_ident.runtime.telemetry import DEFAULT_PORT, ensure_viewer
+
+                live_url = ensure_viewer(TelemetryConfig(sink="spawn", bind_ip=cfg.telemetry.bind_ip,
+                                                         port=cfg.telemetry.port or DEFAULT_PORT))
+            if live_url:
+                summary["live_url"] = live_url
             if any(acfg.backend.emulate for acfg in axes_cfg.values()):
                 from rt_ident.runtime.emulation import start_bus_emulator
 
@@ -201,9 +216,11 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                 ex = acfg.excitation
                 dt = backend.sample_period
                 rrd_path, rec_path = paths[name]
-                if sink == "rrd":
-                    tel = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=rrd_path,
-                                                           application_id=f"rt_ident-{name}")).start()
+                if sink != "off":       # each axis its own recording (rt_ident-x, rt_ident-y): a file, or the viewer
+                    tel_cfg = (TelemetryConfig(sink="rrd", rrd_path=rrd_path, application_id=f"rt_ident-{name}")
+                               if sink == "rrd" else
+                               TelemetryConfig(sink="connect", connect_url=live_url, application_id=f"rt_ident-{name}"))
+                    tel = TelemetryProcess(tel_cfg).start()
                     tel.set_truth({"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K,
                                    **modal_parameters(truth)})
                     part["telemetry"] = tel
@@ -332,7 +349,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     if multi is not None:
         summary["loop"] = {**multi.stats.as_dict(), "host": host}
     if trace is not None:
-        contour = trace.result(contour_png, contour_rrd)
+        contour = trace.result(contour_png, contour_rrd, live_url)
         if contour is not None:
             summary["contour"] = contour
     for name, loop in loops.items():

@@ -208,15 +208,21 @@ def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
         rec.set_sinks(sink, default_blueprint=bp)
         log.info("telemetry served at %s", sink.uri)
     elif cfg.sink == "spawn":
-        host = _local_host(cfg.bind_ip)
-        if not _port_open(host, cfg.port):
-            env = dict(os.environ, CI=os.environ.get("CI", "1"))
-            subprocess.Popen(viewer_command(cfg), env=env, start_new_session=True, stdin=subprocess.DEVNULL,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            deadline = time.monotonic() + 15.0
-            while not _port_open(host, cfg.port) and time.monotonic() < deadline:
-                time.sleep(0.1)
-        rec.connect_grpc(f"rerun+http://{host}:{cfg.port}/proxy", default_blueprint=bp)
+        rec.connect_grpc(ensure_viewer(cfg), default_blueprint=bp)
+
+
+def ensure_viewer(cfg: TelemetryConfig, wait_s: float = 15.0) -> str:
+    """Start a local viewer on ``cfg.bind_ip:cfg.port`` unless one listens there already (it outlives
+    the run, in its own session); returns the URL an SDK connects to. Waits up to ``wait_s`` for it."""
+    host = _local_host(cfg.bind_ip)
+    if not _port_open(host, cfg.port):
+        env = dict(os.environ, CI=os.environ.get("CI", "1"))
+        subprocess.Popen(viewer_command(cfg), env=env, start_new_session=True, stdin=subprocess.DEVNULL,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + wait_s
+        while not _port_open(host, cfg.port) and time.monotonic() < deadline:
+            time.sleep(0.1)
+    return f"rerun+http://{host}:{cfg.port}/proxy"
 
 
 def _step_points(v: np.ndarray, last: np.ndarray | None, extend: bool) -> np.ndarray:
