@@ -318,7 +318,9 @@ def test_samples_carry_plausible_angles_and_torque():
     assert th1[-1] == pytest.approx(q / DEFAULT_KP, rel=0.1)
     assert abs(th1[-1] - th2[-1]) < 2e-3
     assert np.all(np.abs(meas) <= 1.0 + 1e-9) and abs(meas[-1]) < 0.02    # torque actual ~ 0 at rest
-    assert np.all(np.abs(np.diff(th1)) < 0.05)                             # no jumps (rad per ms)
+    # no jumps: at most 0.05 rad per SYNC period, and that many times across a gap of lost samples (under a
+    # CPU hog two neighbouring samples were once 0.08 rad apart: the drive had settled in between)
+    assert np.all(np.abs(np.diff(th1)) < 0.05 * np.diff(seq))
 
 
 def test_torque_plan_values_reach_their_samples():
