@@ -160,12 +160,10 @@ def test_a_design_that_is_near_instability_on_the_heavier_axis_is_still_refused(
 
 
 def test_a_redesign_replaces_a_fallback_controller_that_fails_on_the_new_estimate():
-    from rt_ident.control.adaptation import rigid_controller
-
     s = ControlSettings()
-    cons = rigid_controller(Y, 1e-3, s)             # for the nominal I1 + I2: unstable once Y is heavier
-    assert not loop_margins(cons.gains, Y_HEAVY, 1e-3).stable
-    req = {"settings": s, "tick": 1e-3, "conservative": list(cons.gains),
+    cons = design_rigid(Y.I1 + Y.I2, 1e-3, 10.0)   # a 10 Hz fallback for the nominal I1 + I2: unstable on the heavier Y
+    assert not loop_margins(cons, Y_HEAVY, 1e-3).stable
+    req = {"settings": s, "tick": 1e-3, "conservative": list(cons),
            "params": {"I1": Y_HEAVY.I1, "I2": Y_HEAVY.I2, "B": Y_HEAVY.B, "K": Y_HEAVY.K, "lead": Y_HEAVY.lead}}
     out = redesign(req)
     assert out["accepted"] and out["fallback"] is not None and out["fallback"].kind == "conservative"
@@ -180,3 +178,15 @@ def test_a_redesign_reports_the_worker_cpu_it_took():
            "params": {"I1": Y.I1, "I2": Y.I2, "B": Y.B, "K": Y.K, "lead": Y.lead}}
     out = redesign(req)
     assert out["accepted"] and 0.0 < out["cpu_s"] < 30.0
+
+
+def test_the_conservative_controller_keeps_its_margins_with_a_workpiece_on_the_table():
+    from rt_ident.control.adaptation import rigid_controller
+
+    s = ControlSettings()
+    cy = rigid_controller(Y, 1e-3, s)                  # Y at 10 Hz is unstable with I2 x 3: the bandwidth comes down
+    assert cy.bandwidth_hz < s.conservative_bandwidth_hz
+    for q in (Y, Y_HEAVY):
+        assert loop_margins(cy.gains, q, 1e-3).meets(s.gain_margin_db, s.phase_margin_deg)
+    x = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110, lead=7.96e-4)
+    assert rigid_controller(x, 1e-3, s).bandwidth_hz == s.conservative_bandwidth_hz    # X passes at 10 Hz as it is
