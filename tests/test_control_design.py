@@ -180,13 +180,14 @@ def test_a_redesign_reports_the_worker_cpu_it_took():
     assert out["accepted"] and 0.0 < out["cpu_s"] < 30.0
 
 
-def test_the_conservative_controller_keeps_its_margins_with_a_workpiece_on_the_table():
+def test_asked_for_a_workpiece_the_conservative_controller_keeps_its_margins_with_it():
     from rt_ident.control.adaptation import rigid_controller
 
-    s = ControlSettings()
+    s = ControlSettings(conservative_load=3.0)
     cy = rigid_controller(Y, 1e-3, s)                  # Y at 10 Hz is unstable with I2 x 3: the bandwidth comes down
     assert cy.bandwidth_hz < s.conservative_bandwidth_hz
     for q in (Y, Y_HEAVY):
         assert loop_margins(cy.gains, q, 1e-3).meets(s.gain_margin_db, s.phase_margin_deg)
     x = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110, lead=7.96e-4)
     assert rigid_controller(x, 1e-3, s).bandwidth_hz == s.conservative_bandwidth_hz    # X passes at 10 Hz as it is
+    assert rigid_controller(Y, 1e-3, ControlSettings()).bandwidth_hz == 10.0     # by default: the nominal axis only
