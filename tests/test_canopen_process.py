@@ -41,7 +41,10 @@ _ALL_CPUS = os.sched_getaffinity(0)
 
 def _config(**over):
     base = {"loop.duration": 2.0, "telemetry.sink": "off", "recording.enabled": False,
-            "backend.stale_limit": 200}           # a loaded test machine must not trip the watchdog
+            "backend.stale_limit": 200,           # a loaded test machine must not trip the watchdog
+            # ... nor the drive's heartbeat consumer: 250 ms without the host's heartbeat faulted the drive
+            # once in a fresh-clone CI run (EMCY 0x8130); heartbeat loss is tested in test_canopen_backend
+            "backend.heartbeat_consumer_ms": 1000}
     return load(CONFIG, **{**base, **over})
 
 
