@@ -617,18 +617,25 @@ def _bench_xy(seconds: float, json_out: bool) -> None:
         typer.echo(json.dumps(res, indent=2, default=_json_default))
         return
     tab = Table(title=f"tick work (µs), {seconds:g} s real time at the sim's 34 k samples/s per axis, 1 ms tick")
-    for col in ("run", "p50", "p99", "max", "samples", "overruns", "stop"):
+    for col in ("run", "p50", "p99", "max", "samples", "overruns", "idle poll", "stop"):
         tab.add_column(col, justify="right")
-    for name, key in (("X and Y in one loop", "two_axes"), ("X alone", "one_axis")):
-        r = res[key]
+
+    def row(name: str, r: dict) -> None:
         w = r.get("work_us") or {}
         tab.add_row(name, _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), str(r.get("samples")),
-                    str(r.get("overruns")), str(r.get("stop") or "-"))
+                    str(r.get("overruns")), "on" if r.get("idle_poll") else "off", str(r.get("stop") or "-"))
+
+    row("X and Y in one loop", res["two_axes"])
     for axis, w in (res["two_axes"].get("per_axis_work_us") or {}).items():
-        tab.add_row(f"  axis {axis}'s share", _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), "", "", "")
+        tab.add_row(f"  axis {axis}'s share", _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), "", "", "", "")
+    row("X alone", res["one_axis"])
+    row("X and Y, no idle poll", res["two_axes_no_idle_poll"])
     out.print(tab)
     ratio = res.get("p99_ratio_two_over_one")
     out.print(f"p99 two axes / one axis: {_fmt(ratio)}")
+    off99 = (res["two_axes_no_idle_poll"].get("work_us") or {}).get("p99")
+    if p99_on := (res["two_axes"].get("work_us") or {}).get("p99"):
+        out.print(f"p99 two axes, idle poller on / off: {_fmt(p99_on / off99 if off99 else None)}")
     p99 = (res["two_axes"].get("work_us") or {}).get("p99")
     out.print(f"{'met' if res['met'] else 'NOT met'}: p99 of the two-axis tick <= {res['target_p99_us']:g} us "
               f"(40 % of the tick): {_fmt(p99)} us")

@@ -60,6 +60,9 @@ class LoopConfig(_Section):
     warmup_periods: int = Field(2, ge=0)       # excitation periods discarded before estimating
     max_sleep_us: Optional[float] = Field(100.0, gt=0)  # longest single sleep while waiting for a tick
                                                # (short sleeps keep a VM's vCPU from halting; scheduler.py)
+    idle_poll: bool = True                     # real time, loop on its own CPU: a SCHED_IDLE thread keeps that
+                                               # CPU busy while the loop sleeps (runtime/idle_poll.py); the
+                                               # ticker then sleeps in one piece unless max_sleep_us is set
 
 
 class EstimatorConfig(_Section):

@@ -115,6 +115,9 @@ def test_the_xy_budget_bench_times_both_axes_against_one_and_each_axis_share():
         assert 0.0 < w["p50"] < two["work_us"]["p50"]
     assert res["met"] == (two["work_us"]["p99"] <= TARGET_P99_US)
     assert res["p99_ratio_two_over_one"] == pytest.approx(two["work_us"]["p99"] / one["work_us"]["p99"])
+    off = res["two_axes_no_idle_poll"]                                 # the peer run: the same two axes
+    assert off["stop"] is None and off["samples"] > 1.5 * one["samples"]
+    assert not any(r["idle_poll"] for r in (two, one, off))           # not real time: no poller anywhere
 
 
 @pytest.mark.slow

@@ -42,6 +42,7 @@ from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.runtime.outputs import check_output, check_methods, prepare_outputs, remove_empty_outputs
 from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _excitation, _final_fit,
                                   _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, helper_role, _realtime,
+                                  _start_idle_poll,
                                   _warmup, backend_options, friction_estimator, friction_summary,
                                   recording_metadata)
 from rt_ident.runtime.safety import SafetyMonitor
@@ -286,6 +287,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             for backend in backends.values():
                 stack.enter_context(backend)           # open(); on exit (any axis's error too): safe stop, close
             summary["realtime"] = _realtime(cfg)
+            poller = _start_idle_poll(cfg, summary["realtime"], [multi.ticker], stack)
             switch_interval = sys.getswitchinterval()
             stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
@@ -295,6 +297,8 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             try:
                 multi.run()
             finally:
+                if poller is not None:
+                    poller.stop()
                 host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
                 watch.freeze()
             for backend in backends.values():

@@ -247,6 +247,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
             stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
             summary["realtime"] = _realtime(cfg)
+            poller = _start_idle_poll(cfg, summary["realtime"], [loop.ticker], stack)
             # a backend's I/O threads (python-can's receiver, a SYNC sender) share this process's GIL:
             # hand it back within 50 us, not 5 ms (the hand-offs to helper processes use no thread: rt_ident.runtime.shm_ring)
             switch_interval = sys.getswitchinterval()
@@ -257,6 +258,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             try:
                 loop.run()
             finally:
+                if poller is not None:
+                    poller.stop()                    # the loop's CPU free again for the final fit
                 host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
                 watch.freeze()
             backend.safe_stop()                      # zero torque before the (slower) final fit
@@ -495,6 +498,33 @@ def _realtime(cfg: RunConfig) -> dict[str, Any]:
 
     cpu = _loop_cpu()
     return apply_realtime(priority=50, cpus=None if cpu is None else [cpu], lock_memory=True, freeze_gc=True)
+
+
+def _start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, stack) -> Any:
+    """Start the idle poller (rt_ident.runtime.idle_poll) on the loop's CPU when the run is real time,
+    the loop got that CPU to itself and ``[loop] idle_poll`` is on; its report goes into ``realtime``
+    as ``idle_poll``. With it running the vCPU cannot halt, so the tickers sleep in one piece (unless
+    the config sets ``max_sleep_us``). Returns the poller (stopped by ``stack`` at the latest) or None."""
+    if not cfg.loop.realtime:
+        return None
+    if not cfg.loop.idle_poll:
+        realtime["idle_poll"] = {"running": False, "reason": "[loop] idle_poll = false"}
+        return None
+    cpus = os.sched_getaffinity(0) if realtime.get("affinity") is True else set()   # pinned by _realtime
+    cpu = next(iter(cpus)) if len(cpus) == 1 else None
+    if cpu is None:
+        realtime["idle_poll"] = {"running": False, "reason": "the loop has no CPU of its own"}
+        return None
+    from rt_ident.runtime.idle_poll import IdlePoller
+
+    poller = IdlePoller(cpu)
+    stack.callback(poller.stop)
+    realtime["idle_poll"] = report = poller.start()
+    if report.get("running") and "max_sleep_us" not in cfg.loop.model_fields_set:
+        for ticker in tickers:
+            ticker.max_sleep_s = None
+        report["ticker_sleep"] = "one piece"
+    return poller if report.get("running") else None
 
 
 def exit_code(summary: dict[str, Any]) -> int:

@@ -1,0 +1,138 @@
+"""Keep the loop's CPU busy while the loop sleeps, at the lowest priority there is.
+
+Measured on this product's 2-vCPU KVM guest (``rt-ident bench --xy``, configs/xy-sim.toml): every
+tick that follows a sleep runs slow. The loop thread sleeps ~0.8 ms of each 1 ms tick; the tick after
+it spends ~35 % longer in every part (read, filters, estimators, plan) than the same code run back
+to back, and whichever axis goes first pays most of it (X's share p50 111-124 us against Y's 73-77).
+A loop that never sleeps (the ticker spinning the whole period, an experiment) ran the two-axis tick
+at p50 153-170 us instead of 195-218, and one axis at p50 80-84 us instead of 139-152. The cost sits
+in the vCPU going idle: the guest halts it, the hypervisor takes the core, and the caches and branch
+predictors the interpreter needs are cold when the timer wakes the loop. Spinning in the loop thread
+itself is not an option: under SCHED_FIFO a thread that never sleeps is paused for 50 ms of every
+second by the kernel's RT throttle (8-10 overruns in 8 s in that experiment), and a spinning thread
+holds the GIL that a CANopen backend's SYNC and receive threads need.
+
+:class:`IdlePoller` is a thread pinned to the loop's CPU under ``SCHED_IDLE``: it runs only when
+nothing else on that CPU wants to, so the loop (SCHED_FIFO) and any other thread preempt it at
+once, and the RT throttle never counts it. It spins in a compiled loop that holds no GIL
+(``numba.njit(nogil=True)``), coming back to Python for about a microsecond every ~10 us to see
+whether it should stop. With it the vCPU never halts: measured the same way, the two-axis tick at
+p50 166-184 us and p99 315-399 us, against 195-214 and 349-463 us without it. The cost is the
+loop's CPU at 100 % for the length of the run (the loop has that CPU to itself already:
+rt_ident.runtime.run keeps every helper off it). ``[loop] idle_poll = false`` turns it off.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+_spin = None
+
+
+def _kernel():
+    """The compiled spin, built on first use (~0.1 s; numba cannot cache a function that calls through
+    a ctypes pointer, so each process compiles it once)."""
+    global _spin
+    if _spin is None:
+        import ctypes
+        import ctypes.util
+
+        import numba
+
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        clock_gettime = libc.clock_gettime
+        clock_gettime.argtypes = (ctypes.c_int, ctypes.c_void_p)
+        clock_gettime.restype = ctypes.c_int
+        monotonic = time.CLOCK_MONOTONIC
+
+        @numba.njit(nogil=True)
+        def spin(stop, ts):
+            # runs without the GIL from the first iteration to the last: a thread that came back to
+            # Python between chunks could be preempted holding the GIL, and at SCHED_IDLE beside a busy
+            # process it might not run again for many milliseconds while the loop waited for the GIL.
+            # The call to clock_gettime (vDSO, no system call) is opaque to the compiler, so stop[0] is
+            # read again on every iteration instead of once before the loop.
+            n = 0
+            where = ts.ctypes.data
+            while stop[0] == 0:
+                clock_gettime(monotonic, where)
+                n += 1
+            return n
+
+        _spin = spin
+    return _spin
+
+
+class IdlePoller:
+    """A ``SCHED_IDLE`` thread that keeps ``cpu`` busy until :meth:`stop` (a context manager too).
+
+    :meth:`start` returns once the thread runs where it should, with a report: ``{"running": True,
+    "cpu": ..., "policy": "SCHED_IDLE"}``, or ``{"running": False, "reason": ...}`` when it could not
+    be placed (the thread has ended then). ``iterations`` is the spin's count once stopped.
+    """
+
+    def __init__(self, cpu: int) -> None:
+        self.cpu = int(cpu)
+        self.iterations = 0
+        self._stop = np.zeros(1, dtype=np.int64)
+        self._ts = np.zeros(2, dtype=np.int64)
+        self._thread: threading.Thread | None = None
+        self._placed = threading.Event()
+        self._report: dict[str, Any] = {}
+
+    def start(self, timeout: float = 10.0) -> dict[str, Any]:
+        spin = _kernel()
+        self._stop[0] = 1
+        spin(self._stop, self._ts)              # compiled here, not in the thread; returns at once
+        self._stop[0] = 0
+        self._thread = threading.Thread(target=self._run, args=(spin,), name="rt_ident-idle-poll", daemon=True)
+        self._thread.start()
+        if not self._placed.wait(timeout):
+            self.stop()
+            return {"running": False, "reason": f"the thread did not start within {timeout:g} s"}
+        if not self._report.get("running"):
+            self._thread.join(timeout)
+        return dict(self._report)
+
+    def _run(self, spin) -> None:
+        try:
+            os.sched_setaffinity(0, {self.cpu})          # this thread only (Linux: 0 is the caller)
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        except (AttributeError, OSError, ValueError) as exc:
+            self._report = {"running": False, "reason": f"cannot place the poller on CPU {self.cpu}: {exc}"}
+            self._placed.set()
+            return
+        self._report = {"running": True, "cpu": self.cpu, "policy": "SCHED_IDLE"}
+        self._placed.set()
+        self.iterations = int(spin(self._stop, self._ts))
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread and wait for it (idempotent)."""
+        self._stop[0] = 1
+        th = self._thread
+        if th is not None and th.is_alive() and th is not threading.current_thread():
+            th.join(timeout)
+            if th.is_alive():                            # daemon: it cannot keep the process alive
+                log.warning("idle poller did not stop within %g s", timeout)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def __enter__(self) -> "IdlePoller":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+__all__ = ["IdlePoller"]

@@ -1,0 +1,101 @@
+"""The idle poller (rt_ident.runtime.idle_poll): a SCHED_IDLE thread on the loop's CPU that keeps it
+busy while the loop sleeps, never holds the GIL while it spins, and is gone when the run ends."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+from rt_ident.config import load
+from rt_ident.runtime import run as run_mod
+from rt_ident.runtime.idle_poll import IdlePoller
+from rt_ident.runtime.multi import run_axes
+
+QUIET = {"telemetry.sink": "off", "recording.enabled": False}
+
+
+def _pollers() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "rt_ident-idle-poll"]
+
+
+def test_the_poller_spins_at_sched_idle_on_its_cpu_and_is_gone_after_stop():
+    cpu = max(os.sched_getaffinity(0))
+    p = IdlePoller(cpu)
+    report = p.start()
+    try:
+        assert report == {"running": True, "cpu": cpu, "policy": "SCHED_IDLE"}
+        tid = p._thread.native_id
+        assert os.sched_getscheduler(tid) == os.SCHED_IDLE
+        assert os.sched_getaffinity(tid) == {cpu}
+        deadline = time.monotonic() + 30.0
+        while not p._ts.any() and time.monotonic() < deadline:   # its clock read: it has spun once
+            time.sleep(0.01)
+    finally:
+        p.stop()
+    assert not p.alive and not _pollers()
+    assert p.iterations > 0                        # it did spin until it was stopped
+
+
+def test_the_poller_leaves_the_gil_to_other_threads_while_it_spins():
+    # a thread that came back to Python between chunks could sit on the GIL; this one spins in one
+    # compiled call: a pure-Python loop in this thread keeps running beside it
+    p = IdlePoller(max(os.sched_getaffinity(0)))
+    assert p.start()["running"]
+    try:
+        done = threading.Event()
+        counts = []
+
+        def count():
+            n, end = 0, time.monotonic() + 0.2
+            while time.monotonic() < end:
+                n += 1
+            counts.append(n)
+            done.set()
+
+        threading.Thread(target=count).start()
+        assert done.wait(30.0)                 # with the GIL held by the spin it would never finish
+        assert counts[0] > 1000
+    finally:
+        p.stop()
+
+
+def test_a_poller_that_cannot_be_placed_says_why_and_leaves_no_thread():
+    p = IdlePoller(100_000)                        # no such CPU
+    report = p.start()
+    assert report["running"] is False and "CPU 100000" in report["reason"]
+    assert not p.alive and not _pollers()
+
+
+def test_a_real_time_run_polls_its_loop_cpu_sleeps_in_one_piece_and_stops_the_poller(restore_scheduling):
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("the loop gets a CPU of its own only with two or more")
+    s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.5, "loop.realtime": True}))
+    assert s["stop"]["cause"] is None
+    poll = s["realtime"]["idle_poll"]
+    assert poll["running"] is True and poll["policy"] == "SCHED_IDLE" and poll["ticker_sleep"] == "one piece"
+    assert poll["cpu"] == next(iter(os.sched_getaffinity(0)))      # the CPU the loop was pinned to
+    assert not _pollers()
+
+
+def test_an_xy_run_polls_too_and_a_configured_max_sleep_keeps_its_chunks(restore_scheduling):
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("the loop gets a CPU of its own only with two or more")
+    from rt_ident.axis.params import CONFIG_DIR
+
+    cfg = load(CONFIG_DIR / "xy-sim.toml", **{**QUIET, "loop.duration": 0.5, "loop.max_sleep_us": 100.0})
+    s = run_axes(cfg)
+    assert s["stop"]["cause"] is None
+    poll = s["realtime"]["idle_poll"]
+    assert poll["running"] is True and "ticker_sleep" not in poll       # the user's max_sleep_us stands
+    assert not _pollers()
+
+
+def test_idle_poll_off_or_not_real_time_starts_no_poller(restore_scheduling):
+    s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True, "loop.idle_poll": False}))
+    assert s["realtime"]["idle_poll"] == {"running": False, "reason": "[loop] idle_poll = false"}
+    s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": False}))
+    assert "idle_poll" not in s["realtime"]
+    assert not _pollers()
