@@ -5,21 +5,23 @@ tick that follows a sleep runs slow. The loop thread sleeps ~0.8 ms of each 1 ms
 it spends ~35 % longer in every part (read, filters, estimators, plan) than the same code run back
 to back, and whichever axis goes first pays most of it (X's share p50 111-124 us against Y's 73-77).
 A loop that never sleeps (the ticker spinning the whole period, an experiment) ran the two-axis tick
-at p50 153-170 us instead of 195-218, and one axis at p50 80-84 us instead of 139-152. The cost sits
-in the vCPU going idle: the guest halts it, the hypervisor takes the core, and the caches and branch
-predictors the interpreter needs are cold when the timer wakes the loop. Spinning in the loop thread
-itself is not an option: under SCHED_FIFO a thread that never sleeps is paused for 50 ms of every
-second by the kernel's RT throttle (8-10 overruns in 8 s in that experiment), and a spinning thread
-holds the GIL that a CANopen backend's SYNC and receive threads need.
+at p50 153-170 us instead of 195-218, and one axis at p50 80-84 us instead of 139-152. The likely
+cause is the vCPU going idle (the guest halts it, the host runs something else, the timer's wake-up
+goes through the hypervisor) and the interpreter's caches and branch predictors going cold with it;
+the mechanism is not proven, the effect is. Spinning in the loop thread itself is not an option:
+under SCHED_FIFO a thread that never sleeps is paused for 50 ms of every second by the kernel's RT
+throttle (8-10 overruns in 8 s in that experiment), and a spinning Python thread holds the GIL that
+a CANopen backend's SYNC and receive threads need.
 
 :class:`IdlePoller` is a thread pinned to the loop's CPU under ``SCHED_IDLE``: it runs only when
 nothing else on that CPU wants to, so the loop (SCHED_FIFO) and any other thread preempt it at
-once, and the RT throttle never counts it. It spins in a compiled loop that holds no GIL
-(``numba.njit(nogil=True)``), coming back to Python for about a microsecond every ~10 us to see
-whether it should stop. With it the vCPU never halts: measured the same way, the two-axis tick at
-p50 166-184 us and p99 315-399 us, against 195-214 and 349-463 us without it. The cost is the
-loop's CPU at 100 % for the length of the run (the loop has that CPU to itself already:
-rt_ident.runtime.run keeps every helper off it). ``[loop] idle_poll = false`` turns it off.
+once, and the RT throttle never counts it. It spins inside one compiled call
+(``numba.njit(nogil=True)``) from start to stop, so it never holds the GIL while it spins. With it
+the vCPU does not halt, and rt_ident.runtime.run lets the ticker sleep in one piece instead of
+100 us pieces. Measured side by side (``rt-ident bench --xy``, 7 runs): the two-axis tick's p99
+0.80-0.96 x that of the same run without it (307-514 us against 356-536 us). The cost is the loop's
+CPU at 100 % for the length of the run (the loop has that CPU to itself already: rt_ident.runtime.run
+keeps every helper off it). ``[loop] idle_poll = false`` turns it off.
 """
 
 from __future__ import annotations
