@@ -134,6 +134,14 @@ class Backend(ABC):
             raise BackendStateError(f"read() in state {self.state.value}")
         return self._read()
 
+    #: a simulation in this process (the loop reports its stepping apart from the tick's work)
+    simulated = False
+
+    def step_ahead(self, seconds: float) -> None:
+        """Called by the loop after each tick with the time to its next deadline: a simulated device
+        may produce the samples due by then now, so that read() only hands them out (the sim does,
+        in paced mode). A real device produces them by itself: nothing to do."""
+
     def write(self, torque: float | np.ndarray, *, start_seq: int | None = None, lease: int | None = None) -> None:
         """Send a torque command, clamped to ``torque_limit`` before it leaves the host.
 

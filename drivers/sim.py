@@ -30,7 +30,7 @@ from typing import Any, Callable, Literal, Mapping, Optional
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from drivers.base import Backend, SampleBlock
+from drivers.base import Backend, SampleBlock, State
 from drivers.errors import DriverError, TravelLimitTrip
 from rt_ident.axis.friction import Friction
 from rt_ident.axis.params import AxisParams, thomson_x
@@ -97,6 +97,7 @@ class SimBackend(Backend):
     """
 
     name = "sim"
+    simulated = True
 
     def __init__(self, config: Mapping[str, Any] | None = None, *,
                  clock: Callable[[], float] = time.perf_counter) -> None:
@@ -121,7 +122,13 @@ class SimBackend(Backend):
         self.applied_changes: list[tuple[int, AxisParams]] = []   # (seq, params) applied so far
         self._clock = clock
         self._t_activate = 0.0
-        self._produced = 0                # samples produced = seq of the next sample
+        self._produced = 0                # samples read() has handed out = seq of the next one it returns
+        self._stepped = 0                 # samples the plant has stepped (ahead of _produced after step_ahead)
+        # stepped ahead, not yet read (seq _produced .. _stepped - 1): theta1, theta2, torque_cmd,
+        # torque_applied, torque_meas from index _ahead_off on
+        self._ahead: tuple[np.ndarray, ...] | None = None
+        self._ahead_off = 0
+        self._ahead_trip: str | None = None     # the travel limit tripped in the samples stepped ahead
         self._hold = 0.0                  # torque for samples not covered by the plan
         self._plan = np.empty(0)          # values for seq _plan_start, _plan_start + 1, ...
         self._plan_start = 0
@@ -154,7 +161,7 @@ class SimBackend(Backend):
 
     @property
     def samples_produced(self) -> int:
-        """Sequence number of the next sample."""
+        """Sequence number of the next sample read() returns."""
         return self._produced
 
     # ----- hooks ----------------------------------------------------------
@@ -164,6 +171,10 @@ class SimBackend(Backend):
 
     def _activate(self) -> None:
         self._produced = 0
+        self._stepped = 0
+        self._ahead = None
+        self._ahead_off = 0
+        self._ahead_trip = None
         self._hold = 0.0
         self._plan = np.empty(0)
         self._plan_start = 0
@@ -181,7 +192,7 @@ class SimBackend(Backend):
 
         Invariant: the stored plan never starts before the next sample (consumed values are dropped).
         """
-        p = self._produced
+        p = self._stepped
         end = p + n
         plan = self._plan
         if not plan.size:
@@ -203,24 +214,82 @@ class SimBackend(Backend):
             self._plan_start = end
         return cmd
 
+    def step_ahead(self, seconds: float) -> None:
+        """Paced mode: step the plant now through the samples due in the next ``seconds`` (the loop
+        calls this after its tick, with the time to its next deadline), so that read() only hands
+        them out. Nothing changes for the samples: a drive applies the plan it holds when each sample
+        comes, and until the next read() that is the plan the host has just written - the same plan
+        the samples got when read() stepped them. A host write that arrives before they are read
+        finds them already applied (``late_plan_samples``), as it would on a drive. A travel trip
+        among them disables the drive at once and is raised by the read() that delivers them."""
+        if not self.config.paced or self.state is not State.ACTIVE or self.tripped is not None \
+                or self._ahead_trip is not None:
+            return
+        n = math.floor((self._clock() + seconds - self._t_activate) / self._dt) - self._stepped
+        if n <= 0:
+            return
+        p = self._stepped
+        blk = self._step(self._commands(n), p)
+        self._stepped = p + n
+        new = (blk.theta1, blk.theta2, blk.torque_cmd, blk.torque_applied, blk.torque_meas)
+        if self._ahead is None:
+            self._ahead = new
+        else:                               # what the last read left (the copying is done here, not in read)
+            o = self._ahead_off
+            self._ahead = tuple(np.concatenate((old[o:], a)) for old, a in zip(self._ahead, new))
+        self._ahead_off = 0
+        if self.plant.travel_exceeded:
+            self._ahead_trip = self._trip_message()
+            self._disable()
+
+    def _trip_message(self) -> str:
+        x = self.true_params.lead * float(self.plant.state[2])
+        return f"table at {x:.6f} m outside travel {self.config.travel}"
+
+    def _take_ahead(self, n: int) -> tuple[np.ndarray, ...]:
+        """Views of the next ``n`` samples stepped ahead: theta1, theta2, torque_cmd, torque_applied,
+        torque_meas (arrays never written again: step_ahead makes new ones)."""
+        o = self._ahead_off
+        got = tuple(a[o:o + n] for a in self._ahead)
+        if o + n >= self._ahead[0].shape[0]:
+            self._ahead, self._ahead_off = None, 0
+        else:
+            self._ahead_off = o + n
+        return got
+
     def _read(self) -> SampleBlock:
         if self.tripped is not None:
             raise TravelLimitTrip(f"sim: drive disabled after {self.tripped}")
         n = self._due()
         if n == 0:
             return SampleBlock.empty(self.has_measured_torque)
-        cmd = self._commands(n)
         p = self._produced
-        blk = self._step(cmd, p)
+        ahead = self._stepped - p
+        if ahead == 0:
+            b = self._step(self._commands(n), p)
+            th1, th2, cmd, applied, meas = b.theta1, b.theta2, b.torque_cmd, b.torque_applied, b.torque_meas
+            self._stepped = p + n
+        elif ahead >= n or self._ahead_trip is not None:
+            n = min(n, ahead)               # after a trip the drive is off: nothing after its samples
+            th1, th2, cmd, applied, meas = self._take_ahead(n)
+        else:                               # a late read: the rest is stepped now
+            first = self._take_ahead(ahead)
+            b = self._step(self._commands(n - ahead), self._stepped)
+            rest = (b.theta1, b.theta2, b.torque_cmd, b.torque_applied, b.torque_meas)
+            th1, th2, cmd, applied, meas = (np.concatenate(pair) for pair in zip(first, rest))
+            self._stepped = p + n
         seq = np.arange(p, p + n, dtype=np.int64)
         self._produced = p + n
-        self.applied_torque = float(blk.torque_applied[-1])
-        out = SampleBlock(seq * self._dt, seq, blk.theta1, blk.theta2, blk.torque_cmd,
-                          blk.torque_meas if self.has_measured_torque else None)
-        if self.plant.travel_exceeded:
-            x = self.true_params.lead * float(self.plant.state[2])
-            self.tripped = f"table at {x:.6f} m outside travel {self.config.travel}"
+        self.applied_torque = float(applied[-1])
+        out = SampleBlock(seq * self._dt, seq, th1, th2, cmd, meas if self.has_measured_torque else None)
+        if self._ahead_trip is not None and self._produced == self._stepped:
+            self.tripped, self._ahead_trip = self._ahead_trip, None
             self.trip_block = out         # the samples of the tripping read, for the recorder
+            self.applied_torque = 0.0
+            raise TravelLimitTrip(f"sim: {self.tripped}; torque stopped")
+        if self.plant.travel_exceeded and self._ahead_trip is None and self.tripped is None:
+            self.tripped = self._trip_message()
+            self.trip_block = out
             self._disable()
             raise TravelLimitTrip(f"sim: {self.tripped}; torque stopped")
         return out
@@ -245,8 +314,9 @@ class SimBackend(Backend):
                             for f in dataclasses.fields(PlantBlock)))
 
     def _refuse_if_disabled(self) -> None:
-        if self.tripped is not None:
-            raise TravelLimitTrip(f"sim: drive disabled after {self.tripped}; torque command refused")
+        why = self.tripped or self._ahead_trip
+        if why is not None:
+            raise TravelLimitTrip(f"sim: drive disabled after {why}; torque command refused")
 
     def _write_hold(self, torque: float) -> None:
         self._refuse_if_disabled()
@@ -258,10 +328,11 @@ class SimBackend(Backend):
         vals = np.asarray(torques, dtype=float)
         if vals.size == 0:
             return
-        p = self._produced
-        if start_seq - p > MAX_PLAN_LEAD:
-            raise DriverError(f"plan start_seq {start_seq} is {start_seq - p} samples ahead (max {MAX_PLAN_LEAD})")
-        if start_seq < p:  # the first values are for samples already produced
+        if start_seq - self._produced > MAX_PLAN_LEAD:
+            raise DriverError(f"plan start_seq {start_seq} is {start_seq - self._produced} samples ahead "
+                              f"(max {MAX_PLAN_LEAD})")
+        p = self._stepped
+        if start_seq < p:  # the first values are for samples already stepped
             late = min(p - start_seq, vals.size)
             self.late_plan_samples += late
             if late == vals.size:

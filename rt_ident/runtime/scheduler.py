@@ -125,6 +125,12 @@ class Ticker:
     def started(self) -> bool:
         return self._t0 is not None
 
+    def next_deadline(self) -> float:
+        """The deadline the next :meth:`wait_next` waits for (if it is not missed), on the ticker's clock."""
+        if self._t0 is None:
+            raise RuntimeError("next_deadline() before start()")
+        return self._t0 + (self._index + 1) * self.period_s
+
     def start(self, t0: float | None = None) -> float:
         """Anchor the grid: tick k has deadline ``t0 + k * period``. Returns t0.
 
