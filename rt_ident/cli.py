@@ -632,6 +632,9 @@ def _bench_xy(seconds: float, json_out: bool) -> None:
     row("X and Y, no idle poll", res["two_axes_no_idle_poll"])
     out.print(tab)
     ratio = res.get("p99_ratio_two_over_one")
+    ahead = res["two_axes"].get("sim_ahead_us") or {}
+    out.print(f"the simulated plants' stepping after each tick (the devices' part, not in the work): "
+              f"p50 {_fmt(ahead.get('p50'))}, p99 {_fmt(ahead.get('p99'))} us")
     out.print(f"p99 two axes / one axis: {_fmt(ratio)}")
     off99 = (res["two_axes_no_idle_poll"].get("work_us") or {}).get("p99")
     if p99_on := (res["two_axes"].get("work_us") or {}).get("p99"):

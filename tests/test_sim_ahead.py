@@ -106,3 +106,16 @@ def test_step_ahead_does_nothing_unpaced_or_before_activation():
         b.activate()
         b.step_ahead(1.0)
         assert len(b.read()) == 10 and b.samples_produced == 10
+
+
+def test_a_paced_run_steps_the_sim_ahead_and_reports_that_apart_from_the_tick_work():
+    from rt_ident.config import load
+    from rt_ident.runtime import run as run_mod
+
+    s = run_mod.run(load(None, **{"loop.duration": 0.5, "loop.realtime": False, "telemetry.sink": "off",
+                                  "recording.enabled": False, "backend.paced": True}))
+    loop = s["loop"]
+    assert s["stop"]["cause"] is None and loop["lost_samples"] == 0
+    assert loop["samples"] >= 0.9 * 0.5 / PAPER_DT                     # every due sample was handed out
+    ahead = loop["sim_ahead_us"]
+    assert ahead["p50"] > 0 and ahead["max"] >= ahead["p50"]

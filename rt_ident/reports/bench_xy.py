@@ -6,8 +6,9 @@ and recordings written into a temporary directory, real time), cut to ``seconds`
 its X axis alone (the same sections, no ``[axes]``); a third run is the two-axis one with ``[loop]
 idle_poll = false`` (rt_ident.runtime.idle_poll: what keeping the loop's CPU busy while it sleeps
 buys, measured beside it). Reported: the tick's work (read, estimate, control, plan of every axis;
-``loop.work_us``) at p50/p99/max, each axis's share, overruns, whether the idle poller ran, and the
-target (p99 <= 40 % of the 1 ms tick, on the shipped config).
+``loop.work_us``) at p50/p99/max, each axis's share, overruns, whether the idle poller ran, the
+simulated plant's stepping after the tick (``loop.sim_ahead_us``: a real device's part, not in the
+work) and the target (p99 <= 40 % of the 1 ms tick, on the shipped config).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ TARGET_P99_US = 400.0
 
 def _trial(summary: dict[str, Any]) -> dict[str, Any]:
     loop = summary.get("loop") or {}
-    out = {"work_us": loop.get("work_us"), "samples": loop.get("samples"), "overruns": loop.get("overruns"),
+    out = {"work_us": loop.get("work_us"), "sim_ahead_us": loop.get("sim_ahead_us"),
+           "samples": loop.get("samples"), "overruns": loop.get("overruns"),
            "lost_samples": loop.get("lost_samples"), "stop": (summary.get("stop") or {}).get("cause")}
     out["idle_poll"] = bool(((summary.get("realtime") or {}).get("idle_poll") or {}).get("running"))
     if "axes" in summary:
