@@ -99,3 +99,19 @@ def test_idle_poll_off_or_not_real_time_starts_no_poller(restore_scheduling):
     s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": False}))
     assert "idle_poll" not in s["realtime"]
     assert not _pollers()
+
+
+def test_a_poller_that_fails_to_start_is_reported_and_the_run_goes_on(restore_scheduling, monkeypatch):
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("the loop gets a CPU of its own only with two or more")
+    import rt_ident.runtime.idle_poll as ip
+
+    def broken():
+        raise RuntimeError("no compiler today")
+
+    monkeypatch.setattr(ip, "_kernel", broken)
+    s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}))
+    assert s["stop"]["cause"] is None and s["loop"]["samples"] > 0
+    assert s["realtime"]["idle_poll"] == {"running": False,
+                                          "reason": "failed to start: RuntimeError: no compiler today"}
+    assert not _pollers()

@@ -526,7 +526,13 @@ def _start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, st
 
     poller = IdlePoller(cpu)
     stack.callback(poller.stop)
-    realtime["idle_poll"] = report = poller.start()
+    try:
+        report = poller.start()
+    except Exception as exc:  # noqa: BLE001 - an optional aid: the run goes on without it, and says why
+        log.warning("idle poller not started: %s", exc)
+        poller.stop()
+        report = {"running": False, "reason": f"failed to start: {type(exc).__name__}: {exc}"}
+    realtime["idle_poll"] = report
     if report.get("running") and "max_sleep_us" not in cfg.loop.model_fields_set:
         for ticker in tickers:
             ticker.max_sleep_s = None
