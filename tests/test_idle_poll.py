@@ -115,3 +115,27 @@ def test_a_poller_that_fails_to_start_is_reported_and_the_run_goes_on(restore_sc
     assert s["realtime"]["idle_poll"] == {"running": False,
                                           "reason": "failed to start: RuntimeError: no compiler today"}
     assert not _pollers()
+
+
+def test_the_device_interrupts_of_proc_interrupts_are_read_per_cpu_without_timer_and_ipi_lines(tmp_path):
+    from rt_ident.runtime.run import _read_interrupts
+
+    f = tmp_path / "interrupts"
+    f.write_text("           CPU0       CPU1       \n"
+                 " 36:          0     288971 PCI-MSIX-0000:00:02.0   1-edge      virtio1-req.0\n"
+                 " 39:      39331          0 PCI-MSIX-0000:00:03.0   2-edge      virtio2-output.0\n"
+                 "LOC:   17016844   17738781   Local timer interrupts\n"
+                 "RES:     276740     262179   Rescheduling interrupts\n")
+    cpus, counts = _read_interrupts(str(f))
+    assert cpus == [0, 1]
+    assert counts == {"36 virtio1-req.0": [0, 288971], "39 virtio2-output.0": [39331, 0]}
+    assert _read_interrupts(str(tmp_path / "missing")) is None
+
+
+def test_a_real_time_run_reports_the_device_interrupts_its_loop_cpu_served(restore_scheduling):
+    if len(os.sched_getaffinity(0)) < 2 or not os.path.exists("/proc/interrupts"):
+        pytest.skip("needs a CPU of the loop's own and /proc/interrupts")
+    s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}))
+    irq = s["loop"]["host"]["interrupts"]
+    assert irq["cpu"] == next(iter(os.sched_getaffinity(0)))          # the CPU the loop was pinned to
+    assert irq["total"] >= sum(irq["top"].values()) >= 0 and len(irq["top"]) <= 3

@@ -40,7 +40,7 @@ from rt_ident.runtime.fit_worker import make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.runtime.outputs import check_output, check_methods, prepare_outputs, remove_empty_outputs
-from rt_ident.runtime.run import (_HostSteal, _backend_counters, _controller, _excitation, _final_fit,
+from rt_ident.runtime.run import (_HostSteal, _LoopCpuInterrupts, _backend_counters, _controller, _excitation, _final_fit,
                                   _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, helper_role, _realtime,
                                   _start_idle_poll,
                                   _warmup, backend_options, friction_estimator, friction_summary,
@@ -186,7 +186,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     summary: dict[str, Any] = {"config": cfg.source, "axes": {}}
     loops: dict[str, IdentificationLoop] = {}
     parts: dict[str, dict[str, Any]] = {name: {} for name in axes_cfg}
-    host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None}
+    host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None, "interrupts": None}
     stop_cause = stop_message = stop_axis = None
     multi = None
     trace: ContourTrace | None = None
@@ -294,12 +294,14 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             for backend in backends.values():
                 backend.activate()
             steal = _HostSteal()
+            irqs = _LoopCpuInterrupts(steal.cpu)
             try:
                 multi.run()
             finally:
                 if poller is not None:
                     poller.stop()
                 host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
+                host["interrupts"] = irqs.summary()
                 watch.freeze()
             for backend in backends.values():
                 backend.safe_stop()                    # every axis at zero torque before the final fits

@@ -168,7 +168,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     backend = make_backend(cfg.backend.name, opts)
     ex = cfg.excitation
     summary: dict[str, Any] = {"backend": cfg.backend.name, "config": cfg.source, "method": cfg.estimator.method}
-    host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None}   # filled around loop.run()
+    host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None, "interrupts": None}   # filled around loop.run()
     stop_cause = None
     stop_message = None
     loop = None
@@ -255,12 +255,14 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             sys.setswitchinterval(5e-5)
             backend.activate()
             steal = _HostSteal()
+            irqs = _LoopCpuInterrupts(steal.cpu)
             try:
                 loop.run()
             finally:
                 if poller is not None:
                     poller.stop()                    # the loop's CPU free again for the final fit
                 host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
+                host["interrupts"] = irqs.summary()
                 watch.freeze()
             backend.safe_stop()                      # zero torque before the (slower) final fit
             summary["final_fit_error"] = _final_fit(loop, est)
@@ -425,6 +427,51 @@ class _HostSteal:
         if end is None or self._start is None:
             return None
         return (end - self._start) * 1000.0 / os.sysconf("SC_CLK_TCK")
+
+
+def _read_interrupts(path: str = "/proc/interrupts") -> tuple[list[int], dict[str, list[int]]] | None:
+    """(the CPU numbers of the columns, device interrupt name -> count per column) from
+    ``/proc/interrupts``: numbered lines only (devices), not the per-CPU timer or IPI lines."""
+    try:
+        with open(path) as fh:
+            head = fh.readline().split()
+            cpus = [int(c[3:]) for c in head if c.startswith("CPU")]
+            out: dict[str, list[int]] = {}
+            for line in fh:
+                parts = line.split()
+                if not parts or not parts[0].rstrip(":").isdigit() or len(parts) < len(cpus) + 1:
+                    continue
+                counts = [int(x) for x in parts[1:1 + len(cpus)]]
+                name = parts[-1] if len(parts) > len(cpus) + 1 else parts[0].rstrip(":")
+                out[f"{parts[0].rstrip(':')} {name}"] = counts
+            return cpus, out
+    except (OSError, ValueError):
+        return None
+
+
+class _LoopCpuInterrupts:
+    """Device interrupts the loop's CPU served during the loop. With the kernel's IRQ time accounting
+    off (as on this product's VM), the time a CPU spends in an interrupt and its softirq is charged to
+    whatever thread it interrupted: on the loop's CPU, to the loop's tick. On this VM the disk's
+    interrupt (virtio-blk, a managed IRQ: its affinity cannot be changed) lands on the CPU the loop
+    takes; the ticks that burned milliseconds of the loop thread's own CPU time may be that (not
+    proven). Reported so that a bench PC's setup can be checked: move movable IRQs off the loop's CPU."""
+
+    def __init__(self, cpu: int | None) -> None:
+        self.cpu = cpu
+        self._start = _read_interrupts() if cpu is not None else None
+
+    def summary(self) -> dict[str, Any] | None:
+        if self._start is None:
+            return None
+        end = _read_interrupts()
+        cpus, before = self._start
+        if end is None or end[0] != cpus or self.cpu not in cpus:
+            return None
+        col = cpus.index(self.cpu)
+        delta = {name: counts[col] - before.get(name, [0] * len(cpus))[col] for name, counts in end[1].items()}
+        busy = sorted(((n, d) for n, d in delta.items() if d > 0), key=lambda nd: -nd[1])
+        return {"cpu": self.cpu, "total": sum(d for _, d in busy), "top": dict(busy[:3])}
 
 
 def _backend_counters(backend) -> dict[str, Any] | None:
