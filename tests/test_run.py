@@ -219,3 +219,26 @@ def test_helpers_are_spawned_with_single_threaded_blas_and_this_process_keeps_it
     finally:
         proc.join(10)
     assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["OMP_NUM_THREADS"] == "3"
+
+
+def test_a_run_without_any_fit_worker_result_still_ends_its_dashboard_on_the_final_estimate(tmp_path, monkeypatch):
+    # beside a CPU hog a short run had no fit-worker result in time: its .rrd had no estimate, no true
+    # value, no FRF. The worker's results are withheld here; the final fit's must reach the dashboard.
+    from rerun.chunk import RrdReader
+
+    from rt_ident.runtime.loop import IdentificationLoop
+
+    monkeypatch.setattr(IdentificationLoop, "_fit_exchange", lambda self, ctl, t, tick: None)
+    rrd = tmp_path / "r.rrd"
+    s = run(cfg(telemetry__sink="rrd", recording__enabled=False), rrd=str(rrd))
+    assert s["stop"]["cause"] is None and s["loop"]["estimates"] == 0      # no worker result was taken
+    rows, paths = {}, set()
+    for chunk in RrdReader(str(rrd)).stream():
+        batch = chunk.to_record_batch()
+        paths.add(str(chunk.entity_path))
+        if "Scalars:scalars" in batch.column_names:
+            rows[str(chunk.entity_path)] = rows.get(str(chunk.entity_path), []) + [
+                float(np.ravel(x)[0]) for x in batch.column("Scalars:scalars").to_pylist()]
+    assert rows["/params/K/estimate"][-1] == pytest.approx(s["parameters"]["K"], rel=1e-9)
+    assert rows["/params/K/true"] and all(v == pytest.approx(110.0) for v in rows["/params/K/true"])
+    assert "/frf/theta1/magnitude/model" in paths, sorted(paths)

@@ -483,6 +483,16 @@ class IdentificationLoop:
         if ticks:
             self._tick_n = 0
 
+    def publish_final(self) -> None:
+        """After the run's final fit: one more telemetry window, at the last sample's time, carrying
+        the final estimate, so that the dashboard's estimate lines (and the true values beside them)
+        end on the value the run reports. A short run, or one beside a busy machine, may have had no
+        fit-worker result at all: its dashboard had no estimate and no true value then."""
+        if self.on_telemetry is None or self.identification is None:
+            return
+        t = np.array([max(self._next_seq - 1, 0) * self.backend.sample_period])
+        self.on_telemetry({"t": t, "t_tick": t.copy()}, self._window_values(0))
+
     def _window_values(self, k: int) -> dict[str, float]:
         """The signals that hold one value over a telemetry window (the estimate, its intervals, the
         controller's figures). They go as one vector (``window``), not as ~35 arrays of k equal

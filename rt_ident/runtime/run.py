@@ -340,11 +340,12 @@ def _final_fit(loop: IdentificationLoop, est) -> str | None:
         loop.identification = final
         # the dashboard ends on the final fit's FRF: during a short run (or beside a busy machine) the
         # fit worker may not have sent one, and the last it sent was of fewer samples
-        if loop.on_fit is not None and getattr(final, "frf", None) is not None:
-            try:
+        try:
+            if loop.on_fit is not None and getattr(final, "frf", None) is not None:
                 loop.on_fit(max(loop._next_seq - 1, 0) * loop.backend.sample_period, final.frf)
-            except RtIdentError as exc:
-                log.warning("final FRF view not sent: %s", exc)
+            loop.publish_final()                     # ... and its estimate lines on the final values
+        except RtIdentError as exc:
+            log.warning("final estimate not sent to the dashboard: %s", exc)
     return None
 
 
