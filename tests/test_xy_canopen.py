@@ -100,7 +100,10 @@ def test_one_sender_sends_every_drives_rpdo_before_one_sync_and_marks_where_a_jo
     assert skip[1] == 5 + first_b          # SYNCs of this connection before B's first marker
     assert a.sink[0] == (SKIP, 5)
     marks_b = [x[1] for x in b.sink if x[0] == MARK]
-    assert marks_b == list(range(marks_b[0], marks_b[0] + len(marks_b)))
+    assert marks_b == sorted(set(marks_b))                   # one marker per SYNC, in order
+    # a sender that wakes a period late skips the SYNC indices it missed (never a burst): only those
+    # may be missing (a fresh-clone CI run lost index 14 that way, with the sender counting an overrun)
+    assert marks_b[-1] - marks_b[0] + 1 - len(marks_b) <= sender.overruns
 
 
 def test_the_sync_thread_sends_the_host_heartbeat_every_n_periods_right_after_a_sync():
