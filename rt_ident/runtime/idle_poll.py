@@ -18,8 +18,8 @@ nothing else on that CPU wants to, so the loop (SCHED_FIFO) and any other thread
 once, and the RT throttle never counts it. It spins inside one compiled call
 (``numba.njit(nogil=True)``) from start to stop, so it never holds the GIL while it spins. With it
 the vCPU does not halt, and rt_ident.runtime.run lets the ticker sleep in one piece instead of
-100 us pieces. Measured side by side (``rt-ident bench --xy``, 7 runs): the two-axis tick's p99
-0.80-0.96 x that of the same run without it (307-514 us against 356-536 us). The cost is the loop's
+100 us pieces. Measured side by side (``rt-ident bench --xy``, 10 runs with pinned peers): the
+two-axis tick's p99 0.63-0.96 x that of the same run without it (one run 1.06). The cost is the loop's
 CPU at 100 % for the length of the run (the loop has that CPU to itself already: rt_ident.runtime.run
 keeps every helper off it). ``[loop] idle_poll = false`` turns it off.
 """
