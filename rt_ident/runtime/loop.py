@@ -574,6 +574,7 @@ class MultiAxisLoop:
             ax.fit_phase = 2 + (4 * i) % 10
         last_cpu = 0.0
         spent = [0.0] * len(axes)
+        any_simulated = any(ax.backend.simulated for ax in axes)
         self.ticker.start()
         try:
             for _ in range(int(round(self.duration * self.tick_hz))):
@@ -608,7 +609,7 @@ class MultiAxisLoop:
                     ax.backend.step_ahead(horizon)
                     if ax.backend.simulated:
                         ax.stats.sim_ahead.record(clock() - t2)
-                if any(ax.backend.simulated for ax in axes):
+                if any_simulated:
                     stats.sim_ahead.record(clock() - t1)
                 last_cpu = cpu_clock() - c0
                 stats.work_cpu.record(last_cpu)
