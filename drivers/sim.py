@@ -231,7 +231,7 @@ class SimBackend(Backend):
         p = self._stepped
         blk = self._step(self._commands(n), p)
         self._stepped = p + n
-        new = (blk.theta1, blk.theta2, blk.torque_cmd, blk.torque_applied, blk.torque_meas)
+        new = _delivered(blk)
         if self._ahead is None:
             self._ahead = new
         else:                               # what the last read left (the copying is done here, not in read)
@@ -267,7 +267,7 @@ class SimBackend(Backend):
         ahead = self._stepped - p
         if ahead == 0:
             b = self._step(self._commands(n), p)
-            th1, th2, cmd, applied, meas = b.theta1, b.theta2, b.torque_cmd, b.torque_applied, b.torque_meas
+            th1, th2, cmd, applied, meas = _delivered(b)
             self._stepped = p + n
         elif ahead >= n or self._ahead_trip is not None:
             n = min(n, ahead)               # after a trip the drive is off: nothing after its samples
@@ -275,8 +275,7 @@ class SimBackend(Backend):
         else:                               # a late read: the rest is stepped now
             first = self._take_ahead(ahead)
             b = self._step(self._commands(n - ahead), self._stepped)
-            rest = (b.theta1, b.theta2, b.torque_cmd, b.torque_applied, b.torque_meas)
-            th1, th2, cmd, applied, meas = (np.concatenate(pair) for pair in zip(first, rest))
+            th1, th2, cmd, applied, meas = (np.concatenate(pair) for pair in zip(first, _delivered(b)))
             self._stepped = p + n
         seq = np.arange(p, p + n, dtype=np.int64)
         self._produced = p + n
@@ -287,7 +286,7 @@ class SimBackend(Backend):
             self.trip_block = out         # the samples of the tripping read, for the recorder
             self.applied_torque = 0.0
             raise TravelLimitTrip(f"sim: {self.tripped}; torque stopped")
-        if self.plant.travel_exceeded and self._ahead_trip is None and self.tripped is None:
+        if self.plant.travel_exceeded and self._ahead_trip is None:
             self.tripped = self._trip_message()
             self.trip_block = out
             self._disable()
@@ -366,6 +365,12 @@ class SimBackend(Backend):
 
     def _close(self) -> None:
         self._disable()
+
+
+def _delivered(blk: PlantBlock) -> tuple[np.ndarray, ...]:
+    """What read() hands out of a stepped block (and step_ahead keeps): theta1, theta2, torque_cmd,
+    torque_applied, torque_meas."""
+    return blk.theta1, blk.theta2, blk.torque_cmd, blk.torque_applied, blk.torque_meas
 
 
 def _changes(entries: list[dict[str, float]], base: AxisParams, dt: float) -> list[tuple[int, AxisParams]]:
