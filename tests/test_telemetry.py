@@ -141,6 +141,46 @@ def test_window_values_are_drawn_as_the_arrays_they_stand_for(tmp_path: Path) ->
     assert t.min() >= _block(20, n=35)["t"][16] - 1e-12 and v[-1] == pytest.approx(0.39)
 
 
+def _loop_messages(k: int, n: int = 34, ticks: int = 20) -> tuple[dict, dict, dict]:
+    """What the loop sends per window: a samples block, a tick block and its window values."""
+    i = np.arange(n * k, n * (k + 1), dtype=np.float64)
+    samples = {"t": i * 1e-4, "theta1": 1e-3 * i, "theta2": -2e-3 * i, "torque_meas": np.sin(i),
+               "torque_cmd": np.cos(i)}
+    tt = (ticks * k + np.arange(ticks)) * 1e-3
+    tick = {"t": tt, "t_tick": tt, "lateness_us": 0.5 * np.arange(ticks) + k}
+    window = {"I1": 0.01 + k, "K": 1e5 + k}
+    if k >= 5:
+        window["wn"] = 4000.0 + k                         # a second set of window names half-way
+    return samples, tick, window
+
+
+def _send_loop_messages(tp: TelemetryProcess, ks: range) -> None:
+    for k in ks:
+        samples, tick, window = _loop_messages(k)
+        assert tp.publish(samples)
+        assert tp.publish(tick, window)
+
+
+def test_a_restarted_telemetry_process_gets_the_names_again(tmp_path: Path) -> None:
+    """A new child knows no names: the window names go to it again (before, a restarted child
+    dropped every window vector, "without their names", and the dashboard lost every estimate)."""
+    path = tmp_path / "tele.rrd"
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256)).start()
+    assert tp.wait_ready(20.0)
+    _send_loop_messages(tp, range(3))
+    tp.restart()
+    assert tp.wait_ready(20.0)
+    _send_loop_messages(tp, range(3, 8))
+    summary = tp.close(timeout=10.0)
+    assert summary["exitcode"] == 0 and summary["dropped"] == 0
+    second = _read_rrd(Path(tp.config.rrd_path))
+    assert Path(tp.config.rrd_path) != path
+    t, v = second[dashboard.estimate_path("K")]
+    assert np.array_equal(np.unique(v), 1e5 + np.arange(3, 8))
+    t, v = second[dashboard.ANGLES]
+    assert np.array_equal(v[:, 0], np.concatenate([_loop_messages(k)[0]["theta1"] for k in range(3, 8)]))
+
+
 def test_window_values_need_tick_times_and_tick_signal_names() -> None:
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="/nonexistent/never-started.rrd"))
     with pytest.raises(DataError, match="t_tick"):

@@ -553,6 +553,7 @@ class TelemetryProcess:
         if self._proc is not None or self.config.sink == "off":
             return self
         self._ring = MessageRing(self.config.ring_bytes, max_messages=self.config.queue_size, ctx=self._ctx)
+        self._schemas = {}                     # a new child (restart) has been told no window names yet
         # Lock-free, one writer (the child). A child terminated while holding a lock would
         # otherwise hang every later read.
         self._sent = self._ctx.Value("q", 0, lock=False)
