@@ -357,3 +357,21 @@ def test_spectra_sent_as_fields_come_back_bit_for_bit():
     for name in ("harmonics", "mean", "cov", "quantum"):
         a, b = getattr(sp, name), getattr(back, name)
         assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def test_restarting_a_live_fit_worker_leaves_no_old_process_behind():
+    """The worker ignores SIGTERM (a helper outlives the group's Ctrl-C): restart() kills it, or
+    the old process would poll on beside the new one."""
+    import os
+
+    from rt_ident.runtime.fit_worker import make_fit_worker
+
+    worker = make_fit_worker("frequency").start()
+    try:
+        old = worker.pid
+        worker.restart()
+        assert worker.pid != old
+        with pytest.raises(ProcessLookupError):
+            os.kill(old, 0)
+    finally:
+        worker.close(timeout=5.0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import socket
 import time
 from pathlib import Path
@@ -168,6 +170,11 @@ def test_a_restarted_telemetry_process_gets_the_names_again(tmp_path: Path) -> N
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256)).start()
     assert tp.wait_ready(20.0)
     _send_loop_messages(tp, range(3))
+    os.kill(tp.pid, signal.SIGKILL)                 # the child dies, as HelperWatch finds it
+    end = time.monotonic() + 10.0
+    while tp.alive and time.monotonic() < end:
+        time.sleep(0.01)
+    assert not tp.alive
     tp.restart()
     assert tp.wait_ready(20.0)
     _send_loop_messages(tp, range(3, 8))
@@ -179,6 +186,21 @@ def test_a_restarted_telemetry_process_gets_the_names_again(tmp_path: Path) -> N
     assert np.array_equal(np.unique(v), 1e5 + np.arange(3, 8))
     t, v = second[dashboard.ANGLES]
     assert np.array_equal(v[:, 0], np.concatenate([_loop_messages(k)[0]["theta1"] for k in range(3, 8)]))
+
+
+def test_restarting_a_live_telemetry_process_leaves_no_old_child_behind(tmp_path: Path) -> None:
+    """The child ignores SIGTERM (a helper must outlive the group's Ctrl-C): restart() kills it, or
+    it would poll on and write into shared counters whose memory the new child's counters reuse."""
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "a.rrd"))).start()
+    assert tp.wait_ready(20.0)
+    old = tp.pid
+    tp.restart()
+    try:
+        assert tp.pid != old
+        with pytest.raises(ProcessLookupError):
+            os.kill(old, 0)
+    finally:
+        tp.close(timeout=10.0)
 
 
 def test_window_values_need_tick_times_and_tick_signal_names() -> None:

@@ -138,6 +138,9 @@ class JobWorker:
         if old.is_alive():
             old.terminate()
             old.join(1.0)
+            if old.is_alive():      # it ignores SIGTERM (helper_guard): it would live on beside the new one
+                old.kill()
+                old.join(1.0)
         self._make()
         self.fits_at_restart = self.fits
         return self.start()

@@ -581,6 +581,9 @@ class TelemetryProcess:
         if old is not None and old.is_alive():
             old.terminate()
             old.join(1.0)
+            if old.is_alive():      # a helper ignores SIGTERM (helper_guard): it would live on, and
+                old.kill()          # write into shared counters whose memory a later start() reuses
+                old.join(1.0)
         self._sent_before = self.sent
         self._sent = None
         if self.config.sink == "rrd" and self.config.rrd_path:
