@@ -118,7 +118,7 @@ def test_a_poller_that_fails_to_start_is_reported_and_the_run_goes_on(restore_sc
 
 
 def test_the_device_interrupts_of_proc_interrupts_are_read_per_cpu_without_timer_and_ipi_lines(tmp_path):
-    from rt_ident.runtime.run import _read_interrupts
+    from rt_ident.runtime.host import read_interrupts
 
     f = tmp_path / "interrupts"
     f.write_text("           CPU0       CPU1       \n"
@@ -126,10 +126,10 @@ def test_the_device_interrupts_of_proc_interrupts_are_read_per_cpu_without_timer
                  " 39:      39331          0 PCI-MSIX-0000:00:03.0   2-edge      virtio2-output.0\n"
                  "LOC:   17016844   17738781   Local timer interrupts\n"
                  "RES:     276740     262179   Rescheduling interrupts\n")
-    cpus, counts = _read_interrupts(str(f))
+    cpus, counts = read_interrupts(str(f))
     assert cpus == [0, 1]
     assert counts == {"36 virtio1-req.0": [0, 288971], "39 virtio2-output.0": [39331, 0]}
-    assert _read_interrupts(str(tmp_path / "missing")) is None
+    assert read_interrupts(str(tmp_path / "missing")) is None
 
 
 def test_a_real_time_run_reports_the_device_interrupts_its_loop_cpu_served(restore_scheduling):

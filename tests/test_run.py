@@ -171,7 +171,7 @@ def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_prio
     import subprocess
     import sys
 
-    from rt_ident.runtime.run import _keep_off_loop_cpu
+    from rt_ident.runtime.host import keep_off_loop_cpu
 
     code = "import threading, time\nfor _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\ntime.sleep(30)"
     helper = subprocess.Popen([sys.executable, "-c", code])
@@ -180,16 +180,16 @@ def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_prio
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline and any(len(os.listdir(f"/proc/{p.pid}/task")) < 3 for p in (helper, device)):
             time.sleep(0.05)
-        report = _keep_off_loop_cpu([helper.pid], realtime=False, device=device.pid)
+        report = keep_off_loop_cpu([helper.pid], realtime=False, device=device.pid)
         assert report["threads"] == 6 and report["device_pid"] == device.pid
         for tid in os.listdir(f"/proc/{helper.pid}/task"):
             assert os.getpriority(os.PRIO_PROCESS, int(tid)) == 10
         for tid in os.listdir(f"/proc/{device.pid}/task"):     # as started: this process's nice value
             assert os.getpriority(os.PRIO_PROCESS, int(tid)) == os.getpriority(os.PRIO_PROCESS, 0)
         # by role: the control worker (rare, urgent) above the fit worker (refits without pause)
-        _keep_off_loop_cpu([helper.pid], realtime=False, roles={helper.pid: "fit"})
+        keep_off_loop_cpu([helper.pid], realtime=False, roles={helper.pid: "fit"})
         assert {os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{helper.pid}/task")} == {15}
-        report = _keep_off_loop_cpu([device.pid], realtime=False, roles={device.pid: "control"})
+        report = keep_off_loop_cpu([device.pid], realtime=False, roles={device.pid: "control"})
         assert {os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{device.pid}/task")} == {5}
         assert report["nice"] == {str(device.pid): 5}
     finally:

@@ -40,11 +40,11 @@ from rt_ident.runtime.fit_worker import make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.runtime.outputs import check_output, check_methods, prepare_outputs, remove_empty_outputs
-from rt_ident.runtime.run import (_HostSteal, _LoopCpuInterrupts, _backend_counters, _controller, _excitation, _final_fit,
-                                  _ident_summary, _install_signals, _keep_off_loop_cpu, _quanta, helper_role, _realtime,
-                                  _start_idle_poll,
-                                  _warmup, backend_options, friction_estimator, friction_summary,
-                                  recording_metadata)
+from rt_ident.runtime.host import (HostSteal, LoopCpuInterrupts, apply_run_realtime, helper_role, keep_off_loop_cpu,
+                                  start_idle_poll)
+from rt_ident.runtime.run import (_backend_counters, _controller, _excitation, _final_fit, _ident_summary,
+                                  _install_signals, _quanta, _warmup, backend_options, friction_estimator,
+                                  friction_summary, recording_metadata)
 from rt_ident.runtime.safety import SafetyMonitor
 
 log = logging.getLogger(__name__)
@@ -282,19 +282,19 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             roles = {getattr(x, "pid", None): helper_role(n) for n, x in helpers.items()}
             roles.update({getattr(p.get("recorder"), "pid", None): "recorder" for p in parts.values()})
             roles.pop(None, None)
-            summary["helper_processes"] = _keep_off_loop_cpu(list(roles), cfg.loop.realtime,
+            summary["helper_processes"] = keep_off_loop_cpu(list(roles), cfg.loop.realtime,
                                                              device=getattr(emulator, "pid", None), roles=roles)
             for backend in backends.values():
                 stack.enter_context(backend)           # open(); on exit (any axis's error too): safe stop, close
-            summary["realtime"] = _realtime(cfg)
-            poller = _start_idle_poll(cfg, summary["realtime"], [multi.ticker], stack)
+            summary["realtime"] = apply_run_realtime(cfg)
+            poller = start_idle_poll(cfg, summary["realtime"], [multi.ticker], stack)
             switch_interval = sys.getswitchinterval()
             stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
             for backend in backends.values():
                 backend.activate()
-            steal = _HostSteal()
-            irqs = _LoopCpuInterrupts(steal.cpu)
+            steal = HostSteal()
+            irqs = LoopCpuInterrupts(steal.cpu)
             try:
                 multi.run()
             finally:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import signal
 import sys
 import threading
@@ -33,6 +32,8 @@ from rt_ident.runtime.emulation import start_emulator
 from rt_ident.control import make_controller, redesign
 from rt_ident.runtime.fit_worker import JobWorker, make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
+from rt_ident.runtime.host import (HostSteal, LoopCpuInterrupts, apply_run_realtime, keep_off_loop_cpu,
+                                  start_idle_poll)
 from rt_ident.runtime.loop import IdentificationLoop
 from rt_ident.runtime.outputs import check_methods, prepare_outputs, remove_empty_outputs
 from rt_ident.runtime.safety import SafetyMonitor
@@ -240,22 +241,22 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             named = [(n, getattr(x, "pid", None)) for n, x in (("telemetry", telemetry), ("recorder", recorder),
                                                                ("fit", worker), ("control", ctl_worker)) if x is not None]
             device = getattr(emulator, "pid", None)
-            summary["helper_processes"] = _keep_off_loop_cpu([p for _, p in named if p], cfg.loop.realtime,
+            summary["helper_processes"] = keep_off_loop_cpu([p for _, p in named if p], cfg.loop.realtime,
                                                              device=device, roles={p: n for n, p in named if p})
             # pid -> helper, so that a report never names them by position (there is no recorder without recording)
             summary["helper_processes"]["names"] = {str(p): n for n, p in named if p}
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
             stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
-            summary["realtime"] = _realtime(cfg)
-            poller = _start_idle_poll(cfg, summary["realtime"], [loop.ticker], stack)
+            summary["realtime"] = apply_run_realtime(cfg)
+            poller = start_idle_poll(cfg, summary["realtime"], [loop.ticker], stack)
             # a backend's I/O threads (python-can's receiver, a SYNC sender) share this process's GIL:
             # hand it back within 50 us, not 5 ms (the hand-offs to helper processes use no thread: rt_ident.runtime.shm_ring)
             switch_interval = sys.getswitchinterval()
             stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
             backend.activate()
-            steal = _HostSteal()
-            irqs = _LoopCpuInterrupts(steal.cpu)
+            steal = HostSteal()
+            irqs = LoopCpuInterrupts(steal.cpu)
             try:
                 loop.run()
             finally:
@@ -386,95 +387,6 @@ def _warmup(kf, est, n: int) -> None:
     w.snapshot()
 
 
-def _loop_cpu() -> int | None:
-    """The CPU the loop gets to itself: the last one, when there are at least two."""
-    try:
-        cpus = sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return None
-    return cpus[-1] if len(cpus) >= 2 else None
-
-
-class _HostSteal:
-    """Time the hypervisor ran something else while this guest's loop CPU wanted to run.
-
-    ``/proc/stat``'s steal column (USER_HZ ticks, usually 10 ms) for the CPU the loop is pinned
-    to (the whole machine when it is not pinned). On a VM, a late tick with no context switch
-    and no page fault in the loop thread, while steal grows, was the host's doing.
-    """
-
-    def __init__(self) -> None:
-        try:
-            cpus = os.sched_getaffinity(0)
-        except (AttributeError, OSError):
-            cpus = set()
-        self.cpu: int | None = next(iter(cpus)) if len(cpus) == 1 else None
-        self._start = self._read()
-
-    def _read(self) -> int | None:
-        key = "cpu" if self.cpu is None else f"cpu{self.cpu}"
-        try:
-            with open("/proc/stat") as fh:
-                for line in fh:
-                    fields = line.split()
-                    if fields and fields[0] == key and len(fields) > 8:
-                        return int(fields[8])
-        except OSError:
-            pass
-        return None
-
-    def elapsed_ms(self) -> float | None:
-        end = self._read()
-        if end is None or self._start is None:
-            return None
-        return (end - self._start) * 1000.0 / os.sysconf("SC_CLK_TCK")
-
-
-def _read_interrupts(path: str = "/proc/interrupts") -> tuple[list[int], dict[str, list[int]]] | None:
-    """(the CPU numbers of the columns, device interrupt name -> count per column) from
-    ``/proc/interrupts``: numbered lines only (devices), not the per-CPU timer or IPI lines."""
-    try:
-        with open(path) as fh:
-            head = fh.readline().split()
-            cpus = [int(c[3:]) for c in head if c.startswith("CPU")]
-            out: dict[str, list[int]] = {}
-            for line in fh:
-                parts = line.split()
-                if not parts or not parts[0].rstrip(":").isdigit() or len(parts) < len(cpus) + 1:
-                    continue
-                counts = [int(x) for x in parts[1:1 + len(cpus)]]
-                name = parts[-1] if len(parts) > len(cpus) + 1 else parts[0].rstrip(":")
-                out[f"{parts[0].rstrip(':')} {name}"] = counts
-            return cpus, out
-    except (OSError, ValueError):
-        return None
-
-
-class _LoopCpuInterrupts:
-    """Device interrupts the loop's CPU served during the loop. With the kernel's IRQ time accounting
-    off (as on this product's VM), the time a CPU spends in an interrupt and its softirq is charged to
-    whatever thread it interrupted: on the loop's CPU, to the loop's tick. On this VM the disk's
-    interrupt (virtio-blk, a managed IRQ: its affinity cannot be changed) lands on the CPU the loop
-    takes; the ticks that burned milliseconds of the loop thread's own CPU time may be that (not
-    proven). Reported so that a bench PC's setup can be checked: move movable IRQs off the loop's CPU."""
-
-    def __init__(self, cpu: int | None) -> None:
-        self.cpu = cpu
-        self._start = _read_interrupts() if cpu is not None else None
-
-    def summary(self) -> dict[str, Any] | None:
-        if self._start is None:
-            return None
-        end = _read_interrupts()
-        cpus, before = self._start
-        if end is None or end[0] != cpus or self.cpu not in cpus:
-            return None
-        col = cpus.index(self.cpu)
-        delta = {name: counts[col] - before.get(name, [0] * len(cpus))[col] for name, counts in end[1].items()}
-        busy = sorted(((n, d) for n, d in delta.items() if d > 0), key=lambda nd: -nd[1])
-        return {"cpu": self.cpu, "total": sum(d for _, d in busy), "top": dict(busy[:3])}
-
-
 def _backend_counters(backend) -> dict[str, Any] | None:
     """The link-health counters a backend keeps (CANopen: ``counters``; serial board: ``stats()``)."""
     for name in ("counters", "stats"):
@@ -486,106 +398,6 @@ def _backend_counters(backend) -> dict[str, Any] | None:
         if isinstance(value, dict):
             return value
     return None
-
-
-def _threads(pid: int) -> list[int]:
-    """Every thread of a process (Linux: priority and affinity calls on a pid reach one thread only)."""
-    try:
-        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-    except OSError:
-        return [pid]
-
-
-#: Nice value of each helper role (any other helper: 10). The control worker answers a redesign
-#: request, rare and urgent: its latency is the time from a load change to the controller that fits
-#: it. At the same nice value as the fit workers, which refit without pause, it got a fifth of the
-#: helpers' CPU: a 0.2 s redesign answered 2.2 s after the request, while Y ran the controller that no
-#: longer fit it (measured on configs/xy-sim.toml with Y's I2 x 3). A fit worker's fit only waits
-#: longer; its next fit starts when it is done anyway.
-HELPER_NICE = {"control": 5, "telemetry": 10, "recorder": 10, "fit": 15}
-
-
-def helper_role(name: str) -> str:
-    """"fit-x" -> "fit": a helper's role from its name (the part before an axis suffix)."""
-    return name.split("-", 1)[0]
-
-
-def _keep_off_loop_cpu(pids: list[int], realtime: bool, *, device: int | None = None,
-                       roles: dict[int, str] | None = None) -> dict[str, Any]:
-    """Recorder, telemetry, fit and control workers: lower priority, and off the loop's CPU.
-
-    ``roles`` (pid -> "fit", "control", ...) sets each one's nice value from :data:`HELPER_NICE`
-    (10 when not given). Applied to every thread each process has started so far (rerun's and
-    pyarrow's threads exist by now); threads started later inherit it from the thread that creates
-    them. An emulated ``device`` (its pid) only leaves the loop's CPU: it stands for hardware that
-    runs on its own, so it keeps its priority (niced next to the fit worker's 90 ms bursts, the
-    serial board missed the host's 20-tick watchdog).
-    """
-    loop_cpu = _loop_cpu() if realtime else None
-    roles = roles or {}
-    report: dict[str, Any] = {"pids": pids, "niced": True, "cpus": None, "threads": 0, "device_pid": device,
-                              "nice": {}}
-    for pid in pids + ([device] if device else []):
-        nice = HELPER_NICE.get(roles.get(pid, ""), 10)
-        for tid in _threads(pid):
-            report["threads"] += 1
-            if pid != device:
-                try:
-                    os.setpriority(os.PRIO_PROCESS, tid, nice)
-                    report["nice"][str(pid)] = nice
-                except OSError:
-                    report["niced"] = False
-            if loop_cpu is not None:
-                try:
-                    others = set(os.sched_getaffinity(tid)) - {loop_cpu}
-                    if others:
-                        os.sched_setaffinity(tid, others)
-                        report["cpus"] = sorted(others)
-                except OSError:
-                    pass
-    return report
-
-
-def _realtime(cfg: RunConfig) -> dict[str, Any]:
-    if not cfg.loop.realtime:
-        return {"requested": False}
-    from rt_ident.runtime.scheduler import apply_realtime
-
-    cpu = _loop_cpu()
-    return apply_realtime(priority=50, cpus=None if cpu is None else [cpu], lock_memory=True, freeze_gc=True)
-
-
-def _start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, stack) -> Any:
-    """Start the idle poller (rt_ident.runtime.idle_poll) on the loop's CPU when the run is real time,
-    the loop got that CPU to itself and ``[loop] idle_poll`` is on; its report goes into ``realtime``
-    as ``idle_poll``. With it running the vCPU cannot halt, so the tickers sleep in one piece (unless
-    the config sets ``max_sleep_us``). Returns the poller (stopped by ``stack`` at the latest) or None."""
-    if not cfg.loop.realtime:
-        return None
-    if not cfg.loop.idle_poll:
-        realtime["idle_poll"] = {"running": False, "reason": "[loop] idle_poll = false"}
-        return None
-    cpus = os.sched_getaffinity(0) if realtime.get("affinity") is True else set()   # pinned by _realtime
-    cpu = next(iter(cpus)) if len(cpus) == 1 else None
-    if cpu is None:
-        realtime["idle_poll"] = {"running": False, "reason": "the loop has no CPU of its own"}
-        return None
-    from rt_ident.runtime.idle_poll import IdlePoller
-
-    poller = IdlePoller(cpu)
-    stack.callback(poller.stop)
-    try:
-        report = poller.start()
-    except Exception as exc:  # noqa: BLE001 - an optional aid: the run goes on without it, and says why
-        log.warning("idle poller not started: %s", exc)
-        poller.stop()
-        report = {"running": False, "reason": f"failed to start: {type(exc).__name__}: {exc}"}
-    realtime["idle_poll"] = report
-    if report.get("running") and "max_sleep_us" not in cfg.loop.model_fields_set:
-        for ticker in tickers:
-            ticker.max_sleep_s = None
-        report["ticker_sleep"] = "one piece"
-    return poller if report.get("running") else None
 
 
 def exit_code(summary: dict[str, Any]) -> int:
