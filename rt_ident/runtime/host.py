@@ -126,7 +126,7 @@ def helper_role(name: str) -> str:
 
 
 def keep_off_loop_cpu(pids: list[int], realtime: bool, *, device: int | None = None,
-                       roles: dict[int, str] | None = None) -> dict[str, Any]:
+                      roles: dict[int, str] | None = None) -> dict[str, Any]:
     """Recorder, telemetry, fit and control workers: lower priority, and off the loop's CPU.
 
     ``roles`` (pid -> "fit", "control", ...) sets each one's nice value from :data:`HELPER_NICE`

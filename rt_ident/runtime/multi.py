@@ -283,7 +283,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             roles.update({getattr(p.get("recorder"), "pid", None): "recorder" for p in parts.values()})
             roles.pop(None, None)
             summary["helper_processes"] = keep_off_loop_cpu(list(roles), cfg.loop.realtime,
-                                                             device=getattr(emulator, "pid", None), roles=roles)
+                                                            device=getattr(emulator, "pid", None), roles=roles)
             for backend in backends.values():
                 stack.enter_context(backend)           # open(); on exit (any axis's error too): safe stop, close
             summary["realtime"] = apply_run_realtime(cfg)

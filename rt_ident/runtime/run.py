@@ -242,7 +242,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                                                                ("fit", worker), ("control", ctl_worker)) if x is not None]
             device = getattr(emulator, "pid", None)
             summary["helper_processes"] = keep_off_loop_cpu([p for _, p in named if p], cfg.loop.realtime,
-                                                             device=device, roles={p: n for n, p in named if p})
+                                                            device=device, roles={p: n for n, p in named if p})
             # pid -> helper, so that a report never names them by position (there is no recorder without recording)
             summary["helper_processes"]["names"] = {str(p): n for n, p in named if p}
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
