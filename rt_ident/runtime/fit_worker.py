@@ -18,7 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from rt_ident.estimators.streaming import fit_snapshot
-from rt_ident.runtime.helper_guard import become_helper, start_ignoring_signals
+from rt_ident.runtime.helper_guard import become_helper, end_helper, start_ignoring_signals
 from rt_ident.runtime.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
@@ -134,13 +134,7 @@ class JobWorker:
 
     def restart(self) -> "JobWorker":
         """A new worker process (and rings) in place of a dead one; results in flight are lost."""
-        old = self._proc
-        if old.is_alive():
-            old.terminate()
-            old.join(1.0)
-            if old.is_alive():      # it ignores SIGTERM (helper_guard): it would live on beside the new one
-                old.kill()
-                old.join(1.0)
+        end_helper(self._proc)
         self._make()
         self.fits_at_restart = self.fits
         return self.start()

@@ -49,6 +49,19 @@ def _start_with_helper_env(proc: Any) -> None:
             os.environ.pop(k, None)
 
 
+def end_helper(proc: Any, term_wait_s: float = 1.0, kill_wait_s: float = 1.0) -> None:
+    """End a helper process that is still alive: SIGTERM, then SIGKILL if it is there after
+    ``term_wait_s``. Helpers are born ignoring SIGTERM (:func:`start_ignoring_signals`), so without
+    the SIGKILL one lives on - and writes into shared memory a later helper may reuse."""
+    if proc is None or not proc.is_alive():
+        return
+    proc.terminate()
+    proc.join(term_wait_s)
+    if proc.is_alive():
+        proc.kill()
+        proc.join(kill_wait_s)
+
+
 def start_ignoring_signals(proc: Any) -> None:
     """``proc.start()`` with SIGINT/SIGTERM ignored, so the child is born ignoring them (and with
     :data:`HELPER_ENV`)."""

@@ -50,7 +50,7 @@ import numpy as np
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.runtime.dashboard import (BLOCK_ENTITIES, CONTROL_ENTITIES, ENTITY_SERIES, ESTIMATE_KEYS, SERIES_STYLES,
                                         TORQUE_NRMSE, draw_fit_frf, draw_loop_gain, truth_path)
-from rt_ident.runtime.helper_guard import become_helper, start_ignoring_signals
+from rt_ident.runtime.helper_guard import become_helper, end_helper, start_ignoring_signals
 from rt_ident.runtime.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
@@ -577,13 +577,7 @@ class TelemetryProcess:
     def restart(self) -> "TelemetryProcess":
         """A new telemetry process in place of a dead one. An .rrd sink continues in a new file
         (``<name>-2.rrd``: the dead child's file keeps what it wrote, never overwritten)."""
-        old = self._proc
-        if old is not None and old.is_alive():
-            old.terminate()
-            old.join(1.0)
-            if old.is_alive():      # a helper ignores SIGTERM (helper_guard): it would live on, and
-                old.kill()          # write into shared counters whose memory a later start() reuses
-                old.join(1.0)
+        end_helper(self._proc)
         self._sent_before = self.sent
         self._sent = None
         if self.config.sink == "rrd" and self.config.rrd_path:
@@ -735,11 +729,7 @@ class TelemetryProcess:
             if self._proc.is_alive():
                 log.warning("telemetry process did not finish within %.1f s; terminating", timeout)
                 terminated = True
-                self._proc.terminate()
-                self._proc.join(0.4)
-                if self._proc.is_alive():
-                    self._proc.kill()
-                    self._proc.join(0.1)
+                end_helper(self._proc, 0.4, 0.1)
         self._closed = True
         return {
             **self._written(),
