@@ -31,6 +31,7 @@ from typing import Any
 
 from drivers.placement import device_placement, place, settle_heap
 from rt_ident.errors import RtIdentError
+from rt_ident.runtime.helper_guard import start_with_helper_env
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,10 @@ class EmulatorProcess:
         self.module = module
         self._proc = ctx.Process(target=_serve, args=(module, config, child, placement),
                                  name=f"rt_ident-emulator-{module.rsplit('.', 1)[-1]}", daemon=True)
-        self._proc.start()
+        # one BLAS thread: a device thread under SCHED_FIFO that called a multithreaded BLAS (the plant's
+        # matrix exponential at enable) spun on one CPU waiting for a BLAS worker that could not run
+        # there until the RT throttle let it, 1 s later: the board's heartbeat watchdog had tripped
+        start_with_helper_env(self._proc)
         child.close()                        # only the child holds its end: EOF reaches it if we die
         self.pid: int | None = self._proc.pid
         try:

@@ -36,7 +36,7 @@ _log = logging.getLogger("rt_ident.runtime.helpers")
 HELPER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def _start_with_helper_env(proc: Any) -> None:
+def start_with_helper_env(proc: Any) -> None:
     """``proc.start()`` with :data:`HELPER_ENV` in the environment the child is spawned with (a
     variable the user set is kept); this process's environment is restored afterwards."""
     added = [k for k in HELPER_ENV if k not in os.environ]
@@ -66,11 +66,11 @@ def start_ignoring_signals(proc: Any) -> None:
     """``proc.start()`` with SIGINT/SIGTERM ignored, so the child is born ignoring them (and with
     :data:`HELPER_ENV`)."""
     if threading.current_thread() is not threading.main_thread():
-        _start_with_helper_env(proc)  # cannot touch dispositions here; become_helper() covers the child
+        start_with_helper_env(proc)  # cannot touch dispositions here; become_helper() covers the child
         return
     old = {s: signal.signal(s, signal.SIG_IGN) for s in _GROUP_SIGNALS}
     try:
-        _start_with_helper_env(proc)
+        start_with_helper_env(proc)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
