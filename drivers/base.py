@@ -42,9 +42,11 @@ _ZERO = np.zeros(1)     # the lease's one-value plan (backends copy what they ke
 _ZERO.flags.writeable = False
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True, eq=False)
 class SampleBlock:
-    """All samples a backend produced since the previous ``read()``.
+    """All samples a backend produced since the previous ``read()`` (a value: nothing changes one after
+    it is made; not frozen only because a frozen dataclass's construction cost twice as much, every
+    tick, on every axis).
 
     Arrays share one length. ``t`` are hardware timestamps [s] (the device's
     clock where it has one), ``seq`` monotonically increasing sequence numbers
@@ -169,13 +171,14 @@ class Backend(ABC):
         else:
             if start_seq is None:
                 raise DriverError("a torque plan (array) needs start_seq")
-            self._write_plan(values, int(start_seq))
+            if lease is not None and values.size and lease >= 0:
+                self._write_leased_plan(values, int(start_seq), int(lease))
+            else:
+                self._write_plan(values, int(start_seq))
             if values.size:
                 self.last_torque = float(values[-1])
-                if lease is not None:
-                    if lease < 0:
-                        raise DriverError(f"lease must be >= 0 samples, got {lease}")
-                    self._write_plan(_ZERO, int(start_seq) + values.size + int(lease))
+                if lease is not None and lease < 0:
+                    raise DriverError(f"lease must be >= 0 samples, got {lease}")
 
     def safe_stop(self, cause: str | None = None) -> None:
         """Quick stop -> zero torque -> drive disabled. Idempotent; never raises.
@@ -229,7 +232,14 @@ class Backend(ABC):
     def _write_hold(self, torque: float) -> None: ...
 
     @abstractmethod
-    def _write_plan(self, torques: np.ndarray, start_seq: int) -> None: ...
+    def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
+        """Keep ``torques`` for samples ``start_seq`` on (copy them: the caller may reuse its array)."""
+
+    def _write_leased_plan(self, torques: np.ndarray, start_seq: int, lease: int) -> None:
+        """A plan and its lease (``write(..., lease=)``): the plan, then a one-value plan of 0 ``lease``
+        samples after its end. A backend may do both at once (the sim does, in one compiled call)."""
+        self._write_plan(torques, start_seq)
+        self._write_plan(_ZERO, start_seq + torques.size + lease)
 
     @abstractmethod
     def _safe_stop(self) -> None:

@@ -32,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from drivers.base import Backend, SampleBlock, State
 from drivers.errors import DriverError, TravelLimitTrip
+from drivers.sim_plan import PM_OFF, PM_SIZE, new_plan, plan_take, plan_write
 from rt_ident.axis.friction import Friction
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantBlock, PlantSimulator, SensorConfig
@@ -124,14 +125,13 @@ class SimBackend(Backend):
         self._t_activate = 0.0
         self._produced = 0                # samples read() has handed out = seq of the next one it returns
         self._stepped = 0                 # samples the plant has stepped (ahead of _produced after step_ahead)
-        # stepped ahead, not yet read (seq _produced .. _stepped - 1): theta1, theta2, torque_cmd,
+        # stepped ahead, not yet read (seq _produced .. _stepped - 1): t, seq, theta1, theta2, torque_cmd,
         # torque_applied, torque_meas from index _ahead_off on
         self._ahead: tuple[np.ndarray, ...] | None = None
         self._ahead_off = 0
         self._ahead_trip: str | None = None     # the travel limit tripped in the samples stepped ahead
-        self._hold = 0.0                  # torque for samples not covered by the plan
-        self._plan = np.empty(0)          # values for seq _plan_start, _plan_start + 1, ...
-        self._plan_start = 0
+        # the torque plan and the torque held where it has none (drivers.sim_plan)
+        self._plan_buf, self._plan_meta, self._plan_hold = new_plan()
         self.late_plan_samples = 0        # plan values that arrived after their sample was produced
         self.drive_enabled = False
         self.applied_torque = 0.0         # last torque actually applied by the plant
@@ -175,9 +175,7 @@ class SimBackend(Backend):
         self._ahead = None
         self._ahead_off = 0
         self._ahead_trip = None
-        self._hold = 0.0
-        self._plan = np.empty(0)
-        self._plan_start = 0
+        self._plan_buf, self._plan_meta, self._plan_hold = new_plan()
         self.drive_enabled = True
         self._t_activate = self._clock()
 
@@ -188,31 +186,16 @@ class SimBackend(Backend):
         return n if n > 0 else 0
 
     def _commands(self, n: int) -> np.ndarray:
-        """Per-sample host command for seq [produced, produced + n): plan where it covers, else hold.
-
-        Invariant: the stored plan never starts before the next sample (consumed values are dropped).
-        """
-        p = self._stepped
-        end = p + n
-        plan = self._plan
-        if not plan.size:
-            return np.full(n, self._hold)
+        """Per-sample host command for the next ``n`` samples to step (from seq ``_stepped`` on): the plan
+        where it covers them, the held torque before it, its last value after it; they leave the plan."""
         cmd = np.empty(n)
-        ps = self._plan_start
-        pe = ps + plan.size
-        head = min(ps - p, n)                 # samples before the plan starts hold the last value
-        cmd[:head] = self._hold
-        b = min(end, pe)
-        if ps < b:
-            cmd[ps - p:b - p] = plan[:b - ps]
-        if end >= pe:                         # plan used up: its last value holds from here on
-            cmd[pe - p:] = plan[-1]
-            self._hold = float(plan[-1])
-            self._plan = plan[:0]
-        elif end > ps:                        # drop the consumed part
-            self._plan = plan[end - ps:]
-            self._plan_start = end
+        plan_take(self._plan_buf, self._plan_meta, self._plan_hold, cmd, self._stepped)
         return cmd
+
+    @property
+    def _hold(self) -> float:
+        """The torque held where the plan has no value."""
+        return float(self._plan_hold[0])
 
     def step_ahead(self, seconds: float) -> None:
         """Paced mode: step the plant now through the samples due in the next ``seconds`` (the loop
@@ -231,7 +214,7 @@ class SimBackend(Backend):
         p = self._stepped
         blk = self._step(self._commands(n), p)
         self._stepped = p + n
-        new = _delivered(blk)
+        new = _delivered(blk, p, self._dt)
         if self._ahead is None:
             self._ahead = new
         else:                               # what the last read left (the copying is done here, not in read)
@@ -247,7 +230,7 @@ class SimBackend(Backend):
         return f"table at {x:.6f} m outside travel {self.config.travel}"
 
     def _take_ahead(self, n: int) -> tuple[np.ndarray, ...]:
-        """Views of the next ``n`` samples stepped ahead: theta1, theta2, torque_cmd, torque_applied,
+        """Views of the next ``n`` samples stepped ahead: t, seq, theta1, theta2, torque_cmd, torque_applied,
         torque_meas (arrays never written again: step_ahead makes new ones)."""
         o = self._ahead_off
         got = tuple(a[o:o + n] for a in self._ahead)
@@ -265,22 +248,25 @@ class SimBackend(Backend):
             return SampleBlock.empty(self.has_measured_torque)
         p = self._produced
         ahead = self._stepped - p
-        if ahead == 0:
+        if ahead >= n and self._ahead_trip is None:
+            # the usual read: samples step_ahead has made, handed out as they are (nothing computed here)
+            t, seq, th1, th2, cmd, applied, meas = self._take_ahead(n)
+        elif ahead == 0:
             b = self._step(self._commands(n), p)
-            th1, th2, cmd, applied, meas = _delivered(b)
+            t, seq, th1, th2, cmd, applied, meas = _delivered(b, p, self._dt)
             self._stepped = p + n
         elif ahead >= n or self._ahead_trip is not None:
             n = min(n, ahead)               # after a trip the drive is off: nothing after its samples
-            th1, th2, cmd, applied, meas = self._take_ahead(n)
+            t, seq, th1, th2, cmd, applied, meas = self._take_ahead(n)
         else:                               # a late read: the rest is stepped now
             first = self._take_ahead(ahead)
             b = self._step(self._commands(n - ahead), self._stepped)
-            th1, th2, cmd, applied, meas = (np.concatenate(pair) for pair in zip(first, _delivered(b)))
+            t, seq, th1, th2, cmd, applied, meas = (np.concatenate(pair) for pair in
+                                                    zip(first, _delivered(b, self._stepped, self._dt)))
             self._stepped = p + n
-        seq = np.arange(p, p + n, dtype=np.int64)
         self._produced = p + n
         self.applied_torque = float(applied[-1])
-        out = SampleBlock(seq * self._dt, seq, th1, th2, cmd, meas if self.has_measured_torque else None)
+        out = SampleBlock(t, seq, th1, th2, cmd, meas if self.has_measured_torque else None)
         if self._ahead_trip is not None and self._produced == self._stepped:
             self.tripped, self._ahead_trip = self._ahead_trip, None
             self.trip_block = out         # the samples of the tripping read, for the recorder
@@ -319,10 +305,13 @@ class SimBackend(Backend):
 
     def _write_hold(self, torque: float) -> None:
         self._refuse_if_disabled()
-        self._hold = float(torque)
-        self._plan = self._plan[:0]
+        self._plan_hold[0] = float(torque)
+        self._plan_meta[PM_SIZE] = 0              # the plan is gone
 
     def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
+        self._write_leased_plan(torques, start_seq, -1)
+
+    def _write_leased_plan(self, torques: np.ndarray, start_seq: int, lease: int) -> None:
         self._refuse_if_disabled()
         vals = np.asarray(torques, dtype=float)
         if vals.size == 0:
@@ -330,31 +319,24 @@ class SimBackend(Backend):
         if start_seq - self._produced > MAX_PLAN_LEAD:
             raise DriverError(f"plan start_seq {start_seq} is {start_seq - self._produced} samples ahead "
                               f"(max {MAX_PLAN_LEAD})")
-        p = self._stepped
-        if start_seq < p:  # the first values are for samples already stepped
-            late = min(p - start_seq, vals.size)
-            self.late_plan_samples += late
-            if late == vals.size:
-                self._hold = float(vals[-1])
-                self._plan = vals[:0]
+        if lease >= 0 and start_seq + vals.size + lease - self._produced > MAX_PLAN_LEAD:
+            raise DriverError(f"a lease of {lease} samples after this plan ends {MAX_PLAN_LEAD} samples ahead")
+        while True:
+            late = plan_write(self._plan_buf, self._plan_meta, self._plan_hold, vals, start_seq, self._stepped,
+                              lease)
+            if late >= 0:
+                self.late_plan_samples += late
                 return
-            vals = vals[late:]
-            start_seq = p
-        old, os_ = self._plan, self._plan_start
-        if old.size and os_ < start_seq:
-            # keep the older plan up to start_seq; a gap after it holds its last value
-            keep = old[: max(0, min(old.size, start_seq - os_))]
-            gap = start_seq - (os_ + keep.size)
-            self._plan = np.concatenate((keep, np.full(gap, old[-1]), vals))
-            self._plan_start = os_
-        else:
-            self._plan = vals.copy()
-            self._plan_start = start_seq
+            grown = np.zeros(max(-late, 2 * self._plan_buf.shape[0]))    # a long plan: a larger buffer
+            m = self._plan_meta
+            grown[:m[PM_SIZE]] = self._plan_buf[m[PM_OFF]:m[PM_OFF] + m[PM_SIZE]]
+            m[PM_OFF] = 0
+            self._plan_buf = grown
 
     def _disable(self) -> None:
         """Zero torque, drive off: later stepping runs with zero command and no hold loop."""
-        self._hold = 0.0
-        self._plan = self._plan[:0]
+        self._plan_hold[0] = 0.0
+        self._plan_meta[PM_SIZE] = 0
         self.applied_torque = 0.0
         if self.drive_enabled and self.controller is not None:
             self.plant = self._make_plant(None, x0=self.plant.state)
@@ -367,10 +349,11 @@ class SimBackend(Backend):
         self._disable()
 
 
-def _delivered(blk: PlantBlock) -> tuple[np.ndarray, ...]:
-    """What read() hands out of a stepped block (and step_ahead keeps): theta1, theta2, torque_cmd,
-    torque_applied, torque_meas."""
-    return blk.theta1, blk.theta2, blk.torque_cmd, blk.torque_applied, blk.torque_meas
+def _delivered(blk: PlantBlock, first: int, dt: float) -> tuple[np.ndarray, ...]:
+    """What read() hands out of a block stepped from sample ``first`` on (and step_ahead keeps): t, seq,
+    theta1, theta2, torque_cmd, torque_applied, torque_meas. The device clock: sample seq is at seq * dt."""
+    seq = np.arange(first, first + blk.theta1.shape[0], dtype=np.int64)
+    return seq * dt, seq, blk.theta1, blk.theta2, blk.torque_cmd, blk.torque_applied, blk.torque_meas
 
 
 def _changes(entries: list[dict[str, float]], base: AxisParams, dt: float) -> list[tuple[int, AxisParams]]:

@@ -37,4 +37,4 @@ def test_no_module_left_at_the_top_of_rt_ident_but_the_face():
 
 def test_drivers_top_holds_only_the_contract_sim_and_shared_emulator_placement():
     top = sorted(p.name for p in (ROOT / "drivers").glob("*.py"))
-    assert top == ["__init__.py", "base.py", "errors.py", "placement.py", "sim.py"], top
+    assert top == ["__init__.py", "base.py", "errors.py", "placement.py", "sim.py", "sim_plan.py"], top
