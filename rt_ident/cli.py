@@ -630,6 +630,7 @@ def _bench_xy(seconds: float, json_out: bool) -> None:
         tab.add_row(f"  axis {axis}'s share", _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), "", "", "", "")
     row("X alone", res["one_axis"])
     row("X and Y, no idle poll", res["two_axes_no_idle_poll"])
+    row("X and Y, Python path", res["two_axes_python_path"])
     out.print(tab)
     ratio = res.get("p99_ratio_two_over_one")
     ahead = res["two_axes"].get("sim_ahead_us") or {}
@@ -639,6 +640,7 @@ def _bench_xy(seconds: float, json_out: bool) -> None:
     off99 = (res["two_axes_no_idle_poll"].get("work_us") or {}).get("p99")
     if p99_on := (res["two_axes"].get("work_us") or {}).get("p99"):
         out.print(f"p99 two axes, idle poller on / off: {_fmt(p99_on / off99 if off99 else None)}")
+    out.print(f"p99 two axes, compiled tick / Python path: {_fmt(res.get('p99_ratio_compiled_over_python'))}")
     p99 = (res["two_axes"].get("work_us") or {}).get("p99")
     out.print(f"{'met' if res['met'] else 'NOT met'}: p99 of the two-axis tick <= {res['target_p99_us']:g} us "
               f"(40 % of the tick): {_fmt(p99)} us")

@@ -63,6 +63,8 @@ class LoopConfig(_Section):
     idle_poll: bool = True                     # real time, loop on its own CPU: a SCHED_IDLE thread keeps that
                                                # CPU busy while the loop sleeps (runtime/idle_poll.py); the
                                                # ticker then sleeps in one piece unless max_sleep_us is set
+    compiled_tick: bool = True                 # each axis's tick in one compiled call where its parts allow
+                                               # (runtime/tick_core.py); false: the Python path, step by step
 
 
 class EstimatorConfig(_Section):

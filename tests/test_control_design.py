@@ -111,7 +111,7 @@ def test_switch_is_bumpless_the_torque_does_not_step():
     # the same swap without re-seeding the integral would have stepped the torque
     naive = StateFeedback(a, tick=T, torque_limit=1.0)
     _run_law(naive, 200)
-    naive._g = np.array(b.gains)
+    naive.gains[:] = b.gains                    # the gains alone, in place (the law holds them there)
     assert abs(naive.feedback_torque(*state, P.lead) - before) > 1e-4
     assert abs(u[-1]) < 1.0
 

@@ -118,6 +118,11 @@ def test_the_xy_budget_bench_times_both_axes_against_one_and_each_axis_share():
     off = res["two_axes_no_idle_poll"]                                 # the peer run: the same two axes
     assert off["stop"] is None and off["samples"] > 1.5 * one["samples"]
     assert not any(r["idle_poll"] for r in (two, one, off))           # not real time: no poller anywhere
+    py = res["two_axes_python_path"]                                  # the other peer: no compiled tick
+    assert py["stop"] is None and py["samples"] > 1.5 * one["samples"]
+    assert all(c["on"] and c["ticks"] > 0.9 * (c["ticks"] + c["python_ticks"]) for c in two["compiled_tick"].values())
+    assert not any(c["on"] or c["ticks"] for c in py["compiled_tick"].values())
+    assert res["p99_ratio_compiled_over_python"] == pytest.approx(two["work_us"]["p99"] / py["work_us"]["p99"])
 
 
 @pytest.mark.slow

@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numba
 import numpy as np
 
 from rt_ident.axis.params import AxisParams
@@ -168,12 +169,9 @@ class ControlStats:
     fallbacks: int = 0
     reasons: list[str] = field(default_factory=list)
     events: list[tuple[float, str, str]] = field(default_factory=list)   # (t, kind, detail)
-    sq_err: float = 0.0
-    n_err: int = 0
-    max_err: float = 0.0
-    sq_err_after: float = 0.0
-    n_err_after: int = 0
-    max_err_after: float = 0.0
+    # sum of squared tracking errors, their count, the largest; the same after error_after_s (ERR_*):
+    # one array, changed in place by track_error (the compiled tick holds a view)
+    err: np.ndarray = field(default_factory=lambda: np.zeros(6))
     max_step_nm: float = 0.0     # largest torque step a switch would have caused without re-seeding
     requests: int = 0            # redesigns asked of the control worker
     why_requested: dict[str, int] = field(default_factory=dict)   # the parameter that moved most, per request
@@ -182,6 +180,51 @@ class ControlStats:
     checks_agreed: int = 0       # cross-checks of the per-sample estimate against the frequency fit
     checks_disagreed: int = 0
     last_disagreement: str = ""
+
+
+    sq_err = property(lambda self: float(self.err[ERR_SQ]))
+    n_err = property(lambda self: int(self.err[ERR_N]))
+    max_err = property(lambda self: float(self.err[ERR_MAX]))
+    sq_err_after = property(lambda self: float(self.err[ERR_SQ + 3]))
+    n_err_after = property(lambda self: int(self.err[ERR_N + 3]))
+    max_err_after = property(lambda self: float(self.err[ERR_MAX + 3]))
+
+
+# Supervisor.now: the tick's time, reference and error, the state and reference it was computed from
+# (for a bumpless switch) and when the fallback's clock started (nan: not running) - in place only
+NOW_T, NOW_XREF, NOW_ERR, NOW_STATE, NOW_REF, NOW_FALLBACK_SINCE = 0, 1, 2, 3, 7, 10
+ERR_SQ, ERR_N, ERR_MAX = range(3)
+# Supervisor.consts: the lead [m/rad], the error bound [m], error_after_s (inf: none), the tick [s]
+SC_LEAD, SC_MAX_ERROR, SC_ERROR_AFTER, SC_TICK = range(4)
+
+
+@numba.njit(cache=True)
+def track_error(now, err, sc, t, th1, w1, th2, w2, xr, vr, ar):
+    """The tick's bookkeeping before the law (Supervisor.tick and the compiled tick both run this):
+    the time, the reference and the state it saw, and the table's tracking error and its statistics.
+    Returns the error [m]."""
+    now[NOW_T] = t
+    now[NOW_XREF] = xr
+    now[NOW_STATE] = th1
+    now[NOW_STATE + 1] = w1
+    now[NOW_STATE + 2] = th2
+    now[NOW_STATE + 3] = w2
+    now[NOW_REF] = xr
+    now[NOW_REF + 1] = vr
+    now[NOW_REF + 2] = ar
+    e = sc[SC_LEAD] * th2 - xr
+    now[NOW_ERR] = e
+    a = abs(e)
+    err[ERR_SQ] += e * e
+    err[ERR_N] += 1.0
+    if a > err[ERR_MAX]:
+        err[ERR_MAX] = a
+    if t >= sc[SC_ERROR_AFTER]:
+        err[ERR_SQ + 3] += e * e
+        err[ERR_N + 3] += 1.0
+        if a > err[ERR_MAX + 3]:
+            err[ERR_MAX + 3] = a
+    return e
 
 
 class Supervisor:
@@ -210,40 +253,50 @@ class Supervisor:
         self.stats = ControlStats()
         self.in_fallback = False
         self._held: Controller | None = None     # the model controller to go back to at the recovery
-        self._fallback_since: float | None = None
         self._last_request_t = -math.inf
         self._pending = False
         self._req = 0
-        self._last_state: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)
-        self._last_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
-        self.t = 0.0
-        self.error = 0.0
-        self.x_ref = 0.0
+        self.now = np.zeros(NOW_FALLBACK_SINCE + 1)     # NOW_*: t, x_ref, error, state, reference, fallback clock
+        self.now[NOW_FALLBACK_SINCE] = math.nan
+        self.consts = np.array([self.lead, settings.max_error_m,
+                                math.inf if error_after_s is None else float(error_after_s), tick])
         self.probe_scale = 1.0      # probing-excitation amplitude factor (dual excitation)
 
     @property
     def controller(self) -> Controller:
         return self.law.controller
 
+    def _now_slot(i: int, doc: str):        # noqa: N805 - a property factory
+        return property(lambda self: float(self.now[i]), lambda self, v: self.now.__setitem__(i, v), doc=doc)
+
+    t = _now_slot(NOW_T, "the newest tick's time [s]")
+    x_ref = _now_slot(NOW_XREF, "the table's reference then [m]")
+    error = _now_slot(NOW_ERR, "the table's tracking error then [m]")
+    del _now_slot
+
+    @property
+    def _fallback_since(self) -> float | None:
+        v = float(self.now[NOW_FALLBACK_SINCE])
+        return None if math.isnan(v) else v
+
+    @_fallback_since.setter
+    def _fallback_since(self, value: float | None) -> None:
+        self.now[NOW_FALLBACK_SINCE] = math.nan if value is None else value
+
     # ------------------------------------------------------------------ tick
     def tick(self, t: float, th1: float, w1: float, th2: float, w2: float) -> float:
-        ref = self.reference
-        xr, vr, ar = ref.point(t)
-        a_ff = ref.point(t + 1.5 * self.tick_s)[2]
-        self.t, self.x_ref = t, xr
-        self._last_state, self._last_ref = (th1, w1, th2, w2), (xr, vr, ar)
-        err = self.lead * th2 - xr
-        self.error = err
-        st = self.stats
-        st.sq_err += err * err
-        st.n_err += 1
-        st.max_err = max(st.max_err, abs(err))
-        if self.error_after_s is not None and t >= self.error_after_s:
-            st.sq_err_after += err * err
-            st.n_err_after += 1
-            st.max_err_after = max(st.max_err_after, abs(err))
+        xr, vr, ar, a_ff = self.reference_at(t)
+        err = track_error(self.now, self.stats.err, self.consts, t, th1, w1, th2, w2, xr, vr, ar)
         self._watch(t, abs(err))
         return self.law.step(th1, w1, th2, w2, xr, vr, ar, a_ff, self.lead)
+
+    def reference_at(self, t: float) -> tuple[float, float, float, float]:
+        """The reference at ``t`` (position, velocity, acceleration) and its acceleration half a tick
+        after the torque computed now lands (the feedforward's)."""
+        ref = self.reference
+        xr, vr, ar = ref.point(t)
+        return xr, vr, ar, ref.point(t + 1.5 * self.tick_s)[2]
+
 
     def _watch(self, t: float, abs_err: float) -> None:
         """Error above the bound: fall back to the conservative controller (once), and start the
@@ -288,7 +341,9 @@ class Supervisor:
         self._switch(ctrl)
 
     def _switch(self, ctrl: Controller) -> None:
-        step = self.law.switch(ctrl, *self._last_state, *self._last_ref, self.lead)
+        n = self.now
+        step = self.law.switch(ctrl, *(float(v) for v in n[NOW_STATE:NOW_STATE + 4]),
+                               *(float(v) for v in n[NOW_REF:NOW_REF + 3]), self.lead)
         self.stats.max_step_nm = max(self.stats.max_step_nm, abs(step))
 
     # ------------------------------------------------------------ adaptation

@@ -151,7 +151,7 @@ class StreamingFrequencyEstimator:
         self._state = np.zeros(6)
         self._last = np.zeros(3)
         self._qmin = np.zeros(2)
-        self._n = 0
+        self._count = np.zeros(1, dtype=np.int64)     # samples fed (in place: see rt_ident.runtime.tick_core)
         self._fit: FitResult | None = None
 
     # -- feeding ------------------------------------------------------------------------
@@ -164,7 +164,7 @@ class StreamingFrequencyEstimator:
             raise DataError("theta1/theta2/torque: blocks must be 1-D and of equal length")
         if first_non_finite3(a, b, c) >= 0:
             raise DataError("theta1/theta2/torque: block contains non-finite values")
-        self._n += a.size
+        self._count[0] += a.size
         return int(self._kernel(a, b, c, self.harmonics, self._table, self._idx, self._acc, self._S1,
                                 self._S2, self._state, self._last, self._qmin, self.forgetting,
                                 self.discard_periods))
@@ -176,7 +176,7 @@ class StreamingFrequencyEstimator:
 
     @property
     def n_samples(self) -> int:
-        return self._n
+        return int(self._count[0])
 
     def spectra(self) -> Spectra:
         """The accumulated period-averaged spectra (EstimationError before the first period)."""
@@ -192,11 +192,10 @@ class StreamingFrequencyEstimator:
         fit = fit_spectra(sp, self.hold, transient=self.transient, x0=x0,
                           max_iter=self.max_iter if max_iter is None else int(max_iter))
         self._fit = fit
-        return identification_from_fit(sp, fit, self.hold, lead=self.lead, n_samples=self._n)
+        return identification_from_fit(sp, fit, self.hold, lead=self.lead, n_samples=self.n_samples)
 
     def reset(self) -> None:
         """Forget everything (the next sample starts a period)."""
-        for arr in (self._idx, self._acc, self._S1, self._S2, self._state, self._last, self._qmin):
+        for arr in (self._idx, self._acc, self._S1, self._S2, self._state, self._last, self._qmin, self._count):
             arr[...] = 0
-        self._n = 0
         self._fit = None

@@ -278,7 +278,18 @@ class AxisStateEstimator:
             bws = _pair(bandwidth_hz, "bandwidth_hz")
             self.filters = tuple(SteadyStateKalman.from_bandwidth(dt, q, bw, model) for q, bw in zip(quanta, bws))
         self.dt = float(dt)
-        self._next_seq: int | None = None       # the sample expected next (filter_block with seq)
+        # the sample expected next (filter_block with seq; -1: none yet), in place: the compiled tick
+        # (rt_ident.runtime.tick_core) holds a view
+        self.next_seq = np.full(1, -1, dtype=np.int64)
+
+    @property
+    def _next_seq(self) -> int | None:
+        v = int(self.next_seq[0])
+        return None if v < 0 else v
+
+    @_next_seq.setter
+    def _next_seq(self, value: int | None) -> None:
+        self.next_seq[0] = -1 if value is None else value
 
     def reset(self, theta1_0: float, theta2_0: float) -> None:
         self.filters[0].reset(theta1_0)

@@ -43,9 +43,20 @@ class _GapFiller:
     """Keeps sequence numbers contiguous: interpolates short gaps, refuses long ones."""
 
     def __init__(self) -> None:
-        self.last_seq: int | None = None
+        # the last sequence number seen (-1: none) and its samples, in place: the compiled tick
+        # (rt_ident.runtime.tick_core) holds views
+        self.seq = np.full(1, -1, dtype=np.int64)
         self.last = np.zeros(3)
         self.filled = 0
+
+    @property
+    def last_seq(self) -> int | None:
+        v = int(self.seq[0])
+        return None if v < 0 else v
+
+    @last_seq.setter
+    def last_seq(self, value: int | None) -> None:
+        self.seq[0] = -1 if value is None else value
 
     def __call__(self, th1, th2, tq, seq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         seq = np.asarray(seq, dtype=np.int64)

@@ -264,14 +264,21 @@ class SvfEstimator:
         self.reset()
 
     def reset(self) -> None:
-        self._xs = np.zeros((4, 3))
-        self._prev = np.zeros(4)
-        self._R = np.zeros((4, 4))
-        self._r = np.zeros(4)
-        self._acc = np.array([0.0, 0.0, 0.0, float(math.ceil(self.s.warmup_s / self.dt)), 0.0])
-        self._p = self._prior.copy()
-        self._tmp = np.zeros((4, 4))
-        self._counts = np.zeros(5)       # samples, rejected, rows, solve failures, frozen
+        """Start over. The arrays are changed in place, never replaced: the compiled tick
+        (rt_ident.runtime.tick_core) holds views of them."""
+        if not hasattr(self, "_xs"):
+            self._xs = np.zeros((4, 3))
+            self._prev = np.zeros(4)
+            self._R = np.zeros((4, 4))
+            self._r = np.zeros(4)
+            self._acc = np.zeros(5)
+            self._p = np.zeros(4)
+            self._tmp = np.zeros((4, 4))
+            self._counts = np.zeros(5)   # samples, rejected, rows, solve failures, frozen
+        for a in (self._xs, self._prev, self._R, self._r, self._acc, self._tmp, self._counts):
+            a[...] = 0.0
+        self._acc[3] = float(math.ceil(self.s.warmup_s / self.dt))
+        self._p[:] = self._prior
 
     def restart_filter(self) -> None:
         """After lost samples: start the filters again on the next sample (the regression keeps its
@@ -301,7 +308,11 @@ class SvfEstimator:
         return AxisParams(**{k: float(max(x, 1e-30)) for k, x in zip(KEYS, v)}, lead=self.nominal.lead)
 
     def values(self) -> dict[str, float]:
-        return {k: float(x) for k, x in zip(KEYS, self._p * self._scale)}
+        return {k: float(x) for k, x in zip(KEYS, self.values_array())}
+
+    def values_array(self) -> np.ndarray:
+        """(I1, I2, B, K) now, physical units."""
+        return self._p * self._scale
 
     def ci95(self) -> dict[str, tuple[float, float]] | None:
         """Approximate 95 % intervals from the weighted information matrix and the residual variance

@@ -5,7 +5,8 @@ per-sample estimation and control, in one loop - against one axis alone, in the 
 and recordings written into a temporary directory, real time), cut to ``seconds``; the one-axis run is
 its X axis alone (the same sections, no ``[axes]``); a third run is the two-axis one with ``[loop]
 idle_poll = false`` (rt_ident.runtime.idle_poll: what keeping the loop's CPU busy while it sleeps
-buys, measured beside it). Reported: the tick's work (read, estimate, control, plan of every axis;
+buys, measured beside it); a fourth with ``[loop] compiled_tick = false`` (every tick on the Python path
+the compiled tick replaces: rt_ident.runtime.tick_core). Reported: the tick's work (read, estimate, control, plan of every axis;
 ``loop.work_us``) at p50/p99/max, each axis's share, overruns, whether the idle poller ran, the
 simulated plant's stepping after the tick (``loop.sim_ahead_us``: a real device's part, not in the
 work) and the target (p99 <= 40 % of the 1 ms tick, on the shipped config).
@@ -31,6 +32,7 @@ def _trial(summary: dict[str, Any]) -> dict[str, Any]:
     out["idle_poll"] = bool(((summary.get("realtime") or {}).get("idle_poll") or {}).get("running"))
     if "axes" in summary:
         out["per_axis_work_us"] = {n: ax["loop"]["work_us"] for n, ax in summary["axes"].items()}
+        out["compiled_tick"] = {n: ax["loop"].get("compiled_tick") for n, ax in summary["axes"].items()}
     return out
 
 
@@ -82,11 +84,20 @@ def xy_budget(seconds: float = 10.0, *, realtime: bool = True, progress=None) ->
         say(f"two axes without the idle poller, {seconds:g} s")
         with _scheduling_restored():
             no_poll = _trial(run_axes(off))
+        py = load(CONFIG_DIR / "xy-sim.toml", **over, **{"loop.compiled_tick": False,
+                                                        "telemetry.rrd": str(Path(tmp) / "xy-py.rrd"),
+                                                        "recording.path": str(Path(tmp) / "xy-py.parquet")})
+        say(f"two axes, each tick on the Python path, {seconds:g} s")
+        with _scheduling_restored():
+            python_path = _trial(run_axes(py))
     p99 = (xy.get("work_us") or {}).get("p99")
     one99 = (one.get("work_us") or {}).get("p99")
+    py99 = (python_path.get("work_us") or {}).get("p99")
     return {"seconds": seconds, "realtime": realtime, "two_axes": xy, "one_axis": one, "two_axes_no_idle_poll": no_poll,
+            "two_axes_python_path": python_path,
             "target_p99_us": TARGET_P99_US, "met": p99 is not None and p99 <= TARGET_P99_US,
-            "p99_ratio_two_over_one": (p99 / one99) if p99 and one99 else None}
+            "p99_ratio_two_over_one": (p99 / one99) if p99 and one99 else None,
+            "p99_ratio_compiled_over_python": (p99 / py99) if p99 and py99 else None}
 
 
 __all__ = ["TARGET_P99_US", "xy_budget"]

@@ -41,6 +41,9 @@ import numpy as np
 
 from drivers.base import Backend, SampleBlock
 from rt_ident.errors import RtIdentError
+from rt_ident.runtime import tick_kernel as tk
+from rt_ident.runtime.loop_telemetry import TelemetryWindow
+from rt_ident.runtime.tick_core import AxisCore
 from rt_ident.runtime.safety import SafetyMonitor
 from rt_ident.runtime.scheduler import LatenessHistogram, Ticker
 
@@ -110,15 +113,7 @@ def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
     stats.lateness.record(info.lateness_s)
 
 
-_WINDOW_CI_KEYS = frozenset(("I1", "I2", "B", "K", "wn", "wd", "zeta"))
-
-
-def _eq18(p, th1, th2, w1, w2, a1):
-    """Eq. (18), motor row: T_hat = I1 th1'' + B (th1' - th2') + K (th1 - th2); floats or arrays."""
-    return p.I1 * a1 + p.B * (w1 - w2) + p.K * (th1 - th2)
-
-
-class IdentificationLoop:
+class IdentificationLoop(TelemetryWindow):
     """Joins a backend, a state estimator, a streaming estimator and the hand-offs.
 
     Everything is constructed and warmed up by the caller (:mod:`rt_ident.runtime.run`);
@@ -135,7 +130,7 @@ class IdentificationLoop:
                  max_sleep_s: float | None = 100e-6, control=None, ticker: Ticker | None = None,
                  probe_period: int | None = None, on_fit: Callable[[float, Any], Any] | None = None,
                  on_loop_gain: Callable[[float, Any, Any], Any] | None = None, friction=None,
-                 friction_feedforward: bool = True) -> None:
+                 friction_feedforward: bool = True, compiled_tick: bool = True) -> None:
         self.backend = backend
         self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hz = tick_hz
@@ -152,7 +147,6 @@ class IdentificationLoop:
         self.on_loop_gain = on_loop_gain    # a new controller's loop gain -> the dashboard
         self._shown_controller: Any = None
         self.publish_every = max(1, publish_every)
-        self._flush_at = self.publish_every      # ticks in the current telemetry window (MultiAxisLoop staggers)
         self.fit_phase = 3                       # the fit exchange's 10-tick cycle starts here (_fit_exchange)
         # snapshot to send, results taken, result to offer, FRF to draw (_fit_exchange)
         self._fit_stage: list[Any] = [None, None, None, None]
@@ -165,13 +159,13 @@ class IdentificationLoop:
         self.control = control              # the host's position controller (None: excitation only)
         self.friction = friction            # per-sample friction-model estimator ([estimator] model), or None
         self.friction_feedforward = friction_feedforward
-        self._next_seq = 0
-        self._seq0: int | None = None       # first sequence number: the control clock starts there
+        # the tick's bookkeeping (tick_core.BI_* / BF_*: the sample expected next, the control clock's
+        # first sample, the control torque in force and those in flight, the probe amplitude, the
+        # telemetry window's counters), in two arrays changed in place: the compiled tick holds views
+        self.book_i, self.book_f = tk.new_books()
+        self._flush_at = self.publish_every      # ticks in the current telemetry window (MultiAxisLoop staggers)
         self._per_tick = max(1, int(round(1.0 / (tick_hz * backend.sample_period))))
-        self._u_base = 0.0                  # control torque in force at the newest sample
-        self._u_sched: list[tuple[int, float]] = []   # (first seq, torque) still to land, in order
         self._probe_period = probe_period   # excitation period [samples]: its amplitude changes on period edges
-        self._probe = (1.0, 1.0, 0)         # (scale now, scale from seq on, that seq)
         self._plan_len = int(math.ceil(2.0 / (tick_hz * backend.sample_period))) + 2
         # a periodic probe is tabulated once (a period and a plan's length more): the plan slices it
         self._ex_table = (None if not probe_period else
@@ -180,6 +174,45 @@ class IdentificationLoop:
         self._lease = None if hold is None else int(math.ceil(hold / backend.sample_period))
         if on_telemetry is not None:
             self._telemetry_buffers()
+        self._plan_start: int | None = None  # the compiled tick built the plan from this sample on
+        tk.warm_up()
+        # the whole tick in one compiled call where the parts allow (rt_ident.runtime.tick_core)
+        self._core = AxisCore.for_loop(self) if compiled_tick else None
+
+    # the bookkeeping by name (the Python path's view of book_i / book_f)
+    def _book_int(i: int, none_below: int | None = None):        # noqa: N805 - a property factory
+        def get(self):
+            v = int(self.book_i[i])
+            return None if none_below is not None and v < none_below else v
+
+        def put(self, value):
+            self.book_i[i] = -1 if value is None else value
+        return property(get, put)
+
+    _next_seq = _book_int(tk.BI_NEXT_SEQ)
+    _seq0 = _book_int(tk.BI_SEQ0, none_below=0)      # first sequence number: the control clock starts there
+    _tel_n = _book_int(tk.BI_TEL_N)
+    _tick_n = _book_int(tk.BI_TICK_N)
+    _win_ticks = _book_int(tk.BI_WIN_TICKS)           # ticks in the current sample window
+    _flush_at = _book_int(tk.BI_FLUSH_AT)             # ticks in the current telemetry window (MultiAxisLoop staggers)
+    _tel_hat_ok = property(lambda self: bool(self.book_i[tk.BI_TEL_HAT_OK]),
+                           lambda self, v: self.book_i.__setitem__(tk.BI_TEL_HAT_OK, int(bool(v))))
+    _u_base = property(lambda self: float(self.book_f[tk.BF_U_BASE]),
+                       doc="the control torque in force at the newest sample")
+    del _book_int
+
+    @property
+    def _u_sched(self) -> list[tuple[int, float]]:
+        """(first seq, torque) still to land, in order."""
+        bi, bf = self.book_i, self.book_f
+        return [(int(bi[tk.BI_SCHED_SEQ + k]), float(bf[tk.BF_SCHED_VAL + k])) for k in range(int(bi[tk.BI_SCHED_N]))]
+
+    @property
+    def compiled_ticks(self) -> dict[str, Any]:
+        """Whether the compiled tick is on, and how many ticks it ran (whole or in part) and left to Python."""
+        core = self._core
+        return {"on": core is not None, "ticks": core.ticks if core else 0,
+                "python_ticks": core.python_ticks if core else self.stats.ticks}
 
     # ------------------------------------------------------------------ run
     def run(self) -> LoopStats:
@@ -217,6 +250,13 @@ class IdentificationLoop:
 
     # --------------------------------------------------------------- pieces
     def _process(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
+        core = self._core
+        if core is not None and core.tick(self, block, lateness_s):
+            return
+        self._process_py(block, lateness_s)
+
+    def _process_py(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
+        """The tick's processing step by step (the compiled tick's reference, and its fallback)."""
         n = len(block)
         stats = self.stats
         if n == 0:
@@ -228,11 +268,8 @@ class IdentificationLoop:
             self.on_block(block)
         torque = block.torque
         states = self.kf.filter_block(block.theta1, block.theta2, block.seq)
-        if self.est.update_block(block.theta1, block.theta2, torque, block.seq) and self.worker is not None:
-            if self.worker.ready:                       # a snapshot only when the worker waits for one
-                self._fit_stage[0] = self.est.snapshot()    # taken now, sent on this axis's send tick
-            else:
-                self.worker.skipped += 1
+        if self.est.update_block(block.theta1, block.theta2, torque, block.seq):
+            self._snapshot_due()
         ctl = self.control
         if ctl is not None:                             # the per-sample estimator, every sample
             ctl.observe(block.theta1, block.theta2, torque, block.lost > 0 or int(block.seq[0]) != self._next_seq)
@@ -242,11 +279,23 @@ class IdentificationLoop:
             self._fit_exchange(ctl, float(block.t[-1]), stats.ticks)
         if ctl is not None:
             self._control(ctl, block, states)
-        self.safety.check(n, float(block.theta1[-1]), float(block.theta2[-1]), float(states.omega[-1, 1]),
-                          abs(self.backend.last_torque) > self._stuck_torque)
-        self._next_seq = int(block.seq[-1]) + 1
+        self._check_safety(block, states)
         if self.on_telemetry is not None:
             self._collect_telemetry(block, states, lateness_s)
+
+    def _snapshot_due(self) -> None:
+        """An excitation period completed: a snapshot for the fit worker, taken now and sent on this
+        axis's send tick - only when the worker waits for one."""
+        if self.worker is not None:
+            if self.worker.ready:
+                self._fit_stage[0] = self.est.snapshot()
+            else:
+                self.worker.skipped += 1
+
+    def _check_safety(self, block: SampleBlock, states) -> None:
+        self.safety.check(len(block), float(block.theta1[-1]), float(block.theta2[-1]), float(states.omega[-1, 1]),
+                          abs(self.backend.last_torque) > self._stuck_torque)
+        self._next_seq = int(block.seq[-1]) + 1
 
     def _fit_exchange(self, ctl, t: float, tick: int) -> None:
         """The exchange with the fit worker, one step per tick of a 10-tick cycle: send the snapshot
@@ -311,30 +360,20 @@ class IdentificationLoop:
         u = ctl.tick((last - self._seq0) * self.backend.sample_period, float(th[0]), float(om[0]),
                      float(th[1]), float(om[1]))
         ctl.poll()
-        sched = self._u_sched
-        while sched and sched[0][0] <= last + 1:     # landed: in force from the next sample on
-            self._u_base = sched.pop(0)[1]
-        sched.append((last + 1 + ctl.law.delay * self._per_tick, u))
+        if not tk.schedule_torque(self.book_i, self.book_f, last, ctl.law.delay * self._per_tick, u):
+            raise RtIdentError(f"more than {tk.SCHED_CAP} control torques in flight (delay {ctl.law.delay} ticks)")
 
     def _write_plan(self) -> None:
-        start, n = self._next_seq, self._plan_len
+        start = self._plan_start
+        if start is not None:                   # the compiled tick built it
+            self._plan_start = None
+            self.backend.write(self._core.plan, start_seq=start, lease=self._lease)
+            return
+        start = self._next_seq
         torque = self._excitation_window(start)
         ctl = self.control
         if ctl is not None:
-            self._probe_amplitude(ctl.probe_scale, start)
-            now, later, edge = self._probe
-            if now != 1.0 or later != 1.0:
-                cut = min(max(edge - start, 0), n)
-                torque[:cut] *= now
-                torque[cut:] *= later
-            torque += self._u_base                      # the control torque: piecewise constant over the plan
-            level = self._u_base
-            for first, value in self._u_sched:
-                cut = max(first - start, 0)
-                if cut >= n:
-                    break
-                torque[cut:] += value - level
-                level = value
+            tk.shape_plan(torque, start, self.book_i, self.book_f, self._probe_period or 1, float(ctl.probe_scale))
         self.backend.write(torque, start_seq=start, lease=self._lease)
 
     def _excitation_window(self, start: int) -> np.ndarray:
@@ -346,193 +385,6 @@ class IdentificationLoop:
             return np.array(self.excitation(np.arange(start, start + n)), dtype=float)
         i = start % self._probe_period
         return table[i:i + n].copy()
-
-    def _probe_amplitude(self, want: float, start: int) -> None:
-        """Dual excitation: the probing amplitude follows ``want`` from the next period edge on
-        (a whole period at one amplitude keeps the multisine periodic for the estimator)."""
-        now, later, edge = self._probe
-        if start >= edge:
-            now = later
-        if want != later:
-            n = self._probe_period or 1
-            later, edge = want, -(-start // n) * n
-        self._probe = (now, later, edge)
-
-    # ------------------------------------------------------------ telemetry
-    _SAMPLE_KEYS = ("t", "theta1", "theta2", "torque_meas", "torque_cmd", "torque_hat")
-    _CONTROL_TICK_KEYS = ("x_ref", "x_table", "error_m", "u_control")
-
-    def _telemetry_buffers(self) -> None:
-        """Preallocated window buffers: a tick writes slices into them; nothing is concatenated."""
-        per_tick = int(math.ceil(1.0 / (self.tick_hz * self.backend.sample_period) / self.stride)) + 2
-        cap = max(64, 4 * self.publish_every * per_tick)
-        self._tel_buf = {k: np.empty(cap) for k in self._SAMPLE_KEYS}
-        self._tel_n = 0
-        self._tel_hat_ok = True
-        self._tick_t = np.empty(self.publish_every + 1)          # a tick window may be one tick longer
-        self._tick_late = np.empty(self.publish_every + 1)
-        self._tick_ctl = {k: np.empty(self.publish_every + 1) for k in self._CONTROL_TICK_KEYS}
-        self._tick_n = 0
-        self._win_ticks = 0                     # ticks in the current sample window
-        self._win_next: dict[str, float] | None = None      # window values gathered for the next tick
-        self._win_ident: tuple[Any, dict[str, float]] = (None, {})   # the estimate's window values
-
-    def _collect_telemetry(self, block: SampleBlock, states, lateness_s: float) -> None:
-        if len(block) <= self.stride and self._tel_n < self._tel_buf["t"].shape[0]:
-            self._collect_one(block, states)        # the usual tick at the usual rate: one sample kept
-        else:
-            self._collect_slices(block, states)
-        k = self._tick_n
-        self._tick_t[k] = block.t[-1]
-        self._tick_late[k] = lateness_s * 1e6
-        ctl = self.control
-        if ctl is not None:
-            c = self._tick_ctl
-            c["x_ref"][k] = ctl.x_ref
-            c["x_table"][k] = ctl.x_ref + ctl.error
-            c["error_m"][k] = ctl.error
-            c["u_control"][k] = ctl.law.u
-        self._tick_n = k + 1
-        self._win_ticks += 1
-        # the samples go when a window ends, the per-tick signals one tick later: each hand-off costs
-        # tens of microseconds, and both on one tick made it the slowest tick of all but a few
-        if self._win_ticks >= self._flush_at:
-            self._flush_telemetry(ticks=False)
-            self._flush_at = self.publish_every
-        elif self._tick_n > self.publish_every or (self._win_ticks == 1 and self._tick_n > 1):
-            self._flush_telemetry(samples=False)
-
-    def _collect_one(self, block: SampleBlock, states) -> None:
-        """:meth:`_collect_slices` for a block that keeps one sample (its first), in floats: at the
-        telemetry's default rate of one sample a tick, a dozen slicing calls became scalar copies."""
-        buf, i = self._tel_buf, self._tel_n
-        buf["t"][i] = block.t[0]
-        buf["theta1"][i] = block.theta1[0]
-        buf["theta2"][i] = block.theta2[0]
-        buf["torque_meas"][i] = block.torque[0]
-        buf["torque_cmd"][i] = block.torque_cmd[0]
-        ident = self.identification
-        if ident is not None:
-            th, om, al = states.theta[0], states.omega[0], states.alpha[0]
-            buf["torque_hat"][i] = _eq18(ident.params, float(th[0]), float(th[1]), float(om[0]), float(om[1]),
-                                         float(al[0]))
-        else:
-            self._tel_hat_ok = False
-        self._tel_n = i + 1
-
-    def _collect_slices(self, block: SampleBlock, states) -> None:
-        """Every ``stride``-th sample of the block (from its first) into the window buffers."""
-        s = slice(None, None, self.stride)
-        t = block.t[s]
-        m = t.shape[0]
-        buf = self._tel_buf
-        cap = buf["t"].shape[0]
-        if self._tel_n + m > cap:
-            self._flush_telemetry()               # a burst (after a stall): publish what is there first
-            if m > cap:                           # keep the newest samples of an oversized burst
-                s = slice((m - cap) * self.stride, None, self.stride)
-                t = block.t[s]
-                m = cap
-        i, j = self._tel_n, self._tel_n + m
-        buf["t"][i:j] = t
-        buf["theta1"][i:j] = block.theta1[s]
-        buf["theta2"][i:j] = block.theta2[s]
-        buf["torque_meas"][i:j] = block.torque[s]
-        buf["torque_cmd"][i:j] = block.torque_cmd[s]
-        ident = self.identification
-        if ident is not None:
-            p = ident.params
-            th, om, al = states.theta[s], states.omega[s], states.alpha[s]
-            buf["torque_hat"][i:j] = _eq18(p, th[:, 0], th[:, 1], om[:, 0], om[:, 1], al[:, 0])
-        else:
-            self._tel_hat_ok = False
-        self._tel_n = j
-
-    def _flush_telemetry(self, samples: bool = True, ticks: bool = True) -> None:
-        """Publish the window: the decimated samples, per-tick lateness and the current estimate.
-
-        ``on_telemetry(block)`` gets the samples, then ``on_telemetry(ticks, window)`` the per-tick
-        signals and, in ``window`` (name -> float), those that hold one value over the whole window.
-        The arrays are views of the window buffers, valid only during the call (it copies, as
-        :meth:`rt_ident.runtime.telemetry.TelemetryProcess.publish` does into its ring).
-        """
-        if self.on_telemetry is None:
-            return
-        n = self._tel_n if samples else 0
-        k = self._tick_n if ticks else 0
-        if samples:
-            self._win_ticks = 0
-        if n:
-            out = {key: v[:n] for key, v in self._tel_buf.items() if key != "torque_hat" or self._tel_hat_ok}
-            self.on_telemetry(out)
-        if samples and not ticks:
-            # the window values are gathered now, the per-tick signals go on the next tick: this
-            # tick's hand-off is the smaller one, so the two ticks carry about the same extra work
-            self._win_next = self._window_values(self._tick_n)
-        if k:
-            tick = {"t": self._tick_t[:k], "t_tick": self._tick_t[:k], "lateness_us": self._tick_late[:k]}
-            if self.control is not None:
-                for key, v in self._tick_ctl.items():
-                    tick[key] = v[:k]
-            win = self._win_next if self._win_next is not None else self._window_values(k)
-            self._win_next = None
-            self.on_telemetry(tick, win)
-        if samples:
-            self._tel_n = 0
-            self._tel_hat_ok = True
-        if ticks:
-            self._tick_n = 0
-
-    def publish_final(self) -> None:
-        """After the run's final fit: one more telemetry window, at the last sample's time, carrying
-        the final estimate, so that the dashboard's estimate lines (and the true values beside them)
-        end on the value the run reports. A short run, or one beside a busy machine, may have had no
-        fit-worker result at all: its dashboard had no estimate and no true value then."""
-        if self.on_telemetry is None or self.identification is None:
-            return
-        t = np.array([max(self._next_seq - 1, 0) * self.backend.sample_period])
-        self.on_telemetry({"t": t, "t_tick": t.copy()}, self._window_values(0))
-
-    def _window_values(self, k: int) -> dict[str, float]:
-        """The signals that hold one value over a telemetry window (the estimate, its intervals, the
-        controller's figures). They go as one vector (``window``), not as ~35 arrays of k equal
-        values: building and copying those was most of a window's hand-off. The estimate's part is
-        built once per estimate."""
-        win: dict[str, float] = {"overruns": float(self.stats.overruns)}
-        ident = self.identification
-        if ident is not None:
-            if self._win_ident[0] is not ident:
-                part: dict[str, float] = {}
-                p = ident.params
-                part["I1"], part["I2"], part["B"], part["K"] = p.I1, p.I2, p.B, p.K
-                modal = ident.modal
-                part["wn"], part["wd"], part["zeta"] = modal["wn"], modal["wd"], modal["zeta"]
-                for key, (lo, hi) in (ident.ci95 or {}).items():
-                    if key in _WINDOW_CI_KEYS:
-                        part[f"lo_{key}"] = lo
-                        part[f"hi_{key}"] = hi if math.isfinite(hi) else math.nan
-                self._win_ident = (ident, part)
-            win.update(self._win_ident[1])
-        ctl = self.control
-        if ctl is not None:
-            st, c = ctl.stats, ctl.controller
-            if self.on_loop_gain is not None and c is not self._shown_controller and k:
-                self._shown_controller = c
-                self.on_loop_gain(float(self._tick_t[k - 1]), c.loop_view,
-                                  {"pm_deg": (c.margins or {}).get("pm_deg"), "gm_db": c.gain_margin_db})
-            win["n_accepted"] = float(st.accepted)
-            win["n_rejected"] = float(st.rejected)
-            win["fallbacks"] = float(st.fallbacks)
-            win["gain_theta2"] = float(c.gains[2])
-            win["gain_omega1"] = float(c.gains[1])
-            pm = (c.margins or {}).get("pm_deg")
-            win["pm_deg"] = math.nan if pm is None else float(pm)
-            win["gm_db"] = float(c.gain_margin_db)
-            svf = getattr(ctl, "per_sample", None)
-            if svf is not None:
-                for key, v in svf.values().items():
-                    win[f"svf_{key}"] = v
-        return win
 
 
 class MultiAxisLoop:

@@ -256,7 +256,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                     telemetry_stride=max(1, int(round(1.0 / (cfg.telemetry.rate_hz * dt)))),
                     stop_event=stop, control=control, probe_period=ex.period_samples,
                     friction=friction_estimator(acfg, dt, (q1, q2)),
-                    friction_feedforward=acfg.control.friction_feedforward)
+                    friction_feedforward=acfg.control.friction_feedforward, compiled_tick=cfg.loop.compiled_tick)
             watch = HelperWatch(helpers, restartable=tuple(k for k in helpers if not k.startswith("recorder")))
             summary["_watch"] = watch
 
@@ -361,7 +361,8 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     for name, loop in loops.items():
         ax = summary["axes"][name]
         acfg = axes_cfg[name]
-        ax.update({"backend": acfg.backend.name, "method": acfg.estimator.method, "loop": loop.stats.as_dict(),
+        ax.update({"backend": acfg.backend.name, "method": acfg.estimator.method,
+                   "loop": {**loop.stats.as_dict(), "compiled_tick": loop.compiled_ticks},
                    "final_fit_error": parts[name].get("final_fit_error"),
                    "backend_counters": _backend_counters(backends[name]),
                    "control": loop.control.summary() if loop.control is not None else {"mode": "off"}})

@@ -96,12 +96,15 @@ class InlineWorker:
 
 
 def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], None] | None = None,
-                fit_latency: float = 0.1, record: str | None = None, overwrite: bool = False) -> dict[str, Any]:
+                fit_latency: float = 0.1, record: str | None = None, overwrite: bool = False,
+                loop_options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Run ``cfg`` (a ``sim`` backend) on virtual time; returns identification, control and truth.
 
     ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
     ``record``: write every sample to this ``.parquet`` with the metadata ``rt-ident run`` writes (in
     this process: the recorder of :mod:`rt_ident.runtime.recording`, no helper process).
+    ``loop_options``: more keyword arguments of the :class:`IdentificationLoop` (e.g. a telemetry
+    consumer ``on_telemetry``).
     """
     from drivers import make_backend
     from rt_ident.runtime.run import (_excitation, _quanta, _warmup, backend_options, controller_for, friction_estimator,
@@ -140,8 +143,10 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
                               tick_hook=None if tick_hook is None else (lambda _n: tick_hook(loop)),
                               friction=friction_estimator(cfg, dt, (q1, q2)),
                               friction_feedforward=cfg.control.friction_feedforward,
-                              on_block=None if recorder is None else
-                              (lambda b: recorder.append(b.t, b.seq, b.theta1, b.theta2, b.torque_cmd, b.torque_meas)))
+                              compiled_tick=cfg.loop.compiled_tick,
+                              **{"on_block": None if recorder is None else
+                                 (lambda b: recorder.append(b.t, b.seq, b.theta1, b.theta2, b.torque_cmd, b.torque_meas)),
+                                 **(loop_options or {})})
     stop = None
     with backend:
         backend.activate()

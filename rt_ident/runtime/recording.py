@@ -392,8 +392,9 @@ class RecorderProcess:
         self._ready: Any = None
         self._reason: Any = None
         self.full_waits = 0
-        self.blocks_put = 0
-        self.samples_put = 0
+        # blocks and samples handed over, in place: the compiled tick (rt_ident.runtime.tick_core),
+        # which puts into the ring itself, counts into a view of it
+        self.put_counts = np.zeros(2, dtype=np.int64)
         self._last_alive_check = -math.inf
         self._exited = False
         self._closed = False
@@ -416,6 +417,22 @@ class RecorderProcess:
         )
         start_ignoring_signals(self._proc)
         return self
+
+    blocks_put = property(lambda self: int(self.put_counts[0]))
+    samples_put = property(lambda self: int(self.put_counts[1]))
+
+    def compiled_target(self) -> tuple[MessageRing, np.ndarray] | None:
+        """For a compiled producer (rt_ident.runtime.tick_core, which writes :meth:`put`'s message with
+        rt_ident.runtime.shm_ring.put_seq_floats and counts into ``put_counts``): the ring and the
+        counters, or None before :meth:`start` or after :meth:`close`. A full ring or a dead recorder
+        stay the Python :meth:`put`'s (and :meth:`check_alive`'s) to handle."""
+        if self._ring is None or self._closed:
+            return None
+        return self._ring, self.put_counts
+
+    def check_alive(self) -> None:
+        """Raise :class:`RtIdentError` if the recorder process is gone (rate-limited, as in :meth:`put`)."""
+        self._check_alive()
 
     @property
     def pid(self) -> int | None:
@@ -475,8 +492,8 @@ class RecorderProcess:
                     raise RtIdentError(f"recorder ring for {self.path} stayed full for {self.put_timeout} s; "
                                        "recorder stalled")
                 time.sleep(1e-4)
-        self.blocks_put += 1
-        self.samples_put += len(cols["seq"])
+        self.put_counts[0] += 1
+        self.put_counts[1] += len(cols["seq"])
 
     def close(self, timeout: float = 10.0) -> dict[str, Any]:
         """Let the recorder drain the ring, finalize the file and join. Terminates it after ``timeout``."""

@@ -230,7 +230,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
                 control=control, probe_period=ex.period_samples,
                 friction=friction_estimator(cfg, dt, _quanta(cfg)),
-                friction_feedforward=cfg.control.friction_feedforward)
+                friction_feedforward=cfg.control.friction_feedforward, compiled_tick=cfg.loop.compiled_tick)
             if recorder is not None:
                 recorder.wait_ready(30.0)               # its files exist and take bytes before the device moves
             if telemetry is not None:
@@ -308,7 +308,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                        "final_torque": backend.last_torque, "backend_state": backend.state.value}
     summary["backend_counters"] = _backend_counters(backend)
     if loop is not None:
-        summary["loop"] = {**loop.stats.as_dict(), "host": host}
+        summary["loop"] = {**loop.stats.as_dict(), "host": host, "compiled_tick": loop.compiled_ticks}
         summary["control"] = loop.control.summary() if loop.control is not None else {"mode": "off"}
         fr = friction_summary(loop)
         if fr is not None:

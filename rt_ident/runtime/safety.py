@@ -19,9 +19,13 @@ safe stop.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+import numpy as np
 
 from drivers.errors import TravelLimitTrip, WatchdogTrip
+
+SAFE_STALE, SAFE_STUCK, SAFE_LAST_THETA1 = range(3)
 
 
 @dataclass
@@ -36,14 +40,38 @@ class SafetyMonitor:
     # s the last planned torque holds past the end of the loop's plan, then zero (Backend.write's lease);
     # None: held until the next plan, as a bare backend does
     torque_hold: float | None = None
-    stale_ticks: int = 0
-    stuck_ticks: int = 0
-    _last_theta1: float = math.nan
+    # the counters (SAFE_*: ticks without samples, ticks with the motor encoder stuck, the last motor
+    # angle seen), one array changed in place: the compiled tick (rt_ident.runtime.tick_core) holds a view
+    counters: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, math.nan]), repr=False)
 
     def __post_init__(self) -> None:
         lo, hi = self.window
         if not lo < hi:
             raise ValueError(f"safety.window: lower bound {lo} must be below upper bound {hi}")
+
+    @property
+    def stale_ticks(self) -> int:
+        return int(self.counters[SAFE_STALE])
+
+    @stale_ticks.setter
+    def stale_ticks(self, value: int) -> None:
+        self.counters[SAFE_STALE] = value
+
+    @property
+    def stuck_ticks(self) -> int:
+        return int(self.counters[SAFE_STUCK])
+
+    @stuck_ticks.setter
+    def stuck_ticks(self, value: int) -> None:
+        self.counters[SAFE_STUCK] = value
+
+    @property
+    def _last_theta1(self) -> float:
+        return float(self.counters[SAFE_LAST_THETA1])
+
+    @_last_theta1.setter
+    def _last_theta1(self, value: float) -> None:
+        self.counters[SAFE_LAST_THETA1] = value
 
     def stopping_position(self, theta2: float, omega2: float) -> float:
         """x_stop = x + v|v| / (2 a): where the table ends if braking starts now [m]."""

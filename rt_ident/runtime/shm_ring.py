@@ -38,11 +38,14 @@ import platform
 import struct
 from typing import Any, Mapping
 
+import numba
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
 from rt_ident.errors import ConfigError, DataError
 
-__all__ = ["MessageRing", "STRONG_ORDERING"]
+__all__ = ["MessageRing", "STRONG_ORDERING", "key_words", "put_rows", "put_seq_floats"]
 
 #: True where plain stores are seen by other cores in program order (x86-64 / i686).
 STRONG_ORDERING: bool = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
@@ -100,6 +103,7 @@ class MessageRing:
         self._views = tuple(np.frombuffer(self._mv, dtype=dt) for dt in _DTYPES)
         self._keys: dict[str, bytes] = {}
         self._h = self._header
+        self._compiled = (np.frombuffer(self._header, dtype=np.int64), self._views[1], self._views[0])
 
     def __getstate__(self) -> dict[str, Any]:
         return {"capacity": self.capacity, "max_messages": self.max_messages,
@@ -214,6 +218,11 @@ class MessageRing:
         raw = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
         return self.put({_OBJECT_KEY: np.frombuffer(raw, dtype=np.uint8)})
 
+    def compiled_views(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The header and the data area as int64 and float64 arrays, for :func:`put_seq_floats`
+        (the producer side of a compiled caller; the same memory :meth:`put` writes)."""
+        return self._compiled
+
     def close_writer(self) -> None:
         """Tell the consumer that nothing more will come (it drains what is there, then stops)."""
         self._h[_W_CLOSED] = 1
@@ -267,3 +276,129 @@ class MessageRing:
         if not msgs:
             return False, None
         return True, self.unpickle(msgs[0])
+
+
+# ---------------------------------------------------------------- a compiled producer
+def key_words(key: str) -> np.ndarray:
+    """A field key as the two int64 words a frame stores it in (16 ASCII bytes, zero padded)."""
+    k = key.encode("ascii")
+    if len(k) > 16:
+        raise DataError(f"key {key!r} longer than 16 bytes")
+    return np.frombuffer(k.ljust(16, b"\0"), dtype="<i8").copy()
+
+
+@intrinsic
+def _release_fence(typingctx):
+    """A release fence: the stores before it are not moved after it by the compiler (x86-64 needs no
+    instruction for it: total store order; see the module docstring on ordering)."""
+    def codegen(context, builder, signature, args):
+        builder.fence("release")
+        return context.get_dummy_value()
+    return types.none(), codegen
+
+
+@numba.njit(cache=True)
+def put_seq_floats(h, di, df, cap, max_messages, keys, seq, c0, c1, c2, c3, c4, ncols) -> int:
+    """:meth:`MessageRing.put` of ``{key0: seq, key1: concatenate(c0 .. c<ncols-1>)}`` (int64 ``seq``,
+    float64 columns of its length, ``keys`` the four words of :func:`key_words` of both keys), compiled:
+    the same frame, byte for byte. ``h``, ``di``, ``df``: :meth:`MessageRing.compiled_views`; ``cap`` the
+    ring's capacity in bytes. Returns 1 when written, 0 when it does not fit now, -1 when it never can
+    (the caller then goes through :meth:`MessageRing.put`, which says why)."""
+    n = seq.shape[0]
+    size = 16 + 32 + 8 * n + 32 + 8 * ncols * n
+    size = (size + 15) & ~15
+    if size > cap // 2:
+        return -1
+    if h[_W_MSGS] - h[_R_MSGS] >= max_messages:
+        return 0
+    w = h[_W_POS]
+    pos = w % cap
+    skip = cap - pos if pos + size > cap else 0
+    if cap - (w - h[_R_POS]) < skip + size:
+        return 0
+    if skip:
+        di[pos >> 3] = _WRAP
+        di[(pos >> 3) + 1] = 0
+        w += skip
+        pos = 0
+    p = pos >> 3
+    di[p] = size
+    di[p + 1] = 2
+    di[p + 2] = keys[0]
+    di[p + 3] = keys[1]
+    di[p + 4] = 1                       # int64
+    di[p + 5] = n
+    for i in range(n):
+        di[p + 6 + i] = seq[i]
+    q = p + 6 + n
+    di[q] = keys[2]
+    di[q + 1] = keys[3]
+    di[q + 2] = 0                       # float64
+    di[q + 3] = ncols * n
+    o = q + 4
+    for j in range(ncols):
+        c = c0 if j == 0 else c1 if j == 1 else c2 if j == 2 else c3 if j == 3 else c4
+        for i in range(n):
+            df[o + i] = c[i]
+        o += n
+    _release_fence()                    # data first, then the counters
+    h[_W_POS] = w + size
+    h[_W_MSGS] = h[_W_MSGS] + 1
+    return 1
+
+
+@numba.njit(cache=True)
+def put_rows(h, di, df, cap, max_messages, keys, index, rows, n, tail_keys, tail_id, tail_values, tail) -> int:
+    """:meth:`MessageRing.put` of ``{key_i: rows[index[i], :n]}`` (float64; ``keys`` two words a key, from
+    :func:`key_words`), followed, when ``tail``, by ``{tail_key0: [tail_id] (int64), tail_key1:
+    tail_values (float64)}``, compiled: the same frame, byte for byte. Returns as :func:`put_seq_floats`."""
+    m = index.shape[0]
+    nv = tail_values.shape[0]
+    size = 16 + m * (32 + 8 * n)
+    if tail:
+        size += 32 + 8 + 32 + 8 * nv
+    size = (size + 15) & ~15
+    if size > cap // 2:
+        return -1
+    if h[_W_MSGS] - h[_R_MSGS] >= max_messages:
+        return 0
+    w = h[_W_POS]
+    pos = w % cap
+    skip = cap - pos if pos + size > cap else 0
+    if cap - (w - h[_R_POS]) < skip + size:
+        return 0
+    if skip:
+        di[pos >> 3] = _WRAP
+        di[(pos >> 3) + 1] = 0
+        w += skip
+        pos = 0
+    p = pos >> 3
+    di[p] = size
+    di[p + 1] = m + 2 if tail else m
+    q = p + 2
+    for i in range(m):
+        di[q] = keys[2 * i]
+        di[q + 1] = keys[2 * i + 1]
+        di[q + 2] = 0                   # float64
+        di[q + 3] = n
+        r = index[i]
+        for j in range(n):
+            df[q + 4 + j] = rows[r, j]
+        q += 4 + n
+    if tail:
+        di[q] = tail_keys[0]
+        di[q + 1] = tail_keys[1]
+        di[q + 2] = 1                   # int64
+        di[q + 3] = 1
+        di[q + 4] = tail_id
+        q += 5
+        di[q] = tail_keys[2]
+        di[q + 1] = tail_keys[3]
+        di[q + 2] = 0
+        di[q + 3] = nv
+        for j in range(nv):
+            df[q + 4 + j] = tail_values[j]
+    _release_fence()
+    h[_W_POS] = w + size
+    h[_W_MSGS] = h[_W_MSGS] + 1
+    return 1

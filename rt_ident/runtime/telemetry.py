@@ -51,7 +51,7 @@ from rt_ident.errors import ConfigError, DataError
 from rt_ident.runtime.dashboard import (BLOCK_ENTITIES, CONTROL_ENTITIES, ENTITY_SERIES, ESTIMATE_KEYS, SERIES_STYLES,
                                         TORQUE_NRMSE, draw_fit_frf, draw_loop_gain, truth_path)
 from rt_ident.runtime.helper_guard import become_helper, end_helper, start_ignoring_signals
-from rt_ident.runtime.shm_ring import MessageRing
+from rt_ident.runtime.shm_ring import MessageRing, key_words, put_rows
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +70,8 @@ _TRUTH = "truth:"    # key prefix of a truth message in the ring
 _WINDOW = "window"           # the window values of a tick block (publish(window=...)), one vector
 _WINDOW_ID = "window_id"     # ... and the id of their names, sent before as {_WINDOW_SCHEMA: (id, names)}
 _WINDOW_SCHEMA = "window_schema"
+_WINDOW_WORDS = np.concatenate([key_words(_WINDOW_ID), key_words(_WINDOW)])   # publish_rows' tail
+_NO_VALUES = np.zeros(0)
 _VIEWS = ("frf:", "lg:")  # key prefixes of a fit's FRF view and of a controller's loop-gain view
 _NRMSE_WINDOW_S = 1.0  # Eq. 18 reconstruction NRMSE over the last second of samples
 # Every send_columns is a chunk of its own (~1-2 kB of overhead in the .rrd). A step signal that did
@@ -529,6 +531,7 @@ class TelemetryProcess:
         self._truth: dict[str, float] = {}
         self._truth_pending = False
         self._schemas: dict[tuple[str, ...], int] = {}   # window names sent to the child -> their id
+        self._row_keys: dict[tuple[str, ...], np.ndarray] = {}   # publish_rows: checked keys -> their words
         self._closed = False
         self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
         self._sent_before = 0
@@ -687,31 +690,84 @@ class TelemetryProcess:
         if self.config.sink == "off":
             return True
         msg = self._prepare(block)
-        schema = None
+        wid = None
         if window:
             if "t_tick" not in msg:
                 raise DataError("publish(): window values need the block's 't_tick'")
             names = tuple(window)
-            wid = self._schemas.get(names)
-            if wid is None:
-                bad = [k for k in names if k not in TICK_KEYS or k in msg]
-                if bad:
-                    raise DataError(f"publish(): window key {bad[0]!r} is not a tick signal or is also in the block")
-                wid = len(self._schemas)
-                schema = {_WINDOW_SCHEMA: (wid, names)}
+            wid = self._window_id(names, msg)
             msg[_WINDOW_ID] = np.array([wid], dtype=np.int64)
             msg[_WINDOW] = np.fromiter(window.values(), dtype=np.float64, count=len(names))
+        return self._send(lambda ring: ring.put(msg), names if window else None, wid)
+
+    def publish_rows(self, keys: tuple[str, ...], rows: np.ndarray, n: int, index: np.ndarray | None = None,
+                     window: tuple[tuple[str, ...], np.ndarray] | None = None) -> bool:
+        """:meth:`publish` of ``{keys[i]: rows[index[i], :n]}`` (``index`` default: row i) and the window
+        ``(names, values)``, written into the ring by one compiled call (rt_ident.runtime.shm_ring.put_rows):
+        the same message, without a dict, a validation pass and a packing loop per field. The real-time
+        loop's hand-off; ``keys`` is checked once per tuple. With decimation it goes through :meth:`publish`."""
+        if self.config.sink == "off":
+            return True
+        if index is None:
+            index = np.arange(len(keys), dtype=np.int64)
+        if self.config.decimation != 1:
+            return self.publish({k: rows[i, :n] for k, i in zip(keys, index)},
+                                None if window is None else dict(zip(window[0], window[1])))
+        words = self._row_keys.get(keys)
+        if words is None:                      # the checks _prepare makes, once for these keys
+            if keys[0] != "t" or any(k not in BLOCK_ENTITIES for k in keys[1:] if k != "t_tick"):
+                raise DataError(f"publish_rows(): keys {keys} are not a block's ('t' first, known entities)")
+            if window is not None and "t_tick" not in keys:
+                raise DataError("publish_rows(): window values need the block's 't_tick'")
+            words = np.concatenate([key_words(k) for k in keys])
+            self._row_keys[keys] = words
+        self._n_seen += n
+        wid, values, names, new_names = -1, _NO_VALUES, None, False
+        if window is not None:
+            names, values = window
+            wid = self._schemas.get(names)
+            if wid is None:
+                wid, new_names = self._window_id(names, keys), True
+        ring = self._ring
+        if ring is None or self._closed or self._truth_pending or new_names:
+            return self._send(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names), names, wid)
+        if not self._put_rows(ring, words, index, rows, n, wid, values, names):    # the usual hand-off
+            self._dropped += 1
+            return False
+        self._published += 1
+        return True
+
+    @staticmethod
+    def _put_rows(ring: MessageRing, words, index, rows, n, wid, values, names) -> bool:
+        h, di, df = ring.compiled_views()
+        got = put_rows(h, di, df, ring.capacity, ring.max_messages, words, index, rows, n, _WINDOW_WORDS, wid,
+                       values, names is not None)
+        if got < 0:
+            raise DataError(f"publish_rows(): a {n}-column block does not fit a {ring.capacity}-byte ring")
+        return bool(got)
+
+    def _window_id(self, names: tuple[str, ...], fields) -> int:
+        """The id of a window's names (a new one is sent to the child before the vector that uses it)."""
+        wid = self._schemas.get(names)
+        if wid is None:
+            bad = [k for k in names if k not in TICK_KEYS or k in fields]
+            if bad:
+                raise DataError(f"publish(): window key {bad[0]!r} is not a tick signal or is also in the block")
+            wid = len(self._schemas)
+        return wid
+
+    def _send(self, put, names: tuple[str, ...] | None, wid: int | None) -> bool:
         if self._ring is None or self._closed:
             self._dropped += 1
             return False
         if self._truth_pending:
             self._push_truth()
-        if schema is not None:
-            if not self._ring.put_object(schema):
+        if names is not None and names not in self._schemas:
+            if not self._ring.put_object({_WINDOW_SCHEMA: (wid, names)}):
                 self._dropped += 1
                 return False
             self._schemas[names] = wid      # the child has the names before the first vector that uses them
-        if not self._ring.put(msg):
+        if not put(self._ring):
             self._dropped += 1
             return False
         self._published += 1
