@@ -39,8 +39,17 @@ class _RingRecorder:
         self.put_counts += (1, len(block))
 
 
+def _telemetry_process():
+    """A TelemetryProcess without its child: its ring, drained by the test."""
+    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="unused.rrd"))
+    tp._ring = MessageRing(1 << 22)
+    return tp
+
+
 def _run(compiled: bool, config: str | None = "configs/sim-load-change.toml", duration: float = 3.0,
-         python_every: float = 0.0, **over):
+         python_every: float = 0.0, telemetry_process: bool = False, **over):
     cfg = load(config, **{**FAST, "loop.duration": duration, "loop.compiled_tick": compiled, **over})
     published: list = []
     recorder = _RingRecorder()
@@ -49,16 +58,26 @@ def _run(compiled: bool, config: str | None = "configs/sim-load-change.toml", du
     def keep(block, window=None):
         published.append(({k: np.array(v) for k, v in block.items()}, dict(window or {})))
 
+    tp = _telemetry_process() if telemetry_process else None
+    if tp is not None:
+        tp.set_truth({"K": 110.0})           # pushed with the first hand-off (the Python path's: the kernel waits)
+
     def hook(loop):
         held.setdefault("loop", loop)
+        if tp is not None:
+            published.extend(tp._ring.get())
         core = loop._core
         if python_every and core is not None and not held.get("patched"):
             held["patched"] = True
             rng, tick = np.random.default_rng(3), core.tick
             core.tick = lambda lp, b, lat: False if rng.random() < python_every else tick(lp, b, lat)
 
-    out = offline.run_offline(cfg, tick_hook=hook, loop_options={"on_telemetry": keep, "on_block": recorder.put})
+    out = offline.run_offline(cfg, tick_hook=hook, loop_options={"on_telemetry": keep if tp is None else tp.publish,
+                                                                  "on_block": recorder.put})
     recorder.check_alive()
+    if tp is not None:
+        published.extend(tp._ring.get())
+        published.append({"counts": np.array([tp.published, tp.dropped])})
     return out, held["loop"], published, recorder.messages
 
 
@@ -144,6 +163,15 @@ def test_the_compiled_tick_leaves_supervisor_and_safety_ticks_to_python(monkeypa
     assert seen.get("PY_CONTROL", 0) > 10 and seen.get("PY_SAFETY", 0) > 10, seen
 
 
+def test_the_kernels_own_hand_off_to_a_telemetry_process_queues_the_python_paths_messages(monkeypatch):
+    handed: list[int] = []
+    sent = tc.AxisCore._telemetry_sent
+    monkeypatch.setattr(tc.AxisCore, "_telemetry_sent", lambda self, loop, code: (handed.append(code), sent(self, loop, code)))
+    compiled = _run(True, duration=1.5, telemetry_process=True, **STRESS)
+    assert sum(1 for c in handed if c & tk.TEL_SENT) > 50             # windows the kernel wrote itself
+    _assert_same_run(compiled, _run(False, duration=1.5, telemetry_process=True, **STRESS))
+
+
 def test_without_a_controller_the_compiled_tick_still_gives_the_same_run():
     _assert_same_run(_run(True, config=None, duration=1.5, **{"control.mode": "off"}),
                      _run(False, config=None, duration=1.5, **{"control.mode": "off"}))
@@ -213,3 +241,47 @@ def test_publish_rows_queues_what_publish_queues_byte_for_byte():
         if it % 5 == 4:
             a._ring.get(), b._ring.get()
     assert (a.published, a.dropped) == (b.published, b.dropped) and a.published > 0
+
+
+def test_the_kernels_snapshot_message_is_the_python_paths_for_the_fit_worker():
+    from rt_ident.estimators.frequency import SpectraSums
+    from rt_ident.runtime.shm_ring import put_sums
+
+    rng = np.random.default_rng(2)
+    a, b = MessageRing(1 << 14), MessageRing(1 << 14)
+    h, di, df = b.compiled_views()
+    keys = np.concatenate([key_words(k) for k in ("harmonics", "sums", "quantum", "scalars", "codec")])
+    name = b"SpectraSums"
+    codec = np.frombuffer(name.ljust(16, b"\0"), dtype=np.int64)
+    for it in range(30):                     # through wraps of the 16 kB ring
+        H = 20
+        ss = SpectraSums(np.arange(1, H + 1), 512, 2.9e-5, rng.normal(size=(3, H)) + 1j * rng.normal(size=(3, H)),
+                         rng.normal(size=(H, 3, 3)) + 1j * rng.normal(size=(H, 3, 3)), 3.0, 2.5, 3, rng.normal(size=2))
+        fields = {**ss.to_fields(), "codec": np.frombuffer(name, dtype=np.uint8)}   # JobWorker._put's message
+        ok = a.put(fields)
+        got = put_sums(h, di, df, b.capacity, b.max_messages, keys, ss.harmonics.astype(np.int64), ss.S1.ravel(),
+                       ss.S2.ravel(), ss.quantum, np.array([512, 2.9e-5, 3.0, 2.5, 3.0]), codec, len(name))
+        assert got == int(ok)
+        (ma,), (mb,) = a.get(), b.get()
+        _assert_same(ma, mb)
+        back = SpectraSums.from_fields({k: v for k, v in mb.items() if k != "codec"})
+        assert np.array_equal(back.S1, ss.S1) and np.array_equal(back.S2, ss.S2) and back.W2 == 2.5
+
+
+def test_a_run_hands_every_snapshot_to_the_fit_worker_from_the_kernel(monkeypatch):
+    from rt_ident.runtime import run as run_mod
+    from rt_ident.runtime.fit_worker import JobWorker
+
+    submitted: list = []
+    put = JobWorker._put
+
+    def spy(self, request):
+        submitted.append(type(request).__name__)
+        return put(self, request)
+
+    monkeypatch.setattr(JobWorker, "_put", spy)
+    cfg = load(None, **{**FAST, "loop.duration": 2.0})
+    s = run_mod.run(cfg)
+    assert s["stop"]["cause"] is None and s["loop"]["compiled_tick"]["on"]
+    # estimates came back; no snapshot went through the Python put (the control worker's requests do)
+    assert s["loop"]["estimates"] >= 2 and "SpectraSums" not in submitted and "dict" in submitted

@@ -118,6 +118,47 @@ class Spectra:
         return cls(h, int(N), dt, mean, cov, W, W2, int(periods), np.asarray(f["quantum"], dtype=np.float64))
 
 
+@dataclass(frozen=True, eq=False)
+class SpectraSums:
+    """The running sums a streaming estimator keeps (S1 = sum w v (3, H), S2 = sum w v v^H (H, 3, 3),
+    W = sum w, W2 = sum w^2, over ``periods`` periods): what the loop hands the fit worker, which
+    turns them into :class:`Spectra` (:meth:`spectra`). Copying two arrays is all the loop does; the
+    means and covariances (an ``einsum``, divisions: ~150 us of a tick on these VMs) are the worker's.
+    The compiled tick writes this message itself (rt_ident.runtime.shm_ring.put_sums)."""
+
+    harmonics: np.ndarray
+    N: int
+    dt: float
+    S1: np.ndarray
+    S2: np.ndarray
+    W: float
+    W2: float
+    periods: int
+    quantum: np.ndarray
+
+    def spectra(self) -> Spectra:
+        return Spectra.from_sums(self.harmonics, self.N, self.dt, self.S1, self.S2, self.W, self.W2, self.periods,
+                                 self.quantum)
+
+    def to_fields(self) -> dict[str, np.ndarray]:
+        """Flat arrays for a ring message (:meth:`from_fields` undoes it): ``sums`` is S1 then S2 as
+        interleaved real and imaginary parts."""
+        return {"harmonics": np.ascontiguousarray(self.harmonics, dtype=np.int64),
+                "sums": np.concatenate([np.ascontiguousarray(a, dtype=complex).view(np.float64).ravel()
+                                        for a in (self.S1, self.S2)]),
+                "quantum": np.asarray(self.quantum, dtype=np.float64).ravel(),
+                "scalars": np.array([self.N, self.dt, self.W, self.W2, self.periods], dtype=np.float64)}
+
+    @classmethod
+    def from_fields(cls, f: dict[str, np.ndarray]) -> "SpectraSums":
+        h = np.asarray(f["harmonics"], dtype=np.int64)
+        N, dt, W, W2, periods = (float(v) for v in f["scalars"])
+        z = np.ascontiguousarray(f["sums"], dtype=np.float64).view(complex)
+        H = h.size
+        return cls(h, int(N), dt, z[:3 * H].reshape(3, H), z[3 * H:].reshape(H, 3, 3), W, W2, int(periods),
+                   np.asarray(f["quantum"], dtype=np.float64))
+
+
 def detect_period(x: np.ndarray, *, min_period: int = 4, threshold: float = 0.8) -> int:
     """Period in samples of a periodic signal, from its autocorrelation.
 

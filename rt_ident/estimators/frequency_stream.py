@@ -30,7 +30,7 @@ import numpy as np
 from rt_ident.axis.kernels import first_non_finite3
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.frequency import (DEFAULT_LEAD, FitResult, Spectra, check_hold, fit_spectra,
+from rt_ident.estimators.frequency import (DEFAULT_LEAD, FitResult, Spectra, SpectraSums, check_hold, fit_spectra,
                                            identification_from_fit)
 
 logger = logging.getLogger(__name__)
@@ -178,11 +178,15 @@ class StreamingFrequencyEstimator:
     def n_samples(self) -> int:
         return int(self._count[0])
 
+    def sums(self) -> SpectraSums:
+        """The running sums now (copies): what :meth:`spectra` and the fit worker make the spectra from."""
+        q = self.quantum if self.quantum is not None else self._qmin.copy()
+        return SpectraSums(self.harmonics, self.period, self.dt, self._S1.copy(), self._S2.copy(),
+                           float(self._state[_W]), float(self._state[_W2]), self.periods, q)
+
     def spectra(self) -> Spectra:
         """The accumulated period-averaged spectra (EstimationError before the first period)."""
-        q = self.quantum if self.quantum is not None else self._qmin.copy()
-        return Spectra.from_sums(self.harmonics, self.period, self.dt, self._S1.copy(), self._S2.copy(),
-                                 float(self._state[_W]), float(self._state[_W2]), self.periods, q)
+        return self.sums().spectra()
 
     # -- estimating ---------------------------------------------------------------------
     def estimate(self, max_iter: int | None = None) -> Identification:

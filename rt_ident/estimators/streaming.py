@@ -113,7 +113,8 @@ class FrequencyStream:
         return self.inner.update_block(a, b, c) > 0
 
     def snapshot(self):
-        return self.inner.spectra() if self.inner.periods >= 1 else None
+        """The running sums (:class:`~rt_ident.estimators.frequency.SpectraSums`), None before a period."""
+        return self.inner.sums() if self.inner.periods >= 1 else None
 
     def final(self) -> Identification | None:
         snap = self.snapshot()
@@ -186,6 +187,8 @@ def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.9
 
         from rt_ident.estimators.frf import frf_view
 
+        if hasattr(snap, "spectra"):              # the loop's snapshot: the running sums
+            snap = snap.spectra()
         fit = fit_spectra(snap, hold)
         ident = identification_from_fit(snap, fit, hold, lead=lead)
         try:                              # the dashboard's FRF view; a fit is never lost over it

@@ -75,9 +75,9 @@ _CODEC = "codec"     # ring key naming the class of a snapshot sent as its field
 
 def _decoders() -> dict[str, Callable[[dict], Any]]:
     """Snapshot classes sent as their fields (``to_fields`` here, ``from_fields`` in the worker), by name."""
-    from rt_ident.estimators.frequency import Spectra
+    from rt_ident.estimators.frequency import Spectra, SpectraSums
 
-    return {"Spectra": Spectra.from_fields}
+    return {"Spectra": Spectra.from_fields, "SpectraSums": SpectraSums.from_fields}
 
 
 def _decode(msg: dict) -> Any:

@@ -172,6 +172,8 @@ class IdentificationLoop(TelemetryWindow):
                           np.asarray(excitation(np.arange(probe_period + self._plan_len)), dtype=float))
         hold = getattr(safety, "torque_hold", None)      # the plan's lease (see drivers.base.Backend.write)
         self._lease = None if hold is None else int(math.ceil(hold / backend.sample_period))
+        self._core: AxisCore | None = None    # the compiled tick (built last, below)
+        self._publisher = None               # a TelemetryProcess taking the window's rows (_telemetry_buffers)
         if on_telemetry is not None:
             self._telemetry_buffers()
         self._plan_start: int | None = None  # the compiled tick built the plan from this sample on

@@ -109,6 +109,8 @@ class TelemetryWindow:
         """
         if self.on_telemetry is None:
             return
+        if self._core is not None:           # a window vector the compiled tick kept is stale now
+            self._core.forget_window()
         n = self._tel_n if samples else 0
         k = self._tick_n if ticks else 0
         if samples:
@@ -193,5 +195,5 @@ class TelemetryWindow:
         return window
 
 
-_TICK_FIELDS = ("t", "t_tick", "lateness_us", *tk.TICK_KEYS[2:])   # a tick window's fields ...
-_TICK_ROWS = np.array([0, 0, *range(1, len(tk.TICK_KEYS))], dtype=np.int64)      # ... and their rows in tick_rows
+_TICK_FIELDS = tk.TICK_FIELDS                                  # a tick window's fields ...
+_TICK_ROWS = np.array(tk.TICK_ROWS, dtype=np.int64)             # ... and their rows in tick_rows

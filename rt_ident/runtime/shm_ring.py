@@ -45,7 +45,7 @@ from numba.extending import intrinsic
 
 from rt_ident.errors import ConfigError, DataError
 
-__all__ = ["MessageRing", "STRONG_ORDERING", "key_words", "put_rows", "put_seq_floats"]
+__all__ = ["MessageRing", "STRONG_ORDERING", "key_words", "consumer_waits", "put_rows", "put_seq_floats", "put_sums"]
 
 #: True where plain stores are seen by other cores in program order (x86-64 / i686).
 STRONG_ORDERING: bool = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
@@ -402,3 +402,73 @@ def put_rows(h, di, df, cap, max_messages, keys, index, rows, n, tail_keys, tail
     h[_W_POS] = w + size
     h[_W_MSGS] = h[_W_MSGS] + 1
     return 1
+
+
+@numba.njit(cache=True)
+def put_sums(h, di, df, cap, max_messages, keys, harmonics, S1, S2, quantum, scalars, codec, codec_len) -> int:
+    """:meth:`MessageRing.put` of a streaming estimator's running sums as
+    :meth:`rt_ident.estimators.frequency.SpectraSums.to_fields` lays them out, with the codec field the
+    fit worker decodes them by (``{harmonics, sums, quantum, scalars, codec}``; ``keys`` their ten words,
+    ``codec`` the name's bytes as int64 words, ``codec_len`` its length), compiled. Returns as
+    :func:`put_seq_floats`. The codec field's padding bytes are zeros here (MessageRing.put leaves what
+    was in the ring); nobody reads them."""
+    H = harmonics.shape[0]
+    ns = 2 * (S1.shape[0] + S2.shape[0])
+    nq, nsc = quantum.shape[0], scalars.shape[0]
+    size = 16 + (32 + 8 * H) + (32 + 8 * ns) + (32 + 8 * nq) + (32 + 8 * nsc) + (32 + ((codec_len + 7) & ~7))
+    size = (size + 15) & ~15
+    if size > cap // 2:
+        return -1
+    if h[_W_MSGS] - h[_R_MSGS] >= max_messages:
+        return 0
+    w = h[_W_POS]
+    pos = w % cap
+    skip = cap - pos if pos + size > cap else 0
+    if cap - (w - h[_R_POS]) < skip + size:
+        return 0
+    if skip:
+        di[pos >> 3] = _WRAP
+        di[(pos >> 3) + 1] = 0
+        w += skip
+        pos = 0
+    p = pos >> 3
+    di[p] = size
+    di[p + 1] = 5
+    q = p + 2
+    di[q], di[q + 1], di[q + 2], di[q + 3] = keys[0], keys[1], 1, H          # harmonics: int64
+    for i in range(H):
+        di[q + 4 + i] = harmonics[i]
+    q += 4 + H
+    di[q], di[q + 1], di[q + 2], di[q + 3] = keys[2], keys[3], 0, ns         # sums: S1 then S2, re and im
+    o = q + 4
+    for i in range(S1.shape[0]):
+        df[o] = S1[i].real
+        df[o + 1] = S1[i].imag
+        o += 2
+    for i in range(S2.shape[0]):
+        df[o] = S2[i].real
+        df[o + 1] = S2[i].imag
+        o += 2
+    q = o
+    di[q], di[q + 1], di[q + 2], di[q + 3] = keys[4], keys[5], 0, nq         # quantum
+    for i in range(nq):
+        df[q + 4 + i] = quantum[i]
+    q += 4 + nq
+    di[q], di[q + 1], di[q + 2], di[q + 3] = keys[6], keys[7], 0, nsc        # scalars
+    for i in range(nsc):
+        df[q + 4 + i] = scalars[i]
+    q += 4 + nsc
+    di[q], di[q + 1], di[q + 2], di[q + 3] = keys[8], keys[9], 2, codec_len  # codec: uint8
+    for i in range((codec_len + 7) >> 3):
+        di[q + 4 + i] = codec[i]
+    _release_fence()
+    h[_W_POS] = w + size
+    h[_W_MSGS] = h[_W_MSGS] + 1
+    return 1
+
+
+@numba.njit(cache=True)
+def consumer_waits(h) -> bool:
+    """The consumer says it waits for a message (its flag) and none is pending (rt_ident.runtime.fit_worker's
+    ``JobWorker.ready``), compiled."""
+    return h[_R_FLAG] != 0 and h[_W_MSGS] - h[_R_MSGS] == 0

@@ -183,11 +183,46 @@ class AxisCore:
         else:
             self.rec = (np.zeros(8, dtype=np.int64), np.zeros(8, dtype=np.int64), np.zeros(8))
         ar.own(tk.I_CONST, icn)
+        # the telemetry hand-off the kernel makes itself, into a TelemetryProcess's ring (tick_kernel.I_TEL)
+        tel = np.zeros(tk.TEL_SIZE, dtype=np.int64)
+        tel[tk.TEL_WID] = -1
+        tel[tk.TEL_TICK_FIELDS] = 3 if ctl is None else len(tk.TICK_FIELDS) if svf is not None else len(tk.TICK_FIELDS) - 4
+        tel[tk.TEL_SKEYS:tk.TEL_TKEYS] = np.concatenate([key_words(k) for k in tk.SAMPLE_KEYS])
+        tel[tk.TEL_TKEYS:tk.TEL_TAIL] = np.concatenate([key_words(k) for k in tk.TICK_FIELDS])
+        tel[tk.TEL_TAIL:tk.TEL_SROWS] = np.concatenate([key_words(k) for k in ("window_id", "window")])
+        tel[tk.TEL_SROWS:tk.TEL_TROWS] = np.arange(len(tk.SAMPLE_KEYS))
+        tel[tk.TEL_TROWS:tk.TEL_SIZE] = tk.TICK_ROWS
+        ar.own(tk.I_TEL, tel)
+        ar.own(tk.F_WIN, np.zeros(tk.WIN_CAP))
+        # the fit worker's snapshot the kernel hands over itself (tick_kernel.I_FIT)
+        fit = np.zeros(tk.FIT_SIZE, dtype=np.int64)
+        name = b"SpectraSums"
+        fit[tk.FIT_KEYS:tk.FIT_CODEC] = np.concatenate([key_words(k) for k in
+                                                        ("harmonics", "sums", "quantum", "scalars", "codec")])
+        fit[tk.FIT_CODEC:tk.FIT_SIZE] = np.frombuffer(name.ljust(16, b"\0"), dtype=np.int64)
+        fit[tk.FIT_CODEC_LEN] = len(name)
+        fit[tk.FIT_FIXED_Q] = inner.quantum is not None
+        ff = np.zeros(tk.FIT_FSIZE)
+        ff[tk.FIT_SCALARS], ff[tk.FIT_SCALARS + 1] = inner.period, inner.dt
+        if inner.quantum is not None:
+            ff[tk.FIT_QUANTUM:tk.FIT_QUANTUM + 2] = inner.quantum
+        ar.own(tk.I_FIT, fit)
+        ar.own(tk.F_FIT, ff)
         self.fb, self.ib, self.cb, self.lay, views = ar.build()
         self._bindings = [(owner, attr, views[(ar._KINDS[a.dtype], slot)])
                           for kind in ar._items for slot, owner, attr, a in kind if owner is not None]
         self.big = views[(0, tk.F_STATES)]
         self.plan = views[(0, tk.F_PLAN)]
+        self.tel, self.win = views[(1, tk.I_TEL)], views[(0, tk.F_WIN)]
+        self.fit = views[(1, tk.I_FIT)]
+        self.worker = loop.worker if hasattr(loop.worker, "_in") else None   # a JobWorker: its ring
+        self.fit_ring = None
+        self.fit_arrays = (np.zeros(8, dtype=np.int64), np.zeros(8, dtype=np.int64), np.zeros(8))
+        self.tp = loop._publisher                # a TelemetryProcess: the kernel may hand windows over itself
+        self.tel_ring, self.tel_truth = None, None
+        self.tel_arrays = (np.zeros(8, dtype=np.int64), np.zeros(8, dtype=np.int64), np.zeros(8))
+        self._seq0: int | None = None
+        self._hat_ident, self._hat_args = None, (0, 0.0, 0.0, 0.0)
         self.period = loop._probe_period
         self.ticks = 0                      # ticks the compiled path ran, whole or in part
         self.python_ticks = 0               # ticks it left to the Python path whole
@@ -229,7 +264,8 @@ class AxisCore:
         """Compile (or load) the kernel now, not in the first tick, and call it once doing nothing (mode 0)."""
         self.kernel = kernel = tk.compiled_kernel()
         z, zi = np.zeros(2), np.arange(2, dtype=np.int64)
-        kernel(0, z, zi, z, z, z, z, 1, self.fb, self.ib, self.cb, self.lay, *self.rec,
+        kernel(0, z, zi, z, z, z, z, 1, self.fb, self.ib, self.cb, self.lay, *self.rec, *self.tel_arrays,
+               *self.fit_arrays,
                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0, 0.0, 0.0, 0.0, 0.0)
 
     def bound(self) -> bool:
@@ -246,32 +282,38 @@ class AxisCore:
     def tick(self, loop: Any, block: Any, lateness_s: float) -> bool:
         """``loop._process(block)`` through the kernel; False when the Python path is to run the whole
         tick (nothing has been done then). The Python steps around the kernel run in the Python path's
-        order relative to what they depend on: the reference before the law, the fit exchange after
-        the estimators and - when it hands the controller a result (its steps 2 and 3 with something
-        to hand) - before the law, in a second call."""
+        order relative to what they depend on: the reference before the law; the fit exchange after the
+        estimators (a snapshot taken, a cross-check against the per-sample estimate) and before the
+        telemetry store and the law (a new estimate; a result offered to the controller, then the law
+        in a second call)."""
         t = block.t
         n = t.shape[0]
         if n == 0 or block.lost:
             self.python_ticks += 1
             return False
-        seq = block.seq
-        last = int(seq[-1])
+        last = int(block.seq[-1])
         ctl = loop.control
         worker = loop.worker
         stats = loop.stats
         tick = stats.ticks
         split = False
+        step = 9
         if worker is not None:
-            stage = loop._fit_stage
             step = (tick - loop.fit_phase) % 10
-            split = (step == 2 and bool(stage[1])) or (step == 3 and stage[2] is not None)
+            if step == 2:                       # a result unpacked: the estimators do not read it, the telemetry
+                loop._fit_exchange(ctl, float(t[-1]), tick)     # store and the law do (as after the Python B)
+                step = 9
+            else:
+                split = step == 3 and loop._fit_stage[2] is not None
         t_ctl = xr = vr = ar = a_ff = 0.0
         want = 1.0
         if ctl is not None:
-            s0 = int(loop.book_i[tk.BI_SEQ0])
-            if s0 < 0:                          # the first tick starts the control clock (Python)
-                self.python_ticks += 1
-                return False
+            s0 = self._seq0
+            if s0 is None:
+                s0 = self._seq0 = loop._seq0
+                if s0 is None:                  # the first tick starts the control clock (Python)
+                    self.python_ticks += 1
+                    return False
             t_ctl = (last - s0) * self.dt
             xr, vr, ar, a_ff = ctl.reference_at(t_ctl)
             want = float(ctl.probe_scale)
@@ -279,19 +321,20 @@ class AxisCore:
         has_meas = 1
         if tq is None:
             tq, has_meas = block.torque_cmd, 0
-        ident = loop.identification
-        if ident is None:
-            hat, I1, B, K = 0, 0.0, 0.0, 0.0
-        else:
-            p = ident.params
-            hat, I1, B, K = 1, p.I1, p.B, p.K
-        args = (t, seq, block.theta1, block.theta2, block.torque_cmd, tq, has_meas, self.fb, self.ib, self.cb,
-                self.lay, *self.rec)
+        hat = self._hat(loop.identification)
+        tp = self.tp
+        if tp is not None and (tp._ring is not self.tel_ring or tp._truth_pending is not self.tel_truth or tp._closed):
+            self._telemetry_state(tp)
+        fw = self.worker
+        if fw is not None and fw._in is not self.fit_ring:
+            self._fit_state(fw)
+        args = (t, block.seq, block.theta1, block.theta2, block.torque_cmd, tq, has_meas, self.fb, self.ib, self.cb,
+                self.lay, *self.rec, *self.tel_arrays, *self.fit_arrays)
         last_torque = loop.backend.last_torque
         try:
-            code = self.kernel(tk.MODE_ESTIMATE if split else tk.MODE_ESTIMATE | tk.MODE_CONTROL, *args, t_ctl, xr, vr, ar,
-                               a_ff, lateness_s, want, hat, I1, B, K, last_torque)
-        except TypeError:                       # a block whose arrays the kernel does not take: see tk.KERNEL_SIGNATURE
+            code = self.kernel(tk.MODE_ESTIMATE if split else tk.MODE_ESTIMATE | tk.MODE_CONTROL, *args,
+                               t_ctl, xr, vr, ar, a_ff, lateness_s, want, *hat, last_torque)
+        except TypeError:                       # a block whose arrays the kernel does not take: KERNEL_SIGNATURE
             self.python_ticks += 1
             if not self.refused:
                 self.refused = True
@@ -305,24 +348,24 @@ class AxisCore:
         stats.samples += n
         if code & tk.PERIODS:
             loop._snapshot_due()
-        if worker is not None:
+        elif code & tk.SNAPSHOT_SKIPPED:        # the worker was busy (JobWorker.submit counts the same)
+            fw.skipped += 1
+        if step < 5:                            # the fit exchange's steps (the other five ticks do nothing)
             loop._fit_exchange(ctl, float(t[-1]), tick)
             if split:                           # the controller got a result: the law runs after it
-                ident = loop.identification
-                if ident is not None:
-                    p = ident.params
-                    hat, I1, B, K = 1, p.I1, p.B, p.K
                 if ctl is not None:
                     want = float(ctl.probe_scale)
-                code |= self.kernel(tk.MODE_CONTROL, *args, t_ctl, xr, vr, ar, a_ff, lateness_s, want, hat, I1, B, K,
-                                    last_torque)
-        if self.recorder is not None and tick % 10 == 0:
+                code |= self.kernel(tk.MODE_CONTROL, *args, t_ctl, xr, vr, ar, a_ff, lateness_s, want,
+                                    *self._hat(loop.identification), last_torque)
+        elif step == 5 and self.recorder is not None:
             self.recorder.check_alive()         # Python's put checks on every call (rate-limited to 10/s)
         if code & (tk.PY_CONTROL | tk.PY_SAFETY | tk.PY_TELEMETRY | tk.SCHED_FULL):
             self._finish_in_python(loop, block, code, lateness_s)
             return True
-        if ctl is not None:
+        if ctl is not None and ctl._pending:
             ctl.poll()
+        if code & (tk.TEL_SENT | tk.TEL_DROPPED | tk.WINDOW_DUE):
+            self._telemetry_sent(loop, code)
         if code & tk.FLUSH_SAMPLES:
             loop._flush_telemetry(ticks=False)
             loop._flush_at = loop.publish_every
@@ -330,6 +373,59 @@ class AxisCore:
             loop._flush_telemetry(samples=False)
         loop._plan_start = last + 1
         return True
+
+    def _hat(self, ident: Any) -> tuple[int, float, float, float]:
+        """(1, I1, B, K) of the estimate for Eq. (18), or (0, 0, 0, 0) without one (kept per estimate)."""
+        if ident is not self._hat_ident:
+            self._hat_ident = ident
+            self._hat_args = (0, 0.0, 0.0, 0.0) if ident is None else \
+                (1, float(ident.params.I1), float(ident.params.B), float(ident.params.K))
+        return self._hat_args
+
+    def _fit_state(self, worker: Any) -> None:
+        """The fit worker's ring (new after a restart): the kernel hands its snapshots over into it."""
+        ring = self.fit_ring = worker._in
+        self.fit_arrays = ring.compiled_views()
+        fit = self.fit
+        fit[tk.FIT_CAP], fit[tk.FIT_MAXMSG] = ring.capacity, ring.max_messages
+        fit[tk.FIT_OK] = 1
+
+    def _telemetry_state(self, tp: Any) -> None:
+        """The telemetry process's ring changed (a restart), or it has a truth to push first, or it closed:
+        whether the kernel may hand windows over itself now, and into which ring."""
+        ring = tp._ring
+        self.tel_ring, self.tel_truth = ring, tp._truth_pending
+        tel = self.tel
+        ok = ring is not None and not tp._closed and not tp._truth_pending and tp.config.decimation == 1 \
+            and tp.config.sink != "off"
+        if ring is not None:
+            self.tel_arrays = ring.compiled_views()
+            tel[tk.TEL_CAP], tel[tk.TEL_MAXMSG] = ring.capacity, ring.max_messages
+        tel[tk.TEL_OK] = int(ok)
+        tel[tk.TEL_WID] = -1                    # a new child has no window names yet: the next vector via Python
+
+    def forget_window(self) -> None:
+        """The Python path hands a window over: the vector the kernel was to send with the next tick
+        signals is not that window's any more."""
+        self.tel[tk.TEL_WID] = -1
+
+    def _telemetry_sent(self, loop: Any, code: int) -> None:
+        """What the kernel handed to the telemetry process, counted as publish_rows counts it; after a
+        window's samples, the vector of its tick signals (as _flush_telemetry(ticks=False) gathers it)."""
+        tp = self.tp
+        if code & tk.TEL_SENT:
+            tp._published += 1
+        elif code & tk.TEL_DROPPED:
+            tp._dropped += 1
+        if not code & tk.WINDOW_DUE:           # that was a window's tick signals: its vector is used
+            loop._win_next = None
+            return
+        names, values = win = loop._window_values(loop._tick_n)
+        loop._win_next = win
+        wid = tp._schemas.get(names)
+        if wid is not None and values.shape[0] <= tk.WIN_CAP:
+            self.win[:values.shape[0]] = values
+            self.tel[tk.TEL_NVAL], self.tel[tk.TEL_WID] = values.shape[0], wid
 
     def _finish_in_python(self, loop: Any, block: Any, code: int, lateness_s: float) -> None:
         """The rest of a tick the kernel stopped short of (see the PY_* bits), as the Python path runs it."""

@@ -20,7 +20,7 @@ from rt_ident.estimators.frequency_stream import rdft_accumulate
 from rt_ident.estimators.state_estimation import _ssk_block
 from rt_ident.estimators.svf import svf_block
 from rt_ident.runtime.safety import SAFE_LAST_THETA1, SAFE_STALE, SAFE_STUCK
-from rt_ident.runtime.shm_ring import put_seq_floats
+from rt_ident.runtime.shm_ring import consumer_waits, put_rows, put_seq_floats, put_sums
 
 
 # --------------------------------------------------------------------------- the loop's bookkeeping
@@ -135,9 +135,9 @@ def collect_samples(rows, i0, stride, t, th1, th2, tq, tcmd, theta, omega, alpha
  F_SVF_PHI, F_SVF_G0, F_SVF_G1, F_SVF_GZ, F_SVF_XS, F_SVF_PREV, F_SVF_SCALE, F_SVF_PRIOR, F_SVF_SIGMA, F_SVF_RM,
  F_SVF_RV, F_SVF_ACC, F_SVF_P, F_SVF_TMP, F_SVF_COUNTS,
  F_LAW_G, F_LAW_ST, F_LAW_C, F_SUP_NOW, F_SUP_ERR, F_SUP_C, F_SAFE,
- F_BOOK, F_STATES, F_TEL, F_TICKS, F_EXTABLE, F_PLAN, F_CONST, F_SLOTS) = range(44)
+ F_BOOK, F_STATES, F_TEL, F_TICKS, F_EXTABLE, F_PLAN, F_CONST, F_WIN, F_FIT, F_SLOTS) = range(46)
 # int arena
-I_FS_HARM, I_FS_IDX, I_FS_COUNT, I_GAP_SEQ, I_KF_SEQ, I_BOOK, I_REC_COUNTS, I_CONST, I_SLOTS = range(9)
+I_FS_HARM, I_FS_IDX, I_FS_COUNT, I_GAP_SEQ, I_KF_SEQ, I_BOOK, I_REC_COUNTS, I_CONST, I_TEL, I_FIT, I_SLOTS = range(11)
 # complex arena
 C_FS_TABLE, C_FS_ACC, C_FS_S1, C_FS_S2, C_SLOTS = range(5)
 # F_CONST
@@ -146,6 +146,29 @@ FC_DT, FC_FS_LAM, FC_SVF_LAMF, FC_SVF_RHO, FC_SVF_MINT2, FC_SVF_LAMG, FC_SAFE_LE
 # I_CONST
 (IC_HAS_CTL, IC_HAS_SVF, IC_HAS_TEL, IC_HAS_REC, IC_KF_DIM, IC_H, IC_NMAX, IC_STRIDE, IC_PUBLISH_EVERY,
  IC_PERIOD, IC_LAG, IC_FS_DISCARD, IC_REC_CAP, IC_REC_MAXMSG, IC_REC_KEYS, IC_SIZE) = (*range(15), 18)
+# I_TEL: the telemetry hand-off the kernel makes itself (TelemetryProcess.publish_rows' message, written by the
+# kernel): whether it may (the ring as the glue saw it, no truth to push first, no decimation), the window
+# vector's id (-1: none ready) and length, the ring's capacity and message limit, the fields of a tick window,
+# then the key words of the samples' fields, of a tick window's fields and of the window tail, and the rows
+# of the samples' fields and of a tick window's fields
+TEL_OK, TEL_WID, TEL_NVAL, TEL_CAP, TEL_MAXMSG, TEL_TICK_FIELDS, TEL_SKEYS = range(7)
+TEL_TKEYS = TEL_SKEYS + 2 * len(SAMPLE_KEYS)
+TEL_TAIL = TEL_TKEYS + 2 * (len(TICK_KEYS) + 1)
+TEL_SROWS = TEL_TAIL + 4
+TEL_TROWS = TEL_SROWS + len(SAMPLE_KEYS)
+TEL_SIZE = TEL_TROWS + len(TICK_KEYS) + 1
+TICK_FIELDS = ("t", "t_tick", "lateness_us", *TICK_KEYS[2:])    # a tick window's fields (t twice: t, t_tick) ...
+TICK_ROWS = (0, 0, *range(1, len(TICK_KEYS)))                   # ... and their rows
+WIN_CAP = 64        # window values the arena holds
+# I_FIT: the fit worker's snapshot the kernel hands over itself (rt_ident.runtime.fit_worker; the message of
+# SpectraSums.to_fields): whether it may (the worker's ring as the glue saw it), the ring's capacity and message
+# limit, whether the quantum is the configured one (else the smallest steps seen), the codec name's length,
+# the fields' key words, the name's bytes
+FIT_OK, FIT_CAP, FIT_MAXMSG, FIT_FIXED_Q, FIT_CODEC_LEN, FIT_KEYS = range(6)
+FIT_CODEC = FIT_KEYS + 10
+FIT_SIZE = FIT_CODEC + 2
+# F_FIT: the snapshot's scalars (N, dt, W, W2, periods), then the configured quantum
+FIT_SCALARS, FIT_QUANTUM, FIT_FSIZE = 0, 5, 7
 
 # the kernel's answer (bits)
 BAIL = 1            # nothing done: the Python path runs the whole tick
@@ -157,6 +180,11 @@ FLUSH_SAMPLES = 32  # the telemetry window's samples are due (IdentificationLoop
 FLUSH_TICKS = 64    # its per-tick signals are due
 PLAN_BUILT = 128    # the plan for the next samples is in the plan buffer
 SCHED_FULL = 256    # more torques in flight than SCHED_CAP (an error)
+TEL_SENT = 512      # the kernel handed a telemetry window message over ...
+TEL_DROPPED = 1024  # ... or the ring was full (dropped, as publish() drops)
+WINDOW_DUE = 2048   # it handed a window's samples over: the window vector for its tick signals is due
+SNAPSHOT_SENT = 4096      # a period completed and the kernel handed the running sums to the fit worker ...
+SNAPSHOT_SKIPPED = 8192   # ... or the worker was busy (counted as its skipped snapshots)
 # modes
 MODE_ESTIMATE = 1   # record, Kalman filters, recursive DFT, SVF
 MODE_CONTROL = 2    # law, safety, telemetry store, plan
@@ -180,13 +208,15 @@ def _cs(cb, lay, k):
     return cb[o:o + lay[2 * (F_SLOTS + I_SLOTS + k) + 1]]
 
 
-def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, rdi, rdf,
+def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, rdi, rdf, th, tdi, tdf, fh, fdi, fdf,
               t_ctl, xr, vr, ar, a_ff, lateness_s, want, ident, I1, B, K, last_torque) -> int:
     """One axis's tick (see the module docstring): ``mode`` MODE_ESTIMATE and/or MODE_CONTROL; the
     block (``tq``: the measured torque, or the commanded one when ``has_meas`` is 0); the arena; the
-    recorder ring (``rh``, ``rdi``, ``rdf``); the reference at ``t_ctl`` (the newest sample's time on
-    the control clock) and the feedforward's acceleration; the probe amplitude wanted; the estimate
-    for Eq. (18) (``ident`` 0: none); the torque last written. Returns the bits above."""
+    recorder ring (``rh``, ``rdi``, ``rdf``), the telemetry ring (``th``, ``tdi``, ``tdf``) and the fit
+    worker's (``fh``, ``fdi``, ``fdf``); the
+    reference at ``t_ctl`` (the newest sample's time on the control clock) and the feedforward's
+    acceleration; the probe amplitude wanted; the estimate for Eq. (18) (``ident`` 0: none); the torque
+    last written. Returns the bits above."""
     ic = _is(ib, lay, I_CONST)
     fc = _fs(fb, lay, F_CONST)
     bi = _is(ib, lay, I_BOOK)
@@ -236,7 +266,7 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
         cnt = _is(ib, lay, I_FS_COUNT)
         cnt[0] += n
         if added > 0:
-            code |= PERIODS
+            code |= _hand_over_sums(ib, fb, cb, lay, fh, fdi, fdf)
         if ic[IC_HAS_SVF]:                      # the per-sample estimator (Supervisor.observe)
             svf_block(th1, th2, tq, _fs(fb, lay, F_SVF_PHI).reshape((3, 3)), _fs(fb, lay, F_SVF_G0),
                       _fs(fb, lay, F_SVF_G1), _fs(fb, lay, F_SVF_GZ), _fs(fb, lay, F_SVF_XS).reshape((4, 3)),
@@ -312,9 +342,9 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
         bi[BI_TICK_N] = k + 1
         bi[BI_WIN_TICKS] += 1
         if bi[BI_WIN_TICKS] >= bi[BI_FLUSH_AT]:
-            code |= FLUSH_SAMPLES
+            code |= _hand_over_samples(bi, _is(ib, lay, I_TEL), rows, pe, th, tdi, tdf)
         elif bi[BI_TICK_N] > pe or (bi[BI_WIN_TICKS] == 1 and bi[BI_TICK_N] > 1):
-            code |= FLUSH_TICKS
+            code |= _hand_over_ticks(bi, _is(ib, lay, I_TEL), tk, _fs(fb, lay, F_WIN), th, tdi, tdf)
     # ---- the plan for the next samples (IdentificationLoop._write_plan)
     plan = _fs(fb, lay, F_PLAN)
     table = _fs(fb, lay, F_EXTABLE)
@@ -328,13 +358,78 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
     return code | PLAN_BUILT
 
 
+@numba.njit(inline="always")
+def _hand_over_sums(ib, fb, cb, lay, fh, fdi, fdf) -> int:
+    """A period completed: the running sums to the fit worker when it waits for them (the Python path takes
+    the snapshot now and sends it on the axis's send tick: IdentificationLoop._snapshot_due), or PERIODS:
+    the Python path's to do."""
+    fit = _is(ib, lay, I_FIT)
+    if fit[FIT_OK] == 0:
+        return PERIODS
+    if not consumer_waits(fh):
+        return SNAPSHOT_SKIPPED
+    ff = _fs(fb, lay, F_FIT)
+    st = _fs(fb, lay, F_FS_STATE)
+    ff[FIT_SCALARS + 2], ff[FIT_SCALARS + 3], ff[FIT_SCALARS + 4] = st[1], st[2], st[4]    # W, W2, periods used
+    q = ff[FIT_QUANTUM:FIT_QUANTUM + 2] if fit[FIT_FIXED_Q] else _fs(fb, lay, F_FS_QMIN)
+    got = put_sums(fh, fdi, fdf, fit[FIT_CAP], fit[FIT_MAXMSG], fit[FIT_KEYS:FIT_KEYS + 10], _is(ib, lay, I_FS_HARM),
+                   _cs(cb, lay, C_FS_S1), _cs(cb, lay, C_FS_S2), q, ff[FIT_SCALARS:FIT_SCALARS + 5],
+                   fit[FIT_CODEC:FIT_CODEC + 2], fit[FIT_CODEC_LEN])
+    return SNAPSHOT_SENT if got == 1 else PERIODS
+
+
+@numba.njit(inline="always")
+def _hand_over_samples(bi, tel, rows, pe, th, tdi, tdf) -> int:
+    """The window's samples into the telemetry ring (IdentificationLoop._flush_telemetry(ticks=False),
+    as TelemetryProcess.publish_rows writes them), or FLUSH_SAMPLES: the Python path's to do."""
+    if tel[TEL_OK] == 0:
+        return FLUSH_SAMPLES
+    m = 6 if bi[BI_TEL_HAT_OK] else 5
+    n = bi[BI_TEL_N]
+    got = 1
+    if n:
+        got = put_rows(th, tdi, tdf, tel[TEL_CAP], tel[TEL_MAXMSG], tel[TEL_SKEYS:TEL_SKEYS + 2 * m],
+                       tel[TEL_SROWS:TEL_SROWS + m], rows, n, tel[TEL_TAIL:TEL_TAIL + 4], -1, rows[0, :0],
+                       False)
+        if got < 0:                         # it never fits: publish_rows says why
+            return FLUSH_SAMPLES
+    bi[BI_WIN_TICKS] = 0
+    bi[BI_TEL_N] = 0
+    bi[BI_TEL_HAT_OK] = 1
+    bi[BI_FLUSH_AT] = pe
+    tel[TEL_WID] = -1                       # the window vector for the next tick's signals: the glue's
+    code = WINDOW_DUE
+    if n:
+        code |= TEL_SENT if got == 1 else TEL_DROPPED
+    return code
+
+
+@numba.njit(inline="always")
+def _hand_over_ticks(bi, tel, tk, win, th, tdi, tdf) -> int:
+    """The window's per-tick signals and its vector into the telemetry ring (_flush_telemetry(samples=False)),
+    or FLUSH_TICKS when the vector is not ready (a new set of names: its schema goes first, from Python)."""
+    if tel[TEL_OK] == 0 or tel[TEL_WID] < 0:
+        return FLUSH_TICKS
+    m = tel[TEL_TICK_FIELDS]
+    k = bi[BI_TICK_N]
+    got = put_rows(th, tdi, tdf, tel[TEL_CAP], tel[TEL_MAXMSG], tel[TEL_TKEYS:TEL_TKEYS + 2 * m],
+                   tel[TEL_TROWS:TEL_TROWS + m], tk, k, tel[TEL_TAIL:TEL_TAIL + 4], tel[TEL_WID],
+                   win[:tel[TEL_NVAL]], True)
+    if got < 0:
+        return FLUSH_TICKS
+    bi[BI_TICK_N] = 0
+    tel[TEL_WID] = -1
+    return TEL_SENT if got == 1 else TEL_DROPPED
+
+
 # The kernel's argument types, fixed: block arrays of any layout (a serial board's sequence numbers are a
 # strided view), the arena and the ring C-contiguous. A call with other types (read-only arrays, say)
 # raises TypeError and the tick goes to the Python path: nothing is compiled in a tick (a lazily compiled
 # new specialization stalled the loop's first compiled tick for 9 s).
 _BLOCK = "float64[:], int64[:], float64[:], float64[:], float64[:], float64[:]"
+_RING = "int64[::1], int64[::1], float64[::1]"
 KERNEL_SIGNATURE = (f"int64(int64, {_BLOCK}, int64, float64[::1], int64[::1], complex128[::1], int64[::1], "
-                    "int64[::1], int64[::1], float64[::1], float64, float64, float64, float64, float64, float64, "
+                    f"{_RING}, {_RING}, {_RING}, float64, float64, float64, float64, float64, float64, "
                     "float64, int64, float64, float64, float64, float64)")
 
 
