@@ -285,3 +285,25 @@ def test_a_run_hands_every_snapshot_to_the_fit_worker_from_the_kernel(monkeypatc
     assert s["stop"]["cause"] is None and s["loop"]["compiled_tick"]["on"]
     # estimates came back; no snapshot went through the Python put (the control worker's requests do)
     assert s["loop"]["estimates"] >= 2 and "SpectraSums" not in submitted and "dict" in submitted
+
+
+def test_a_recorder_that_dies_under_the_compiled_tick_stops_the_run(tmp_path):
+    import multiprocessing
+    import os
+    import signal
+
+    from rt_ident.runtime import run as run_mod
+
+    killed: dict[str, int] = {}
+
+    def hook(n: int) -> None:
+        if n == 300:                                # the compiled tick writes the recorder's ring itself
+            (rec,) = [p for p in multiprocessing.active_children() if p.name == "rt_ident-recorder"]
+            os.kill(rec.pid, signal.SIGKILL)
+            killed["tick"] = n
+
+    cfg = load(None, **{**FAST, "loop.duration": 3.0, "recording.enabled": True})
+    s = run_mod.run(cfg, record=str(tmp_path / "r.parquet"), tick_hook=hook)
+    assert killed and s["stop"]["cause"] is not None and "recorder" in s["stop"]["message"]
+    assert s["loop"]["ticks"] < killed["tick"] + 300                   # seen within the 0.1 s rate limit and a bit
+    assert s["loop"]["compiled_tick"]["ticks"] > 250

@@ -357,7 +357,7 @@ class AxisCore:
                     want = float(ctl.probe_scale)
                 code |= self.kernel(tk.MODE_CONTROL, *args, t_ctl, xr, vr, ar, a_ff, lateness_s, want,
                                     *self._hat(loop.identification), last_torque)
-        elif step == 5 and self.recorder is not None:
+        if self.recorder is not None and tick % 10 == 5:
             self.recorder.check_alive()         # Python's put checks on every call (rate-limited to 10/s)
         if code & (tk.PY_CONTROL | tk.PY_SAFETY | tk.PY_TELEMETRY | tk.SCHED_FULL):
             self._finish_in_python(loop, block, code, lateness_s)
