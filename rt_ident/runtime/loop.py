@@ -159,7 +159,7 @@ class IdentificationLoop(TelemetryWindow):
         self.control = control              # the host's position controller (None: excitation only)
         self.friction = friction            # per-sample friction-model estimator ([estimator] model), or None
         self.friction_feedforward = friction_feedforward
-        # the tick's bookkeeping (tick_core.BI_* / BF_*: the sample expected next, the control clock's
+        # the tick's bookkeeping (tick_kernel.BI_* / BF_*: the sample expected next, the control clock's
         # first sample, the control torque in force and those in flight, the probe amplitude, the
         # telemetry window's counters), in two arrays changed in place: the compiled tick holds views
         self.book_i, self.book_f = tk.new_books()

@@ -24,13 +24,13 @@ class TelemetryWindow:
     ``book_i``, which the compiled tick writes too)."""
 
     def _telemetry_buffers(self) -> None:
-        """Preallocated window buffers (rows ``tick_core.SAMPLE_KEYS`` and ``TICK_KEYS``): a tick writes
+        """Preallocated window buffers (rows ``tick_kernel.SAMPLE_KEYS`` and ``TICK_KEYS``): a tick writes
         into them; nothing is concatenated."""
         per_tick = int(math.ceil(1.0 / (self.tick_hz * self.backend.sample_period) / self.stride)) + 2
         cap = max(64, 4 * self.publish_every * per_tick)
         self.tel_rows = np.zeros((len(tk.SAMPLE_KEYS), cap))
         self.tick_rows = np.zeros((len(tk.TICK_KEYS), self.publish_every + 1))   # a tick window may be one tick longer
-        self._win_next: dict[str, float] | None = None      # window values gathered for the next tick
+        self._win_next: tuple[tuple[str, ...], np.ndarray] | None = None   # window values gathered for the next tick
         # the window's values, and what they were made from (the estimate, the controller, the counts)
         self._win_cache: tuple[Any, Any, Any, Any] = (None, None, None, None)
         # the per-sample estimate goes as tick rows (its values change every tick)
@@ -73,7 +73,7 @@ class TelemetryWindow:
 
     def _collect_samples(self, block: SampleBlock, states) -> None:
         """Every ``stride``-th sample of the block (from its first) into the window buffers, with its
-        Eq. (18) torque once there is an estimate (``tick_core.collect_samples``, as the compiled tick)."""
+        Eq. (18) torque once there is an estimate (``tick_kernel.collect_samples``, as the compiled tick)."""
         stride = self.stride
         n = len(block)
         m = -(-n // stride)

@@ -6,8 +6,9 @@ dozen lines of glue around each. On the 2-core VMs this runs on, a tick comes af
 with its caches cold, and its cost grew with how much distinct code and data it touched: a trivial
 compiled call cost 6 us after a sleep against 0.6 us back to back, a call with 48 array arguments
 22 us, the glue of the whole tick 200-250 us per axis. Here the same compiled steps run composed in
-one call (:func:`axis_tick`) whose state is three buffers (float, int, complex: the *arena*) and
-one table of offsets, so a tick pays one dispatch of a dozen arguments instead of ~40 calls.
+one call (:func:`rt_ident.runtime.tick_kernel.axis_tick`) whose state is three buffers (float, int,
+complex: the *arena*) and one table of offsets, so a tick pays one dispatch (the block, the arena, the
+rings it writes and a few scalars) instead of ~40 calls.
 
 The state stays where it was: each component (the Kalman filters, the recursive DFT and its gap
 filler, the per-sample SVF estimator, the law, the supervisor's bookkeeping, the safety counters,
@@ -31,10 +32,13 @@ anything a Python step would change:
   table's stopping position outside the window (the monitor counts or raises, with its message);
 * the telemetry store (:data:`PY_TELEMETRY`): a block that overflows the window (flush first).
 
-The loop's glue (:meth:`AxisCore.tick`) evaluates the reference (Python objects), runs the fit
-exchange (pickles and processes), takes the fit snapshot, hands the telemetry window over and
-writes the plan the kernel built - all as the Python path does, in the same order relative to the
-steps they depend on.
+Where the Python path hands something over to another process, the kernel writes the same message
+into that process's ring itself: the recorder's block, the telemetry window (its samples, then its
+tick signals with the window's vector) and, when the fit worker waits for one, the running sums at the
+end of an excitation period. The loop's glue (:meth:`AxisCore.tick`) evaluates the reference (Python
+objects), runs the rest of the fit exchange (taking results, unpickling them, offering them to the
+supervisor), prepares the window's vector, counts what the kernel handed over and writes the plan the
+kernel built - in the Python path's order relative to the steps they depend on.
 """
 
 from __future__ import annotations
@@ -50,9 +54,9 @@ from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator, rd
 from rt_ident.estimators.state_estimation import AxisStateEstimator, AxisStates
 from rt_ident.estimators.streaming import FrequencyStream
 from rt_ident.estimators.svf import SvfEstimator
+from rt_ident.runtime import tick_kernel as tk
 from rt_ident.runtime.safety import SafetyMonitor
 from rt_ident.runtime.shm_ring import key_words
-from rt_ident.runtime import tick_kernel as tk
 
 log = logging.getLogger(__name__)
 
@@ -124,17 +128,18 @@ class AxisCore:
             for slot, attr in zip(slots, ("F", "gain", "x", "_xp", "_zlast")):
                 ar.adopt(slot, owner, attr)
         ar.adopt(tk.I_KF_SEQ, kf, "next_seq")
-        for slot, attr in ((tk.F_FS_STATE, "_state"), (tk.F_FS_LAST, "_last"), (tk.F_FS_QMIN, "_qmin"), (tk.I_FS_HARM, "harmonics"),
-                           (tk.I_FS_IDX, "_idx"), (tk.I_FS_COUNT, "_count"), (tk.C_FS_TABLE, "_table"), (tk.C_FS_ACC, "_acc"),
-                           (tk.C_FS_S1, "_S1"), (tk.C_FS_S2, "_S2")):
+        for slot, attr in ((tk.F_FS_STATE, "_state"), (tk.F_FS_LAST, "_last"), (tk.F_FS_QMIN, "_qmin"),
+                           (tk.I_FS_HARM, "harmonics"), (tk.I_FS_IDX, "_idx"), (tk.I_FS_COUNT, "_count"),
+                           (tk.C_FS_TABLE, "_table"), (tk.C_FS_ACC, "_acc"), (tk.C_FS_S1, "_S1"), (tk.C_FS_S2, "_S2")):
             ar.adopt(slot, inner, attr)
         ar.adopt(tk.F_GAP_LAST, est.gaps, "last")
         ar.adopt(tk.I_GAP_SEQ, est.gaps, "seq")
         if svf is not None:
-            for slot, attr in ((tk.F_SVF_PHI, "_Phi"), (tk.F_SVF_G0, "_G0"), (tk.F_SVF_G1, "_G1"), (tk.F_SVF_GZ, "_Gz"),
-                               (tk.F_SVF_XS, "_xs"), (tk.F_SVF_PREV, "_prev"), (tk.F_SVF_SCALE, "_scale"),
-                               (tk.F_SVF_PRIOR, "_prior"), (tk.F_SVF_SIGMA, "_Sigma"), (tk.F_SVF_RM, "_R"), (tk.F_SVF_RV, "_r"),
-                               (tk.F_SVF_ACC, "_acc"), (tk.F_SVF_P, "_p"), (tk.F_SVF_TMP, "_tmp"), (tk.F_SVF_COUNTS, "_counts")):
+            for slot, attr in ((tk.F_SVF_PHI, "_Phi"), (tk.F_SVF_G0, "_G0"), (tk.F_SVF_G1, "_G1"),
+                               (tk.F_SVF_GZ, "_Gz"), (tk.F_SVF_XS, "_xs"), (tk.F_SVF_PREV, "_prev"),
+                               (tk.F_SVF_SCALE, "_scale"), (tk.F_SVF_PRIOR, "_prior"), (tk.F_SVF_SIGMA, "_Sigma"),
+                               (tk.F_SVF_RM, "_R"), (tk.F_SVF_RV, "_r"), (tk.F_SVF_ACC, "_acc"), (tk.F_SVF_P, "_p"),
+                               (tk.F_SVF_TMP, "_tmp"), (tk.F_SVF_COUNTS, "_counts")):
                 ar.adopt(slot, svf, attr)
         if ctl is not None:
             for slot, owner, attr in ((tk.F_LAW_G, ctl.law, "gains"), (tk.F_LAW_ST, ctl.law, "st"),
@@ -186,7 +191,8 @@ class AxisCore:
         # the telemetry hand-off the kernel makes itself, into a TelemetryProcess's ring (tick_kernel.I_TEL)
         tel = np.zeros(tk.TEL_SIZE, dtype=np.int64)
         tel[tk.TEL_WID] = -1
-        tel[tk.TEL_TICK_FIELDS] = 3 if ctl is None else len(tk.TICK_FIELDS) if svf is not None else len(tk.TICK_FIELDS) - 4
+        tel[tk.TEL_TICK_FIELDS] = (3 if ctl is None else len(tk.TICK_FIELDS) if svf is not None
+                                   else len(tk.TICK_FIELDS) - 4)
         tel[tk.TEL_SKEYS:tk.TEL_TKEYS] = np.concatenate([key_words(k) for k in tk.SAMPLE_KEYS])
         tel[tk.TEL_TKEYS:tk.TEL_TAIL] = np.concatenate([key_words(k) for k in tk.TICK_FIELDS])
         tel[tk.TEL_TAIL:tk.TEL_SROWS] = np.concatenate([key_words(k) for k in ("window_id", "window")])
@@ -223,7 +229,6 @@ class AxisCore:
         self.tel_arrays = (np.zeros(8, dtype=np.int64), np.zeros(8, dtype=np.int64), np.zeros(8))
         self._seq0: int | None = None
         self._hat_ident, self._hat_args = None, (0, 0.0, 0.0, 0.0)
-        self.period = loop._probe_period
         self.ticks = 0                      # ticks the compiled path ran, whole or in part
         self.python_ticks = 0               # ticks it left to the Python path whole
         self.refused = False                # a block's types were not the kernel's (logged once)
