@@ -67,6 +67,38 @@ def test_a_trip_on_either_axis_stops_both_at_zero_torque(axis):
     assert run_mod.exit_code(s) == 3
 
 
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_a_watchdog_trip_on_either_axis_names_that_axis_when_both_have_the_same_safety_config(axis, monkeypatch):
+    # both axes' safety monitors hold the same settings and the same counters: the stop must still name the
+    # axis whose encoder went silent (a monitor compared by value once made the second axis's trip crash
+    # the summary); the other axis's feedback never stops
+    from drivers.base import SampleBlock
+    from drivers.sim import SimBackend
+
+    cfg = _xy(**{"loop.duration": 3.0})
+    silent_seed = {"x": 0, "y": 1}[axis]                             # configs/xy-sim.toml: y's sim has seed 1
+    assert cfg.axis_configs()["y"].backend.options()["seed"] == 1 and "seed" not in cfg.axis_configs()["x"].backend.options()
+    assert cfg.axis_configs()["x"].safety == cfg.axis_configs()["y"].safety
+    real_read = SimBackend._read
+    reads: dict[int, int] = {}
+
+    def read(self):
+        block = real_read(self)
+        seed = self.config.seed
+        reads[seed] = reads.get(seed, 0) + 1
+        if seed == silent_seed and reads[seed] > 300:        # this axis's encoder goes silent after 0.3 s
+            return SampleBlock.empty(self.has_measured_torque)
+        return block
+
+    monkeypatch.setattr(SimBackend, "_read", read)
+    s = run_axes(cfg)
+    assert s["stop"]["cause"] == "watchdog" and s["stop"]["axis"] == axis, s["stop"]
+    assert s["stop"]["final_torque"] == {"x": 0.0, "y": 0.0}
+    assert set(s["stop"]["backend_state"].values()) == {"closed"}
+    assert run_mod.exit_code(s) == 3
+    assert s["axes"]["y" if axis == "x" else "x"]["loop"]["samples"] > 300 * 30
+
+
 @pytest.mark.slow
 def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(tmp_path, restore_scheduling):
     cfg = load("configs/xy-circle.toml", **{"loop.realtime": True, "telemetry.sink": "rrd", "loop.duration": 7.0,

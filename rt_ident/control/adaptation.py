@@ -162,7 +162,7 @@ def _fallback_for(gains: np.ndarray, p: AxisParams, tick: float, s: ControlSetti
     return None, "the conservative controller fails on the estimate and no replacement passed: " + "; ".join(why)
 
 
-@dataclass
+@dataclass(eq=False)     # one axis's counters (err is an array): compared by identity
 class ControlStats:
     accepted: int = 0
     rejected: int = 0

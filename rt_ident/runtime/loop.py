@@ -413,9 +413,13 @@ class MultiAxisLoop:
         self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hook = tick_hook
         self.stats = LoopStats()
+        # the name of the axis whose read, processing, plan or simulation step raised (None: none did)
+        self.failed_axis: str | None = None
 
     def run(self) -> LoopStats:
         axes = list(self.axes.values())
+        names = list(self.axes)
+        cur = -1                                    # the axis being worked on (-1: none), for failed_axis
         stats, clock, cpu_clock = self.stats, self.clock, time.thread_time
         period = 1.0 / self.tick_hz
         for i, ax in enumerate(axes):
@@ -440,25 +444,25 @@ class MultiAxisLoop:
                 # every axis's samples of this tick first; each axis's share of the work is timed
                 # (its read, its processing, its plan) into its own ``work_us``
                 blocks = []
-                for i, ax in enumerate(axes):
+                for cur, ax in enumerate(axes):
                     t1 = clock()
                     blocks.append(ax.backend.read())
-                    spent[i] = clock() - t1
-                for i, (ax, block) in enumerate(zip(axes, blocks)):
+                    spent[cur] = clock() - t1
+                for cur, (ax, block) in enumerate(zip(axes, blocks)):
                     _count_tick(ax.stats, info, last_cpu, period)
                     t1 = clock()
                     ax._process(block, info.lateness_s)
-                    spent[i] += clock() - t1
-                for i, ax in enumerate(axes):
+                    spent[cur] += clock() - t1
+                for cur, ax in enumerate(axes):
                     t1 = clock()
                     ax._write_plan()
-                    spent[i] += clock() - t1
+                    spent[cur] += clock() - t1
                 t1 = clock()
                 stats.work.record(t1 - t0)
                 for i, ax in enumerate(axes):
                     ax.stats.work.record(spent[i])
                 horizon = self.ticker.next_deadline() - t1 + SIM_AHEAD_MARGIN_S
-                for ax in axes:                     # simulated devices step ahead (IdentificationLoop.run)
+                for cur, ax in enumerate(axes):     # simulated devices step ahead (IdentificationLoop.run)
                     t2 = clock()
                     ax.backend.step_ahead(horizon)
                     if ax.backend.simulated:
@@ -467,8 +471,12 @@ class MultiAxisLoop:
                     stats.sim_ahead.record(clock() - t1)
                 last_cpu = cpu_clock() - c0
                 stats.work_cpu.record(last_cpu)
+                cur = -1
                 if self.tick_hook is not None:
                     self.tick_hook(stats.ticks)
+        except BaseException:
+            self.failed_axis = names[cur] if cur >= 0 else None
+            raise
         finally:
             stats.samples = sum(ax.stats.samples for ax in axes)
             stats.lost_samples = sum(ax.stats.lost_samples for ax in axes)

@@ -309,7 +309,8 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                 parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
     except RtIdentError as exc:
         stop_cause = getattr(exc, "cause", "error")
-        stop_axis = next((n for n, lp in loops.items() if lp.safety is not None and _tripped(lp, exc)), None)
+        stop_axis = multi.failed_axis if multi is not None and multi.failed_axis is not None else \
+            next((n for n, lp in loops.items() if _tripped(lp, exc)), None)
         stop_message = str(exc)
         log.info("run stopped: %s", exc)
         for name, loop in loops.items():
@@ -381,10 +382,14 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
 
 
 def _tripped(loop: IdentificationLoop, exc: Exception) -> bool:
-    """Whether ``exc`` came from this axis (its backend's last error or its safety monitor's trip)."""
+    """Whether ``exc``, raised outside the loop's ticks (a backend's open or activation), came from this
+    axis: one of its frames belongs to the axis's loop, safety monitor or backend (by identity: the
+    components hold arrays, and two axes' monitors may hold equal values)."""
+    own = (loop, loop.safety, loop.backend)
     tb = exc.__traceback__
     while tb is not None:
-        if tb.tb_frame.f_locals.get("self") in (loop, loop.safety, loop.backend):
+        obj = tb.tb_frame.f_locals.get("self")
+        if obj is not None and any(obj is o for o in own):
             return True
         tb = tb.tb_next
     return False

@@ -28,7 +28,7 @@ from drivers.errors import TravelLimitTrip, WatchdogTrip
 SAFE_STALE, SAFE_STUCK, SAFE_LAST_THETA1 = range(3)
 
 
-@dataclass
+@dataclass(eq=False)     # a monitor is one axis's state: two are never 'equal' (and counters is an array)
 class SafetyMonitor:
     lead: float                       # m/rad, x = lead * theta2
     window: tuple[float, float]       # m
