@@ -319,6 +319,33 @@ def test_a_resonance_above_nyquist_is_not_taken_for_its_alias():
     assert np.max(np.abs(err)) < 0.01, err
 
 
+def test_a_fit_that_lands_on_the_mirror_of_a_mode_below_nyquist_is_refitted_from_its_own_mirror():
+    # Y of the XY table (I2 = 2.5e-5) sampled at 1 kHz: its 463 Hz mode lies below Nyquist and its mirror
+    # at 537 Hz fits the held sampled spectrum too (I1 -25 %, K +24 %, narrow intervals). The start is the
+    # linear start of a closed-loop CANopen run that ended there, trusted: from it, and from its own mirror
+    # (652 Hz), Gauss-Newton ends at 537 Hz. The fit's mirror (463 Hz) must be tried and win.
+    from rt_ident.estimators.frequency import _alias_start, _fit_among_aliases, _natural_frequency, fit_spectra
+
+    p = AxisParams(I1=2.7e-5, I2=2.5e-5, B=2.1e-3, K=110.0, lead=7.96e-4)
+    dt, N = 1e-3, 256
+    ms = schroeder_multisine(N, (4, 127), peak=0.3)
+    sensors = SensorConfig(counts_per_rev=2**17, scale_resolution=1e-7, torque_meas_noise=0.005 * ms.rms)
+    blk = PlantSimulator(p, dt, sensors=sensors, controller=HoldController(), seed=0).step_block(ms.periodic(9))
+    sp = compute_spectra(blk.theta1, blk.theta2, blk.torque_meas, dt, period=N)
+    start = np.concatenate([np.log([1.79e-5, 2.74e-5, 6.55e-4, 51.8]), np.zeros(4)])
+
+    def hz(x):
+        return _natural_frequency(x) / (2 * math.pi)
+
+    assert abs(modal_parameters(p)["wn"] / (2 * math.pi) - 463.3) < 0.1
+    for x0 in (start, _alias_start(start, dt)):                     # both starts end on the mirror
+        assert abs(hz(fit_spectra(sp, "zoh", x0=x0).x) - 537.4) < 1.0
+    fit = _fit_among_aliases(sp, "zoh", start, transient=True, max_iter=50, tol=1e-10)
+    assert fit.converged and abs(hz(fit.x) - 463.3) < 0.5
+    err = np.exp(fit.x[:4]) / np.array([p.I1, p.I2, p.B, p.K]) - 1.0
+    assert np.max(np.abs(err)) < 0.01, err
+
+
 def test_fit_worker_sends_the_frf_view_at_most_every_view_interval():
     import time
 
