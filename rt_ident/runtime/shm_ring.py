@@ -298,6 +298,37 @@ def _release_fence(typingctx):
 
 
 @numba.njit(cache=True)
+def _reserve(h, di, cap, max_messages, size):
+    """Room in the ring for a frame of ``size`` bytes (a multiple of 16), as :meth:`MessageRing.put`
+    makes it: ``(1, w, p)`` with the write position ``w`` (past a wrap marker, written when the frame
+    does not fit before the end) and the frame's first int64 word ``p``; ``(0, 0, 0)`` when it does not
+    fit now (ring or message count full), ``(-1, 0, 0)`` when it never can (over half the ring)."""
+    if size > cap // 2:
+        return -1, 0, 0
+    if h[_W_MSGS] - h[_R_MSGS] >= max_messages:
+        return 0, 0, 0
+    w = h[_W_POS]
+    pos = w % cap
+    skip = cap - pos if pos + size > cap else 0
+    if cap - (w - h[_R_POS]) < skip + size:
+        return 0, 0, 0
+    if skip:
+        di[pos >> 3] = _WRAP
+        di[(pos >> 3) + 1] = 0
+        w += skip
+        pos = 0
+    return 1, w, pos >> 3
+
+
+@numba.njit(cache=True)
+def _commit(h, w, size):
+    """Publish the frame written at ``w``: its data first (a release fence), then the counters."""
+    _release_fence()
+    h[_W_POS] = w + size
+    h[_W_MSGS] = h[_W_MSGS] + 1
+
+
+@numba.njit(cache=True)
 def put_seq_floats(h, di, df, cap, max_messages, keys, seq, c0, c1, c2, c3, c4, ncols) -> int:
     """:meth:`MessageRing.put` of ``{key0: seq, key1: concatenate(c0 .. c<ncols-1>)}`` (int64 ``seq``,
     float64 columns of its length, ``keys`` the four words of :func:`key_words` of both keys), compiled:
@@ -307,21 +338,9 @@ def put_seq_floats(h, di, df, cap, max_messages, keys, seq, c0, c1, c2, c3, c4, 
     n = seq.shape[0]
     size = 16 + 32 + 8 * n + 32 + 8 * ncols * n
     size = (size + 15) & ~15
-    if size > cap // 2:
-        return -1
-    if h[_W_MSGS] - h[_R_MSGS] >= max_messages:
-        return 0
-    w = h[_W_POS]
-    pos = w % cap
-    skip = cap - pos if pos + size > cap else 0
-    if cap - (w - h[_R_POS]) < skip + size:
-        return 0
-    if skip:
-        di[pos >> 3] = _WRAP
-        di[(pos >> 3) + 1] = 0
-        w += skip
-        pos = 0
-    p = pos >> 3
+    ok, w, p = _reserve(h, di, cap, max_messages, size)
+    if ok != 1:
+        return ok
     di[p] = size
     di[p + 1] = 2
     di[p + 2] = keys[0]
@@ -341,9 +360,7 @@ def put_seq_floats(h, di, df, cap, max_messages, keys, seq, c0, c1, c2, c3, c4, 
         for i in range(n):
             df[o + i] = c[i]
         o += n
-    _release_fence()                    # data first, then the counters
-    h[_W_POS] = w + size
-    h[_W_MSGS] = h[_W_MSGS] + 1
+    _commit(h, w, size)
     return 1
 
 
@@ -358,21 +375,9 @@ def put_rows(h, di, df, cap, max_messages, keys, index, rows, n, tail_keys, tail
     if tail:
         size += 32 + 8 + 32 + 8 * nv
     size = (size + 15) & ~15
-    if size > cap // 2:
-        return -1
-    if h[_W_MSGS] - h[_R_MSGS] >= max_messages:
-        return 0
-    w = h[_W_POS]
-    pos = w % cap
-    skip = cap - pos if pos + size > cap else 0
-    if cap - (w - h[_R_POS]) < skip + size:
-        return 0
-    if skip:
-        di[pos >> 3] = _WRAP
-        di[(pos >> 3) + 1] = 0
-        w += skip
-        pos = 0
-    p = pos >> 3
+    ok, w, p = _reserve(h, di, cap, max_messages, size)
+    if ok != 1:
+        return ok
     di[p] = size
     di[p + 1] = m + 2 if tail else m
     q = p + 2
@@ -398,9 +403,7 @@ def put_rows(h, di, df, cap, max_messages, keys, index, rows, n, tail_keys, tail
         di[q + 3] = nv
         for j in range(nv):
             df[q + 4 + j] = tail_values[j]
-    _release_fence()
-    h[_W_POS] = w + size
-    h[_W_MSGS] = h[_W_MSGS] + 1
+    _commit(h, w, size)
     return 1
 
 
@@ -417,21 +420,9 @@ def put_sums(h, di, df, cap, max_messages, keys, harmonics, S1, S2, quantum, sca
     nq, nsc = quantum.shape[0], scalars.shape[0]
     size = 16 + (32 + 8 * H) + (32 + 8 * ns) + (32 + 8 * nq) + (32 + 8 * nsc) + (32 + ((codec_len + 7) & ~7))
     size = (size + 15) & ~15
-    if size > cap // 2:
-        return -1
-    if h[_W_MSGS] - h[_R_MSGS] >= max_messages:
-        return 0
-    w = h[_W_POS]
-    pos = w % cap
-    skip = cap - pos if pos + size > cap else 0
-    if cap - (w - h[_R_POS]) < skip + size:
-        return 0
-    if skip:
-        di[pos >> 3] = _WRAP
-        di[(pos >> 3) + 1] = 0
-        w += skip
-        pos = 0
-    p = pos >> 3
+    ok, w, p = _reserve(h, di, cap, max_messages, size)
+    if ok != 1:
+        return ok
     di[p] = size
     di[p + 1] = 5
     q = p + 2
@@ -461,9 +452,7 @@ def put_sums(h, di, df, cap, max_messages, keys, harmonics, S1, S2, quantum, sca
     di[q], di[q + 1], di[q + 2], di[q + 3] = keys[8], keys[9], 2, codec_len  # codec: uint8
     for i in range((codec_len + 7) >> 3):
         di[q + 4 + i] = codec[i]
-    _release_fence()
-    h[_W_POS] = w + size
-    h[_W_MSGS] = h[_W_MSGS] + 1
+    _commit(h, w, size)
     return 1
 
 
