@@ -136,6 +136,17 @@ class Backend(ABC):
             raise BackendStateError(f"read() in state {self.state.value}")
         return self._read()
 
+    def read_position(self) -> tuple[float, float] | None:
+        """(theta1, theta2) [rad] while open and not yet active: where the axis is before anything is
+        energized (the run checks it against the window and the reference). None: the device cannot
+        say before it streams."""
+        if self.state is not State.OPEN:
+            raise BackendStateError(f"read_position() in state {self.state.value}")
+        return self._read_position()
+
+    def _read_position(self) -> tuple[float, float] | None:
+        return None
+
     #: a simulation in this process (the loop reports its stepping apart from the tick's work)
     simulated = False
 

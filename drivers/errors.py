@@ -61,3 +61,9 @@ class TravelLimitTrip(SafetyTrip):
     """The table would leave its window (position or predicted stopping distance)."""
 
     cause = "travel-limit"
+
+
+class SpeedTrip(SafetyTrip):
+    """The table moves faster than ``[safety] max_speed_m_s``."""
+
+    cause = "speed-limit"

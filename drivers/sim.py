@@ -35,7 +35,8 @@ from drivers.errors import DriverError, TravelLimitTrip
 from drivers.sim_plan import PM_OFF, PM_SIZE, new_plan, plan_take, plan_write
 from rt_ident.axis.friction import Friction
 from rt_ident.axis.params import AxisParams, thomson_x
-from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantBlock, PlantSimulator, SensorConfig
+from rt_ident.axis.plant import (DEFAULT_KD, DEFAULT_KP, HoldController, PlantBlock, PlantSimulator, SensorConfig,
+                                 rest_at)
 from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -73,6 +74,7 @@ class SimConfig(BaseModel):
     # friction to ground and backlash (rt_ident.axis.friction.Friction keys, or preset = "thomson");
     # None / all zero: the frictionless plant. [plant.friction] of a run config lands here.
     friction: Optional[dict[str, Any]] = None
+    x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: the table's start on the scale (at rest)
 
     @field_validator("travel")
     @classmethod
@@ -116,7 +118,7 @@ class SimBackend(Backend):
                                           kd=DEFAULT_KD if cfg.kd is None else cfg.kd)
                            if cfg.position_hold else None)
         self.friction = Friction.from_mapping(cfg.friction, where="backend.friction")
-        self.plant = self._make_plant(self.controller, x0=None)
+        self.plant = self._make_plant(self.controller, x0=rest_at(cfg.x0, self.true_params.lead))
         self._changes = _changes(cfg.changes, self.true_params, self._dt)
         # the step matrices of each change, computed now: a change costs the loop's tick no expm
         self._change_matrices = [self.plant.matrices_for(p) for _, p in self._changes]
@@ -168,6 +170,10 @@ class SimBackend(Backend):
     def _open(self) -> None:
         # Compile (or load from cache) the plant kernel now, not in the first hot-path read().
         self.plant.step_block(np.empty(0))
+
+    def _read_position(self) -> tuple[float, float]:
+        st = self.plant.state
+        return float(st[0]), float(st[2])
 
     def _activate(self) -> None:
         self._produced = 0

@@ -350,6 +350,7 @@ def _print_run(s: dict) -> None:
               f"{loop.get('overruns', 0)} overruns, lateness p50 {_fmt(lat.get('p50'))} us, "
               f"p99 {_fmt(lat.get('p99'))} us, max {_fmt(lat.get('max'))} us; "
               f"telemetry dropped {s['telemetry'].get('dropped', 0)}")
+    _print_stalls(loop)
     lost, n = loop.get("lost_samples") or 0, loop.get("samples") or 0
     if lost and lost > 0.01 * (n + lost):
         hint = ""
@@ -427,7 +428,9 @@ def _print_axes(s: dict) -> None:
         for d in ("ccw", "cw"):
             f = c.get(d)
             if f:
-                parts.append(f"{d.upper()} G {f['G_um']:.2f} um, F {f['F_min_um']:+.2f}/{f['F_max_um']:+.2f} um")
+                parts.append(f"{d.upper()} G {f['G_um']:.2f} um, F {f['F_min_um']:+.2f}/{f['F_max_um']:+.2f} um"
+                             + (f" (disturbed by a loop stall at {f['disturbed_by_stall_at_s']:g} s: not a "
+                                "measurement of the axis)" if "disturbed_by_stall_at_s" in f else ""))
         h = f"; H {c['H_um']:.2f} um" if c.get("H_um") is not None else ""
         out.print(f"circular test (ISO 230-4), R {c['radius_mm']:g} mm at {c['feed_mm_min']:.0f} mm/min: "
                   + "; ".join(parts) + h + (f"; polar plot {c['polar_png']}" if c.get("polar_png") else ""))
@@ -439,6 +442,7 @@ def _print_axes(s: dict) -> None:
         out.print(f"loop (all axes): {loop.get('ticks', 0)} ticks, {loop.get('samples', 0)} samples, "
                   f"{loop.get('overruns', 0)} overruns; tick work p50 {_fmt(work.get('p50'))} us, "
                   f"p99 {_fmt(work.get('p99'))} us; lateness p99 {_fmt(lat.get('p99'))} us")
+        _print_stalls(loop)
     if s.get("data_lost"):
         out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
     stop = s.get("stop") or {}
@@ -446,6 +450,13 @@ def _print_axes(s: dict) -> None:
         where = f" on axis {stop['axis']}" if stop.get("axis") else ""
         err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {stop.get('message')} - every axis at zero "
                   "torque, disabled")
+
+
+def _print_stalls(loop: dict) -> None:
+    st = loop.get("stalls") or {}
+    if st.get("count"):
+        out.print(f"[yellow]loop stalls: {st['count']}[/], longest {st['longest_ms']:.0f} ms (the host stopped ticking "
+                  "that long; safety.on_stall says what the loop did)")
 
 
 def _print_trust(trust: dict | None, trusted: bool | None = None) -> None:

@@ -107,12 +107,20 @@ class ControlConfig(_Section):
     trust_tolerance: float = Field(0.05, gt=0)        # per-sample estimate vs frequency fit: trusted when within
     probe_scale_trusted: float = Field(1.0, gt=0, le=1)  # probing amplitude x this while the estimate is trusted
     delay_ticks: int = Field(1, ge=1, le=5)           # ticks from the newest sample until the torque lands
+    drive_holds: bool = False                         # a real drive holds the axis itself (a position mode):
+                                                      # the only way mode = "off" runs on a real drive
 
     def settings(self):
         from rt_ident.control.adaptation import ControlSettings
 
         return ControlSettings(**{k: v for k, v in self.model_dump().items()
                                   if k in ControlSettings.__dataclass_fields__})
+
+
+class ActualPlant(_Section):
+    """``[plant.actual]``: the simulated device's own truth where it differs from the host's config."""
+
+    x0: float = Field(0.0, allow_inf_nan=False, ge=-10.0, le=10.0)   # m: the table's start on the scale
 
 
 class PlantConfig(_Section):
@@ -122,6 +130,9 @@ class PlantConfig(_Section):
 
     change: list[dict[str, float]] = Field(default_factory=list)  # {at = s, I1/I2/B/K = factor}
     friction: Optional[dict[str, Any]] = None
+    # the simulated device as it truly is where it differs from what the host is told: x0 = where the
+    # table starts [m on the scale] (handed to the sim backend or the emulator as its x0)
+    actual: Optional[ActualPlant] = None
 
     @model_validator(mode="after")
     def _friction_valid(self) -> "PlantConfig":
@@ -146,6 +157,21 @@ class SafetyConfig(_Section):
     # s the loop's last planned torque is held past the end of its plan (about two ticks ahead) before the
     # command drops to zero: a stalled host, or one without fresh feedback, leaves the axis coasting
     torque_hold: float = Field(0.005, ge=0)
+    # a tick later than this is a loop stall (rt_ident.runtime.stall): "resume" re-plans from where the
+    # table is, "stop" stops safely; a stall longer than max_stall_stop_s always stops
+    max_stall_s: float = Field(0.01, gt=0, allow_inf_nan=False)
+    on_stall: Literal["resume", "stop"] = "resume"
+    max_stall_stop_s: float = Field(1.0, gt=0, allow_inf_nan=False)
+    # m/s the table may move at (estimated from the scale); None: sized from the reference's speed, its
+    # approach limits and the probing excitation's own motion (rt_ident.runtime.preflight)
+    max_speed_m_s: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _stall_order(self) -> "SafetyConfig":
+        if self.max_stall_stop_s < self.max_stall_s:
+            raise ValueError(f"max_stall_stop_s: must be >= max_stall_s = {self.max_stall_s:g} s, "
+                             f"got {self.max_stall_stop_s:g}")
+        return self
 
 
 class TelemetryConfig(_Section):
@@ -230,25 +256,30 @@ class RunConfig(_Section):
 
     @model_validator(mode="before")
     @classmethod
-    def _plant_friction_to_backend(cls, data: Any) -> Any:
-        """``[plant.friction]`` goes to the sim backend as its ``friction`` option (an explicit
-        ``[backend] friction`` wins), or to an emulated device as ``[emulator] friction``; a real
-        device refuses it."""
-        if not isinstance(data, dict):
+    def _plant_to_device(cls, data: Any) -> Any:
+        """``[plant.friction]`` and ``[plant.actual]`` describe the simulated device: they go to the sim
+        backend as its ``friction`` / ``x0`` options (an explicit ``[backend]`` key wins), or to an
+        emulated device's ``[emulator]`` table; a real device refuses them."""
+        if not isinstance(data, dict) or not isinstance(data.get("plant"), dict):
             return data
-        fr = (data.get("plant") or {}).get("friction") if isinstance(data.get("plant"), dict) else None
-        if fr is None:
+        plant = data["plant"]
+        moved: dict[str, Any] = {}
+        if plant.get("friction") is not None:
+            moved["friction"] = dict(plant["friction"]) if isinstance(plant["friction"], dict) else plant["friction"]
+        actual = plant.get("actual")
+        if isinstance(actual, dict) and "x0" in actual:
+            moved["x0"] = actual["x0"]
+        if not moved:
             return data
-        backend = dict(data.get("backend") or {})
+        backend = dict(data.get("backend") or {}) if isinstance(data.get("backend"), dict) else {}
         if backend.get("name", "sim") == "sim":
-            backend.setdefault("friction", dict(fr))
-            return {**data, "backend": backend}
+            return {**data, "backend": {**moved, **backend}}
         if backend.get("emulate"):                 # the emulated drive or board simulates it
-            emulator = dict(data.get("emulator") or {})
-            emulator.setdefault("friction", dict(fr))
-            return {**data, "emulator": emulator}
-        raise ValueError(f"plant.friction: a real {backend.get('name')!r} device has its own friction; only the sim "
-                         "backend and the emulated devices simulate it")
+            emulator = dict(data.get("emulator") or {}) if isinstance(data.get("emulator"), dict) else {}
+            return {**data, "emulator": {**moved, **emulator}}
+        what = "friction" if "friction" in moved else "actual"
+        raise ValueError(f"plant.{what}: describes a simulated device; a real {backend.get('name')!r} device has "
+                         "its own (only the sim backend and the emulated devices take it)")
 
 
 def _field_name(err: dict) -> str:
@@ -260,7 +291,11 @@ def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfi
         cfg = RunConfig.model_validate({**data, "source": source})
     except ValidationError as exc:
         first = exc.errors()[0]
-        raise ConfigError(_field_name(first) or "config", first["msg"]) from None
+        field, msg = _field_name(first), str(first["msg"]).removeprefix("Value error, ")
+        head, sep, rest = msg.partition(": ")
+        if sep and head.replace(".", "").replace("_", "").isalnum():   # a check across fields names its field
+            field, msg = (f"{field}.{head}" if field else head), rest
+        raise ConfigError(field or "config", msg) from None
     cfg.axis_params()  # validate physical values now, naming the field
     if cfg.axes:
         cfg.axis_configs()   # every axis validated now, errors naming axes.NAME...

@@ -158,6 +158,9 @@ def _landing(delay: int) -> np.ndarray:
         def observe(self, *a):
             pass
 
+        def start(self, *a):
+            pass
+
     backend = SimBackend({"paced": False, "samples_per_read": 34, "position_hold": False})
     rec = Recorder()
     blocks = []
@@ -194,6 +197,9 @@ class _KF:
 class _Est:
     def update_block(self, *a):
         return False
+
+    def skip(self, n):
+        pass
 
 
 class _Safe:
@@ -286,8 +292,10 @@ def test_feedback_that_stops_ends_the_torque_at_the_lease_before_the_watchdog_tr
     cmd = np.concatenate([b.torque_cmd for b in hidden])
     dt = backend.sample_period
     first = int(seq[0])                          # the first sample the host never read
-    covered = first + loop._plan_len + math.ceil(hold / dt)
-    live = cmd[seq < covered]
-    assert np.all(np.abs(live) > 0.01)            # the last plan (its +-0.02 probe) holds right after the silence
+    last = first + loop._plan_len - 1            # the last plan's last value: the control torque alone
+    covered = last + 1 + math.ceil(hold / dt)
+    assert np.all(np.abs(cmd[seq < last]) > 0.01)     # the last plan (its +-0.02 probe) runs after the silence
+    held = cmd[(seq >= last) & (seq < covered)]
+    assert held.size and np.all(held == held[0]) and abs(held[0]) < 0.01   # the lease holds no probe
     assert np.all(cmd[seq >= covered] == 0.0), "torque still applied after plan + lease"
     assert seq[-1] - covered > 0.01 / dt          # and the watchdog came well after the torque ended

@@ -28,8 +28,10 @@ def _config(tmp_path: Path, port: int) -> Path:
     # README describes and the drive's placement (its READY line), not this host's worst 10 ms
     text = re.sub(r"(?m)^stale_limit = .*$", "stale_limit = 200", text)
     text = re.sub(r"(?m)^position_hold = false", "position_hold = true", text)    # [emulator]: the drive holds
+    # ... and the host, which sees a real drive, is told so (without it, --control off is refused)
+    text = re.sub(r"(?m)^\[control\]$", "[control]\ndrive_holds = true", text)
     assert "emulate = false" in text and f"port = {port}" in text and "stale_limit = 200" in text
-    assert "[emulator]\nposition_hold = true" in text
+    assert "[emulator]\nposition_hold = true" in text and "drive_holds = true" in text
     shutil.copy(ROOT / "configs" / "cia402_generic.eds", tmp_path)
     path = tmp_path / "my-drive.toml"
     path.write_text(text)

@@ -179,7 +179,7 @@ def test_recursive_dft_kernel_matches_python_reference_and_fft():
         H = h.size
         table = np.exp(-2j * np.pi * np.arange(N) / N)
         arrays = [np.zeros(H, np.int64), np.zeros((3, H), complex), np.zeros((3, H), complex),
-                  np.zeros((H, 3, 3), complex), np.zeros(6), np.zeros(3), np.zeros(2)]
+                  np.zeros((H, 3, 3), complex), np.zeros(7), np.zeros(3), np.zeros(2)]
         n = kernel(x[0], x[1], x[2], h, table, *arrays, 0.9, 1)
         return n, arrays
     n_c, a_c = run(rdft_accumulate)

@@ -121,7 +121,9 @@ def test_sigint_stops_safely_with_zero_torque(tmp_path):
 
 
 def test_travel_trip_stops_with_a_cause_and_keeps_the_recording(tmp_path):
-    s = run(cfg(safety__window=[-1e-7, 1e-7]), record=str(tmp_path / "t.parquet"))
+    # a drive declared to hold the axis that does not: the probe walks the free table out of its window
+    s = run(cfg(safety__window=[-2e-4, 2e-4], control__mode="off", control__drive_holds=True),
+            record=str(tmp_path / "t.parquet"))
     assert s["stop"]["cause"] == "travel-limit"
     assert s["stop"]["final_torque"] == 0.0
     assert len(read_recording(tmp_path / "t.parquet")) == s["loop"]["samples"]

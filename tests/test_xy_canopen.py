@@ -189,12 +189,13 @@ def _xy_canopen(**over):
     # both drives faulted on heartbeat loss at once, cause not found yet), nor 20 ticks without a sample
     # (seen once in a fresh-clone CI run: X's watchdog tripped in the run that injects Y's fault; 20 runs
     # here, 8 of them beside a busy loop on each core, did not repeat it). What is tested here is the two
-    # drives on one bus and a drive's own fault, not the watchdogs: tests/test_canopen_backend.py and
+    # drives on one bus and a drive's own fault, not the watchdogs or the speed limit: tests/test_canopen_backend.py and
     # tests/test_xy.py cover those
     return load("configs/xy-canopen-virtual.toml", **{"loop.realtime": True, "telemetry.sink": "off",
                                                       "recording.enabled": False, "backend.stale_limit": 200,
                                                       "backend.heartbeat_consumer_ms": 1000,
-                                                      "safety.watchdog_ticks": 200, **over})
+                                                      "safety.watchdog_ticks": 200,
+                                                      "safety.max_speed_m_s": 1.0, **over})
 
 
 @pytest.mark.slow

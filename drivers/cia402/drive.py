@@ -132,6 +132,14 @@ class Cia402Backend(Backend):
                                     cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo)
         self._hb_time = time.monotonic()
 
+    def _read_position(self) -> tuple[float, float]:
+        """0x6064 and the table scale object, by SDO (the drive reports them whatever its state)."""
+        cfg, setup = self.config, self._setup
+        assert setup is not None
+        counts = setup.upload(p402.POSITION_ACTUAL, 0, " (the motor position before enabling)")
+        scale = setup.upload(cfg.scale_index, cfg.scale_subindex, " (the table position before enabling)")
+        return counts * (_TWO_PI / cfg.counts_per_rev), scale * (cfg.scale_resolution / cfg.lead)
+
     def _activate(self) -> None:
         cfg, setup = self.config, self._setup
         assert setup is not None and self._asm is not None

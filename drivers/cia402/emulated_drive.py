@@ -182,9 +182,11 @@ class EmulatedCia402Drive:
         self._supported = od_value(node, p402.SUPPORTED_MODES)
         for key in ((p402.MAX_TORQUE, 0), (p402.MODES_OF_OPERATION, 0), (_QUICK_STOP_OPTION, 0)):
             self._values[key] = od_value(node, *key)
+        counts, scale = self._encoders(float(self.plant.state[0]), float(self.plant.state[2]))
         self._values.update({(p402.CONTROLWORD, 0): 0, (p402.TARGET_TORQUE, 0): 0, (0x60B2, 0): 0,
                              (p402.MODES_DISPLAY, 0): 0, (p402.ERROR_CODE, 0): 0, (p402.ERROR_REGISTER, 0): 0,
-                             (p402.POSITION_ACTUAL, 0): 0, (p402.TORQUE_ACTUAL, 0): 0, self.scale_key: 0})
+                             (p402.POSITION_ACTUAL, 0): counts, (p402.TORQUE_ACTUAL, 0): 0,
+                             self.scale_key: scale})      # the encoders read from power-up on
         node.add_write_callback(self._on_write)
         node.add_read_callback(self._on_read)
         self._node = node
@@ -420,15 +422,14 @@ class EmulatedCia402Drive:
         self._use_controller(enabled)
         blk = self.plant.step_block(np.array([torque]))
         self.applied_torque = float(blk.torque_applied[0]) if enabled else 0.0
-        counts = int(math.floor(float(blk.theta1[0]) * self.counts_per_rev / (2.0 * math.pi) + 0.5))
+        counts, scale = self._encoders(float(blk.theta1[0]), float(blk.theta2[0]))
         f, n = self.faults, self.samples
         if f.stuck_encoder_at_sample is not None and n >= f.stuck_encoder_at_sample:
             if self._stuck_counts is None:
                 self._stuck_counts = v[(p402.POSITION_ACTUAL, 0)]
             counts = self._stuck_counts
-        x = float(blk.theta2[0]) * self.plant.params.lead
-        v[(p402.POSITION_ACTUAL, 0)] = _int32(counts)
-        v[self.scale_key] = _int32(int(math.floor(x / self.scale_resolution + 0.5)))
+        v[(p402.POSITION_ACTUAL, 0)] = counts
+        v[self.scale_key] = scale
         meas = float(blk.torque_meas[0]) if enabled else 0.0
         v[(p402.TORQUE_ACTUAL, 0)] = _int16(meas * 1000.0 / self.rated_torque)
         if enabled and f.emcy_at_sample is not None and n == f.emcy_at_sample:
@@ -437,6 +438,13 @@ class EmulatedCia402Drive:
             self._fault(0x8612, "table outside its travel")
         self._set_state(self._state)                      # refresh the statusword
         self._send_tpdos(enabled, n)
+
+    def _encoders(self, theta1: float, theta2: float) -> tuple[int, int]:
+        """The motor encoder's counts and the table scale's steps (0x6064 and the scale object) at the
+        quantized angles the plant's sensors report."""
+        counts = int(math.floor(theta1 * self.counts_per_rev / (2.0 * math.pi) + 0.5))
+        x = theta2 * self.plant.params.lead
+        return _int32(counts), _int32(int(math.floor(x / self.scale_resolution + 0.5)))
 
     def _step_state_machine(self, controlword: int) -> None:
         state = self._state

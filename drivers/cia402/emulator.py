@@ -54,6 +54,7 @@ class EmulatorConfig(BaseModel):
     seed: int = 0
     faults: dict[str, Any] = Field(default_factory=dict)
     friction: Optional[dict[str, Any]] = None       # rt_ident.axis.friction.Friction keys or preset = "thomson"
+    x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: where the table starts (at rest)
 
 
 def _sections(config: Any) -> tuple[dict, dict, AxisParams]:
@@ -77,7 +78,7 @@ def _eds_path(name: str) -> Path:
 def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
     """Construct (not start) the emulated drive a run configuration describes."""
     from drivers.cia402.config import validate
-    from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig
+    from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig, rest_at
 
     backend, emulator, axis = _sections(config)
     cfg = validate(backend)
@@ -99,7 +100,8 @@ def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
     friction = Friction.from_mapping(emu.friction, where="emulator.friction") if emu.friction else None
     plant = PlantSimulator(axis, cfg.sample_period, sensors=sensors, controller=controller,
                            torque_limit=emu.torque_limit or cfg.torque_limit, travel=emu.travel,
-                           integrator=emu.integrator, seed=emu.seed, friction=friction)
+                           integrator=emu.integrator, seed=emu.seed, friction=friction,
+                           x0=rest_at(emu.x0, axis.lead))
     bus = cfg.bus_kwargs()
     return EmulatedCia402Drive(emu.node_id or cfg.node_id, _eds_path(emu.eds or cfg.eds), bus, plant,
                                FaultConfig.from_mapping(emu.faults), counts_per_rev=cfg.counts_per_rev,

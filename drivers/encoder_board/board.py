@@ -167,6 +167,10 @@ class SerialBoardBackend(Backend):
                                 f"{cfg.startup_timeout} s ({self.bytes_read} bytes, {d.crc_errors} CRC errors, "
                                 f"{d.garbage_bytes} garbage bytes)")
         log.info("serial board on %s: streaming (seq %d)", self.port, int(got["seq"][0]))
+        self._opened_at = (float(got["enc"][-1]) * self._rad_per_count, float(got["scale"][-1]) * self._rad_per_scale)
+
+    def _read_position(self) -> tuple[float, float]:
+        return self._opened_at
 
     def _activate(self) -> None:
         self._send(sp.encode_enable())

@@ -96,6 +96,7 @@ class EmulatorConfig(BaseModel):
     silent: bool = False
     deaf: bool = False
     friction: Optional[dict[str, Any]] = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
+    x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # [m] where the table starts (at rest)
 
 
 def parse_emulator(data: Mapping[str, Any], where: str = "emulator") -> EmulatorConfig:

@@ -33,7 +33,7 @@ from drivers.encoder_board import protocol as sp
 from drivers.encoder_board.config import EmulatorConfig, SerialBoardConfig, parse_emulator, parse_serial
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.friction import Friction
-from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig, rest_at
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,7 @@ class EmulatedBoard:
         self._plan: np.ndarray | None = None
         self._k = 0                      # samples produced (wire seq = seq0 + k)
         self._rebuilds = 0
-        self._plant = self._make_plant(controller=None, x0=None)
+        self._plant = self._make_plant(controller=None, x0=rest_at(self.cfg.x0, self.params.lead))
         self._last_theta1 = 0.0
         self._stuck_counts: int | None = None
         self._decoder = sp.FrameDecoder()

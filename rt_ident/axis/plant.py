@@ -321,3 +321,12 @@ class PlantSimulator:
 
 def _first_non_finite(a: np.ndarray) -> int:
     return int(first_non_finite3(a, a, a)) if a.size else -1     # one compiled pass (see kernels)
+
+
+def rest_at(x0: float, lead: float) -> np.ndarray | None:
+    """The initial state (Eq. 8 order) with the table at rest at ``x0`` [m on the scale] and the coupling
+    relaxed (motor and table at the same angle); None (the default, all zero) for the origin."""
+    if x0 == 0.0:
+        return None
+    th = x0 / lead
+    return np.array([th, 0.0, th, 0.0])

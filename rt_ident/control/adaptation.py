@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from rt_ident.axis.params import AxisParams
+from rt_ident.control.anchor import Anchor, ReferenceOptions
 from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_gain_view, loop_margins
 from rt_ident.control.law import Controller, StateFeedback
 from rt_ident.errors import RtIdentError
@@ -236,13 +237,16 @@ class Supervisor:
     """
 
     def __init__(self, settings: ControlSettings, nominal: AxisParams, *, tick: float, torque_limit: float,
-                 reference, worker=None, error_after_s: float | None = None, per_sample=None) -> None:
+                 reference, worker=None, error_after_s: float | None = None, per_sample=None,
+                 reference_options: ReferenceOptions | None = None) -> None:
         self.s = settings
         self.per_sample = per_sample            # e.g. rt_ident.estimators.svf.SvfEstimator, fed every sample
         self.nominal = nominal
         self.tick_s = tick
         self.lead = nominal.lead
-        self.reference = reference
+        self.reference = reference              # the configured path; the controller follows self.anchor
+        self.anchor = Anchor(reference, reference_options or ReferenceOptions())
+        self._last_stall: tuple[float, float] | None = None     # (t, length [s]) of the newest loop stall
         self.worker = worker
         self.error_after_s = error_after_s
         self.conservative = rigid_controller(nominal, tick, settings)
@@ -293,10 +297,42 @@ class Supervisor:
     def reference_at(self, t: float) -> tuple[float, float, float, float]:
         """The reference at ``t`` (position, velocity, acceleration) and its acceleration half a tick
         after the torque computed now lands (the feedforward's)."""
-        ref = self.reference
+        ref = self.anchor
         xr, vr, ar = ref.point(t)
         return xr, vr, ar, ref.point(t + 1.5 * self.tick_s)[2]
 
+    def start(self, t: float, th1: float, w1: float, th2: float, w2: float) -> None:
+        """The first tick: the reference is anchored where the table is (:mod:`rt_ident.control.anchor`).
+        The table was at rest when the drive was enabled: what speed it shows now is the probe's first
+        millisecond, not a motion to follow."""
+        a = self.anchor
+        a.start(t, self.lead * th2, 0.0)
+        detail = f"origin {a.origin * 1e3:+.3f} mm ({a.options.origin})"
+        if a.rejoining and a.last_rejoin is not None and abs(a.last_rejoin["offset_m"]) > 1e-6:
+            r = a.last_rejoin
+            detail += (f"; approach {r['offset_m'] * -1e3:+.3f} mm to the path's start in "
+                       f"{r['duration_s']:.2f} s")
+        self.stats.events.append((t, "anchored", detail))
+
+    def resume(self, t: float, th1: float, w1: float, th2: float, w2: float, stall_s: float) -> None:
+        """The first tick after a loop stall long enough that the drive dropped the host's torque:
+        re-plan from where the table is (a rejoin from its position and speed to the path), nothing in
+        flight, the integral re-seeded for zero feedback torque. The torque does not step."""
+        a = self.anchor
+        x, v = self.lead * th2, self.lead * w2
+        a.replan(t, x, v)
+        xr, vr, ar = a.point(t)
+        self.law.rebase(th1, w1, th2, w2, xr, vr, ar, self.lead)
+        self._last_stall = (t, stall_s)
+        self.stats.events.append((t, "stall", f"{stall_s * 1e3:.0f} ms loop stall: re-planned from x = "
+                                             f"{x * 1e3:+.3f} mm at {v * 1e3:+.1f} mm/s"))
+
+    def after_stall(self, t: float, within_s: float = 2.0) -> str:
+        """' (0.40 s after a 470 ms loop stall)' when a stall came shortly before ``t``, else ''."""
+        st = self._last_stall
+        if st is None or not 0.0 <= t - st[0] <= within_s:
+            return ""
+        return f" ({t - st[0]:.2f} s after a {st[1] * 1e3:.0f} ms loop stall)"
 
     def _watch(self, t: float, abs_err: float) -> None:
         """Error above the bound: fall back to the conservative controller (once), and start the
@@ -321,7 +357,8 @@ class Supervisor:
                     self.stats.events.append((t, "applied", "the model controller held through the fallback"))
         if self._fallback_since is not None and t - self._fallback_since > s.fallback_timeout_s:
             raise ControlFallbackStop(f"tracking error above {s.max_error_m * 1e6:.1f} um for more than "
-                                      f"{s.fallback_timeout_s:g} s on the conservative controller")
+                                      f"{s.fallback_timeout_s:g} s on the conservative controller"
+                                      + self.after_stall(t, within_s=s.fallback_timeout_s + 2.0))
 
     def _fall_back(self, t: float, why: str, hold_current: bool = False) -> None:
         """Onto the conservative controller. ``hold_current`` (a tracking-error fallback): the model
@@ -333,7 +370,7 @@ class Supervisor:
         self.in_fallback = True
         self._fallback_since = t
         self.stats.fallbacks += 1
-        self.stats.events.append((t, "fallback", why))
+        self.stats.events.append((t, "fallback", why + self.after_stall(t)))
         self._switch(self.conservative)
 
     def adopt(self, ctrl: Controller) -> None:
@@ -522,6 +559,8 @@ class Supervisor:
                 "gains": [float(g) for g in self.controller.gains],
                 "margins": self.controller.margins,
                 "max_switch_step_nm": st.max_step_nm,
+                "reference": {"origin": self.anchor.options.origin, "origin_m": self.anchor.origin,
+                              "rejoins": self.anchor.rejoins, "last_rejoin": self.anchor.last_rejoin},
                 "per_sample": self._per_sample_summary(),
                 "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
 

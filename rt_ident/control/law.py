@@ -189,12 +189,27 @@ class StateFeedback:
         self.controller = controller
         c = self.consts
         c[C_INERTIA], c[C_I2], c[C_K] = controller.inertia, controller.model.I2, controller.model.K
-        e1, e2, e3, e4 = _errors(c, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
-        rest = g[0] * e1 + g[1] * e2 + g[2] * e3 + g[3] * e4 + _dot(g[4:-1], self.st[ST_FLIGHT:])
-        if abs(g[-1]) > 0.0 and math.isfinite(old):
-            self.st[ST_XI] = (-old - rest) / g[-1]     # same feedback torque under the new gains
         self.gains[:] = g                              # in place: the compiled tick holds a view
+        self._seed_integral(old, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)   # same feedback torque
         return self.feedback_torque(th1, w1, th2, w2, x_ref, v_ref, a_ref, lead) - old
+
+    def rebase(self, th1: float, w1: float, th2: float, w2: float, x_ref: float, v_ref: float, a_ref: float,
+               lead: float, u_fb: float = 0.0) -> None:
+        """After the drive dropped the host's torque (a stall outlasted the plan's lease): nothing is in
+        flight any more, and the integral is re-seeded so that the feedback torque at this state is
+        ``u_fb`` (the torque the drive applies now), so the next torque does not step."""
+        self.st[ST_FLIGHT:] = 0.0
+        self._seed_integral(u_fb, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
+
+    def _seed_integral(self, u_fb: float, th1: float, w1: float, th2: float, w2: float, x_ref: float,
+                       v_ref: float, a_ref: float, lead: float) -> None:
+        """xi such that the feedback torque under the gains in force is ``u_fb`` (unchanged without an
+        integral gain or a finite target)."""
+        g = self.gains
+        e1, e2, e3, e4 = _errors(self.consts, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
+        rest = g[0] * e1 + g[1] * e2 + g[2] * e3 + g[3] * e4 + _dot(g[4:-1], self.st[ST_FLIGHT:])
+        if abs(g[-1]) > 0.0 and math.isfinite(u_fb):
+            self.st[ST_XI] = (-u_fb - rest) / g[-1]
 
     def feedback_torque(self, th1: float, w1: float, th2: float, w2: float, x_ref: float, v_ref: float,
                         a_ref: float, lead: float) -> float:

@@ -48,15 +48,29 @@ class Hold:
         return float(self.position), 0.0, 0.0
 
 
-def _s_curve(distance: float, v_max: float, a_max: float, j_max: float) -> list[tuple[float, float]]:
+def ramp_times(v: float, a_max: float, j_max: float) -> tuple[float, float]:
+    """(jerk time, total time) of a jerk-limited change of velocity by ``v`` >= 0 from rest acceleration
+    to rest acceleration (trapezoidal acceleration, triangular when a_max is not reached)."""
+    if v * j_max < a_max * a_max:
+        tj = math.sqrt(v / j_max)
+        return tj, 2.0 * tj
+    tj = a_max / j_max
+    return tj, v / a_max + tj
+
+
+def velocity_change(dv: float, a_max: float, j_max: float) -> list[tuple[float, float]]:
+    """(duration, jerk) segments that change the velocity by ``dv`` (either sign) within the limits,
+    starting and ending with zero acceleration."""
+    tj, ta = ramp_times(abs(dv), a_max, j_max)
+    j = j_max if dv > 0 else -j_max
+    return [s for s in ((tj, j), (ta - 2.0 * tj, 0.0), (tj, -j)) if s[0] > 0.0]
+
+
+def s_curve(distance: float, v_max: float, a_max: float, j_max: float) -> list[tuple[float, float]]:
     """(duration, jerk) segments of a rest-to-rest move over ``distance`` > 0 within the limits."""
 
     def accel_time(v: float) -> tuple[float, float]:         # (jerk time, total accel time) to reach v
-        if v * j_max < a_max * a_max:                        # a_max not reached: triangular acceleration
-            tj = math.sqrt(v / j_max)
-            return tj, 2.0 * tj
-        tj = a_max / j_max
-        return tj, v / a_max + tj
+        return ramp_times(v, a_max, j_max)
 
     v = v_max
     tj, ta = accel_time(v)
@@ -78,7 +92,7 @@ def _s_curve(distance: float, v_max: float, a_max: float, j_max: float) -> list[
 
 
 @dataclass(frozen=True)
-class _Segments:
+class Segments:
     """Piecewise-cubic x(t) from (start time, jerk, a0, v0, x0) per segment."""
 
     t0: np.ndarray
@@ -88,8 +102,9 @@ class _Segments:
     x0: np.ndarray
 
     @classmethod
-    def build(cls, x_start: float, segments: list[tuple[float, float]], t_start: float = 0.0) -> "_Segments":
-        t, x, v, a = t_start, x_start, 0.0, 0.0
+    def build(cls, x_start: float, segments: list[tuple[float, float]], t_start: float = 0.0,
+              v_start: float = 0.0) -> "Segments":
+        t, x, v, a = t_start, x_start, v_start, 0.0
         rows = []
         for dur, jerk in segments:
             rows.append((t, jerk, a, v, x))
@@ -140,7 +155,7 @@ class Moves:
     dwell: float = 0.2
     start: float = 0.0
     repeat: bool = True
-    _cycle: _Segments = field(init=False, repr=False, compare=False)
+    _cycle: Segments = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if len(self.positions) < 1:
@@ -158,14 +173,14 @@ class Moves:
         for target in pos[1:]:
             d = target - x
             if d != 0.0:
-                for dur, jerk in _s_curve(abs(d), self.v_max, self.a_max, self.j_max):
+                for dur, jerk in s_curve(abs(d), self.v_max, self.a_max, self.j_max):
                     signed.append((dur, jerk if d > 0 else -jerk))
                 segs += signed
                 signed = []
             if self.dwell > 0:
                 segs.append((self.dwell, 0.0))
             x = target
-        object.__setattr__(self, "_cycle", _Segments.build(pos[0], segs))
+        object.__setattr__(self, "_cycle", Segments.build(pos[0], segs))
 
     @property
     def cycle(self) -> float:

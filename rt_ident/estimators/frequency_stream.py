@@ -35,8 +35,8 @@ from rt_ident.estimators.frequency import (DEFAULT_LEAD, FitResult, Spectra, Spe
 
 logger = logging.getLogger(__name__)
 
-# state vector layout of the kernel
-_POS, _W, _W2, _DONE, _USED, _HAS_LAST = range(6)
+# state vector layout of the kernel (_SKIP: periods completed up to this count stay out of the sums)
+_POS, _W, _W2, _DONE, _USED, _HAS_LAST, _SKIP = range(7)
 
 
 def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, harmonics: np.ndarray,
@@ -46,8 +46,8 @@ def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, har
     """Feed a block of samples; returns the number of periods added to the sums.
 
     table (N,) complex exp(-2 pi j k/N); idx (H,) int current h n mod N; acc (3, H) complex
-    current-period DFT; S1 (3, H), S2 (H, 3, 3) complex running sums; state (6,) float
-    [position in period, W, W2, periods completed, periods used, has-last flag];
+    current-period DFT; S1 (3, H), S2 (H, 3, 3) complex running sums; state (7,) float
+    [position in period, W, W2, periods completed, periods used, has-last flag, skip through];
     last (3,) previous sample; qmin (2,) smallest non-zero angle steps seen (0 = none yet).
     """
     N = table.shape[0]
@@ -79,7 +79,7 @@ def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, har
         if pos >= N:
             pos = 0.0
             state[_DONE] += 1.0
-            if state[_DONE] > discard:
+            if state[_DONE] > discard and state[_DONE] > state[_SKIP]:
                 for j in range(H):
                     for r in range(3):
                         S1[r, j] = lam * S1[r, j] + acc[r, j]
@@ -148,7 +148,7 @@ class StreamingFrequencyEstimator:
         self._acc = np.zeros((3, H), complex)
         self._S1 = np.zeros((3, H), complex)
         self._S2 = np.zeros((H, 3, 3), complex)
-        self._state = np.zeros(6)
+        self._state = np.zeros(7)
         self._last = np.zeros(3)
         self._qmin = np.zeros(2)
         self._count = np.zeros(1, dtype=np.int64)     # samples fed (in place: see rt_ident.runtime.tick_core)
@@ -168,6 +168,15 @@ class StreamingFrequencyEstimator:
         return int(self._kernel(a, b, c, self.harmonics, self._table, self._idx, self._acc, self._S1,
                                 self._S2, self._state, self._last, self._qmin, self.forgetting,
                                 self.discard_periods))
+
+    def skip(self, n: int) -> None:
+        """The next ``n`` samples are not to be used (a loop stall: no excitation, a coasting table):
+        every period they touch, and the one after (the resumed loop's transient), stays out of the sums."""
+        if n <= 0:
+            return
+        st = self._state
+        touched = (int(st[_POS]) + int(n)) // self.period + 1
+        st[_SKIP] = max(st[_SKIP], st[_DONE] + touched + 1)
 
     @property
     def periods(self) -> int:

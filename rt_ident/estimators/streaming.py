@@ -112,6 +112,10 @@ class FrequencyStream:
         a, b, c = self.gaps(theta1, theta2, torque, seq)
         return self.inner.update_block(a, b, c) > 0
 
+    def skip(self, n: int) -> None:
+        """Leave the excitation periods the next ``n`` samples touch out of the fit (a loop stall)."""
+        self.inner.skip(n)
+
     def snapshot(self):
         """The running sums (:class:`~rt_ident.estimators.frequency.SpectraSums`), None before a period."""
         return self.inner.sums() if self.inner.periods >= 1 else None
@@ -140,6 +144,11 @@ class PaperStream:
         self._prev: np.ndarray | None = None
         self.gaps = _GapFiller()
         self._since = 0
+        self._skip = 0
+
+    def skip(self, n: int) -> None:
+        """The next ``n`` samples are filtered but not regressed (a loop stall)."""
+        self._skip = max(self._skip, int(n))
 
     def update_block(self, theta1, theta2, torque, seq) -> bool:
         a, b, c = self.gaps(theta1, theta2, torque, seq)
@@ -147,6 +156,10 @@ class PaperStream:
         x = np.column_stack((st.theta[:, 0], st.omega[:, 0], st.theta[:, 1], st.omega[:, 1], c))
         if self._prev is not None:
             x = np.vstack((self._prev, x))
+        if self._skip:
+            drop = min(self._skip, x.shape[0] - 1)
+            self._skip -= drop
+            x = x[drop:]
         if x.shape[0] >= 2:
             self.rls.update_block(x[:-1], x[1:, :4])     # Eq. (9): [x_k, T_k] -> x_{k+1}
         self._prev = x[-1:].copy()

@@ -17,7 +17,8 @@ entity                                      block keys (see :mod:`rt_ident.runti
 ``params/{I1,I2,B,K}/true``                 ``set_truth({...})``                             SI
 ``params/{I1,I2,B,K}/per_sample``           ``svf_I1`` ... (the per-sample estimate)         SI
 ``modal/{wn,wd,zeta}/estimate|ci95|true``   ``wn``, ``wd``, ``zeta``, ``lo_wn`` ...          rad/s, -
-``loop/lateness_us``, ``loop/overruns``     ``lateness_us``, ``overruns``                    us, count
+``loop/lateness_us``                        ``lateness_us``                                  us
+``loop/events/{overruns,stalls}``           ``overruns``, ``stalls`` (past max_stall_s)      count
 ``control/position``                        ``x_ref``, ``x_table``                           m
 ``control/error``                           ``error_m`` (table minus reference)              m
 ``control/gains/{theta2,omega1}``           ``gain_theta2``, ``gain_omega1``                 N m/rad, N m s/rad
@@ -62,7 +63,9 @@ TORQUE_DRIVE = "torque/drive"
 TORQUE_NRMSE = "torque/nrmse_percent"
 TORQUE_CONTROL = "torque/control"
 LATENESS = "loop/lateness_us"
-OVERRUNS = "loop/overruns"
+LOOP_EVENTS = "loop/events"
+OVERRUNS = f"{LOOP_EVENTS}/overruns"
+STALLS = f"{LOOP_EVENTS}/stalls"
 FRF = "frf"
 
 
@@ -112,6 +115,7 @@ ENTITY_SERIES: Mapping[str, tuple[str, ...]] = MappingProxyType(
         **{interval_path(k): (f"lo_{k}", f"hi_{k}") for k in ESTIMATE_KEYS},
         LATENESS: ("lateness_us",),
         OVERRUNS: ("overruns",),
+        STALLS: ("stalls",),
         "control/position": ("x_ref", "x_table"),
         "control/error": ("error_m",),
         TORQUE_CONTROL: ("u_control",),
@@ -147,6 +151,7 @@ SERIES_STYLES: Mapping[str, tuple[tuple[str, ...], tuple[tuple[int, int, int], .
         TORQUE_CONTROL: (("control torque [N m]",), (_ORANGE,)),
         LATENESS: (("tick lateness [us] (max per 10 ticks)",), (_PURPLE,)),
         OVERRUNS: (("overruns [count]",), (_RED,)),
+        STALLS: (("loop stalls [count]",), (_PURPLE,)),
         "control/position": (("reference [m]", "table [m]"), (_GREY, _EST_COLOR)),
         "control/error": (("tracking error [m]",), (_RED,)),
         "control/gains/theta2": (("gain on theta2 [N m/rad]",), (_EST_COLOR,)),
@@ -316,7 +321,7 @@ def default_blueprint() -> Any:
         rrb.TimeSeriesView(origin="control/redesigns", name="redesigns accepted / rejected, fallbacks"),
         rrb.TimeSeriesView(origin=ANGLES, name="encoder angles [rad]"),
         rrb.TimeSeriesView(origin=LATENESS, name="loop lateness [us]"),
-        rrb.TimeSeriesView(origin=OVERRUNS, name="loop overruns"),
+        rrb.TimeSeriesView(origin=LOOP_EVENTS, name="loop overruns and stalls"),
         frf(f"{FRF}/theta2/phase", "FRF theta2/T phase [deg]"),
     ]
     # "following": the time cursor stays at the newest data (live and when a finished .rrd opens), so

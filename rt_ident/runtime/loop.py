@@ -46,6 +46,7 @@ from rt_ident.runtime.loop_telemetry import TelemetryWindow
 from rt_ident.runtime.tick_core import AxisCore
 from rt_ident.runtime.safety import SafetyMonitor
 from rt_ident.runtime.scheduler import LatenessHistogram, Ticker
+from rt_ident.runtime.stall import LoopStall, StallLog, StallPolicy
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,7 @@ class LoopStats:
     work_cpu: LatenessHistogram = field(default_factory=LatenessHistogram)
     # a simulated device's stepping ahead after the tick (Backend.step_ahead), not part of ``work``
     sim_ahead: LatenessHistogram = field(default_factory=LatenessHistogram)
+    stalls: StallLog = field(default_factory=StallLog)
 
     def as_dict(self) -> dict[str, Any]:
         lat = self.lateness.summary()
@@ -84,6 +86,7 @@ class LoopStats:
                 "lateness_us": {"p50": lat["p50"], "p99": lat["p99"], "max": lat["max"]},
                 "work_us": {"p50": work["p50"], "p99": work["p99"], "max": work["max"]},
                 "work_cpu_us": {"p50": cpu["p50"], "p99": cpu["p99"], "max": cpu["max"]},
+                "stalls": self.stalls.as_dict(),
                 **({"sim_ahead_us": {k: ahead[k] for k in ("p50", "p99", "max")}}
                    if (ahead := self.sim_ahead.summary())["count"] else {})}
 
@@ -97,6 +100,34 @@ class LoopStats:
 #: same either way: the controller's torque lands ``delay_ticks`` >= 1 tick later, and the probe's
 #: values are the same in both plans.
 SIM_AHEAD_MARGIN_S = 100e-6
+
+
+def _stall_before(loops: list["IdentificationLoop"], blocks: list[SampleBlock], stats: LoopStats,
+                  policy: StallPolicy, info, period: float, now: float) -> None:
+    """A tick whose deadline came ``skipped`` periods and ``lateness`` late: past ``policy.max_s`` it is a
+    stall (rt_ident.runtime.stall). Each axis then resumes on this tick, or the blocks read are recorded
+    and the loop stops."""
+    stall_s = info.skipped * period + info.lateness_s
+    verdict = policy.verdict(stall_s)
+    if verdict is None:
+        return
+    action = "resume" if verdict == "resume" else "stop"
+    for st in [stats] + [lp.stats for lp in loops if lp.stats is not stats]:
+        st.stalls.note(now, stall_s, action)        # the loop's and each axis's (its dashboard shows it)
+    if verdict != "resume":
+        for lp, block in zip(loops, blocks):
+            lp.stats.samples += len(block)
+            if lp.on_block is not None and len(block):
+                lp.on_block(block)              # nothing read is lost
+        raise LoopStall(verdict)
+    for lp in loops:
+        lp._resume = stall_s
+
+
+def _note_stall(exc: BaseException, stats: LoopStats, now: float) -> None:
+    """A stop shortly after a stall says so (``exc.after_stall``, added to the stop message)."""
+    if stats.stalls.count and not isinstance(exc, LoopStall):
+        exc.after_stall = stats.stalls.before(now)      # type: ignore[attr-defined]
 
 
 def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
@@ -130,7 +161,8 @@ class IdentificationLoop(TelemetryWindow):
                  max_sleep_s: float | None = 100e-6, control=None, ticker: Ticker | None = None,
                  probe_period: int | None = None, on_fit: Callable[[float, Any], Any] | None = None,
                  on_loop_gain: Callable[[float, Any, Any], Any] | None = None, friction=None,
-                 friction_feedforward: bool = True, compiled_tick: bool = True) -> None:
+                 friction_feedforward: bool = True, compiled_tick: bool = True,
+                 stall: StallPolicy | None = None) -> None:
         self.backend = backend
         self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hz = tick_hz
@@ -155,6 +187,8 @@ class IdentificationLoop(TelemetryWindow):
         self.clock = clock
         self.tick_hook = tick_hook          # test seam: e.g. inject a slow tick
         self.stats = LoopStats()
+        self.stall_policy = stall or StallPolicy()
+        self._resume: float | None = None   # a stall's length [s] until the tick that resumes from it
         self.identification = None          # latest Identification (or None before the first period)
         self.control = control              # the host's position controller (None: excitation only)
         self.friction = friction            # per-sample friction-model estimator ([estimator] model), or None
@@ -225,36 +259,46 @@ class IdentificationLoop(TelemetryWindow):
         clock = self.clock
         cpu_clock = time.thread_time
         last_cpu = 0.0
+        policy = self.stall_policy
         self.ticker.start()
-        for _ in range(n_ticks):
-            if self.stop_event.is_set():
-                break
-            info = self.ticker.wait_next()
-            t0 = clock()
-            c0 = cpu_clock()
-            _count_tick(stats, info, last_cpu, period)
-            block = backend.read()
-            self._process(block, info.lateness_s)
-            self._write_plan()
-            t1 = clock()
-            stats.work.record(t1 - t0)
-            # a simulated device steps through the samples due by the next deadline now (a real one
-            # does nothing): what the tick's work measures is the host's part, as with a device
-            backend.step_ahead(self.ticker.next_deadline() - t1 + SIM_AHEAD_MARGIN_S)
-            if backend.simulated:
-                stats.sim_ahead.record(clock() - t1)
-            last_cpu = cpu_clock() - c0
-            stats.work_cpu.record(last_cpu)
-            if self.tick_hook is not None:
-                self.tick_hook(stats.ticks)
+        try:
+            for _ in range(n_ticks):
+                if self.stop_event.is_set():
+                    break
+                info = self.ticker.wait_next()
+                t0 = clock()
+                c0 = cpu_clock()
+                _count_tick(stats, info, last_cpu, period)
+                block = backend.read()
+                if info.skipped or info.lateness_s > policy.max_s:
+                    _stall_before([self], [block], stats, policy, info, period, t0)
+                self._process(block, info.lateness_s)
+                self._write_plan()
+                t1 = clock()
+                stats.work.record(t1 - t0)
+                # a simulated device steps through the samples due by the next deadline now (a real one
+                # does nothing): what the tick's work measures is the host's part, as with a device
+                backend.step_ahead(self.ticker.next_deadline() - t1 + SIM_AHEAD_MARGIN_S)
+                if backend.simulated:
+                    stats.sim_ahead.record(clock() - t1)
+                last_cpu = cpu_clock() - c0
+                stats.work_cpu.record(last_cpu)
+                if self.tick_hook is not None:
+                    self.tick_hook(stats.ticks)
+        except RtIdentError as exc:
+            _note_stall(exc, stats, clock())
+            raise
         self._flush_telemetry()
         return stats
 
     # --------------------------------------------------------------- pieces
     def _process(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
         core = self._core
-        if core is not None and core.tick(self, block, lateness_s):
-            return
+        if core is not None:
+            if self._resume is None and core.tick(self, block, lateness_s):
+                return
+            if self._resume is not None:            # a resume is the Python path's (the controller re-plans)
+                core.python_ticks += 1
         self._process_py(block, lateness_s)
 
     def _process_py(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
@@ -269,12 +313,18 @@ class IdentificationLoop(TelemetryWindow):
         if self.on_block is not None:               # record first: a block that trips a check is kept
             self.on_block(block)
         torque = block.torque
+        resume = self._resume is not None
         states = self.kf.filter_block(block.theta1, block.theta2, block.seq)
+        if resume:                                      # the stall's samples: no excitation, a coasting table
+            self.est.skip(int(block.seq[-1]) + 1 - self._next_seq)
         if self.est.update_block(block.theta1, block.theta2, torque, block.seq):
             self._snapshot_due()
         ctl = self.control
         if ctl is not None:                             # the per-sample estimator, every sample
-            ctl.observe(block.theta1, block.theta2, torque, block.lost > 0 or int(block.seq[0]) != self._next_seq)
+            ctl.observe(block.theta1, block.theta2, torque,
+                        resume or block.lost > 0 or int(block.seq[0]) != self._next_seq)
+        elif resume:
+            self._resume = None
         if self.friction is not None:
             self._friction(block, torque, ctl, stats.ticks)
         if self.worker is not None:
@@ -356,11 +406,19 @@ class IdentificationLoop(TelemetryWindow):
         """The controller's torque from the newest sample's state estimate; it lands ``delay`` ticks
         after that sample (the delay the controller was designed with)."""
         last = int(block.seq[-1])
-        if self._seq0 is None:
-            self._seq0 = int(block.seq[0])
         th, om = states.theta[-1], states.omega[-1]
-        u = ctl.tick((last - self._seq0) * self.backend.sample_period, float(th[0]), float(om[0]),
-                     float(th[1]), float(om[1]))
+        first = self._seq0 is None
+        if first:
+            self._seq0 = int(block.seq[0])
+        t = (last - self._seq0) * self.backend.sample_period
+        state = (float(th[0]), float(om[0]), float(th[1]), float(om[1]))
+        if first:                                       # the reference starts where the table is
+            ctl.start(t, *state)
+        elif self._resume is not None:                  # the drive dropped the torque during the stall
+            ctl.resume(t, *state, self._resume)
+            tk.clear_schedule(self.book_i, self.book_f)
+        self._resume = None
+        u = ctl.tick(t, *state)
         ctl.poll()
         if not tk.schedule_torque(self.book_i, self.book_f, last, ctl.law.delay * self._per_tick, u):
             raise RtIdentError(f"more than {tk.SCHED_CAP} control torques in flight (delay {ctl.law.delay} ticks)")
@@ -376,6 +434,8 @@ class IdentificationLoop(TelemetryWindow):
         ctl = self.control
         if ctl is not None:
             tk.shape_plan(torque, start, self.book_i, self.book_f, self._probe_period or 1, float(ctl.probe_scale))
+        elif torque.size:
+            torque[-1] = 0.0        # the value a lease holds: not the probe's instant (tick_kernel.shape_plan)
         self.backend.write(torque, start_seq=start, lease=self._lease)
 
     def _excitation_window(self, start: int) -> np.ndarray:
@@ -402,7 +462,7 @@ class MultiAxisLoop:
     def __init__(self, axes: dict[str, IdentificationLoop], *, tick_hz: float, duration: float,
                  stop_event: threading.Event | None = None, clock: Callable[[], float] = time.perf_counter,
                  ticker: Ticker | None = None, max_sleep_s: float | None = 100e-6,
-                 tick_hook: Callable[[int], None] | None = None) -> None:
+                 tick_hook: Callable[[int], None] | None = None, stall: StallPolicy | None = None) -> None:
         if not axes:
             raise ValueError("MultiAxisLoop needs at least one axis")
         self.axes = dict(axes)
@@ -413,6 +473,7 @@ class MultiAxisLoop:
         self.ticker = ticker or Ticker(1.0 / tick_hz, clock=clock, max_sleep_s=max_sleep_s)
         self.tick_hook = tick_hook
         self.stats = LoopStats()
+        self.stall_policy = stall or StallPolicy()
         # the name of the axis whose read, processing, plan or simulation step raised (None: none did)
         self.failed_axis: str | None = None
 
@@ -433,6 +494,7 @@ class MultiAxisLoop:
         last_cpu = 0.0
         spent = [0.0] * len(axes)
         any_simulated = any(ax.backend.simulated for ax in axes)
+        policy = self.stall_policy
         self.ticker.start()
         try:
             for _ in range(int(round(self.duration * self.tick_hz))):
@@ -448,6 +510,9 @@ class MultiAxisLoop:
                     t1 = clock()
                     blocks.append(ax.backend.read())
                     spent[cur] = clock() - t1
+                cur = -1
+                if info.skipped or info.lateness_s > policy.max_s:
+                    _stall_before(axes, blocks, stats, policy, info, period, t0)
                 for cur, (ax, block) in enumerate(zip(axes, blocks)):
                     _count_tick(ax.stats, info, last_cpu, period)
                     t1 = clock()
@@ -474,8 +539,9 @@ class MultiAxisLoop:
                 cur = -1
                 if self.tick_hook is not None:
                     self.tick_hook(stats.ticks)
-        except BaseException:
+        except BaseException as exc:
             self.failed_axis = names[cur] if cur >= 0 else None
+            _note_stall(exc, stats, clock())
             raise
         finally:
             stats.samples = sum(ax.stats.samples for ax in axes)

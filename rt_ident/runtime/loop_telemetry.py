@@ -160,20 +160,20 @@ class TelemetryWindow:
         """The signals that hold one value over a telemetry window (the estimate, its intervals, the
         controller's figures, the overruns), as (names, values). They go as one vector (``window``), not
         as ~30 arrays of k equal values: building and copying those was most of a window's hand-off.
-        They change only with a new estimate, a new controller, a redesign's verdict, a fallback or an
-        overrun: the vector is rebuilt then, and handed over as it is otherwise."""
-        ident, ctl, overruns = self.identification, self.control, self.stats.overruns
+        They change only with a new estimate, a new controller, a redesign's verdict, a fallback, an
+        overrun or a stall: the vector is rebuilt then, and handed over as it is otherwise."""
+        ident, ctl, overruns, stalls = self.identification, self.control, self.stats.overruns, self.stats.stalls.count
         c = ctl.controller if ctl is not None else None
         if c is not None and self.on_loop_gain is not None and c is not self._shown_controller and k:
             self._shown_controller = c
             self.on_loop_gain(float(self.tick_rows[0, k - 1]), c.loop_view,
                               {"pm_deg": (c.margins or {}).get("pm_deg"), "gm_db": c.gain_margin_db})
         st = ctl.stats if ctl is not None else None
-        key = (overruns, st.accepted, st.rejected, st.fallbacks) if st is not None else (overruns,)
+        key = (overruns, stalls, st.accepted, st.rejected, st.fallbacks) if st is not None else (overruns, stalls)
         cached = self._win_cache
         if cached[0] is ident and cached[1] is c and cached[2] == key:
             return cached[3]
-        part: dict[str, float] = {"overruns": float(overruns)}
+        part: dict[str, float] = {"overruns": float(overruns), "stalls": float(stalls)}
         if ident is not None:
             p = ident.params
             part["I1"], part["I2"], part["B"], part["K"] = p.I1, p.I2, p.B, p.K

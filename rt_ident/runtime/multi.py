@@ -45,7 +45,7 @@ from rt_ident.runtime.host import (HostSteal, LoopCpuInterrupts, apply_run_realt
 from rt_ident.runtime.run import (_backend_counters, _controller, _excitation, _final_fit, _ident_summary,
                                   _install_signals, _quanta, _warmup, backend_options, friction_estimator,
                                   friction_summary, recording_metadata)
-from rt_ident.runtime.safety import SafetyMonitor
+from rt_ident.runtime import preflight
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +88,9 @@ class ContourTrace:
     def __call__(self) -> None:
         if not self.active or self.n >= self.buf.shape[0]:
             return
-        cx, cy = self.ctl["x"], self.ctl["y"]
-        self.buf[self.n] = (cx.t, cx.x_ref + cx.error, cy.x_ref + cy.error, cx.x_ref, cy.x_ref)
+        cx, cy = self.ctl["x"], self.ctl["y"]           # relative to each axis's origin: the circle's frame
+        ox, oy = cx.anchor.origin, cy.anchor.origin
+        self.buf[self.n] = (cx.t, cx.x_ref + cx.error - ox, cy.x_ref + cy.error - oy, cx.x_ref - ox, cy.x_ref - oy)
         self.n += 1
 
     def result(self, png: str | None, rrd: str | None = None, live_url: str | None = None) -> dict[str, Any] | None:
@@ -108,6 +109,11 @@ class ContourTrace:
             return {"note": "the run ended before the circle began"}
         fig = circle_figures(paths, R, (0.0, -R))
         fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * self.ref.frequency_hz
+        stalls = [t for c in self.ctl.values() for t, kind, _ in c.stats.events if kind == "stall"]
+        for d, (t0, t1) in self.ref.measured().items():
+            hit = [t for t in stalls if t0 - 0.5 <= t <= t1]     # the rejoin after a stall lasts up to ~0.5 s
+            if d in fig and hit:                                 # the host, not the axis, made that turn
+                fig[d]["disturbed_by_stall_at_s"] = round(hit[0], 3)
         fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.measured()[d][1] for d in ("ccw", "cw")}
         fig["overshoot_deg"] = self.ref.overshoot_deg
         if png:
@@ -142,10 +148,11 @@ def check_axes(cfg: RunConfig) -> dict[str, RunConfig]:
         check_shared_bus([validate(acfg.backend.options()) for acfg in axes.values()])
     for name, acfg in axes.items():
         check_methods(acfg)
+        from rt_ident.control.anchor import split_reference_table
         from rt_ident.control.reference import make_reference
 
         try:
-            make_reference(acfg.reference)            # a bad reference is refused before anything starts
+            make_reference(split_reference_table(acfg.reference)[0])   # a bad reference is refused now
         except ConfigError as exc:
             raise ConfigError(f"axes.{name}.{exc.field}", str(exc)[len(exc.field) + 2:]) from None
     return axes
@@ -188,6 +195,8 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     parts: dict[str, dict[str, Any]] = {name: {} for name in axes_cfg}
     host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None, "interrupts": None}
     stop_cause = stop_message = stop_axis = None
+    enabled = False
+    refused: ConfigError | None = None
     multi = None
     trace: ContourTrace | None = None
     old_signals = _install_signals(stop)
@@ -210,6 +219,10 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                         o["port"] = emulator.port
             for name, acfg in axes_cfg.items():
                 backends[name] = make_backend(acfg.backend.name, opts[name])
+                try:
+                    preflight.check_config(acfg, backends[name].torque_limit)
+                except ConfigError as exc:
+                    raise ConfigError(f"axes.{name}.{exc.field}", str(exc)[len(exc.field) + 2:]) from None
             helpers: dict[str, Any] = {}
             for name, acfg in axes_cfg.items():
                 backend, part = backends[name], parts[name]
@@ -242,10 +255,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                 control, ctl_worker = _controller(acfg, backend, stack, (q1, q2))
                 if ctl_worker is not None:
                     helpers[f"control-{name}"] = ctl_worker
-                safety = SafetyMonitor(lead=truth.lead, window=tuple(acfg.safety.window),
-                                       max_decel=acfg.safety.max_decel, watchdog_ticks=acfg.safety.watchdog_ticks,
-                                       stuck_torque=acfg.stuck_torque(),
-                                       torque_hold=acfg.safety.torque_hold)
+                safety = preflight.safety_monitor(acfg, dt)
                 tel, rec = part.get("telemetry"), part.get("recorder")
                 loops[name] = IdentificationLoop(
                     backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(acfg), state_estimator=kf,
@@ -270,7 +280,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
 
             multi = MultiAxisLoop(loops, tick_hz=cfg.loop.tick_hz, duration=cfg.loop.duration, stop_event=stop,
                                   max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
-                                  tick_hook=hooks)
+                                  tick_hook=hooks, stall=preflight.stall_policy(cfg))
             for part in parts.values():
                 if part.get("recorder") is not None:
                     part["recorder"].wait_ready(30.0)
@@ -286,11 +296,17 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                                                             device=getattr(emulator, "pid", None), roles=roles)
             for backend in backends.values():
                 stack.enter_context(backend)           # open(); on exit (any axis's error too): safe stop, close
+            for name, backend in backends.items():     # nothing energized that would trip on its first ticks
+                start = backend.read_position()
+                if start is not None:
+                    preflight.check_start(axes_cfg[name], axes_cfg[name].axis_params().lead * start[1],
+                                          backend.sample_period, where=name)
             summary["realtime"] = apply_run_realtime(cfg)
             poller = start_idle_poll(cfg, summary["realtime"], [multi.ticker], stack)
             switch_interval = sys.getswitchinterval()
             stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
+            enabled = True
             for backend in backends.values():
                 backend.activate()
             steal = HostSteal()
@@ -308,10 +324,12 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             for name, loop in loops.items():
                 parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
     except RtIdentError as exc:
+        if isinstance(exc, ConfigError) and not enabled:
+            refused = exc                                  # refused before enabling: a one-line error, exit 2
         stop_cause = getattr(exc, "cause", "error")
         stop_axis = multi.failed_axis if multi is not None and multi.failed_axis is not None else \
             next((n for n, lp in loops.items() if _tripped(lp, exc)), None)
-        stop_message = str(exc)
+        stop_message = str(exc) + getattr(exc, "after_stall", "")
         log.info("run stopped: %s", exc)
         for name, loop in loops.items():
             parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
@@ -347,6 +365,8 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
         if multi is None or multi.stats.samples == 0:      # read nothing: leave no empty files behind
             for name in files:
                 remove_empty_outputs(summary["axes"][name], files[name])
+    if refused is not None:
+        raise refused
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "axis": stop_axis,
                        "interrupted": stop.is_set(),
                        "final_torque": {n: b.last_torque for n, b in backends.items()},

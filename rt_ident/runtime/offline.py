@@ -23,8 +23,8 @@ from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.estimators.streaming import fit_snapshot
 from rt_ident.errors import ConfigError
 from rt_ident.runtime.fit_worker import newest_result
+from rt_ident.runtime import preflight
 from rt_ident.runtime.loop import IdentificationLoop
-from rt_ident.runtime.safety import SafetyMonitor
 from rt_ident.runtime.scheduler import Ticker
 
 
@@ -97,27 +97,28 @@ class InlineWorker:
 
 def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], None] | None = None,
                 fit_latency: float = 0.1, record: str | None = None, overwrite: bool = False,
-                loop_options: dict[str, Any] | None = None) -> dict[str, Any]:
+                loop_options: dict[str, Any] | None = None, paced: bool = False) -> dict[str, Any]:
     """Run ``cfg`` (a ``sim`` backend) on virtual time; returns identification, control and truth.
 
     ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
     ``record``: write every sample to this ``.parquet`` with the metadata ``rt-ident run`` writes (in
     this process: the recorder of :mod:`rt_ident.runtime.recording`, no helper process).
     ``loop_options``: more keyword arguments of the :class:`IdentificationLoop` (e.g. a telemetry
-    consumer ``on_telemetry``).
+    consumer ``on_telemetry``). ``paced``: the sim produces the samples due on the virtual clock, as
+    on the wall clock in a real run (a hook that advances ``loop.clock.now`` then stalls the loop).
     """
-    from drivers import make_backend
     from rt_ident.runtime.run import (_excitation, _quanta, _warmup, backend_options, controller_for, friction_estimator,
                                       friction_summary, recording_metadata)
 
     if cfg.backend.name != "sim":
         raise ConfigError("backend.name", "the offline loop runs the sim backend only")
-    opts = {**backend_options(cfg), "paced": False}
-    backend = make_backend("sim", opts)
+    from drivers.sim import SimBackend
+
+    clock = VirtualClock()
+    backend = SimBackend({**backend_options(cfg), "paced": paced}, clock=clock)
     dt = backend.sample_period
     truth = cfg.axis_params()
     ex = cfg.excitation
-    clock = VirtualClock()
     q1, q2 = _quanta(cfg)
     kf = AxisStateEstimator(dt, q1, q2, cfg.estimator.kalman_process_noise)
     est = make_streaming(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
@@ -126,9 +127,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     fit = InlineWorker(partial(fit_snapshot, cfg.estimator.method, lead=truth.lead), clock, latency=fit_latency)
     ctl = controller_for(cfg, backend, InlineWorker(redesign, clock, latency=0.05, min_interval=0.0), (q1, q2))
     _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
-    safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
-                           watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque(),
-                           torque_hold=cfg.safety.torque_hold)
+    safety = preflight.safety_monitor(cfg, dt)
     recorder = None
     if record is not None:
         from rt_ident.runtime.recording import Recorder
@@ -143,17 +142,19 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
                               tick_hook=None if tick_hook is None else (lambda _n: tick_hook(loop)),
                               friction=friction_estimator(cfg, dt, (q1, q2)),
                               friction_feedforward=cfg.control.friction_feedforward,
-                              compiled_tick=cfg.loop.compiled_tick,
+                              compiled_tick=cfg.loop.compiled_tick, stall=preflight.stall_policy(cfg),
                               **{"on_block": None if recorder is None else
                                  (lambda b: recorder.append(b.t, b.seq, b.theta1, b.theta2, b.torque_cmd, b.torque_meas)),
                                  **(loop_options or {})})
     stop = None
     with backend:
+        start = backend.read_position()
+        preflight.check_start(cfg, truth.lead * start[1], dt)
         backend.activate()
         try:
             loop.run()
         except Exception as exc:  # noqa: BLE001 - a stop is a result here (the bench counts it)
-            stop = f"{type(exc).__name__}: {exc}"
+            stop = f"{type(exc).__name__}: {exc}{getattr(exc, 'after_stall', '')}"
         finally:
             if recorder is not None:
                 recorder.close()

@@ -35,8 +35,8 @@ from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.host import (HostSteal, LoopCpuInterrupts, apply_run_realtime, keep_off_loop_cpu,
                                   start_idle_poll)
 from rt_ident.runtime.loop import IdentificationLoop
+from rt_ident.runtime import preflight
 from rt_ident.runtime.outputs import check_methods, prepare_outputs, remove_empty_outputs
-from rt_ident.runtime.safety import SafetyMonitor
 
 log = logging.getLogger(__name__)
 
@@ -96,13 +96,16 @@ def controller_for(cfg: RunConfig, backend, worker, quanta: tuple[float, float])
     settings = cfg.control.settings()
     if settings.mode == "off":
         return None
+    from rt_ident.control.anchor import split_reference_table
     from rt_ident.control.reference import make_reference
 
+    table, options = split_reference_table(cfg.reference)
     last = cfg.plant.last_change_s()
     return make_controller(settings, cfg.axis_params(), tick=1.0 / cfg.loop.tick_hz,
-                           torque_limit=backend.torque_limit, reference=make_reference(cfg.reference),
+                           torque_limit=backend.torque_limit, reference=make_reference(table),
                            worker=worker, error_after_s=None if last is None else last + 0.5,
-                           per_sample=per_sample_estimator(cfg, backend.sample_period, quanta))
+                           per_sample=per_sample_estimator(cfg, backend.sample_period, quanta),
+                           reference_options=options)
 
 
 def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack, quanta: tuple[float, float]):
@@ -172,6 +175,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None, "interrupts": None}   # filled around loop.run()
     stop_cause = None
     stop_message = None
+    enabled = False
+    refused: ConfigError | None = None
     loop = None
     telemetry = recorder = watch = None
     old_signals = _install_signals(stop)
@@ -179,6 +184,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         with contextlib.ExitStack() as stack:
             if emulator is not None:
                 stack.callback(getattr(emulator, "close", None) or emulator.stop)
+            preflight.check_config(cfg, backend.torque_limit)
             if sink != "off":
                 telemetry = TelemetryProcess(TelemetryConfig(sink=sink, rrd_path=rrd_path, connect_url=connect_url
                                                              or cfg.telemetry.connect_url,
@@ -205,9 +211,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             stack.callback(worker.close)
             _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
             control, ctl_worker = _controller(cfg, backend, stack, (q1, q2))
-            safety = SafetyMonitor(lead=truth.lead, window=tuple(cfg.safety.window), max_decel=cfg.safety.max_decel,
-                                   watchdog_ticks=cfg.safety.watchdog_ticks, stuck_torque=cfg.stuck_torque(),
-                                   torque_hold=cfg.safety.torque_hold)
+            safety = preflight.safety_monitor(cfg, dt)
             watch = HelperWatch({"telemetry": telemetry, "fit": worker, "control": ctl_worker},
                                 restartable=("telemetry", "fit", "control"))
             user_hook = tick_hook
@@ -230,7 +234,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
                 control=control, probe_period=ex.period_samples,
                 friction=friction_estimator(cfg, dt, _quanta(cfg)),
-                friction_feedforward=cfg.control.friction_feedforward, compiled_tick=cfg.loop.compiled_tick)
+                friction_feedforward=cfg.control.friction_feedforward, compiled_tick=cfg.loop.compiled_tick,
+                stall=preflight.stall_policy(cfg))
             if recorder is not None:
                 recorder.wait_ready(30.0)               # its files exist and take bytes before the device moves
             if telemetry is not None:
@@ -247,6 +252,10 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             summary["helper_processes"]["names"] = {str(p): n for n, p in named if p}
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
             stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
+            start = backend.read_position()
+            if start is not None:                    # nothing energized that would trip on its first ticks
+                preflight.check_start(cfg, truth.lead * start[1], dt)
+                summary["start_position_m"] = truth.lead * start[1]
             summary["realtime"] = apply_run_realtime(cfg)
             poller = start_idle_poll(cfg, summary["realtime"], [loop.ticker], stack)
             # a backend's I/O threads (python-can's receiver, a SYNC sender) share this process's GIL:
@@ -254,6 +263,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             switch_interval = sys.getswitchinterval()
             stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
+            enabled = True
             backend.activate()
             steal = HostSteal()
             irqs = LoopCpuInterrupts(steal.cpu)
@@ -268,8 +278,10 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             backend.safe_stop()                      # zero torque before the (slower) final fit
             summary["final_fit_error"] = _final_fit(loop, est)
     except RtIdentError as exc:
+        if isinstance(exc, ConfigError) and not enabled:
+            refused = exc                            # refused before enabling: a one-line error, exit 2
         stop_cause = getattr(exc, "cause", "error")
-        stop_message = str(exc)
+        stop_message = str(exc) + getattr(exc, "after_stall", "")
         log.info("run stopped: %s", exc)        # the summary carries it (the CLI prints it once)
         if loop is not None:                         # nothing lost: still fit what was measured
             summary["final_fit_error"] = _final_fit(loop, loop.est)
@@ -304,6 +316,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 files["rrd"] = telemetry.config.rrd_path
         if loop is None or loop.stats.samples == 0:
             remove_empty_outputs(summary, files)
+    if refused is not None:
+        raise refused
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set(),
                        "final_torque": backend.last_torque, "backend_state": backend.state.value}
     summary["backend_counters"] = _backend_counters(backend)

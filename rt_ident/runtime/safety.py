@@ -3,6 +3,7 @@
 - Position window on the table scale, tripped on the *predicted stopping
   position* x + v|v| / (2 a), not on position alone: a table moving fast toward
   a limit trips while it can still stop inside the window.
+- Speed: the table's estimated speed above ``max_speed`` (m/s).
 - Watchdog: no fresh feedback (no new samples) for ``watchdog_ticks`` ticks.
 - Stuck encoder: samples keep arriving but the motor angle has not changed
   for ``watchdog_ticks`` ticks while torque was commanded.
@@ -23,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import TravelLimitTrip, WatchdogTrip
+from drivers.errors import SpeedTrip, TravelLimitTrip, WatchdogTrip
 
 SAFE_STALE, SAFE_STUCK, SAFE_LAST_THETA1 = range(3)
 
@@ -40,6 +41,7 @@ class SafetyMonitor:
     # s the last planned torque holds past the end of the loop's plan, then zero (Backend.write's lease);
     # None: held until the next plan, as a bare backend does
     torque_hold: float | None = None
+    max_speed: float = math.inf        # m/s of the table
     # the counters (SAFE_*: ticks without samples, ticks with the motor encoder stuck, the last motor
     # angle seen), one array changed in place: the compiled tick (rt_ident.runtime.tick_core) holds a view
     counters: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, math.nan]), repr=False)
@@ -99,6 +101,10 @@ class SafetyMonitor:
         self._last_theta1 = theta1_last
         lo, hi = self.window
         x = self.lead * theta2_last
+        v = self.lead * omega2_last
+        if abs(v) > self.max_speed:
+            raise SpeedTrip(f"table at {v * 1e3:+.1f} mm/s, faster than safety.max_speed_m_s = "
+                            f"{self.max_speed * 1e3:.1f} mm/s (at x={x * 1e3:.3f} mm)")
         x_stop = self.stopping_position(theta2_last, omega2_last)
         if not (lo <= x <= hi) or not (lo <= x_stop <= hi):
             raise TravelLimitTrip(f"table at x={x * 1e3:.3f} mm would stop at {x_stop * 1e3:.3f} mm, outside the "

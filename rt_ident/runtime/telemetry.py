@@ -57,12 +57,13 @@ log = logging.getLogger(__name__)
 
 SINKS: tuple[str, ...] = ("rrd", "spawn", "connect", "serve", "off")
 _CI_KEYS = tuple(f"{side}_{k}" for k in ESTIMATE_KEYS for side in ("lo", "hi"))
-TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("lateness_us", "overruns") + tuple(CONTROL_ENTITIES))
+TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("lateness_us", "overruns", "stalls")
+                                      + tuple(CONTROL_ENTITIES))
 #: Tick-rate signals drawn at a tenth of the tick rate (the lateness as its envelope: every late
 #: tick stays visible); the per-sample estimates settle over ~100 ms, 100 points/s draw them whole.
 THIN_KEYS: Mapping[str, int] = {"lateness_us": 10, **{f"svf_{k}": 10 for k in ("I1", "I2", "B", "K")}}
 #: Tick-rate signals that change only now and then (a fit, a redesign, an overrun): sent as steps.
-STEP_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("overruns", "gain_theta2", "gain_omega1", "pm_deg",
+STEP_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("overruns", "stalls", "gain_theta2", "gain_omega1", "pm_deg",
                                                        "gm_db", "n_accepted", "n_rejected", "fallbacks"))
 _MAX_COALESCE = 256  # blocks taken from the ring per poll
 _MAX_PENDING = 2048  # blocks held in the child before a send even if batch_seconds has not passed

@@ -28,8 +28,9 @@ anything a Python step would change:
   than the buffers, a full recorder ring (the Python put waits; the compiled one never does);
 * from the controller on (:data:`PY_CONTROL`): the tracking error above its bound or a fallback clock
   running (the supervisor acts), a friction feedforward on;
-* from the safety check on (:data:`PY_SAFETY`): the motor encoder unchanged under torque, or the
-  table's stopping position outside the window (the monitor counts or raises, with its message);
+* from the safety check on (:data:`PY_SAFETY`): the motor encoder unchanged under torque, the
+  table's stopping position outside the window or its speed above the limit (the monitor counts or
+  raises, with its message);
 * the telemetry store (:data:`PY_TELEMETRY`): a block that overflows the window (flush first).
 
 Where the Python path hands something over to another process, the kernel writes the same message
@@ -163,6 +164,7 @@ class AxisCore:
                 svf.lam_f, svf.s.rho, svf.s.min_torque ** 2, svf.lam_g
         fc[tk.FC_SAFE_LEAD], (fc[tk.FC_SAFE_LO], fc[tk.FC_SAFE_HI]) = safety.lead, safety.window
         fc[tk.FC_SAFE_DECEL], fc[tk.FC_STUCK_TORQUE] = safety.max_decel, loop._stuck_torque
+        fc[tk.FC_SAFE_VMAX] = safety.max_speed
         ar.own(tk.F_CONST, fc)
         icn = np.zeros(tk.IC_SIZE, dtype=np.int64)
         icn[tk.IC_HAS_CTL] = ctl is not None

@@ -74,12 +74,22 @@ def schedule_torque(bi, bf, last, lag, u) -> bool:
     return True
 
 
+def clear_schedule(bi, bf) -> None:
+    """Nothing in flight and no control torque in force: the drive dropped the host's torque (a stall
+    outlasted the plan's lease), so the plan starts again from zero."""
+    bi[BI_SCHED_N] = 0
+    bf[BF_U_BASE] = 0.0
+
+
 @numba.njit(cache=True)
 def shape_plan(torque, start, bi, bf, period, want) -> None:
     """The plan from the probing excitation ``torque`` (seq ``start`` on, changed in place): the probe at
     the amplitude of its period (``want`` from the next period edge on: dual excitation keeps a whole
     period at one amplitude, periodic for the estimator), plus the control torque, piecewise constant:
-    the one in force, then each in flight from the sample it lands at."""
+    the one in force, then each in flight from the sample it lands at. The last value is the control
+    torque alone: it is the one the drive holds through the lease when no newer plan comes (a stalled
+    host), and the probe's value of that instant, held for milliseconds, would push the table (0.3 N m
+    for 5 ms is 34 mm/s on the THOMSON X axis)."""
     n = torque.shape[0]
     now, later, edge = bf[BF_PROBE_NOW], bf[BF_PROBE_LATER], bi[BI_PROBE_EDGE]
     if start >= edge:
@@ -105,6 +115,8 @@ def shape_plan(torque, start, bi, bf, period, want) -> None:
         for j in range(cut, n):
             torque[j] += d
         level = bf[BF_SCHED_VAL + s]
+    if n:
+        torque[n - 1] = level
 
 
 # explicit types (any layout): whatever strides a backend's block arrays have, nothing compiles in a tick
@@ -142,7 +154,7 @@ I_FS_HARM, I_FS_IDX, I_FS_COUNT, I_GAP_SEQ, I_KF_SEQ, I_BOOK, I_REC_COUNTS, I_CO
 C_FS_TABLE, C_FS_ACC, C_FS_S1, C_FS_S2, C_SLOTS = range(5)
 # F_CONST
 FC_DT, FC_FS_LAM, FC_SVF_LAMF, FC_SVF_RHO, FC_SVF_MINT2, FC_SVF_LAMG, FC_SAFE_LEAD, FC_SAFE_LO, FC_SAFE_HI, \
-    FC_SAFE_DECEL, FC_STUCK_TORQUE, FC_SIZE = range(12)
+    FC_SAFE_DECEL, FC_STUCK_TORQUE, FC_SAFE_VMAX, FC_SIZE = range(13)
 # I_CONST
 (IC_HAS_CTL, IC_HAS_SVF, IC_HAS_TEL, IC_HAS_REC, IC_KF_DIM, IC_H, IC_NMAX, IC_STRIDE, IC_PUBLISH_EVERY,
  IC_PERIOD, IC_LAG, IC_FS_DISCARD, IC_REC_CAP, IC_REC_MAXMSG, IC_REC_KEYS, IC_SIZE) = (*range(15), 18)
@@ -305,7 +317,7 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
     v = lead * big[1, n - 1, 1]
     x_stop = x + v * abs(v) / (2.0 * (lead * fc[FC_SAFE_DECEL]))
     lo, hi = fc[FC_SAFE_LO], fc[FC_SAFE_HI]
-    if not (lo <= x <= hi) or not (lo <= x_stop <= hi):
+    if not (lo <= x <= hi) or not (lo <= x_stop <= hi) or abs(v) > fc[FC_SAFE_VMAX]:
         return code | PY_SAFETY
     sf[SAFE_STALE] = 0.0
     sf[SAFE_STUCK] = 0.0
@@ -355,6 +367,8 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
         plan[j] = table[i + j]
     if has_ctl:
         shape_plan(plan, start, bi, bf, period, want)
+    else:
+        plan[plan.shape[0] - 1] = 0.0          # the value a lease holds: no probe (IdentificationLoop._write_plan)
     return code | PLAN_BUILT
 
 
@@ -444,7 +458,7 @@ def warm_up() -> None:
     """Compile (or load from the cache) the steps the Python path calls one by one, with the argument
     types it calls them with, before a loop's first tick: left to their first call, each cost that
     tick 0.1-2 s (an emulated drive's heartbeat watchdog tripped on one)."""
-    from rt_ident.control.law import feedback_torque
+    from rt_ident.control.law import _errors, feedback_torque
 
     bi, bf = new_books()
     z1, z2 = np.zeros(3), np.zeros((3, 2))
@@ -455,6 +469,7 @@ def warm_up() -> None:
     g, st, c = np.zeros(6), np.zeros(6), np.ones(6)
     law_step(g, st, c, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
     feedback_torque(g, st, c, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    _errors(c, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)       # a controller switch's and a stall resume's
     track_error(np.zeros(NOW_FALLBACK_SINCE + 1), np.zeros(6), np.ones(4), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     from rt_ident.runtime.shm_ring import MessageRing, put_rows
 

@@ -1,0 +1,139 @@
+"""What a run checks and sizes from its config before any device is enabled.
+
+* :func:`safety_monitor` and :func:`stall_policy`: the host-side checks of ``[safety]``, with the
+  speed limit sized from what the axis is asked to do when the config leaves it open;
+* :func:`check_config`: the probing multisine against the torque limit, and no host control only
+  where something else holds the axis;
+* :func:`check_start`: the table's position when the device is opened, against the window, the
+  reference and the probe's own motion, so that nothing is energized that would trip on its first
+  ticks.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rt_ident.config import RunConfig
+from rt_ident.control.anchor import path_samples, split_reference_table
+from rt_ident.errors import ConfigError
+from rt_ident.runtime.safety import SafetyMonitor
+from rt_ident.runtime.stall import StallPolicy
+
+#: the sized speed limit is this multiple of the fastest motion the run asks for (a runaway at the
+#: torque limit passes it within milliseconds; the probe's motion near the loop's crossover is
+#: amplified above its rigid-body value)
+SPEED_MARGIN = 2.0
+#: the probe may take at most this share of the torque limit: the position loop needs the rest
+PROBE_SHARE = 0.5
+
+
+def probe_motion(cfg: RunConfig, sample_period: float) -> tuple[float, float]:
+    """(peak speed [m/s], peak displacement [m]) the probing multisine alone gives the rigid axis,
+    (I1 + I2) d2x/dt2 = lead T: the peaks of its periodic motion (the position loop removes the mean)."""
+    ex = cfg.excitation
+    if ex.kind == "none":
+        return 0.0, 0.0
+    from rt_ident.axis.excitation import schroeder_multisine
+
+    ms = schroeder_multisine(ex.period_samples, ex.band, peak=ex.peak,
+                             phases="schroeder" if ex.kind == "schroeder" else "random", seed=ex.seed)
+    torque = np.asarray(ms.at(np.arange(ex.period_samples)), dtype=float)
+    p = cfg.axis_params()
+    v = np.cumsum(torque - torque.mean()) * sample_period * p.lead / (p.I1 + p.I2)
+    v -= v.mean()
+    x = np.cumsum(v) * sample_period
+    return float(np.max(np.abs(v))), float(np.max(np.abs(x - x.mean())))
+
+
+def _path(cfg: RunConfig):
+    from rt_ident.control.reference import make_reference
+
+    table, opts = split_reference_table(cfg.reference)
+    return make_reference(table), opts
+
+
+def max_speed(cfg: RunConfig, sample_period: float) -> float:
+    """``[safety] max_speed_m_s``, or :data:`SPEED_MARGIN` x (the path's peak speed + its rejoin speed +
+    the probe's own speed)."""
+    if cfg.safety.max_speed_m_s is not None:
+        return float(cfg.safety.max_speed_m_s)
+    path, opts = _path(cfg)
+    path_v = float(np.max(np.abs(path_samples(path)[1]))) if cfg.control.mode != "off" else 0.0
+    return SPEED_MARGIN * (path_v + opts.limits.v_max + probe_motion(cfg, sample_period)[0])
+
+
+def safety_monitor(cfg: RunConfig, sample_period: float) -> SafetyMonitor:
+    """The host-side safety checks of ``cfg`` (:class:`SafetyMonitor`)."""
+    s = cfg.safety
+    return SafetyMonitor(lead=cfg.axis_params().lead, window=tuple(s.window), max_decel=s.max_decel,
+                         watchdog_ticks=s.watchdog_ticks, stuck_torque=cfg.stuck_torque(), torque_hold=s.torque_hold,
+                         max_speed=max_speed(cfg, sample_period))
+
+
+def stall_policy(cfg: RunConfig) -> StallPolicy:
+    s = cfg.safety
+    return StallPolicy(s.max_stall_s, s.on_stall, s.max_stall_stop_s)
+
+
+def drive_holds(cfg: RunConfig) -> bool:
+    """Whether something besides the host holds the axis: the sim's or an emulator's drive-side
+    position loop, or a real drive the user declares in a position mode (``[control] drive_holds``)."""
+    if cfg.control.drive_holds:
+        return True
+    if cfg.backend.name == "sim":
+        return bool(cfg.backend.options().get("position_hold", False))
+    if cfg.backend.emulate:
+        emu = cfg.emulator or {}
+        return bool(emu.get("position_hold" if cfg.backend.name == "canopen" else "hold", False))
+    return False
+
+
+def check_config(cfg: RunConfig, torque_limit: float) -> None:
+    """What the config gets wrong whatever the axis does: the probe's peak above :data:`PROBE_SHARE` of the
+    torque limit (the clamped sum is no longer the multisine, and what is left does not hold the table);
+    a stall threshold inside the time the drive holds the last plan; no host control on an axis nothing
+    else holds (a torque-mode axis walks off under the probe)."""
+    ex = cfg.excitation
+    if ex.kind != "none" and ex.peak > PROBE_SHARE * torque_limit:
+        raise ConfigError("excitation.peak", f"{ex.peak:g} N m is more than {PROBE_SHARE:g} x the torque limit "
+                          f"({torque_limit:g} N m): the position loop needs the rest; lower the peak")
+    held = cfg.safety.torque_hold + 2.0 / cfg.loop.tick_hz      # the plan (two ticks) and its lease
+    if cfg.safety.max_stall_s <= held:
+        raise ConfigError("safety.max_stall_s", f"{cfg.safety.max_stall_s:g} s is within the {held:g} s the drive holds "
+                          "the last plan (torque_hold + 2 ticks): a resume would assume the torque dropped while "
+                          "the drive still applies it; make it longer")
+    if cfg.control.mode == "off" and not drive_holds(cfg):
+        raise ConfigError("control.mode", "'off' leaves a torque-mode axis with nothing holding it; run with "
+                          "control, or give it a drive-side hold ([control] drive_holds = true for a real drive "
+                          "in a position mode, position_hold / hold for the sim and the emulators)")
+
+
+def check_start(cfg: RunConfig, x: float, sample_period: float, where: str = "") -> None:
+    """Refuse to enable a device whose table at ``x`` [m] is outside the safety window, or whose run
+    would leave it: the reference (from where the table is, or from the scale's origin with
+    ``origin = "scale"``) and the probe's own motion must stay inside."""
+    lo, hi = cfg.safety.window
+    name = f"axis {where}: " if where else ""
+    span = f"safety.window [{lo * 1e3:.3f}, {hi * 1e3:.3f}] mm"
+    if not math.isfinite(x):
+        raise ConfigError("safety.window", f"{name}the table's position reads {x!r}; check the scale")
+    if not lo <= x <= hi:
+        raise ConfigError("safety.window", f"{name}the table is at {x * 1e3:.3f} mm, outside {span}: move it inside "
+                          "before enabling, or widen the window")
+    shake = probe_motion(cfg, sample_period)[1]
+    low = high = x
+    if cfg.control.mode != "off":
+        path, opts = _path(cfg)
+        xs = path_samples(path)[0]
+        origin = x - float(path.point(0.0)[0]) if opts.origin == "enable" else 0.0
+        low, high = min(x, origin + float(xs.min())), max(x, origin + float(xs.max()))
+    if low - shake < lo or high + shake > hi:
+        raise ConfigError("reference", f"{name}the run would take the table over [{(low - shake) * 1e3:.3f}, "
+                          f"{(high + shake) * 1e3:.3f}] mm (the table at {x * 1e3:.3f} mm, the reference with "
+                          f"origin = {opts.origin if cfg.control.mode != 'off' else '-'}, the probe's "
+                          f"+-{shake * 1e6:.1f} um), outside {span}")
+
+
+__all__ = ["check_config", "check_start", "drive_holds", "max_speed", "probe_motion", "safety_monitor", "stall_policy"]

@@ -1,0 +1,223 @@
+"""A loop stall (the host stops ticking while the drive runs on): the loop resumes from where the table is,
+or stops, and says so (rt_ident.runtime.stall, rt_ident.control.anchor)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from rt_ident.config import load
+from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator
+from rt_ident.runtime.offline import run_offline
+from rt_ident.runtime.stall import StallLog, StallPolicy
+
+FAST = {"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False, "loop.duration": 4.0}
+# a back-and-forth move: a stall mid-move leaves the table coasting at the move's speed
+MOVES = {"kind": "moves", "positions": [0.0, 0.01], "v_max": 0.02, "a_max": 0.5, "j_max": 20.0, "dwell": 0.3}
+STALL_TICK = 1500                     # the table is moving back at the move's speed then
+
+
+def _stalled_run(stall_s: float, **over):
+    """The offline loop on a paced sim; the clock jumps ``stall_s`` after tick STALL_TICK (the host froze,
+    the drive did not). Returns the summary and (t, table x, reference x, control torque) per tick."""
+    cfg = load(None, **{**FAST, **over})
+    cfg = cfg.model_copy(update={"reference": MOVES})
+    rows = []
+
+    def hook(loop):
+        if loop.stats.ticks == STALL_TICK:
+            loop.clock.now += stall_s
+        c = loop.control
+        rows.append((c.t, c.x_ref + c.error, c.x_ref, c.law.u - c.law.u_ff))
+
+    return run_offline(cfg, tick_hook=hook, paced=True), np.array(rows)
+
+
+@pytest.fixture(scope="module")
+def resumed():
+    return _stalled_run(0.5)
+
+
+def test_a_half_second_stall_resumes_from_where_the_table_is_without_a_lunge(resumed):
+    out, rows = resumed
+    assert out["stop"] is None
+    assert out["loop"]["stalls"]["count"] == 1 and 490 <= out["loop"]["stalls"]["longest_ms"] <= 510
+    ctl = out["control"]
+    assert ctl["fallbacks"] == 0 and ctl["max_error_m"] < 1e-4        # the error never built up
+    stall = [e for e in ctl["events"] if e["kind"] == "stall"]
+    assert len(stall) == 1 and "re-planned from x =" in stall[0]["detail"]
+    t, x, xr, u_fb = rows[np.r_[True, np.diff(rows[:, 0]) > 0]].T       # ticks with new samples
+    after = t > rows[STALL_TICK - 1, 0] + 0.4
+    # the reference starts where the table coasted to; it rejoins the path within the move's limits
+    # on top of the path's own speed (each at most v_max)
+    ref_speed = np.abs(np.diff(xr[after]) / np.diff(t[after]))
+    assert ref_speed.max() <= 2 * MOVES["v_max"] * 1.01
+    assert abs(xr[after][0] - x[after][0]) < 1e-4
+    # no torque step: the feedback torque of the resumed tick is the drive's (zero) within a small fraction
+    assert abs(u_fb[after][0]) < 0.05
+
+
+def test_the_same_stall_handled_as_before_lunges_into_a_trip():
+    out, _ = _stalled_run(0.5, **{"safety.max_stall_s": 0.9, "safety.max_stall_stop_s": 1.0})
+    # no re-plan: the half second of coasting is an error the controller drives back at full torque
+    assert out["stop"] is not None and ("SpeedTrip" in out["stop"] or "TravelLimitTrip" in out["stop"])
+
+
+def test_on_stall_stop_ends_the_run_with_loop_stall_naming_its_length():
+    out, _ = _stalled_run(0.3, **{"safety.on_stall": "stop"})
+    assert re.match(r"LoopStall: loop stalled for (299|300) ms", out["stop"]) and "on_stall = 'stop'" in out["stop"]
+
+
+def test_a_stall_longer_than_max_stall_stop_s_always_stops():
+    out, _ = _stalled_run(0.3, **{"safety.max_stall_stop_s": 0.2})
+    assert "LoopStall" in out["stop"] and "max_stall_stop_s = 200 ms" in out["stop"]
+
+
+def test_a_trip_after_a_stall_names_the_stall():
+    # a window the coasting table leaves: the trip that follows the resume says which stall came before it
+    out, _ = _stalled_run(0.8, **{"safety.window": [-0.012, 0.015]})
+    assert "TravelLimitTrip" in out["stop"] and re.search(r"\(0\.0\d s after a (799|800) ms loop stall\)", out["stop"])
+
+
+def test_short_late_ticks_are_not_stalls():
+    out, _ = _stalled_run(0.005)
+    assert out["stop"] is None and out["loop"]["stalls"]["count"] == 0
+
+
+def test_stall_policy_verdicts():
+    p = StallPolicy(max_s=0.01, action="resume", stop_s=1.0)
+    assert p.verdict(0.01) is None and p.verdict(0.02) == "resume"
+    assert "max_stall_stop_s" in p.verdict(1.5)
+    assert "on_stall = 'stop'" in StallPolicy(action="stop").verdict(0.02)
+
+
+def test_stall_log_links_only_a_recent_stall():
+    log = StallLog()
+    log.note(10.0, 0.47, "resume")
+    assert log.before(10.4) == " (0.40 s after a 470 ms loop stall)"
+    assert log.before(13.0) == "" and log.before(9.0) == ""
+    assert log.as_dict()["count"] == 1 and log.as_dict()["longest_ms"] == pytest.approx(470)
+
+
+def test_the_frequency_estimator_leaves_out_the_periods_a_stall_touched():
+    N, H = 64, np.arange(1, 5)
+    rng = np.random.default_rng(1)
+
+    def fed(skip_at: int | None) -> StreamingFrequencyEstimator:
+        est = StreamingFrequencyEstimator(N, H, 1e-4)
+        x = rng.standard_normal((3, 10 * N))
+        for i in range(0, 10 * N, 16):
+            if skip_at is not None and i == skip_at:
+                est.skip(40)                # 40 samples from mid-period 3 (48): periods 4 and 5 are touched
+            est.update_block(x[0, i:i + 16], x[1, i:i + 16], x[2, i:i + 16])
+        return est
+
+    assert fed(None).periods == 10
+    # periods 4 and 5 hold the skipped samples, period 6 the resumed loop's transient
+    assert fed(3 * N + 48).periods == 7
+
+
+def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet"):
+    """``rt-ident run`` (the quick start's command, real time) stopped for 0.5 s mid-run with SIGSTOP, then
+    SIGCONT: the summary and the recording (``journal_of``: the recording that shows the loop is running)."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from rt_ident.runtime.recording_reader import read_recording
+
+    rec = tmp_path / "s.parquet"
+    cmd = [sys.executable, "-m", "rt_ident", "run", "--duration", "6", "--json", "--no-telemetry",
+           "--record", str(rec), *extra]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        journal = rec.with_name(journal_of + ".arrows")
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 2_000_000):
+            time.sleep(0.05)                        # ~1.5 s of samples recorded: the loop is well under way
+        assert journal.exists(), "the run never started recording"
+        os.kill(proc.pid, signal.SIGSTOP)
+        time.sleep(0.5)
+        os.kill(proc.pid, signal.SIGCONT)
+        out, err = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+    return proc.returncode, json.loads(out), read_recording(rec.with_name(journal_of)), err
+
+
+@pytest.mark.slow
+def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
+    rc, s, r, err = _sigstop_run(tmp_path)
+    assert rc == 0, (s["stop"], err[-2000:])
+    assert s["stop"]["cause"] is None
+    stalls = s["loop"]["stalls"]
+    assert stalls["count"] >= 1 and stalls["longest_ms"] >= 400, stalls
+    t_resume = max(e["t"] for e in s["control"]["events"] if e["kind"] == "stall")
+    # the table's speed over whole probe periods (the probe's own motion averages out exactly)
+    per = 512
+    x = 7.96e-4 * r.theta2
+    v = (x[per:] - x[:-per]) / (r.t[per:] - r.t[:-per])
+    tv = r.t[per:]
+    coast = np.abs(v[(tv > t_resume - 0.05) & (tv <= t_resume)]).max()   # the drive had dropped the torque
+    after = np.abs(v[tv > t_resume + 0.02])
+    # from the coasting speed the rejoin brakes; back to the hold position at most at its v_max (20 mm/s)
+    assert after.max() <= max(coast, 0.02) * 1.15 + 2e-3, (after.max(), coast)
+    assert s["control"]["max_error_m"] < 2e-3
+
+
+@pytest.mark.slow
+def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
+    cfg_path = tmp_path / "stop.toml"
+    from rt_ident.axis.params import CONFIG_DIR
+
+    cfg_path.write_text((CONFIG_DIR / "sim.toml").read_text().replace("[safety]", "[safety]\non_stall = \"stop\""))
+    rc, s, r, err = _sigstop_run(tmp_path, str(cfg_path))
+    assert rc == 3 and s["stop"]["cause"] == "loop-stall", (s["stop"], err[-2000:])
+    assert re.match(r"loop stalled for \d+ ms", s["stop"]["message"])
+    assert len(r) == s["loop"]["samples"]                 # the stalled tick's samples are in the recording
+
+
+@pytest.mark.slow
+def test_a_sigstop_of_an_xy_run_resumes_both_axes(tmp_path):
+    rc, s, _, err = _sigstop_run(tmp_path, "configs/xy-sim.toml", journal_of="s-x.parquet")
+    assert rc == 0 and s["stop"]["cause"] is None, (s["stop"], err[-2000:])
+    assert s["loop"]["stalls"]["longest_ms"] >= 400
+    for name in ("x", "y"):
+        ax = s["axes"][name]
+        assert ax["loop"]["stalls"]["count"] >= 1
+        assert any(e["kind"] == "stall" for e in ax["control"]["events"])
+        assert ax["control"]["max_error_m"] < 2e-3, name
+
+
+def test_the_value_a_lease_holds_is_the_control_torque_not_the_probes_instant():
+    from rt_ident.runtime import tick_kernel as tk
+
+    bi, bf = tk.new_books()
+    bf[tk.BF_U_BASE] = 0.05                                  # the control torque in force
+    plan = np.full(40, 0.3)                                  # the probe at its peak through the plan
+    tk.shape_plan(plan, 1000, bi, bf, 512, 1.0)
+    assert np.all(plan[:-1] == pytest.approx(0.35)) and plan[-1] == pytest.approx(0.05)
+
+
+def test_a_stalled_host_leaves_the_table_coasting_at_the_probes_own_speed():
+    # held for the lease, the probe's instant pushed the light table to 15 mm/s (median), 29 mm/s at worst
+    # over 20 stall instants; the probe's own motion is +-6 mm/s
+    import re as _re
+
+    speeds = []
+    for at in range(1000, 1400, 40):
+        def hook(loop, at=at):
+            if loop.stats.ticks == at:
+                loop.clock.now += 0.05
+
+        out = run_offline(load(None, **{**FAST, "loop.duration": 1.5}), tick_hook=hook, paced=True)
+        detail = next(e["detail"] for e in out["control"]["events"] if e["kind"] == "stall")
+        speeds.append(abs(float(_re.search(r"at ([-+\d.]+) mm/s", detail).group(1))))
+    assert max(speeds) < 12.0, speeds
