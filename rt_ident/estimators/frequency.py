@@ -45,13 +45,14 @@ from rt_ident.estimators.base import Identification
 from rt_ident.estimators.sampled_model import (HOLDS, POS, check_hold, frequency_response,  # noqa: F401
                                                hold_model)
 from rt_ident.estimators.uncertainty import (build_identification, covariance_from_jacobian, criterion,
-                                             excitation_report, params_from_log)
+                                             excitation_report, excited_bands, params_from_log)
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_LEAD = 7.96e-4
 INIT_MAX_WDT = 2.0      # zoh: linear initial fit uses lines with w dt <= this
 MIN_SNR = 10.0          # median torque-line SNR (power, mean over periods) required for trust
+MAX_CHI2 = 10.0         # weighted residual per degree of freedom: above, the model does not explain the data
 _TOL = 1e-10            # Gauss-Newton stop: largest step in log-parameters
 LEAK_FEATURES = 5       # per period: change of deflection and table mean and slope at the period's end, torque sum
 LEAK_WINDOW = 32        # samples at the end of a period the leakage features average over (at most N/8)
@@ -662,7 +663,12 @@ def identification_from_fit(sp: Spectra, fit: FitResult, hold: str, *, lead: flo
     pe = excitation_report([m1[:, [0, 2, 3]], np.vstack([m1, m2])])
     snr = math.nan
     checks = [criterion("Gauss-Newton fit converged", fit.converged, float(fit.iterations), "converged",
-                        f"Gauss-Newton stopped after {fit.iterations} iterations without converging")]
+                        f"Gauss-Newton stopped after {fit.iterations} iterations without converging"),
+              # the residual against the noise model: ~1 when the model explains the data; the
+              # intervals grow with it, but a model error is a bias they do not cover
+              criterion("fit error: weighted residual chi2 per degree of freedom", fit.s2 <= MAX_CHI2, fit.s2,
+                        f"<= {MAX_CHI2:g}", f"the model does not explain the data: chi2/dof {fit.s2:.3g} > "
+                        f"{MAX_CHI2:g} (residuals {math.sqrt(fit.s2):.3g} x the noise)")]
     if sp.periods >= 2:
         var_T = sp.cov[:, 2, 2].real * sp.mean_cov_factor
         snr = float(np.median(np.abs(sp.mean[2]) ** 2 / np.maximum(var_T, 1e-300)))
@@ -674,8 +680,9 @@ def identification_from_fit(sp: Spectra, fit: FitResult, hold: str, *, lead: flo
             "snr_median_db": 10.0 * math.log10(snr) if snr > 0.0 else math.nan}
     if n_samples is not None:
         diag["n_samples"] = float(n_samples)
-    cov_log = fit.cov[:4, :4] if np.all(np.isfinite(fit.cov[:4, :4])) else None
-    return build_identification(p, method, cov_log, pe, diag, checks=checks)
+    held = hold in ("zoh", "tustin_held")
+    bands = excited_bands(float(sp.omega.min()), float(sp.omega.max()), sp.dt if held else None)
+    return build_identification(p, method, fit.cov[:4, :4], pe, diag, checks=checks, bands=bands)
 
 
 def compute_spectra(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, dt: float, *,
