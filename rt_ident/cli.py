@@ -518,11 +518,15 @@ def identify(
     from rt_ident.reports.identify import identify_file
 
     ident, info = identify_file(file, method, period=period, model=model)
-    d = ident.as_dict()
+    validation = None
     if validate is not None:
         from rt_ident.reports.identify import validate_file
 
-        d["validation"] = validate_file(ident, validate)
+        validation = validate_file(ident, validate)
+        ident = ident.with_validation(validation)     # the validation is one of the verdict's criteria
+    d = ident.as_dict()
+    if validation is not None:
+        d["validation"] = validation
     if json_out:
         typer.echo(json.dumps({**d, "input": info}, indent=2, default=_json_default))
         return

@@ -164,3 +164,80 @@ def test_the_history_can_live_behind_an_fsspec_url(fleet, cluster):
     assert again["skipped"] == 5 and again["identified"] == 0
     _, [(n, machines)] = query(url, "SELECT count(*), count(DISTINCT machine) FROM history")
     assert (n, machines) == (5, 1)
+
+
+# --------------------------------------------------------------------------- the verdict in the history
+def _misreport_lead(src: Path, dst: Path) -> Path:
+    """A copy of a recording whose table scale was converted with twice the lead (an untrusted fit)."""
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(src)
+    md = dict(t.schema.metadata)
+    meta = json.loads(md[b"rt_ident.metadata"])
+    meta["axis"]["lead"] *= 2.0
+    md[b"rt_ident.metadata"] = json.dumps(meta).encode()
+    t = t.set_column(t.schema.get_field_index("theta2"), "theta2", pc.divide(t.column("theta2"), 2.0))
+    pq.write_table(t.replace_schema_metadata(md), dst)
+    return dst
+
+
+def _rows(entries, **over) -> list:
+    return [identify_recording({"path": str(over.get(e.path, e.path)), "machine": e.machine, "axis": e.axis,
+                                "time": e.time}) for e in entries]
+
+
+def test_every_history_row_records_its_verdict_and_its_reasons(fleet, tmp_path):
+    from rt_ident.fleet.identify import append_history
+
+    good, other = read_manifest(fleet / "manifest.csv")[:2]
+    bad = _misreport_lead(Path(other.path), tmp_path / "lead2.parquet")
+    rows = _rows([good, other], **{other.path: bad})
+    assert append_history(tmp_path / "h", rows) == 2
+    _, got = query(tmp_path / "h", "SELECT path, trusted, reasons, trust_criteria FROM history ORDER BY time")
+    (p1, t1, r1, c1), (p2, t2, r2, c2) = got
+    assert p1 == good.path and t1 is True and r1 == []
+    assert all(c["passed"] for c in json.loads(c1)) and len(json.loads(c1)) >= 5
+    assert p2 == str(bad) and t2 is False and r2 and any("interval" in w for w in r2)
+    failed = [c for c in json.loads(c2) if not c["passed"]]
+    assert failed and all(c["why"] for c in failed)
+
+
+def test_drift_ignores_untrusted_rows_and_says_how_many(fleet, tmp_path):
+    from rt_ident.fleet.identify import append_history
+
+    entries = [e for e in read_manifest(fleet / "manifest.csv") if e.machine == "m01"]     # the healthy series
+    swap = {e.path: _misreport_lead(Path(e.path), tmp_path / f"bad{i}.parquet")
+            for i, e in enumerate(entries) if i in (6, 8)}
+    rows = _rows(entries, **swap)
+    assert [r["trusted"] for r in rows].count(False) == 2
+    append_history(tmp_path / "h", rows)
+    out = drift(tmp_path / "h")
+    assert out["alarms"] == [], out["alarms"]          # the two wild (untrusted) fits raise no alarm
+    assert out["ignored"] == {"untrusted": 2, "unknown_verdict": 0}
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-m", "rt_ident", "fleet", "drift", "--history", str(tmp_path / "h")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "ignored 2 rows: 2 not trusted" in r.stdout
+
+
+def test_an_old_history_without_verdict_columns_reads_as_unknown_verdicts_and_is_identified_again(fleet, tmp_path):
+    import pyarrow.parquet as pq
+
+    from rt_ident.fleet.identify import append_history, known_hashes
+
+    entries = [e for e in read_manifest(fleet / "manifest.csv") if e.machine == "m01"]
+    append_history(tmp_path / "h", _rows(entries))
+    for f in (tmp_path / "h").glob("**/*.parquet"):          # as an older rt-ident wrote it
+        t = pq.read_table(f)
+        pq.write_table(t.drop_columns(["reasons", "trust_criteria"]), f)
+    _, [(n,)] = query(tmp_path / "h", "SELECT count(*) FROM history")
+    assert n == len(entries)
+    out = drift(tmp_path / "h")
+    assert out["ignored"] == {"untrusted": 0, "unknown_verdict": len(entries)} and out["alarms"] == []
+    assert known_hashes(tmp_path / "h") == frozenset()          # identified again, with a verdict, next run
+    append_history(tmp_path / "h", _rows(entries))
+    out = drift(tmp_path / "h")
+    assert out["ignored"] == {"untrusted": 0, "unknown_verdict": 0}
+    assert len(known_hashes(tmp_path / "h")) == len(entries)

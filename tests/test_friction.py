@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from rt_ident.axis.friction import Friction, thomson_friction
 from rt_ident.axis.params import AxisParams, thomson_x
-from rt_ident.axis.plant import PlantSimulator, SensorConfig
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.cli import app
 from rt_ident.config import from_mapping
 from rt_ident.errors import ConfigError, DataError
@@ -300,3 +300,69 @@ def test_recursive_rigid_friction_skips_nan_samples_and_recovers_the_stiff_axis(
     est.update_block(th1, None, tq)
     e = est.estimate()
     assert all(abs(e[k] / truth[k] - 1) < 0.05 for k in truth), e
+
+
+# ----------------------------------------------------------------------------- the verdict
+def test_two_inertia_friction_on_a_recording_that_only_holds_still_is_not_trusted():
+    # a drive holds the axis; only a random disturbance torque moves it (no excitation): the fit finds
+    # negative friction, which no axis has
+    sim = PlantSimulator(thomson_x(), DT, sensors=SensorConfig(counts_per_rev=2**17, scale_resolution=1e-7,
+                                                               torque_meas_noise=5e-4, torque_process_noise=0.1),
+                         controller=HoldController(), seed=1)
+    b = sim.step_block(np.zeros(int(2.0 / DT)))
+    r = fit_friction(b.theta1, b.torque_meas, DT, model="two-inertia-friction", theta2=b.theta2)
+    negative = [k for k in ("Fc1", "Fv1", "Fc2", "Fv2") if r.parameters[k] < 0.0]
+    assert negative
+    assert not r.trusted
+    assert any(why.startswith("not physical") and negative[0] in why for why in r.reasons), r.reasons
+    assert r.as_dict()["trust"]["trusted"] is False
+
+
+def test_rigid_friction_on_two_inertia_data_is_not_trusted():
+    # a frictionless flexible axis fitted as one rigid body with friction: the torque is not explained
+    t, th1, th2, tq = closed_loop(thomson_x(), None, DT, 2.0, sensors=SensorConfig(torque_meas_noise=5e-4),
+                                  amp=6.0, hz=1.0, probe=0.1, per_tick=34)
+    r = fit_friction(th1, tq, DT, model="rigid-friction")
+    assert r.nrmse_percent > 20.0
+    assert not r.trusted
+    assert any("NRMSE" in why for why in r.reasons), r.reasons
+
+
+def test_a_physical_fit_that_explains_the_torque_is_trusted_and_says_why(bench_record):
+    th1, th2, tq, _ = bench_record
+    r = fit_friction(th1, tq, DT, model="two-inertia-friction", theta2=th2)
+    assert r.trusted, r.reasons
+    names = [c["criterion"] for c in r.trust_criteria]
+    assert any("physical" in n for n in names) and any("NRMSE" in n for n in names)
+    assert any("resonance" in n for n in names) and any("interval" in n for n in names)
+
+
+def test_a_validation_error_above_its_threshold_fails_the_verdict(tmp_path):
+    t, th1, tq, _ = _stiff_record(seed=10)
+    own = tmp_path / "axis.csv"
+    np.savetxt(own, np.column_stack([t, th1, tq]), delimiter=",", header="t,theta1,torque", comments="")
+    t, th1, tq, _ = _stiff_record(seed=11, hz=0.8)
+    same = tmp_path / "same_axis.csv"
+    np.savetxt(same, np.column_stack([t, th1, tq]), delimiter=",", header="t,theta1,torque", comments="")
+    # another axis: three times the inertia, four times the friction
+    t, o1, _, oq = closed_loop(AxisParams(I1=6.0e-4, I2=3.0e-4, B=0.5, K=5e4),
+                               Friction(Fc1=0.2, Fv1=1e-3, Fc2=0.1, Fv2=5e-4), 1e-4, 6.0,
+                               sensors=SensorConfig(counts_per_rev=2**16, scale_resolution=0, torque_meas_noise=5e-3),
+                               amp=2.0, hz=0.5, probe=0.05, per_tick=10, seed=3, probe_per_sample=False)
+    other = tmp_path / "other_axis.csv"
+    np.savetxt(other, np.column_stack([t[::10], o1[::10], oq[::10]]), delimiter=",", header="t,theta1,torque",
+               comments="")
+    args = ["identify", str(own), "--model", "rigid-friction", "--json", "--validate"]
+    good = json.loads(runner.invoke(app, args + [str(same)]).stdout)
+    assert good["validation"]["torque_error_percent"] < 5 and good["trusted"] is True, good["trust"]
+    res = runner.invoke(app, args + [str(other)])
+    assert res.exit_code == 0, res.output
+    bad = json.loads(res.stdout)
+    assert bad["validation"]["torque_error_percent"] > 10
+    assert bad["trusted"] is False
+    crit = [c for c in bad["trust"]["criteria"] if c["criterion"].startswith("validation on")]
+    assert len(crit) == 1 and crit[0]["value"] == pytest.approx(bad["validation"]["torque_error_percent"])
+    assert crit[0]["limit"] == "<= 10 %" and not crit[0]["passed"]
+    assert any(why.startswith(f"fails validation on {other}") for why in bad["trust"]["reasons"])
+    text = runner.invoke(app, args[:-2] + ["--validate", str(other)]).stdout
+    assert "trusted: no" in text and "fails validation on" in text

@@ -33,8 +33,9 @@ import scipy.linalg
 
 from rt_ident.errors import DataError, EstimationError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.uncertainty import (build_identification, excitation_report,
-                                             inverse_normal_matrix, log_covariance, params_from_vector)
+from rt_ident.estimators.uncertainty import (build_identification, excitation_report, excited_band_of,
+                                             excited_bands, inverse_normal_matrix, log_covariance,
+                                             params_from_vector)
 
 logger = logging.getLogger(__name__)
 
@@ -99,11 +100,16 @@ def _solve_two_equations(X1: np.ndarray, y1: np.ndarray, X2: np.ndarray, y2: np.
     return p, cov, {"rms_residual": math.sqrt(s2), "n_rows": float(y.size)}
 
 
+def _bands(torque: np.ndarray, dt: float, held: bool) -> list[tuple[float, float]]:
+    """The bands the recorded torque excited (its image too when the torque is held over a sample)."""
+    return excited_bands(*excited_band_of(torque, dt), dt if held else None)
+
+
 def _finish(p_vec: np.ndarray, cov: np.ndarray, regressors: list[np.ndarray], method: str,
-            lead: float, info: dict[str, float]) -> Identification:
+            lead: float, info: dict[str, float], bands: list[tuple[float, float]]) -> Identification:
     p = params_from_vector(p_vec, lead, what=method)
-    cov_log = log_covariance(p, cov) if np.all(np.isfinite(cov)) else None
-    return build_identification(p, method, cov_log, excitation_report(regressors), info)
+    return build_identification(p, method, log_covariance(p, cov), excitation_report(regressors), info,
+                                bands=bands)
 
 
 def fit_tustin_states(theta1: np.ndarray, omega1: np.ndarray, theta2: np.ndarray, omega2: np.ndarray,
@@ -126,7 +132,7 @@ def fit_tustin_states(theta1: np.ndarray, omega1: np.ndarray, theta2: np.ndarray
     X2 = np.column_stack([z, np.diff(w2), -sdw, -sd])
     p, cov, info = _solve_two_equations(X1, sT, X2, z)
     info["n_samples"] = float(th1.size)
-    return _finish(p, cov, [X1[:, [0, 2, 3]], np.vstack([X1, X2])], "tustin", lead, info)
+    return _finish(p, cov, [X1[:, [0, 2, 3]], np.vstack([X1, X2])], "tustin", lead, info, _bands(T, 2 * h, False))
 
 
 def fit_tustin_angles(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, dt: float,
@@ -153,7 +159,7 @@ def fit_tustin_angles(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray
     X2 = np.column_stack([z, acc2, -vel, -pos])
     p, cov, info = _solve_two_equations(X1, rhs, X2, z)
     info["n_samples"] = float(th1.size)
-    return _finish(p, cov, [X1[:, [0, 2, 3]], np.vstack([X1, X2])], "tustin", lead, info)
+    return _finish(p, cov, [X1[:, [0, 2, 3]], np.vstack([X1, X2])], "tustin", lead, info, _bands(T, dt, False))
 
 
 # --------------------------------------------------------------------------- one-step maps
@@ -263,7 +269,8 @@ def _map_fit(X: np.ndarray, U: np.ndarray, dt: float, to_continuous: Callable, m
     # nearly collinear, which says nothing about the information on the flexible mode.
     Zd = np.column_stack([X[:-1, 0] - X[:-1, 2], X[:-1, 1] - X[:-1, 3], X[:-1, 2], X[:-1, 3], U])
     info = {"rms_residual": rms, "n_samples": float(X.shape[0])}
-    return build_identification(p, method, cov_log, excitation_report([Zd]), info)
+    return build_identification(p, method, cov_log, excitation_report([Zd]), info,
+                                bands=_bands(U, dt, to_continuous is continuous_from_zoh))
 
 
 def fit_zoh(theta1: np.ndarray, omega1: np.ndarray, theta2: np.ndarray, omega2: np.ndarray,

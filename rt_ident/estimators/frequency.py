@@ -10,7 +10,11 @@ Schroeder multisine, period N samples) removes that bias:
    drop the first period(s) (transient);
 2. DFT each whole period of theta1, theta2, T at the excited harmonics, and keep the
    mean over the P periods (noise averages out, the periodic part does not) and the
-   period-to-period covariance (the noise level, for weighting and intervals);
+   period-to-period covariance (the noise level, for weighting and intervals), less the part
+   that the periods' leakage explains (:meth:`Spectra.from_sums`): a response that is not
+   periodic (closed-loop drift, a host stall's coast and recovery) changes every line of a
+   period through one leakage vector, which the fit estimates for the mean, so its scatter
+   is not noise of the mean;
 3. initialize with a linear equation-error fit of Eq. (3) per harmonic,
    ``I1 s^2 Th1 + (B s + K)(Th1 - Th2) = T`` and ``I2 s^2 Th2 - (B s + K)(Th1 - Th2) = 0``;
 4. refine by Gauss-Newton on the *exact sampled* model Theta(z) = G(z; p) T(z) + R(z; p) c
@@ -32,6 +36,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -40,14 +45,65 @@ from rt_ident.estimators.base import Identification
 from rt_ident.estimators.sampled_model import (HOLDS, POS, check_hold, frequency_response,  # noqa: F401
                                                hold_model)
 from rt_ident.estimators.uncertainty import (build_identification, covariance_from_jacobian, criterion,
-                                             excitation_report, params_from_log)
+                                             excitation_report, excited_bands, params_from_log)
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_LEAD = 7.96e-4
 INIT_MAX_WDT = 2.0      # zoh: linear initial fit uses lines with w dt <= this
 MIN_SNR = 10.0          # median torque-line SNR (power, mean over periods) required for trust
+MAX_CHI2 = 10.0         # weighted residual per degree of freedom: above, the model does not explain the data
 _TOL = 1e-10            # Gauss-Newton stop: largest step in log-parameters
+LEAK_FEATURES = 5       # per period: change of deflection and table mean and slope at the period's end, torque sum
+LEAK_WINDOW = 32        # samples at the end of a period the leakage features average over (at most N/8)
+MOVED_STEPS = 0.25      # a period's angle path shifted by more than this many quantization steps: new errors
+_LEAK_MIN_PERIODS = 2 * LEAK_FEATURES + 2   # fewer (effective) periods: the raw scatter is kept
+
+
+def leak_window(N: int) -> int:
+    """Samples ``m`` (even, >= 2) at the end of each period of N that the leakage features average over."""
+    return max(2, min(LEAK_WINDOW, int(N) // 8) // 2 * 2)
+
+
+def sums_layout(H: int) -> dict[str, Any]:
+    """Offsets in the flat complex buffer of a streaming estimator's second-order sums: S2 (H, 3, 3),
+    Svf (3, H, K), Sff (K, K), Sf (K,), Wf (the weight of the periods that have leakage features),
+    Smv (2,) (the weight of those whose theta1, theta2 shifted by more than MOVED_STEPS steps)."""
+    K = LEAK_FEATURES
+    o = {"s2": 0, "vf": 9 * H, "ff": 9 * H + 3 * H * K}
+    o["f"] = o["ff"] + K * K
+    o["wf"] = o["f"] + K
+    o["mv"] = o["wf"] + 1
+    o["size"] = o["mv"] + 2
+    return o
+
+
+def leak_features(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, N: int, first: int, P: int
+                  ) -> np.ndarray:
+    """(P, LEAK_FEATURES) leakage features of the P periods from sample ``first`` (>= m): the change,
+    since the previous period, of the mean and of the slope (second half minus first half of the
+    window, per sample) of the deflection theta1 - theta2 and of theta2 over the period's last m
+    samples, and the period's torque sum (the momentum change of the free-free axis): columns
+    [d mean(theta1 - theta2), d mean(theta2), sum T, d slope(theta1 - theta2), d slope(theta2)].
+    They span the leakage vector ``c`` of the period (its state change,
+    :mod:`rt_ident.estimators.sampled_model`) to within the quantization of the angles. Deflection
+    and table are separate columns because the rigid-body drift moves both angles alike: as
+    theta1 and theta2 the columns are collinear (condition number 3e8 after a host stall, where
+    rounding in the sums then decides the fit), as deflection and table they are not (6e4).
+    The streaming kernel computes the same numbers."""
+    m = leak_window(N)
+    half = m // 2
+    ends = first + N * np.arange(P + 1) - m          # window starts: previous period's, then each period's
+    out = np.empty((P, LEAK_FEATURES))
+    feats = []
+    for x in (theta1, theta2):
+        w = np.asarray(x, dtype=float)[ends[:, None] + np.arange(m)]
+        a, b = w[:, :half].sum(axis=1), w[:, half:].sum(axis=1)
+        feats.append((np.diff((a + b) / m), np.diff((b - a) / half)))
+    out[:, 0], out[:, 1] = feats[0][0] - feats[1][0], feats[1][0]
+    out[:, 2] = np.asarray(torque, dtype=float)[first:first + P * N].reshape(P, N).sum(axis=1)
+    out[:, 3], out[:, 4] = feats[0][1] - feats[1][1], feats[1][1]
+    return out
 
 
 # --------------------------------------------------------------------------- spectra
@@ -56,9 +112,14 @@ class Spectra:
     """Period-averaged spectra at the excited harmonics (unnormalized DFT of one period).
 
     mean : (3, H) complex mean over periods of [Theta1, Theta2, T]
-    cov  : (H, 3, 3) complex period-to-period covariance of one period's spectrum
+    cov  : (H, 3, 3) complex period-to-period covariance of one period's spectrum, less what the
+           periods' leakage features explain (see :meth:`from_sums`)
     weight, weight2 : sum of period weights and of their squares (P and P without forgetting)
     quantum : (2,) quantization steps of theta1, theta2 (deterministic error floor)
+    moved : (2,) share of the periods whose angle theta1, theta2 (mean over the leakage features'
+           window) moved by more than a quarter quantization step since the previous period: their
+           quantization errors differ from the previous period's (None: unknown, taken as 0)
+    leak_dof : leakage features regressed out of ``cov`` (0: none, the raw scatter)
     """
 
     harmonics: np.ndarray
@@ -70,6 +131,8 @@ class Spectra:
     weight2: float
     periods: int
     quantum: np.ndarray
+    moved: np.ndarray | None = None
+    leak_dof: int = 0
 
     @property
     def omega(self) -> np.ndarray:
@@ -86,19 +149,54 @@ class Spectra:
 
     @classmethod
     def from_sums(cls, harmonics: np.ndarray, N: int, dt: float, S1: np.ndarray, S2: np.ndarray,
-                  W: float, W2: float, periods: int, quantum: np.ndarray) -> "Spectra":
-        """From running sums S1 = sum w v, S2 = sum w v v^H, W = sum w, W2 = sum w^2."""
+                  W: float, W2: float, periods: int, quantum: np.ndarray, *, Svf: np.ndarray | None = None,
+                  Sff: np.ndarray | None = None, Sf: np.ndarray | None = None, Wf: float = 0.0,
+                  Smv: np.ndarray | None = None) -> "Spectra":
+        """From running sums S1 = sum w v, S2 = sum w v v^H, W = sum w, W2 = sum w^2, and the
+        leakage features' sums Svf = sum w v f^T (3, H, K), Sff = sum w f f^T, Sf = sum w f over the
+        periods that have features (weight Wf), of which Smv (2,) shifted by more than MOVED_STEPS
+        quantization steps (weighted count per angle).
+
+        The covariance is that of the periods' spectra less its regression on the features,
+        ``C_vv - C_vf C_ff^-1 C_vf^H`` per line, scaled by ``(P - 1) / (P - 1 - k)`` for the k
+        features used (P the effective number of periods ``W^2 / W2``). The leakage of a period
+        (its state change c, the same for every line) is a linear function of the features, so
+        this removes the period-to-period variation that the fit's leakage term absorbs in the
+        mean and keeps the noise. The raw scatter is kept (wider, never narrower intervals) when
+        a period lacks features or there are fewer than ``2 K + 2`` periods.
+        """
         if periods < 1 or W <= 0.0:
             raise EstimationError("frequency: no complete period accumulated yet")
         mean = S1 / W
+        H = np.asarray(harmonics).size
+        moved = None if Smv is None or Wf <= 0.0 else np.clip(np.asarray(Smv, dtype=float) / Wf, 0.0, 1.0)
+        dof = 0
         if periods >= 2 and W * W > W2:
             # reliability-weighted unbiased covariance; W = W2 = P gives the usual 1/(P-1)
+            den = W - W2 / W
             outer = np.einsum("ih,jh->hij", mean, mean.conj())
-            cov = (S2 - W * outer) / (W - W2 / W)
+            cov = (S2 - W * outer) / den
+            p_eff = W * W / W2
+            if (Svf is not None and Sff is not None and Sf is not None and abs(W - Wf) <= 1e-9 * W
+                    and p_eff >= _LEAK_MIN_PERIODS):
+                fbar = np.asarray(Sf, dtype=float) / W
+                Cff = (np.asarray(Sff, dtype=float) - W * np.outer(fbar, fbar)) / den
+                Cvf = (Svf - W * mean[:, :, None] * fbar[None, None, :]) / den
+                d = np.sqrt(np.clip(np.diag(Cff), 0.0, None))
+                live = d > 0.0
+                if np.any(live):
+                    R = Cff[np.ix_(live, live)] / np.outer(d[live], d[live])
+                    lam, U = np.linalg.eigh(R)
+                    keep = lam > 1e-9 * lam.max()
+                    Rinv = (U[:, keep] / lam[keep]) @ U[:, keep].T
+                    B = Cvf[:, :, live] / d[live]                       # (3, H, k) correlation form
+                    explained = np.einsum("ihk,kl,jhl->hij", B, Rinv, B.conj())
+                    dof = int(np.count_nonzero(keep))
+                    cov = (cov - explained) * ((p_eff - 1.0) / (p_eff - 1.0 - dof))
         else:
-            cov = np.zeros((harmonics.size, 3, 3), complex)
+            cov = np.zeros((H, 3, 3), complex)
         return cls(np.asarray(harmonics), int(N), float(dt), mean, cov, float(W), float(W2),
-                   int(periods), np.asarray(quantum, float))
+                   int(periods), np.asarray(quantum, float), moved, dof)
 
     def to_fields(self) -> dict[str, np.ndarray]:
         """The spectra as flat arrays (a shared-memory ring message, :meth:`from_fields` undoes it):
@@ -107,24 +205,31 @@ class Spectra:
                 "mean": np.ascontiguousarray(self.mean, dtype=complex).view(np.float64).ravel(),
                 "cov": np.ascontiguousarray(self.cov, dtype=complex).view(np.float64).ravel(),
                 "quantum": np.asarray(self.quantum, dtype=np.float64).ravel(),
-                "scalars": np.array([self.N, self.dt, self.weight, self.weight2, self.periods], dtype=np.float64)}
+                "scalars": np.array([self.N, self.dt, self.weight, self.weight2, self.periods, self.leak_dof],
+                                    dtype=np.float64),
+                "moved": np.zeros(0) if self.moved is None else np.asarray(self.moved, dtype=np.float64).ravel()}
 
     @classmethod
     def from_fields(cls, f: dict[str, np.ndarray]) -> "Spectra":
         h = np.asarray(f["harmonics"], dtype=np.int64)
-        N, dt, W, W2, periods = (float(v) for v in f["scalars"])
+        N, dt, W, W2, periods, *rest = (float(v) for v in f["scalars"])
         mean = np.ascontiguousarray(f["mean"], dtype=np.float64).view(complex).reshape(3, h.size)
         cov = np.ascontiguousarray(f["cov"], dtype=np.float64).view(complex).reshape(h.size, 3, 3)
-        return cls(h, int(N), dt, mean, cov, W, W2, int(periods), np.asarray(f["quantum"], dtype=np.float64))
+        mv = np.asarray(f.get("moved", np.zeros(0)), dtype=np.float64)
+        return cls(h, int(N), dt, mean, cov, W, W2, int(periods), np.asarray(f["quantum"], dtype=np.float64),
+                   mv if mv.size else None, int(rest[0]) if rest else 0)
 
 
 @dataclass(frozen=True, eq=False)
 class SpectraSums:
     """The running sums a streaming estimator keeps (S1 = sum w v (3, H), S2 = sum w v v^H (H, 3, 3),
-    W = sum w, W2 = sum w^2, over ``periods`` periods): what the loop hands the fit worker, which
-    turns them into :class:`Spectra` (:meth:`spectra`). Copying two arrays is all the loop does; the
-    means and covariances (an ``einsum``, divisions: ~150 us of a tick on these VMs) are the worker's.
-    The compiled tick writes this message itself (rt_ident.runtime.shm_ring.put_sums)."""
+    W = sum w, W2 = sum w^2, over ``periods`` periods, and the leakage features' sums Svf (3, H, K),
+    Sff (K, K), Sf (K,) over the periods of weight Wf that have features, Smv (2,) the weight of those
+    whose angles shifted by more than MOVED_STEPS quantization steps; None: not kept): what the
+    loop hands the fit worker, which turns them into :class:`Spectra` (:meth:`spectra`). Copying two
+    arrays is all the loop does; the means and covariances (an ``einsum``, divisions: ~150 us of a tick
+    on these VMs) are the worker's. The compiled tick writes this message itself
+    (rt_ident.runtime.shm_ring.put_sums): ``sums`` is S1, then the flat buffer of :func:`sums_layout`."""
 
     harmonics: np.ndarray
     N: int
@@ -135,17 +240,48 @@ class SpectraSums:
     W2: float
     periods: int
     quantum: np.ndarray
+    Svf: np.ndarray | None = None
+    Sff: np.ndarray | None = None
+    Sf: np.ndarray | None = None
+    Wf: float = 0.0
+    Smv: np.ndarray | None = None
+
+    @classmethod
+    def from_flat(cls, harmonics: np.ndarray, N: int, dt: float, S1: np.ndarray, flat: np.ndarray, W: float,
+                  W2: float, periods: int, quantum: np.ndarray) -> "SpectraSums":
+        """From S1 and the flat complex buffer of :func:`sums_layout` (S2 alone: no features)."""
+        H = np.asarray(harmonics).size
+        K = LEAK_FEATURES
+        o = sums_layout(H)
+        flat = np.asarray(flat, dtype=complex).ravel()
+        if flat.size == 9 * H:
+            return cls(harmonics, N, dt, S1, flat.reshape(H, 3, 3), W, W2, periods, quantum)
+        if flat.size != o["size"]:
+            raise DataError(f"sums: {flat.size} second-order sums for {H} lines; expected {9 * H} or {o['size']}")
+        return cls(harmonics, N, dt, S1, flat[:9 * H].reshape(H, 3, 3), W, W2, periods, quantum,
+                   flat[o["vf"]:o["ff"]].reshape(3, H, K), flat[o["ff"]:o["f"]].real.reshape(K, K),
+                   flat[o["f"]:o["wf"]].real.copy(), float(flat[o["wf"]].real), flat[o["mv"]:o["size"]].real.copy())
+
+    def flat(self) -> np.ndarray:
+        """S2 and the features' sums as the flat complex buffer of :func:`sums_layout`."""
+        parts = [np.ascontiguousarray(self.S2, dtype=complex).ravel()]
+        if self.Svf is not None:
+            parts += [np.ascontiguousarray(self.Svf, dtype=complex).ravel(),
+                      np.asarray(self.Sff, dtype=complex).ravel(), np.asarray(self.Sf, dtype=complex).ravel(),
+                      np.array([self.Wf], dtype=complex),
+                      np.asarray(self.Smv if self.Smv is not None else np.zeros(2), dtype=complex)]
+        return np.concatenate(parts)
 
     def spectra(self) -> Spectra:
         return Spectra.from_sums(self.harmonics, self.N, self.dt, self.S1, self.S2, self.W, self.W2, self.periods,
-                                 self.quantum)
+                                 self.quantum, Svf=self.Svf, Sff=self.Sff, Sf=self.Sf, Wf=self.Wf, Smv=self.Smv)
 
     def to_fields(self) -> dict[str, np.ndarray]:
-        """Flat arrays for a ring message (:meth:`from_fields` undoes it): ``sums`` is S1 then S2 as
-        interleaved real and imaginary parts."""
+        """Flat arrays for a ring message (:meth:`from_fields` undoes it): ``sums`` is S1 then the flat
+        buffer of :meth:`flat` as interleaved real and imaginary parts."""
         return {"harmonics": np.ascontiguousarray(self.harmonics, dtype=np.int64),
                 "sums": np.concatenate([np.ascontiguousarray(a, dtype=complex).view(np.float64).ravel()
-                                        for a in (self.S1, self.S2)]),
+                                        for a in (self.S1, self.flat())]),
                 "quantum": np.asarray(self.quantum, dtype=np.float64).ravel(),
                 "scalars": np.array([self.N, self.dt, self.W, self.W2, self.periods], dtype=np.float64)}
 
@@ -155,8 +291,8 @@ class SpectraSums:
         N, dt, W, W2, periods = (float(v) for v in f["scalars"])
         z = np.ascontiguousarray(f["sums"], dtype=np.float64).view(complex)
         H = h.size
-        return cls(h, int(N), dt, z[:3 * H].reshape(3, H), z[3 * H:].reshape(H, 3, 3), W, W2, int(periods),
-                   np.asarray(f["quantum"], dtype=np.float64))
+        return cls.from_flat(h, int(N), dt, z[:3 * H].reshape(3, H), z[3 * H:], W, W2, int(periods),
+                             np.asarray(f["quantum"], dtype=np.float64))
 
 
 def detect_period(x: np.ndarray, *, min_period: int = 4, threshold: float = 0.8) -> int:
@@ -277,7 +413,7 @@ def linear_init(sp: Spectra, hold: str) -> np.ndarray:
         keep = sp.omega * sp.dt <= INIT_MAX_WDT
         if np.count_nonzero(keep) >= 4:
             sp = Spectra(sp.harmonics[keep], sp.N, sp.dt, sp.mean[:, keep], sp.cov[keep], sp.weight,
-                         sp.weight2, sp.periods, sp.quantum)
+                         sp.weight2, sp.periods, sp.quantum, sp.moved, sp.leak_dof)
     m1, m2, rhs = regressors(sp, hold)
     z = sp.z
     s = (2.0 / sp.dt) * (z - 1.0) / (z + 1.0)
@@ -399,8 +535,9 @@ def _whitener(G: np.ndarray, sp: Spectra) -> np.ndarray:
     """(H, 2, 2) inverse Cholesky factors of the output-error covariance ``Cov(Th - G T)``.
 
     Cov = [I, -G] S [I, -G]^H / P (sample-ML weighting, S the period-to-period
-    covariance of [Th1, Th2, T]) + N q^2/12 per angle (quantization does not average
-    out when the response repeats exactly) + a 1e-9 relative floor per line (noise-free data).
+    covariance of [Th1, Th2, T] less its leakage, :meth:`Spectra.from_sums`) + the
+    quantization error that repeats in every period (:func:`repeating_quantization`) + a
+    1e-9 relative floor per line (noise-free data).
     """
     H = G.shape[0]
     V = np.zeros((H, 2, 3), complex)
@@ -410,8 +547,8 @@ def _whitener(G: np.ndarray, sp: Spectra) -> np.ndarray:
     lam, U = np.linalg.eigh(C)            # one-pass sums can leave it slightly indefinite: clip
     C = np.einsum("hik,hk,hjk->hij", U, np.maximum(lam, 0.0), U.conj())
     floor = 1e-18 * np.abs(sp.mean[:2]) ** 2 + 1e-300      # 1e-9 relative, per line and angle
-    C[:, 0, 0] += sp.N * sp.quantum[0] ** 2 / 12.0 + floor[0]
-    C[:, 1, 1] += sp.N * sp.quantum[1] ** 2 / 12.0 + floor[1]
+    C[:, 0, 0] += repeating_quantization(sp, 0) + floor[0]
+    C[:, 1, 1] += repeating_quantization(sp, 1) + floor[1]
     a, b, d = C[:, 0, 0].real, C[:, 1, 0], C[:, 1, 1].real
     l11 = np.sqrt(a)
     l21 = b / l11
@@ -421,6 +558,25 @@ def _whitener(G: np.ndarray, sp: Spectra) -> np.ndarray:
     Li[:, 1, 1] = 1.0 / l22
     Li[:, 1, 0] = -l21 / (l11 * l22)
     return Li
+
+
+def repeating_quantization(sp: Spectra, angle: int) -> np.ndarray:
+    """(H,) variance per line of the quantization error of one angle's mean spectrum that does not
+    average out over the periods: ``(1 - moved)^2 N q^2 / 12``.
+
+    A uniform error per sample gives ``N q^2 / 12`` per line and period. It repeats while the angle
+    retraces the same path (a drive holding the axis: the response is periodic) and is new where the
+    path has shifted since the previous period (a host loop's drift): the error of a path shifted by
+    ``u q`` correlates with the old one by ``1 - 6 u (1 - u)``, zero near u = 0.21, so a shift of more
+    than a quarter step (:data:`MOVED_STEPS`) counts as new; that error sits in the period scatter S
+    and averages out. ``moved`` is the share of the periods that shifted (None: taken as 0); the
+    others are taken to share one error pattern, a share (1 - moved) of the mean with variance
+    (1 - moved)^2 N q^2 / 12 - the worst case: a path that returns to where it was (a hold after a
+    disturbance) or creeps gives wider, never narrower intervals.
+    """
+    full = sp.N * float(sp.quantum[angle]) ** 2 / 12.0
+    share = 0.0 if sp.moved is None else float(sp.moved[angle])
+    return np.full(sp.harmonics.size, (1.0 - share) ** 2 * full)
 
 
 def _residual(m: _Model, x: np.ndarray, sp: Spectra, Li: np.ndarray, jac: bool
@@ -507,7 +663,12 @@ def identification_from_fit(sp: Spectra, fit: FitResult, hold: str, *, lead: flo
     pe = excitation_report([m1[:, [0, 2, 3]], np.vstack([m1, m2])])
     snr = math.nan
     checks = [criterion("Gauss-Newton fit converged", fit.converged, float(fit.iterations), "converged",
-                        f"Gauss-Newton stopped after {fit.iterations} iterations without converging")]
+                        f"Gauss-Newton stopped after {fit.iterations} iterations without converging"),
+              # the residual against the noise model: ~1 when the model explains the data; the
+              # intervals grow with it, but a model error is a bias they do not cover
+              criterion("fit error: weighted residual chi2 per degree of freedom", fit.s2 <= MAX_CHI2, fit.s2,
+                        f"<= {MAX_CHI2:g}", f"the model does not explain the data: chi2/dof {fit.s2:.3g} > "
+                        f"{MAX_CHI2:g} (residuals {math.sqrt(fit.s2):.3g} x the noise)")]
     if sp.periods >= 2:
         var_T = sp.cov[:, 2, 2].real * sp.mean_cov_factor
         snr = float(np.median(np.abs(sp.mean[2]) ** 2 / np.maximum(var_T, 1e-300)))
@@ -515,11 +676,13 @@ def identification_from_fit(sp: Spectra, fit: FitResult, hold: str, *, lead: flo
                                 f"torque lines barely above noise (median SNR {snr:.3g} < {MIN_SNR:g})"))
     diag = {"periods": float(sp.periods), "period_samples": float(sp.N), "n_harmonics": float(sp.harmonics.size),
             "chi2_dof": fit.s2, "iterations": float(fit.iterations), "converged": float(fit.converged),
+            "leakage_features": float(sp.leak_dof),
             "snr_median_db": 10.0 * math.log10(snr) if snr > 0.0 else math.nan}
     if n_samples is not None:
         diag["n_samples"] = float(n_samples)
-    cov_log = fit.cov[:4, :4] if np.all(np.isfinite(fit.cov[:4, :4])) else None
-    return build_identification(p, method, cov_log, pe, diag, checks=checks)
+    held = hold in ("zoh", "tustin_held")
+    bands = excited_bands(float(sp.omega.min()), float(sp.omega.max()), sp.dt if held else None)
+    return build_identification(p, method, fit.cov[:4, :4], pe, diag, checks=checks, bands=bands)
 
 
 def compute_spectra(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, dt: float, *,
@@ -562,7 +725,13 @@ def compute_spectra(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, 
         raise EstimationError("frequency: no excited harmonic found in the torque")
     S1 = V.sum(axis=0)
     S2 = np.einsum("pih,pjh->hij", V, V.conj())
-    return Spectra.from_sums(harmonics, N, dt, S1, S2, float(P), float(P), P, q)
+    feats: dict[str, Any] = {}
+    if first >= leak_window(N):            # the features need the previous period's end
+        F = leak_features(x[0], x[1], x[2], N, first, P)
+        d = np.abs(np.column_stack([F[:, 0] + F[:, 1], F[:, 1]]))       # the angles' moves since last period
+        feats = {"Svf": np.einsum("pih,pk->ihk", V, F), "Sff": F.T @ F, "Sf": F.sum(axis=0), "Wf": float(P),
+                 "Smv": np.sum((d > MOVED_STEPS * q) & (q > 0.0), axis=0).astype(float)}
+    return Spectra.from_sums(harmonics, N, dt, S1, S2, float(P), float(P), P, q, **feats)
 
 
 def fit_frequency(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, dt: float, *,

@@ -8,6 +8,17 @@ complete: its spectrum ``v`` (3 x H) enters running sums
 
 (``lam`` = forgetting per period; 1 keeps every period, < 1 tracks a drifting B or K
 with an effective memory of 1/(1 - lam) periods), and the accumulator restarts.
+
+A period whose response is not periodic (rigid-body drift in closed loop, the coast and the
+recovery after a host stall) differs from the others by its leakage, the term ``z c`` of
+:mod:`rt_ident.estimators.sampled_model` that the fit estimates for the mean. Its period-to-period
+variation is not noise, and it is shared by every line, so the kernel also keeps the periods'
+leakage features ``f`` (:func:`rt_ident.estimators.frequency.leak_features`) in sums ``Sf``,
+``Sff`` and ``Svf = sum v f^T``; the fit removes the part of the scatter they explain
+(:meth:`rt_ident.estimators.frequency.Spectra.from_sums`). It also counts the periods whose angles
+shifted by more than a quarter quantization step (their quantization errors are new ones,
+:func:`rt_ident.estimators.frequency.repeating_quantization`).
+All sums live in one flat complex buffer (:func:`rt_ident.estimators.frequency.sums_layout`).
 :meth:`StreamingFrequencyEstimator.estimate` turns the sums into the same
 :class:`~rt_ident.estimators.frequency.Spectra` as the batch
 :func:`~rt_ident.estimators.frequency.fit_frequency` and runs the same Gauss-Newton
@@ -30,13 +41,18 @@ import numpy as np
 from rt_ident.axis.kernels import first_non_finite3
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.frequency import (DEFAULT_LEAD, FitResult, Spectra, SpectraSums, check_hold, fit_spectra,
-                                           identification_from_fit)
+from rt_ident.estimators.frequency import (DEFAULT_LEAD, LEAK_FEATURES, MOVED_STEPS, FitResult, Spectra, SpectraSums,
+                                           check_hold, fit_spectra, identification_from_fit, leak_window,
+                                           sums_layout)
 
 logger = logging.getLogger(__name__)
 
-# state vector layout of the kernel (_SKIP: periods completed up to this count stay out of the sums)
-_POS, _W, _W2, _DONE, _USED, _HAS_LAST, _SKIP = range(7)
+# state vector layout of the kernel: position in the period, W, W2, periods completed and used, has-last
+# flag; the leakage features' window m, its sums over the current period (theta1, theta2: first and second
+# half of the last m samples), the previous period's means and slopes there, whether there is one, the
+# torque sum; the count of completed periods up to which periods stay out of the sums (a loop stall)
+_POS, _W, _W2, _DONE, _USED, _HAS_LAST, _M, _E, _PREV, _HAS_PREV, _TSUM, _SKIP, STATE_SIZE = (0, 1, 2, 3, 4, 5, 6, 7, 11,
+                                                                                            15, 16, 17, 18)
 
 
 def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, harmonics: np.ndarray,
@@ -46,12 +62,22 @@ def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, har
     """Feed a block of samples; returns the number of periods added to the sums.
 
     table (N,) complex exp(-2 pi j k/N); idx (H,) int current h n mod N; acc (3, H) complex
-    current-period DFT; S1 (3, H), S2 (H, 3, 3) complex running sums; state (7,) float
-    [position in period, W, W2, periods completed, periods used, has-last flag, skip through];
-    last (3,) previous sample; qmin (2,) smallest non-zero angle steps seen (0 = none yet).
+    current-period DFT; S1 (3, H) complex running sum; S2 the flat complex buffer of the other sums
+    (``sums_layout``: S2 (H, 3, 3), Svf (3, H, K), Sff (K, K), Sf (K,), Wf, Smv (2,)); state (STATE_SIZE,) float
+    (see the layout above; ``state[_M]`` set by the caller); last (3,) previous sample; qmin (2,) smallest
+    non-zero angle steps seen (0 = none yet).
     """
     N = table.shape[0]
     H = harmonics.shape[0]
+    K = LEAK_FEATURES
+    o_vf = 9 * H
+    o_ff = o_vf + 3 * H * K
+    o_f = o_ff + K * K
+    o_wf = o_f + K
+    o_mv = o_wf + 1
+    m = int(state[_M])
+    half = m // 2
+    f = np.zeros(K)
     added = 0
     for n in range(th1.shape[0]):
         a, b, c = th1[n], th2[n], torque[n]
@@ -75,20 +101,62 @@ def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, har
             if k >= N:
                 k -= N
             idx[j] = k
+        cur = int(state[_POS])
+        state[_TSUM] += c
+        if cur >= N - m:                   # the last m samples: the leakage features' window
+            e = _E if cur < N - half else _E + 1
+            state[e] += a
+            state[e + 2] += b
         pos = state[_POS] + 1.0
         if pos >= N:
             pos = 0.0
             state[_DONE] += 1.0
+            mean1 = (state[_E] + state[_E + 1]) / m
+            mean2 = (state[_E + 2] + state[_E + 3]) / m
+            slope1 = (state[_E + 1] - state[_E]) / half
+            slope2 = (state[_E + 3] - state[_E + 2]) / half
             if state[_DONE] > discard and state[_DONE] > state[_SKIP]:
                 for j in range(H):
                     for r in range(3):
                         S1[r, j] = lam * S1[r, j] + acc[r, j]
                         for s in range(3):
-                            S2[j, r, s] = lam * S2[j, r, s] + acc[r, j] * acc[s, j].conjugate()
+                            i2 = (j * 3 + r) * 3 + s
+                            S2[i2] = lam * S2[i2] + acc[r, j] * acc[s, j].conjugate()
+                # leakage features: same phase in this period and the previous one
+                has = state[_HAS_PREV] != 0.0
+                f[1] = mean2 - state[_PREV + 1]
+                f[0] = mean1 - state[_PREV] - f[1]
+                f[2] = state[_TSUM]
+                f[4] = slope2 - state[_PREV + 3]
+                f[3] = slope1 - state[_PREV + 2] - f[4]
+                for r in range(3):
+                    for j in range(H):
+                        for k in range(K):
+                            i2 = o_vf + (r * H + j) * K + k
+                            S2[i2] = lam * S2[i2] + (acc[r, j] * f[k] if has else 0.0)
+                for k in range(K):
+                    for l in range(K):
+                        i2 = o_ff + k * K + l
+                        S2[i2] = lam * S2[i2] + (f[k] * f[l] if has else 0.0)
+                    S2[o_f + k] = lam * S2[o_f + k] + (f[k] if has else 0.0)
+                S2[o_wf] = lam * S2[o_wf] + (1.0 if has else 0.0)
+                # shifted by more than MOVED_STEPS of the smallest step seen: new quantization errors
+                moved1 = has and qmin[0] > 0.0 and abs(mean1 - state[_PREV]) > MOVED_STEPS * qmin[0]
+                moved2 = has and qmin[1] > 0.0 and abs(mean2 - state[_PREV + 1]) > MOVED_STEPS * qmin[1]
+                S2[o_mv] = lam * S2[o_mv] + (1.0 if moved1 else 0.0)
+                S2[o_mv + 1] = lam * S2[o_mv + 1] + (1.0 if moved2 else 0.0)
                 state[_W] = lam * state[_W] + 1.0
                 state[_W2] = lam * lam * state[_W2] + 1.0
                 state[_USED] += 1.0
                 added += 1
+            state[_PREV] = mean1
+            state[_PREV + 1] = mean2
+            state[_PREV + 2] = slope1
+            state[_PREV + 3] = slope2
+            state[_HAS_PREV] = 1.0
+            for i in range(4):
+                state[_E + i] = 0.0
+            state[_TSUM] = 0.0
             for j in range(H):
                 idx[j] = 0
                 for r in range(3):
@@ -147,8 +215,9 @@ class StreamingFrequencyEstimator:
         self._idx = np.zeros(H, dtype=np.int64)
         self._acc = np.zeros((3, H), complex)
         self._S1 = np.zeros((3, H), complex)
-        self._S2 = np.zeros((H, 3, 3), complex)
-        self._state = np.zeros(7)
+        self._S2 = np.zeros(sums_layout(H)["size"], complex)     # S2, then the leakage features' sums
+        self._state = np.zeros(STATE_SIZE)
+        self._state[_M] = leak_window(self.period)
         self._last = np.zeros(3)
         self._qmin = np.zeros(2)
         self._count = np.zeros(1, dtype=np.int64)     # samples fed (in place: see rt_ident.runtime.tick_core)
@@ -190,8 +259,8 @@ class StreamingFrequencyEstimator:
     def sums(self) -> SpectraSums:
         """The running sums now (copies): what :meth:`spectra` and the fit worker make the spectra from."""
         q = self.quantum if self.quantum is not None else self._qmin.copy()
-        return SpectraSums(self.harmonics, self.period, self.dt, self._S1.copy(), self._S2.copy(),
-                           float(self._state[_W]), float(self._state[_W2]), self.periods, q)
+        return SpectraSums.from_flat(self.harmonics, self.period, self.dt, self._S1.copy(), self._S2.copy(),
+                                     float(self._state[_W]), float(self._state[_W2]), self.periods, q)
 
     def spectra(self) -> Spectra:
         """The accumulated period-averaged spectra (EstimationError before the first period)."""
@@ -211,4 +280,5 @@ class StreamingFrequencyEstimator:
         """Forget everything (the next sample starts a period)."""
         for arr in (self._idx, self._acc, self._S1, self._S2, self._state, self._last, self._qmin, self._count):
             arr[...] = 0
+        self._state[_M] = leak_window(self.period)
         self._fit = None

@@ -37,14 +37,21 @@ equations (bias-compensated least squares, as :mod:`rt_ident.estimators.svf` doe
 **95 % intervals**: sigma^2 (A'A)^-1 from the residual, inflated by the residual's integrated
 autocorrelation time (the filtered rows are strongly correlated).
 
+**Trust** (:func:`friction_criteria`): the regression is well conditioned; every value is physical
+(I1, I2, K, J > 0; B, Fc*, Fv* >= 0: friction and damping dissipate); every parameter has a finite
+95 % interval, narrower than +-10 % for the inertias, B and K; the model explains the torque
+(NRMSE <= ``MAX_NRMSE``); for the two-inertia models the resonance lies in the band the torque
+excited. ``--validate`` adds the prediction error on another recording (<= ``MAX_VALIDATION_ERROR``,
+:meth:`FrictionIdentification.with_validation`).
+
 The frequency method stays linear-only (no friction model); this method accepts every model.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, Mapping
 
 import numba
 import numpy as np
@@ -52,6 +59,8 @@ import scipy.linalg
 import scipy.signal
 
 from rt_ident.errors import ConfigError, DataError, EstimationError
+from rt_ident.estimators.uncertainty import (MAX_REL_HALFWIDTH, criterion, excited_band_of, excited_bands,
+                                             interval_criterion, resonance_criterion)
 
 MODELS: dict[str, tuple[str, ...]] = {
     "two-inertia": ("I1", "I2", "B", "K", "offset"),
@@ -61,6 +70,16 @@ MODELS: dict[str, tuple[str, ...]] = {
 DEFAULT_MODEL = "two-inertia"
 #: Models that need a second (table) position sensor.
 NEEDS_THETA2 = ("two-inertia", "two-inertia-friction")
+#: Values that must be > 0 (inertias, stiffness) and >= 0 (damping and friction to ground dissipate).
+POSITIVE = ("I1", "I2", "K", "J")
+NON_NEGATIVE = ("B", "Fc1", "Fv1", "Fc2", "Fv2", "Fc", "Fv")
+#: Parameters whose 95 % interval must be narrower than +-MAX_REL_HALFWIDTH (the others: finite).
+WIDTH_CHECKED = ("I1", "I2", "B", "K", "J")
+#: Torque fit error above which the model does not explain its own recording (%, rms error / rms torque).
+MAX_NRMSE = 10.0
+#: Torque prediction error on another recording above which the model fails validation (%).
+MAX_VALIDATION_ERROR = 10.0
+MAX_COND = 1e12
 
 
 def check_model(model: str | None) -> str:
@@ -80,17 +99,83 @@ class FrictionIdentification:
     nrmse_percent: float
     method: str = "svf-ls"
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    trust_criteria: tuple[dict[str, Any], ...] = ()
 
     @property
     def trusted(self) -> bool:
-        return bool(self.diagnostics.get("well_posed", False))
+        """Every criterion passed (none stated: never trusted)."""
+        return bool(self.trust_criteria) and all(c["passed"] for c in self.trust_criteria)
+
+    @property
+    def reasons(self) -> list[str]:
+        """Why the result is not trusted (empty when it is)."""
+        if self.trusted:
+            return []
+        why = [c["why"] or c["criterion"] for c in self.trust_criteria if not c["passed"]]
+        return why or [f"{self.method} states no trust criteria; its result is never trusted"]
+
+    def trust(self) -> dict[str, Any]:
+        return {"trusted": self.trusted, "reasons": self.reasons, "criteria": [dict(c) for c in self.trust_criteria]}
+
+    def with_validation(self, validation: Mapping[str, Any]) -> "FrictionIdentification":
+        """This result with the validation on another recording as one more criterion: its torque
+        prediction error must be <= MAX_VALIDATION_ERROR (a missing or non-finite error fails)."""
+        err = validation.get("torque_error_percent")
+        ok = err is not None and math.isfinite(float(err)) and float(err) <= MAX_VALIDATION_ERROR
+        where = validation.get("file", "the other recording")
+        c = criterion(f"validation on {where}: torque prediction error (%)", ok,
+                      None if err is None else float(err), f"<= {MAX_VALIDATION_ERROR:g} %",
+                      f"fails validation on {where}: torque prediction error "
+                      f"{'unknown' if err is None else f'{float(err):.3g} %'} > {MAX_VALIDATION_ERROR:g} %")
+        return replace(self, trust_criteria=self.trust_criteria + (c,))
 
     def as_dict(self) -> dict[str, Any]:
         return {"model": self.model, "method": self.method, "parameters": dict(self.parameters),
                 "intervals": {k: [lo, hi] for k, (lo, hi) in self.ci95.items()},
                 "ci95": {k: [lo, hi] for k, (lo, hi) in self.ci95.items()},
-                "fit": {"nrmse_percent": self.nrmse_percent}, "trusted": self.trusted,
+                "fit": {"nrmse_percent": self.nrmse_percent}, "trusted": self.trusted, "trust": self.trust(),
                 "diagnostics": dict(self.diagnostics)}
+
+
+def friction_criteria(key: str, params: Mapping[str, float], ci: Mapping[str, tuple[float, float]],
+                      nrmse: float, cond: float, bands: list[tuple[float, float]] | None) -> tuple[dict[str, Any], ...]:
+    """The trust criteria of a friction-model fit (module docstring, "Trust")."""
+    out = [criterion("regression: condition number of the normal equations", cond < MAX_COND, cond,
+                     f"< {MAX_COND:g}", f"the regression is ill-conditioned (condition number {cond:.3g})")]
+    bad = [f"{k} = {v:.4g} must be > 0" for k, v in params.items() if k in POSITIVE and not v > 0.0]
+    bad += [f"{k} = {v:.4g} must be >= 0" + _sign_note(k, ci.get(k))
+            for k, v in params.items() if k in NON_NEGATIVE and not v >= 0.0]
+    out.append(criterion("physical values: I1, I2, K, J > 0; B, Fc, Fv >= 0", not bad, None, "all",
+                         "not physical: " + "; ".join(bad)))
+    out.append(criterion("torque fit error NRMSE (%)", math.isfinite(nrmse) and nrmse <= MAX_NRMSE, nrmse,
+                         f"<= {MAX_NRMSE:g} %", f"the model does not explain the torque: NRMSE {nrmse:.3g} % "
+                         f"> {MAX_NRMSE:g} %"))
+    if key in NEEDS_THETA2:
+        I1, I2, B, K = (params[k] for k in ("I1", "I2", "B", "K"))
+        wn = math.sqrt(K * (1.0 / I1 + 1.0 / I2)) if min(I1, I2, K) > 0.0 else math.nan
+        out.append(resonance_criterion(wn, bands))
+    width = {k: float(params[k]) for k in params if k in WIDTH_CHECKED}
+    out.append(interval_criterion(width, ci, MAX_REL_HALFWIDTH))
+    rest = [k for k in params if k not in WIDTH_CHECKED]
+    missing = [(k, why) for k in rest for why in [_finite_problem(ci.get(k))] if why]
+    out.append(criterion(f"finite 95 % interval of {', '.join(rest)}", not missing, None, "finite",
+                         "; ".join(f"95 % interval of {k}: {why}" for k, why in missing)))
+    return tuple(out)
+
+
+def _finite_problem(c: tuple[float, float] | None) -> str | None:
+    if c is None:
+        return "no interval"
+    lo, hi = float(c[0]), float(c[1])
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return f"[{lo:.4g}, {hi:.4g}] is not finite"
+    return f"[{lo:.4g}, {hi:.4g}] has negative width" if hi < lo else None
+
+
+def _sign_note(key: str, c: tuple[float, float] | None) -> str:
+    if c is not None and math.isfinite(c[1]) and c[1] >= 0.0:
+        return f" (its 95 % interval reaches {c[1]:.3g}: consistent with none)"
+    return ""
 
 
 # ----------------------------------------------------------------------------- filters
@@ -335,12 +420,14 @@ def fit_friction(theta1: np.ndarray, torque: np.ndarray, dt: float, *, model: st
     params = {k: float(v) for k, v in zip(names, est)}
     ci = {k: (float(v - h), float(v + h)) for k, v, h in zip(names, est, half)}
     cond = float(np.linalg.cond(R))
-    positive = [k for k in names if k in ("I1", "I2", "K", "J")]
+    positive = [k for k in names if k in POSITIVE]
     diag = {"samples": int(n), "rows_used": int(m), "filter_hz": float(filter_hz), "velocity_hz": float(velocity_hz),
             "dead_band": float(db1), "torque_hold": torque_hold, "quanta": [float(q1), float(q2)], "regressor_cond": cond,
             "autocorrelation_time": float(tau),
-            "well_posed": bool(cond < 1e12 and all(params[k] > 0 for k in positive))}
-    return FrictionIdentification(key, params, ci, nrmse, diagnostics=diag)
+            "well_posed": bool(cond < MAX_COND and all(params[k] > 0 for k in positive))}
+    bands = excited_bands(*excited_band_of(tq, dt), dt if torque_hold == "zoh" else None)
+    return FrictionIdentification(key, params, ci, nrmse, diagnostics=diag,
+                                  trust_criteria=friction_criteria(key, params, ci, nrmse, cond, bands))
 
 
 def _autocorr_time(e: np.ndarray, max_lag: int = 20000) -> float:

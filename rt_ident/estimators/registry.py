@@ -36,7 +36,7 @@ from rt_ident.estimators.base import Identification, IdentData
 from rt_ident.estimators.consistent import fit_tustin_angles, fit_tustin_states, fit_zoh
 from rt_ident.estimators.frequency import fit_frequency
 from rt_ident.estimators.friction import MODELS as FRICTION_MODELS, check_model, fit_friction
-from rt_ident.estimators.uncertainty import build_identification, excitation_report
+from rt_ident.estimators.uncertainty import build_identification, excitation_report, excited_band_of, excited_bands
 
 logger = logging.getLogger(__name__)
 
@@ -103,7 +103,8 @@ def _paper(data: IdentData, **options: Any) -> Identification:
     pe = excitation_report([np.column_stack([d, dw, states[:-1, 2], states[:-1, 3], data.torque[:-1]])])
     diag = {"n_samples": float(data.n), "regressor_cond": float(est.cond)}
     return build_identification(est.params, "paper", None, pe, diag, extra_ok=False,
-                                extra_reason="forward-Euler model (Eq. 9): biased by the discretization")
+                                extra_reason="forward-Euler model (Eq. 9): biased by the discretization",
+                                bands=excited_bands(*excited_band_of(data.torque, data.dt)))
 
 
 def _svf_ls(data: IdentData, *, model: str = "two-inertia", **options: Any):

@@ -26,10 +26,16 @@ state leaves the motor regressor rank-deficient (three columns spanned by one si
 and one cosine) and fails; the broadband Schroeder multisine gives min_eig of
 0.2-0.7 (see tests/test_uncertainty.py).
 
-``trusted`` additionally requires every physical parameter's 95 % interval to be
-narrower than +-``MAX_REL_HALFWIDTH`` (10 %) of its value, which catches zero
-excitation (noise alone can be "well conditioned" but gives wide intervals); the
-frequency estimator also requires the torque lines to stand above the noise.
+``trusted`` additionally requires every physical parameter's 95 % interval to exist, be
+finite and narrower than +-``MAX_REL_HALFWIDTH`` (10 %) of its value, which catches zero
+excitation (noise alone can be "well conditioned" but gives wide intervals); a missing
+interval fails this criterion, it is never left out. The resonance must lie in the band the
+excitation covered (:func:`resonance_criterion`): a mode fitted outside it is an
+extrapolation. The frequency estimator also requires the torque lines to stand above the
+noise and the fit to explain the data.
+
+The verdict is never more optimistic than its evidence: a criterion that cannot be evaluated
+(no covariance, no band) fails, with the reason.
 """
 
 from __future__ import annotations
@@ -160,6 +166,86 @@ def relative_halfwidths(ci: Mapping[str, tuple[float, float]], values: Mapping[s
     return {k: (hi - lo) / (2.0 * abs(values[k])) if values[k] else math.inf for k, (lo, hi) in ci.items()}
 
 
+def interval_problem(value: float, ci: tuple[float, float] | None) -> str | None:
+    """Why ``ci`` is not a usable 95 % interval of ``value`` (None when it is): missing, not finite,
+    of negative width, or not containing the value."""
+    if ci is None:
+        return "no interval"
+    try:
+        lo, hi = (float(c) for c in ci)
+    except (TypeError, ValueError):
+        return f"interval {ci!r} is not a pair of numbers"
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return f"interval [{lo:.4g}, {hi:.4g}] is not finite"
+    if hi < lo:
+        return f"interval [{lo:.4g}, {hi:.4g}] has negative width"
+    v, tol = float(value), 1e-9 * abs(float(value))     # rounding of exp(log(value))
+    if not (math.isfinite(v) and lo - tol <= v <= hi + tol):
+        return f"interval [{lo:.4g}, {hi:.4g}] does not contain the estimate {float(value):.4g}"
+    return None
+
+
+def interval_criterion(values: Mapping[str, float], ci: Mapping[str, tuple[float, float]] | None,
+                       max_rel_halfwidth: float = MAX_REL_HALFWIDTH, *, why_missing: str = "") -> dict[str, Any]:
+    """The interval criterion: every key of ``values`` has a finite 95 % interval containing its value,
+    with half-width <= ``max_rel_halfwidth`` of the value. A missing, NaN, infinite or negative-width
+    interval fails it (the value reported is then infinite)."""
+    name = f"widest 95 % interval of {', '.join(values)} (half-width, relative)"
+    limit = f"<= {100 * max_rel_halfwidth:g} %"
+    for k, v in values.items():
+        bad = interval_problem(v, None if ci is None else ci.get(k))
+        if bad is not None:
+            why = f"95 % interval of {k}: {bad}" + (f" ({why_missing})" if why_missing and ci is None else "")
+            return criterion(name, False, math.inf, limit, why)
+    rel = relative_halfwidths({k: ci[k] for k in values}, values)
+    worst = max(rel, key=lambda k: rel[k])
+    return criterion(name, rel[worst] <= max_rel_halfwidth, 100 * rel[worst], limit,
+                     f"95 % interval of {worst} is +-{100 * rel[worst]:.3g} % (> {100 * max_rel_halfwidth:g} %)")
+
+
+def excited_band_of(torque: np.ndarray, dt: float, *, share: float = 0.98) -> tuple[float, float]:
+    """(w_lo, w_hi) [rad/s]: the band holding the central ``share`` of the torque's power (mean removed),
+    for methods that are not told which lines were excited."""
+    u = np.asarray(torque, dtype=float)
+    P = np.abs(np.fft.rfft(u - u.mean())) ** 2
+    P[0] = 0.0
+    total = float(P.sum())
+    if not total > 0.0:
+        return (math.nan, math.nan)
+    c = np.cumsum(P) / total
+    tail = 0.5 * (1.0 - share)
+    lo = int(np.searchsorted(c, tail))
+    hi = int(np.searchsorted(c, 1.0 - tail))
+    w = 2.0 * math.pi * np.fft.rfftfreq(u.size, dt)
+    return float(w[max(lo, 1)]), float(w[min(hi, w.size - 1)])
+
+
+def excited_bands(w_lo: float, w_hi: float, dt: float | None = None) -> list[tuple[float, float]]:
+    """The bands [rad/s] an excitation over ``w_lo..w_hi`` reaches: the band itself and, for a torque
+    held over each sample of ``dt``, its first image ``2 pi/dt - w_hi .. 2 pi/dt - w_lo`` (a held line
+    at w also drives the plant at 2 pi/dt - w, weighted by sinc)."""
+    out = [(float(w_lo), float(w_hi))]
+    if dt is not None:
+        ws = 2.0 * math.pi / float(dt)
+        out.append((ws - float(w_hi), ws - float(w_lo)))
+    return out
+
+
+def resonance_criterion(wn: float, bands: Sequence[tuple[float, float]] | None) -> dict[str, Any]:
+    """The resonance ``wn`` [rad/s] lies in one of the excited ``bands``; fails when it does not, when
+    ``wn`` is not finite, or when the band is unknown (None)."""
+    name = "resonance wn inside the excited band"
+    ok_bands = [(lo, hi) for lo, hi in (bands or ()) if math.isfinite(lo) and math.isfinite(hi) and hi >= lo]
+    limit = " or ".join(f"{lo:.4g}..{hi:.4g} rad/s" for lo, hi in ok_bands) or "a known band"
+    if not ok_bands:
+        return criterion(name, False, wn, limit, "the excited band is unknown: the resonance cannot be checked")
+    if not math.isfinite(float(wn)):
+        return criterion(name, False, None, limit, f"no finite resonance (wn = {wn})")
+    inside = any(lo <= wn <= hi for lo, hi in ok_bands)
+    return criterion(name, inside, wn, limit,
+                     f"resonance wn = {wn:.4g} rad/s lies outside the excited band ({limit}): an extrapolation")
+
+
 # --------------------------------------------------------------------------- excitation monitor
 @dataclass(frozen=True)
 class ExcitationReport:
@@ -219,13 +305,15 @@ def build_identification(p: AxisParams, method: str, cov_log: np.ndarray | None,
                          excitation: ExcitationReport, diagnostics: Mapping[str, float] | None = None,
                          *, extra_ok: bool = True, extra_reason: str = "",
                          checks: Sequence[dict[str, Any]] = (),
+                         bands: Sequence[tuple[float, float]] | None = None,
                          max_rel_halfwidth: float = MAX_REL_HALFWIDTH) -> Identification:
     """Assemble an :class:`Identification` with intervals and the trust decision.
 
     trusted = every criterion passed: persistent excitation (min eigenvalue, condition number of
     the normalized information matrix), the method's own ``checks`` (e.g. the fit converged),
-    ``extra_ok``, and every 95 % half-width of I1, I2, B, K <= max_rel_halfwidth of its value
-    (when a covariance is given).
+    ``extra_ok``, the resonance inside the excited ``bands`` [rad/s] (:func:`resonance_criterion`;
+    unknown bands fail it) and a finite 95 % interval on each of I1, I2, B, K with half-width
+    <= max_rel_halfwidth of its value (:func:`interval_criterion`; no covariance fails it).
     The criteria, with the reason of each failure, travel with the result (``trust_criteria``).
     """
     modal = modal_parameters(p)
@@ -244,17 +332,14 @@ def build_identification(p: AxisParams, method: str, cov_log: np.ndarray | None,
     crit += [dict(c) for c in checks]
     if not extra_ok:
         crit.append(criterion(f"{method}: method check", False, why=extra_reason))
+    crit.append(resonance_criterion(float(modal["wn"]), bands))
     if cov_log is not None:
-        ci = intervals(p, cov_log)
-        values = {k: float(getattr(p, k)) for k in PARAM_KEYS}
+        ci = intervals(p, cov_log)        # a non-finite variance gives (0, inf): the criterion fails on it
+    values = {k: float(getattr(p, k)) for k in PARAM_KEYS}
+    crit.append(interval_criterion(values, ci, max_rel_halfwidth, why_missing="the method gives no covariance"))
+    if ci is not None:
         rel = relative_halfwidths({k: ci[k] for k in PARAM_KEYS}, values)
-        worst_key = max(rel, key=lambda k: rel[k])
-        diag["max_rel_ci95"] = rel[worst_key]
-        crit.append(criterion("widest 95 % interval of I1, I2, B, K (half-width, relative)",
-                              rel[worst_key] <= max_rel_halfwidth, 100 * rel[worst_key],
-                              f"<= {100 * max_rel_halfwidth:g} %",
-                              f"95 % interval of {worst_key} is +-{100 * rel[worst_key]:.3g} % "
-                              f"(> {100 * max_rel_halfwidth:g} %)"))
+        diag["max_rel_ci95"] = max(rel.values())
     trusted = all(c["passed"] for c in crit)
     if not trusted:
         logger.info("%s: identification not trusted: %s", method,

@@ -56,8 +56,8 @@ def identify_cmd(
     if json_out:
         typer.echo(json.dumps(res, indent=2))
     else:
-        out.print(f"{res['identified']} identified, {res['skipped']} already in the history, {res['failed']} failed "
-                  f"-> {res['history']}")
+        out.print(f"{res['identified']} identified ({res['untrusted']} not trusted), {res['skipped']} already in the "
+                  f"history, {res['failed']} failed -> {res['history']}")
         for f in res["failures"]:
             out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}")
     if res["failed"]:
@@ -80,6 +80,11 @@ def drift_cmd(
         typer.echo(json.dumps(res, indent=2))
         return
     out.print(f"{res['series']} series, {res['checked']} parameter series checked ({res['method']})")
+    ign = res["ignored"]
+    if ign["untrusted"] or ign["unknown_verdict"]:
+        out.print(f"ignored {ign['untrusted'] + ign['unknown_verdict']} rows: {ign['untrusted']} not trusted, "
+                  f"{ign['unknown_verdict']} with no recorded verdict (written by an older rt-ident: treated as "
+                  "untrusted; `fleet identify` on their manifest records one)")
     if not res["alarms"]:
         out.print("no drift alarms")
         return

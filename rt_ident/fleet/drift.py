@@ -15,6 +15,10 @@ values as in Montgomery, *Introduction to Statistical Quality Control*, ch. 9):
   (``k = 0.5``, ``h = 5``: a shift of one sigma is found in about 10 recordings, and an in-control series
   raises a false alarm about once in 465).
 
+Only trusted estimates enter a series: a row whose verdict is "not trusted", or unknown (written before
+verdicts were recorded: no ``trusted``/``trust_criteria``), is left out and counted (``ignored``). An
+untrusted estimate is not evidence of drift, and an alarm must not rest on one.
+
 The history is read with DuckDB (:mod:`rt_ident.fleet.history`).
 """
 
@@ -27,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from rt_ident.fleet.history import connect
+from rt_ident.fleet.history import columns, connect, verdict_sql
 from rt_ident.fleet.identify import PARAMS
 
 #: parameters watched by default (wd follows wn and zeta)
@@ -43,22 +47,26 @@ class DriftSettings:
 
 
 def series(history: str | Path) -> dict[tuple[str, str], dict[str, np.ndarray]]:
-    """(machine, axis) -> arrays ``time`` (datetime64[us]) and each parameter with ``_lo``/``_hi``, in time
-    order (the latest identification of a recording if it was identified twice)."""
+    """(machine, axis) -> arrays ``time`` (datetime64[us]), each parameter with ``_lo``/``_hi``, ``trusted`` and
+    ``has_verdict`` (bool), in time order: every recording once (its latest identification with a recorded
+    verdict, else its latest)."""
     con = connect(history)
     cols = ", ".join(f"{k}, {k}_lo, {k}_hi" for k in PARAMS)
     rows = con.execute(
-        f"SELECT machine, axis, time, {cols} FROM history QUALIFY row_number() OVER "
-        "(PARTITION BY machine, axis, hash ORDER BY version DESC) = 1 ORDER BY machine, axis, time").fetchnumpy()
+        f"SELECT machine, axis, time, {cols}, trusted, has_verdict FROM (SELECT *, {verdict_sql(columns(con))} "
+        "FROM history) QUALIFY row_number() OVER (PARTITION BY machine, axis, hash ORDER BY has_verdict DESC, "
+        "version DESC) = 1 ORDER BY machine, axis, time").fetchnumpy()
     out: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     machine, axis = np.asarray(rows["machine"]).astype(str), np.asarray(rows["axis"]).astype(str)
     keys = sorted(set(zip(machine, axis)))
+    known = np.asarray(rows["has_verdict"], dtype=bool)
+    trusted = known & (np.asarray(np.ma.filled(np.ma.asarray(rows["trusted"]), False), dtype=bool))
     for m, a in keys:
         sel = (machine == m) & (axis == a)
-        d = {"time": np.asarray(rows["time"])[sel]}
+        d = {"time": np.asarray(rows["time"])[sel], "trusted": trusted[sel], "has_verdict": known[sel]}
         for k in PARAMS:
             for suffix in ("", "_lo", "_hi"):
-                d[k + suffix] = np.asarray(rows[k + suffix], dtype=float)[sel]
+                d[k + suffix] = np.asarray(np.ma.filled(np.ma.asarray(rows[k + suffix], dtype=float), np.nan))[sel]
         out[(m, a)] = d
     return out
 
@@ -95,11 +103,17 @@ def cusum(x: np.ndarray, se: np.ndarray, s: DriftSettings) -> dict[str, Any]:
 
 def drift(history: str | Path, settings: DriftSettings = DriftSettings(),
           params: tuple[str, ...] = WATCHED) -> dict[str, Any]:
-    """Every (machine, axis, parameter) series checked; alarms in JSON-ready form, the largest change first."""
+    """Every (machine, axis, parameter) series checked on its trusted rows; alarms in JSON-ready form, the
+    largest change first; ``ignored`` counts the rows left out (not trusted / no recorded verdict)."""
     alarms = []
     checked = 0
+    ignored = {"untrusted": 0, "unknown_verdict": 0}
     detail: dict[tuple[str, str], dict[str, Any]] = {}
-    for (machine, axis), d in series(history).items():
+    for (machine, axis), full in series(history).items():
+        use = full["trusted"]
+        ignored["untrusted"] += int(np.count_nonzero(full["has_verdict"] & ~use))
+        ignored["unknown_verdict"] += int(np.count_nonzero(~full["has_verdict"]))
+        d = {k: v[use] for k, v in full.items()}
         per: dict[str, Any] = {}
         for p in params:
             x = d[p]
@@ -114,10 +128,11 @@ def drift(history: str | Path, settings: DriftSettings = DriftSettings(),
                 alarms.append({"machine": machine, "axis": axis, "parameter": p,
                                "first_time": np.datetime_as_string(d["time"][i], unit="s") + "Z",
                                "change_percent": round(change, 3), "recordings_before": int(i)})
-        detail[(machine, axis)] = {"series": d, "cusum": per}
+        detail[(machine, axis)] = {"series": d, "cusum": per, "ignored": int(full["time"].size - d["time"].size)}
     alarms.sort(key=lambda a: -abs(a["change_percent"]))
-    return {"checked": checked, "series": len(detail), "alarms": alarms,
-            "method": f"two-sided CUSUM (Page 1954), k={settings.k}, h={settings.h}, baseline {settings.baseline}",
+    return {"checked": checked, "series": len(detail), "alarms": alarms, "ignored": ignored,
+            "method": f"two-sided CUSUM (Page 1954), k={settings.k}, h={settings.h}, baseline {settings.baseline}, "
+                      "trusted estimates only",
             "_detail": detail}
 
 

@@ -4,7 +4,9 @@ The history is a local folder or any fsspec URL (``s3://bucket/fleet``: object s
 filesystem installed, e.g. ``s3fs``); DuckDB reads a URL through the registered fsspec filesystem.
 
 :func:`connect` gives an in-memory DuckDB connection with one view, ``history``: every row ever
-identified (hive partition ``machine`` included). ``rt-ident fleet query "SQL"`` runs the user's SQL on it.
+identified (hive partition ``machine`` included), with its verdict (``trusted``, ``reasons``,
+``trust_criteria`` as JSON). Files written before verdicts were recorded lack those columns: their
+rows read as NULL there, an unknown verdict (:func:`verdict_sql`). ``rt-ident fleet query "SQL"`` runs the user's SQL on it.
 """
 
 from __future__ import annotations
@@ -49,6 +51,20 @@ def connect(history: str | Path):
     return con
 
 
+def columns(con) -> set[str]:
+    """The columns of the ``history`` view (an old history may lack the newer ones)."""
+    return {r[0] for r in con.execute("DESCRIBE history").fetchall()}
+
+
+def verdict_sql(cols: set[str]) -> str:
+    """Select-list items ``trusted`` and ``has_verdict`` for a history with columns ``cols``: a row has a
+    verdict when it records both ``trusted`` and the criteria behind it (``trust_criteria``); rows written
+    before verdicts were recorded have NULL there (or no such column) and count as unknown, not trusted."""
+    trusted = "trusted" if "trusted" in cols else "CAST(NULL AS BOOLEAN)"
+    crit = "trust_criteria IS NOT NULL" if "trust_criteria" in cols else "FALSE"
+    return f"{trusted} AS trusted, ({trusted} IS NOT NULL AND {crit}) AS has_verdict"
+
+
 def query(history: str | Path, sql: str) -> tuple[list[str], list[tuple[Any, ...]]]:
     """Run ``sql`` against the ``history`` view; returns (column names, rows). Errors are one line."""
     import duckdb
@@ -63,4 +79,4 @@ def query(history: str | Path, sql: str) -> tuple[list[str], list[tuple[Any, ...
     return [d[0] for d in cur.description], cur.fetchall()
 
 
-__all__ = ["connect", "query"]
+__all__ = ["columns", "connect", "query", "verdict_sql"]

@@ -8,6 +8,8 @@ to a Parquet history partitioned by machine.
   A remote recording (an fsspec URL) is copied to the worker's temporary folder first.
 * A task never raises: a bad recording comes back as a row with ``status = "failed"`` and its error, and the
   others go on. Failed rows are reported, not stored (a fixed file is identified on the next run).
+* Every stored row carries its verdict: ``trusted``, ``reasons`` (why not, in words) and ``trust_criteria``
+  (JSON: each criterion with its value, limit and result). Drift uses trusted rows only.
 * The cluster: the scheduler the user names (``--scheduler tcp://host:8786``), else a ``LocalCluster`` of
   ``workers`` single-threaded processes bound to 127.0.0.1, its dashboard on 127.0.0.1 (a free port) -
   nothing listens beyond this host unless the user points at a cluster.
@@ -16,6 +18,7 @@ to a Parquet history partitioned by machine.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import shutil
@@ -64,7 +67,8 @@ def identify_recording(entry: dict[str, Any], known: frozenset[str] = frozenset(
     from rt_ident.reports.identify import identify_file
 
     row: dict[str, Any] = {**entry, "hash": None, "method": method, "version": __version__,
-                           "samples": None, "trusted": None, "status": "ok", "error": None}
+                           "samples": None, "trusted": None, "reasons": None, "trust_criteria": None,
+                           "status": "ok", "error": None}
     tmp = None
     try:
         path = entry["path"]
@@ -82,7 +86,10 @@ def identify_recording(entry: dict[str, Any], known: frozenset[str] = frozenset(
         d = ident.as_dict()
         row["method"] = d["method"]
         row["samples"] = int(info["samples"])
-        row["trusted"] = bool(d["trusted"])
+        trust = d.get("trust") or {}
+        row["trusted"] = bool(d["trusted"]) and bool(trust.get("criteria"))   # no criteria: never trusted
+        row["reasons"] = [str(w) for w in trust.get("reasons") or ([] if row["trusted"] else ["no criteria stated"])]
+        row["trust_criteria"] = json.dumps(trust.get("criteria") or [], default=float)
         for k in PARAMS:
             row[k] = d["parameters"].get(k)
             lo, hi = (d["ci95"] or {}).get(k) or (None, None)
@@ -104,7 +111,8 @@ def _schema():
 
     fields = [("path", pa.string()), ("machine", pa.string()), ("axis", pa.string()),
               ("time", pa.timestamp("us", tz="UTC")), ("hash", pa.string()), ("method", pa.string()),
-              ("version", pa.string()), ("samples", pa.int64()), ("trusted", pa.bool_())]
+              ("version", pa.string()), ("samples", pa.int64()), ("trusted", pa.bool_()),
+              ("reasons", pa.list_(pa.string())), ("trust_criteria", pa.string())]
     for k in PARAMS:
         fields += [(k, pa.float64()), (f"{k}_lo", pa.float64()), (f"{k}_hi", pa.float64())]
     fields += [("fit_chi2_dof", pa.float64()), ("snr_median_db", pa.float64())]
@@ -138,12 +146,15 @@ def append_history(history: str | Path, rows: list[dict[str, Any]]) -> int:
 
 
 def known_hashes(history: str | Path) -> frozenset[str]:
-    from rt_ident.fleet.history import connect, has_history
+    """Hashes already identified *with a recorded verdict*: a row from before verdicts were recorded is
+    identified again (a new row; :func:`rt_ident.fleet.drift.series` prefers it)."""
+    from rt_ident.fleet.history import columns, connect, has_history, verdict_sql
 
     if not has_history(history):
         return frozenset()
     con = connect(history)
-    return frozenset(h for (h,) in con.execute("SELECT DISTINCT hash FROM history").fetchall())
+    sql = f"SELECT DISTINCT hash FROM (SELECT hash, {verdict_sql(columns(con))} FROM history) WHERE has_verdict"
+    return frozenset(h for (h,) in con.execute(sql).fetchall())
 
 
 class _Cluster:
@@ -192,7 +203,7 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
 
     items = [{"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time} for e in entries]
     known = known_hashes(history)
-    counts = {"tasks": len(items), "identified": 0, "skipped": 0, "failed": 0}
+    counts = {"tasks": len(items), "identified": 0, "untrusted": 0, "skipped": 0, "failed": 0}
     failures: list[dict[str, Any]] = []
     cluster = _Cluster(scheduler, workers)
     try:
@@ -212,6 +223,7 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
                 failures.append({"path": row["path"], "machine": row["machine"], "axis": row["axis"],
                                  "error": row["error"]})
             elif status == "ok":
+                counts["untrusted"] += not row["trusted"]
                 batch.append(row)
                 if len(batch) >= 64:
                     append_history(history, batch)

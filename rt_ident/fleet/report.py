@@ -1,6 +1,6 @@
 """``rt-ident fleet report``: one trend figure per machine and axis, and a one-page summary (PNG + CSV).
 
-Each figure has a panel per watched parameter: every estimate with its 95 % interval, the baseline mean
+Each figure has a panel per watched parameter: every trusted estimate with its 95 % interval, the baseline mean
 and its +-2 sigma band (sigma as the CUSUM uses it, :mod:`rt_ident.fleet.drift`), and the first alarm
 marked. The summary lists every series worst first: series with an alarm before the others, then by the
 largest |z| of their last recording.
@@ -28,11 +28,12 @@ def _summary_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
             last = float(z[-1]) if z.size and np.isfinite(z[-1]) else float("nan")
             a = alarms.get((machine, axis, p))
             x = det["series"][p]
+            x_last = float(x[-1]) if x.size else float("nan")
             rows.append({"machine": machine, "axis": axis, "parameter": p, "alarm": a is not None,
                          "first_alarm": a["first_time"] if a else "", "change_percent": a["change_percent"] if a
-                         else round(100.0 * (float(x[-1]) / r["mu0"] - 1.0), 3) if np.isfinite(r["mu0"]) else None,
-                         "baseline": r["mu0"], "last": float(x[-1]), "last_z": round(last, 2),
-                         "recordings": int(x.size)})
+                         else round(100.0 * (x_last / r["mu0"] - 1.0), 3) if np.isfinite(r["mu0"]) else None,
+                         "baseline": r["mu0"], "last": x_last, "last_z": round(last, 2),
+                         "recordings": int(x.size), "ignored_untrusted": det.get("ignored", 0)})
     rows.sort(key=lambda r: (not r["alarm"], -abs(r["last_z"]) if np.isfinite(r["last_z"]) else 0.0))
     return rows
 
@@ -111,6 +112,8 @@ def write_report(history: str | Path, out_dir: str | Path, settings: DriftSettin
     _summary_png(rows, out / "summary.png")
     figures = []
     for (machine, axis), det in result["_detail"].items():
+        if det["series"]["time"].size == 0:          # no trusted estimate: nothing to draw (summary says so)
+            continue
         p = out / f"{machine}-{axis}.png"
         _series_figure(machine, axis, det, settings, p)
         figures.append(str(p))

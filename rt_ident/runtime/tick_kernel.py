@@ -272,7 +272,7 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
         H = ic[IC_H]
         added = rdft_accumulate(th1, th2, tq, _is(ib, lay, I_FS_HARM), _cs(cb, lay, C_FS_TABLE),
                                 _is(ib, lay, I_FS_IDX), _cs(cb, lay, C_FS_ACC).reshape((3, H)),
-                                _cs(cb, lay, C_FS_S1).reshape((3, H)), _cs(cb, lay, C_FS_S2).reshape((H, 3, 3)),
+                                _cs(cb, lay, C_FS_S1).reshape((3, H)), _cs(cb, lay, C_FS_S2),
                                 _fs(fb, lay, F_FS_STATE), _fs(fb, lay, F_FS_LAST), _fs(fb, lay, F_FS_QMIN),
                                 fc[FC_FS_LAM], ic[IC_FS_DISCARD])
         cnt = _is(ib, lay, I_FS_COUNT)
