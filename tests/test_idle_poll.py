@@ -139,3 +139,45 @@ def test_a_real_time_run_reports_the_device_interrupts_its_loop_cpu_served(resto
     irq = s["loop"]["host"]["interrupts"]
     assert irq["cpu"] == next(iter(os.sched_getaffinity(0)))          # the CPU the loop was pinned to
     assert irq["total"] >= sum(irq["top"].values()) >= 0 and len(irq["top"]) <= 3
+
+
+def _privileged() -> bool:
+    """Whether this process may leave SCHED_IDLE for SCHED_OTHER (root or a nice rlimit that allows it)."""
+    try:
+        before = os.sched_getscheduler(0), os.sched_getparam(0)
+    except OSError:
+        return False
+    result = []
+
+    def probe():
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            result.append(True)
+        except OSError:
+            result.append(False)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    assert (os.sched_getscheduler(0), os.sched_getparam(0)) == before
+    return result[0]
+
+
+def test_the_poller_is_sched_idle_only_inside_its_compiled_spin_and_its_compile_changes_no_policy():
+    # a SCHED_IDLE thread holding or waiting for the GIL stalls the real-time threads beside it; this
+    # one takes SCHED_IDLE after it let the GIL go and gives it back before it takes the GIL again
+    cpu = max(os.sched_getaffinity(0))
+    p = IdlePoller(cpu)
+    policy = os.sched_getscheduler(0)
+    p.prepare()                                     # compiled without being run
+    assert os.sched_getscheduler(0) == policy and not _pollers()
+    assert p.start()["running"]
+    try:
+        assert os.sched_getscheduler(p._thread.native_id) == os.SCHED_IDLE
+    finally:
+        p.stop()
+    assert not p.alive and p.iterations > 0
+    if _privileged():
+        assert p.exit_policy == os.SCHED_OTHER     # it took the GIL back as an ordinary thread
+
