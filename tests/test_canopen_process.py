@@ -213,3 +213,31 @@ def test_emulator_process_reports_a_start_failure_and_exits():
     with pytest.raises(RtIdentError, match=r"failed to start: ConfigError.*missing\.eds"):
         EmulatorProcess("drivers.cia402.emulator", bad)
     assert not [p for p in multiprocessing.active_children() if "emulator" in p.name]
+
+
+# ----- real-time placement --------------------------------------------------------------------------
+def test_an_emulator_process_imports_its_device_before_it_turns_real_time(tmp_path, monkeypatch):
+    # importing numba, canopen and the plant is most of the start-up's CPU time: not at SCHED_FIFO
+    (tmp_path / "fake_device_for_placement.py").write_text(
+        "import os\n"
+        "AT_IMPORT = os.sched_getscheduler(0)\n"
+        "class Device:\n"
+        "    port = None\n"
+        "    def __init__(self):\n"
+        "        self.at_start = os.sched_getscheduler(0)\n"
+        "        self.cpus = sorted(os.sched_getaffinity(0))\n"
+        "    def stats(self):\n"
+        "        return {'import': AT_IMPORT, 'start': self.at_start, 'cpus': self.cpus}\n"
+        "    def stop(self):\n"
+        "        pass\n"
+        "def start_emulator_for(config):\n"
+        "    return Device()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cpus = sorted(_ALL_CPUS)
+    emu = EmulatorProcess("fake_device_for_placement", {}, placement={"cpus": cpus[:1], "fifo_priority": 40})
+    emu.close()
+    if emu.placement.get("sched_fifo") != 40:
+        pytest.skip(f"SCHED_FIFO not granted here: {emu.placement}")
+    assert emu.placement == {"cpus": cpus[:1], "sched_fifo": 40}
+    assert emu.stats["import"] == os.SCHED_OTHER and emu.stats["start"] == os.SCHED_FIFO
+    assert emu.stats["cpus"] == cpus[:1]
