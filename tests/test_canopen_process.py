@@ -18,6 +18,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -213,3 +214,77 @@ def test_emulator_process_reports_a_start_failure_and_exits():
     with pytest.raises(RtIdentError, match=r"failed to start: ConfigError.*missing\.eds"):
         EmulatorProcess("drivers.cia402.emulator", bad)
     assert not [p for p in multiprocessing.active_children() if "emulator" in p.name]
+
+
+# ----- real-time placement --------------------------------------------------------------------------
+def _threads(pid: int) -> dict[int, tuple[int, int, frozenset]]:
+    """tid -> (policy without the reset-on-fork flag, SCHED_FIFO priority, CPUs) of every thread of ``pid``."""
+    out = {}
+    for tid in (int(t) for t in os.listdir(f"/proc/{pid}/task")):
+        try:
+            out[tid] = (os.sched_getscheduler(tid) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(tid).sched_priority,
+                        frozenset(os.sched_getaffinity(tid)))
+        except OSError:                              # the thread has just ended
+            pass
+    return out
+
+
+def test_during_a_run_only_the_loop_and_its_sync_sender_are_real_time_on_the_loop_cpu(emulators):
+    # RT throttling needs 950 ms of SCHED_FIFO in a second on one CPU: the loop's CPU holds the loop
+    # (FIFO 50) and the SYNC sender (FIFO 51) and no other real-time thread; the drive's real-time
+    # threads are elsewhere; the idle poller there is SCHED_IDLE. After the run nothing of this
+    # process is real-time any more.
+    cpus = sorted(_ALL_CPUS)
+    if len(cpus) < 2:
+        pytest.skip("the loop gets a CPU of its own only with two or more")
+    loop_cpu = cpus[-1]
+    seen = {}
+
+    def look(tick: int) -> None:
+        if tick == 300:
+            seen["run"] = _threads(os.getpid())
+            seen["drive"] = _threads(emulators[0].pid)
+            seen["main"] = threading.get_native_id()
+
+    summary = run_mod.run(_config(**{"loop.duration": 1.0}), tick_hook=look)
+    assert summary["stop"]["cause"] is None, summary["stop"]
+    if summary["realtime"].get("sched_fifo") is not True:
+        pytest.skip(f"SCHED_FIFO not granted here: {summary['realtime'].get('sched_fifo')}")
+    fifo = {tid: (prio, cpus_) for tid, (pol, prio, cpus_) in seen["run"].items() if pol == os.SCHED_FIFO}
+    assert seen["main"] in fifo and fifo.pop(seen["main"]) == (50, frozenset({loop_cpu}))
+    assert list(fifo.values()) == [(51, frozenset({loop_cpu}))]            # the SYNC sender, one step above
+    idle = [c for pol, _, c in seen["run"].values() if pol == os.SCHED_IDLE]
+    assert idle == [frozenset({loop_cpu})]                                # the idle poller
+    drive_fifo = [(prio, c) for pol, prio, c in seen["drive"].values() if pol == os.SCHED_FIFO]
+    assert drive_fifo and all(prio == 40 and loop_cpu not in c for prio, c in drive_fifo)
+    assert all(loop_cpu not in c for _, _, c in seen["drive"].values())
+    after = _threads(os.getpid())
+    assert not [t for t, (pol, _, _) in after.items() if pol == os.SCHED_FIFO]
+    assert os.sched_getaffinity(0) == _ALL_CPUS
+
+
+def test_an_emulator_process_imports_its_device_before_it_turns_real_time(tmp_path, monkeypatch):
+    # importing numba, canopen and the plant is most of the start-up's CPU time: not at SCHED_FIFO
+    (tmp_path / "fake_device_for_placement.py").write_text(
+        "import os\n"
+        "AT_IMPORT = os.sched_getscheduler(0)\n"
+        "class Device:\n"
+        "    port = None\n"
+        "    def __init__(self):\n"
+        "        self.at_start = os.sched_getscheduler(0)\n"
+        "        self.cpus = sorted(os.sched_getaffinity(0))\n"
+        "    def stats(self):\n"
+        "        return {'import': AT_IMPORT, 'start': self.at_start, 'cpus': self.cpus}\n"
+        "    def stop(self):\n"
+        "        pass\n"
+        "def start_emulator_for(config):\n"
+        "    return Device()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cpus = sorted(_ALL_CPUS)
+    emu = EmulatorProcess("fake_device_for_placement", {}, placement={"cpus": cpus[:1], "fifo_priority": 40})
+    emu.close()
+    if emu.placement.get("sched_fifo") != 40:
+        pytest.skip(f"SCHED_FIFO not granted here: {emu.placement}")
+    assert emu.placement == {"cpus": cpus[:1], "sched_fifo": 40}
+    assert emu.stats["import"] == os.SCHED_OTHER and emu.stats["start"] == os.SCHED_FIFO
+    assert emu.stats["cpus"] == cpus[:1]

@@ -11,6 +11,7 @@ import pytest
 
 from rt_ident.config import load
 from rt_ident.runtime import run as run_mod
+from rt_ident.runtime.host import loop_cpu
 from rt_ident.runtime.idle_poll import IdlePoller
 from rt_ident.runtime.multi import run_axes
 
@@ -76,7 +77,7 @@ def test_a_real_time_run_polls_its_loop_cpu_sleeps_in_one_piece_and_stops_the_po
     assert s["stop"]["cause"] is None
     poll = s["realtime"]["idle_poll"]
     assert poll["running"] is True and poll["policy"] == "SCHED_IDLE" and poll["ticker_sleep"] == "one piece"
-    assert poll["cpu"] == next(iter(os.sched_getaffinity(0)))      # the CPU the loop was pinned to
+    assert poll["cpu"] == loop_cpu()                                  # the CPU the loop was pinned to
     assert not _pollers()
 
 
@@ -137,5 +138,125 @@ def test_a_real_time_run_reports_the_device_interrupts_its_loop_cpu_served(resto
         pytest.skip("needs a CPU of the loop's own and /proc/interrupts")
     s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}))
     irq = s["loop"]["host"]["interrupts"]
-    assert irq["cpu"] == next(iter(os.sched_getaffinity(0)))          # the CPU the loop was pinned to
+    assert irq["cpu"] == loop_cpu()                                   # the CPU the loop was pinned to
     assert irq["total"] >= sum(irq["top"].values()) >= 0 and len(irq["top"]) <= 3
+
+
+def _privileged() -> bool:
+    """Whether this process may leave SCHED_IDLE for SCHED_OTHER (root or a nice rlimit that allows it)."""
+    try:
+        before = os.sched_getscheduler(0), os.sched_getparam(0)
+    except OSError:
+        return False
+    result = []
+
+    def probe():
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            result.append(True)
+        except OSError:
+            result.append(False)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    assert (os.sched_getscheduler(0), os.sched_getparam(0)) == before
+    return result[0]
+
+
+def test_the_poller_is_sched_idle_only_inside_its_compiled_spin_and_its_compile_changes_no_policy():
+    # a SCHED_IDLE thread holding or waiting for the GIL stalls the real-time threads beside it; this
+    # one takes SCHED_IDLE after it let the GIL go and gives it back before it takes the GIL again
+    cpu = max(os.sched_getaffinity(0))
+    p = IdlePoller(cpu)
+    policy = os.sched_getscheduler(0)
+    p.prepare()                                     # compiled without being run
+    assert os.sched_getscheduler(0) == policy and not _pollers()
+    assert p.start()["running"]
+    try:
+        assert os.sched_getscheduler(p._thread.native_id) == os.SCHED_IDLE
+    finally:
+        p.stop()
+    assert not p.alive and p.iterations > 0
+    if _privileged():
+        assert p.exit_policy == os.SCHED_OTHER     # it took the GIL back as an ordinary thread
+
+
+def _record_order(monkeypatch) -> list[str]:
+    """'safe_stop' / 'poller stop' / 'final fit' (with the caller's policy) in the order a run does them."""
+    from drivers.base import Backend
+
+    events: list[str] = []
+    safe_stop, stop, final_fit = Backend.safe_stop, IdlePoller.stop, run_mod._final_fit
+
+    def backend_safe_stop(self, *a, **k):
+        events.append("safe_stop")
+        return safe_stop(self, *a, **k)
+
+    def poller_stop(self, *a, **k):
+        if self.alive:
+            events.append("poller stop")
+        return stop(self, *a, **k)
+
+    def recorded_final_fit(*a, **k):
+        events.append(f"final fit {'FIFO' if os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO else 'not FIFO'}"
+                      f" on {sorted(os.sched_getaffinity(0))}")
+        return final_fit(*a, **k)
+
+    monkeypatch.setattr(Backend, "safe_stop", backend_safe_stop)
+    monkeypatch.setattr(IdlePoller, "stop", poller_stop)
+    monkeypatch.setattr(run_mod, "_final_fit", recorded_final_fit)
+    return events
+
+
+def test_a_real_time_run_stops_the_poller_after_the_safe_stop_and_fits_outside_real_time(restore_scheduling,
+                                                                                         monkeypatch):
+    # the final fit is CPU-bound work: at SCHED_FIFO it ran into the RT throttle and held the loop's CPU;
+    # the poller is stopped only once the device is stopped (a SYNC sender waited on it for the GIL)
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("the loop gets a CPU of its own only with two or more")
+    before = os.sched_getscheduler(0), os.sched_getaffinity(0)
+    events = _record_order(monkeypatch)
+    s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}))
+    assert s["realtime"]["sched_fifo"] is True and s["realtime"]["idle_poll"]["running"] is True
+    everywhere = sorted(before[1])
+    assert [e for e in events if e != "safe_stop"] == ["poller stop", f"final fit not FIFO on {everywhere}"]
+    assert events.index("safe_stop") < events.index("poller stop")
+    assert (os.sched_getscheduler(0), os.sched_getaffinity(0)) == before      # the caller's thread as it was
+
+
+def test_a_run_that_fails_in_its_loop_leaves_real_time_after_the_safe_stop(restore_scheduling, monkeypatch):
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("the loop gets a CPU of its own only with two or more")
+    before = os.sched_getscheduler(0), os.sched_getaffinity(0)
+    events = _record_order(monkeypatch)
+
+    def boom(tick: int) -> None:
+        if tick == 50:
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}), tick_hook=boom)
+    assert events[0] == "safe_stop" and events.count("poller stop") == 1
+    assert events.index("poller stop") > events.index("safe_stop")
+    assert (os.sched_getscheduler(0), os.sched_getaffinity(0)) == before
+
+
+def test_an_xy_run_fits_outside_real_time_too(restore_scheduling, monkeypatch):
+    import rt_ident.runtime.multi as multi_mod
+    from rt_ident.axis.params import CONFIG_DIR
+
+    before = os.sched_getscheduler(0), os.sched_getaffinity(0)
+    policies = []
+    final_fit = multi_mod._final_fit
+
+    def recorded_final_fit(*a, **k):
+        policies.append(os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK)
+        return final_fit(*a, **k)
+
+    monkeypatch.setattr(multi_mod, "_final_fit", recorded_final_fit)
+    s = run_axes(load(CONFIG_DIR / "xy-sim.toml", **{**QUIET, "loop.duration": 0.3}))
+    assert s["stop"]["cause"] is None and s["realtime"]["sched_fifo"] is True
+    assert policies and os.SCHED_FIFO not in policies
+    assert (os.sched_getscheduler(0), os.sched_getaffinity(0)) == before

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -188,3 +189,34 @@ def test_apply_realtime_in_a_child_process_returns_a_full_report() -> None:
     assert set(report) == {"sched_fifo", "affinity", "mlockall", "gc_freeze"}
     assert all(v is True or isinstance(v, str) and v for v in report.values())
     assert report["gc_freeze"] is True and report["affinity"] is True
+
+
+def test_apply_realtime_locks_memory_and_collects_before_it_turns_sched_fifo(restore_scheduling, monkeypatch):
+    # both take tenths of a second of CPU: not at SCHED_FIFO, ahead of everything else on the loop's CPU
+    import gc
+
+    import rt_ident.runtime.scheduler as sched
+
+    seen = {}
+
+    def mlockall():
+        seen["mlockall"] = os.sched_getscheduler(0)
+        return True
+
+    monkeypatch.setattr(sched, "_mlockall", mlockall)
+
+    def on_gc(phase, info):
+        if phase == "start":
+            seen.setdefault("gc", os.sched_getscheduler(0))
+
+    gc.callbacks.append(on_gc)
+    try:
+        report = apply_realtime(priority=10, cpus=None, lock_memory=True, freeze_gc=True)
+    finally:
+        gc.callbacks.remove(on_gc)
+    if report["sched_fifo"] is not True:
+        pytest.skip(f"SCHED_FIFO not granted here: {report['sched_fifo']}")
+    fifo = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+    assert seen["mlockall"] not in (os.SCHED_FIFO, fifo) and seen["gc"] not in (os.SCHED_FIFO, fifo)
+    assert os.sched_getscheduler(0) in (os.SCHED_FIFO, fifo)
+    assert list(report) == ["sched_fifo", "affinity", "mlockall", "gc_freeze"]

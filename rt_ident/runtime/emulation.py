@@ -39,11 +39,20 @@ EMULATORS = {"canopen": "drivers.cia402.emulator", "serial": "drivers.encoder_bo
 
 
 def _serve(module: str, config: dict[str, Any], conn, placement: dict[str, Any] | None) -> None:
-    """Child process: place, start the device, report, wait for "stop" (or the parent's end), stop."""
-    placed = place(placement)
+    """Child process: leave the loop's CPU, import the device's code, turn real-time, start the device,
+    report, wait for "stop" (or the parent's end), stop.
+
+    The import (numba, canopen, the plant: most of the start-up's CPU time) runs before SCHED_FIFO: at
+    SCHED_FIFO it would hold its CPU against every other thread there, and a slower start-up would
+    run into the kernel's RT throttle. The device's threads are started after the switch and inherit it.
+    """
+    placement = placement or {}
+    placed = place({"cpus": placement.get("cpus")})
     parent = os.getppid()
     try:
-        dev = importlib.import_module(module).start_emulator_for(config)
+        mod = importlib.import_module(module)
+        placed.update(place({"fifo_priority": placement.get("fifo_priority")}))
+        dev = mod.start_emulator_for(config)
     except Exception as exc:  # noqa: BLE001 - reported to the parent
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return

@@ -170,11 +170,94 @@ def apply_run_realtime(cfg: RunConfig) -> dict[str, Any]:
     return apply_realtime(priority=50, cpus=None if cpu is None else [cpu], lock_memory=True, freeze_gc=True)
 
 
-def start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, stack) -> Any:
+class LoopRealtime:
+    """The loop thread's real-time treatment for one run, from :meth:`begin` (before the device is
+    activated) to :meth:`end` (once the device is stopped).
+
+    SCHED_FIFO is for the loop's cycle only. CPU-bound work at SCHED_FIFO (compiling the idle poller,
+    the final fit, closing the files, whatever the caller does next) is paused by the kernel's RT
+    throttle for 50 ms once it has had 950 ms of a second, and starves every other thread of its
+    CPU (per-CPU kernel workers too) until then. So :meth:`prepare` compiles the idle poller and
+    collects and freezes the heap while the thread is an ordinary one and before the device is
+    opened (a collection holds the GIL for tenths of a second: the thread that sends the host's
+    heartbeat until the SYNC runs would wait that long, and a drive watching it faults); :meth:`begin`
+    is then quick; :meth:`end` stops the poller and gives the thread back the policy and CPUs it had
+    before. Register :meth:`end` before the backend's context, so that on an error it runs after the
+    backend's safe stop (the SYNC sender the poller could stall is gone by then: see
+    rt_ident.runtime.idle_poll); on a normal end call it after ``safe_stop()``.
+    """
+
+    def __init__(self, cfg: RunConfig) -> None:
+        self.cfg = cfg
+        self.report: dict[str, Any] = {"requested": False}
+        self.poller: Any = None
+        self._prepared: tuple[Any, str | None] | None = None     # (idle poller, why it failed)
+        self._saved: tuple[int, Any, set[int]] | None = None
+
+    def prepare(self) -> None:
+        """The slow part, as an ordinary thread and before the device is opened (idempotent)."""
+        if self._prepared is not None or not self.cfg.loop.realtime:
+            return
+        poller, failed = None, None
+        cpu = loop_cpu()
+        if self.cfg.loop.idle_poll and cpu is not None:
+            from rt_ident.runtime.idle_poll import IdlePoller
+
+            poller = IdlePoller(cpu)
+            try:
+                poller.prepare()
+            except Exception as exc:  # noqa: BLE001 - an optional aid: the run goes on without it, and says why
+                log.warning("idle poller not started: %s", exc)
+                poller, failed = None, f"failed to start: {type(exc).__name__}: {exc}"
+        import gc
+
+        gc.collect()                                   # apply_realtime's collection is then a short one
+        gc.freeze()
+        self._prepared = (poller, failed)
+
+    def begin(self, tickers: list) -> dict[str, Any]:
+        """Real-time treatment for the calling thread (the loop) and the idle poller; returns the report
+        (``idle_poll`` in it when the run is real time)."""
+        cfg = self.cfg
+        if not cfg.loop.realtime:
+            self.report = apply_run_realtime(cfg)
+            return self.report
+        self.prepare()
+        poller, failed = self._prepared
+        try:
+            self._saved = (os.sched_getscheduler(0), os.sched_getparam(0), os.sched_getaffinity(0))
+        except (AttributeError, OSError):
+            self._saved = None
+        self.report = apply_run_realtime(cfg)
+        self.poller = start_idle_poll(cfg, self.report, tickers, poller=poller, failed=failed)
+        return self.report
+
+    def end(self) -> None:
+        """Stop the idle poller and leave real time (idempotent; never raises)."""
+        poller, self.poller = self.poller, None
+        if poller is not None:
+            poller.stop()
+        saved, self._saved = self._saved, None
+        if saved is None:
+            return
+        policy, param, cpus = saved
+        try:
+            os.sched_setscheduler(0, policy, param)
+        except (AttributeError, OSError) as exc:
+            log.warning("the loop thread could not leave SCHED_FIFO: %s", exc)
+        try:
+            os.sched_setaffinity(0, cpus)
+        except (AttributeError, OSError) as exc:
+            log.warning("the loop thread could not leave its CPU: %s", exc)
+
+
+def start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, *, poller: Any = None,
+                    failed: str | None = None) -> Any:
     """Start the idle poller (rt_ident.runtime.idle_poll) on the loop's CPU when the run is real time,
     the loop got that CPU to itself and ``[loop] idle_poll`` is on; its report goes into ``realtime``
     as ``idle_poll``. With it running the vCPU cannot halt, so the tickers sleep in one piece (unless
-    the config sets ``max_sleep_us``). Returns the poller (stopped by ``stack`` at the latest) or None."""
+    the config sets ``max_sleep_us``). ``poller``: one already prepared for that CPU (else one is made
+    here); ``failed``: why preparing it failed. Returns the running poller (the caller stops it) or None."""
     if not cfg.loop.realtime:
         return None
     if not cfg.loop.idle_poll:
@@ -185,10 +268,13 @@ def start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, sta
     if cpu is None:
         realtime["idle_poll"] = {"running": False, "reason": "the loop has no CPU of its own"}
         return None
+    if failed is not None:
+        realtime["idle_poll"] = {"running": False, "reason": failed}
+        return None
     from rt_ident.runtime.idle_poll import IdlePoller
 
-    poller = IdlePoller(cpu)
-    stack.callback(poller.stop)
+    if poller is None or poller.cpu != cpu:
+        poller = IdlePoller(cpu)
     try:
         report = poller.start()
     except Exception as exc:  # noqa: BLE001 - an optional aid: the run goes on without it, and says why

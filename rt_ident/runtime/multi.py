@@ -40,8 +40,7 @@ from rt_ident.runtime.fit_worker import make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.runtime.outputs import check_output, check_methods, prepare_outputs, remove_empty_outputs
-from rt_ident.runtime.host import (HostSteal, LoopCpuInterrupts, apply_run_realtime, helper_role, keep_off_loop_cpu,
-                                  start_idle_poll)
+from rt_ident.runtime.host import HostSteal, LoopCpuInterrupts, LoopRealtime, helper_role, keep_off_loop_cpu
 from rt_ident.runtime.run import (_backend_counters, _controller, _excitation, _final_fit, _ident_summary,
                                   _install_signals, _quanta, _warmup, backend_options, friction_estimator,
                                   friction_summary, recording_metadata)
@@ -294,6 +293,9 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             roles.pop(None, None)
             summary["helper_processes"] = keep_off_loop_cpu(list(roles), cfg.loop.realtime,
                                                             device=getattr(emulator, "pid", None), roles=roles)
+            realtime = LoopRealtime(cfg)
+            stack.callback(realtime.end)               # on an error: after every backend's safe stop and close
+            realtime.prepare()                         # slow, and before the devices watch our heartbeat
             for backend in backends.values():
                 stack.enter_context(backend)           # open(); on exit (any axis's error too): safe stop, close
             for name, backend in backends.items():     # nothing energized that would trip on its first ticks
@@ -301,8 +303,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                 if start is not None:
                     preflight.check_start(axes_cfg[name], axes_cfg[name].axis_params().lead * start[1],
                                           backend.sample_period, where=name)
-            summary["realtime"] = apply_run_realtime(cfg)
-            poller = start_idle_poll(cfg, summary["realtime"], [multi.ticker], stack)
+            summary["realtime"] = realtime.begin([multi.ticker])
             switch_interval = sys.getswitchinterval()
             stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
@@ -314,13 +315,12 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
             try:
                 multi.run()
             finally:
-                if poller is not None:
-                    poller.stop()
                 host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
                 host["interrupts"] = irqs.summary()
                 watch.freeze()
             for backend in backends.values():
                 backend.safe_stop()                    # every axis at zero torque before the final fits
+            realtime.end()                             # the final fits and the files are no real-time work
             for name, loop in loops.items():
                 parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
     except RtIdentError as exc:

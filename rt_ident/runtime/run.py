@@ -32,8 +32,7 @@ from rt_ident.runtime.emulation import start_emulator
 from rt_ident.control import make_controller, redesign
 from rt_ident.runtime.fit_worker import JobWorker, make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
-from rt_ident.runtime.host import (HostSteal, LoopCpuInterrupts, apply_run_realtime, keep_off_loop_cpu,
-                                  start_idle_poll)
+from rt_ident.runtime.host import HostSteal, LoopCpuInterrupts, LoopRealtime, keep_off_loop_cpu
 from rt_ident.runtime.loop import IdentificationLoop
 from rt_ident.runtime import preflight
 from rt_ident.runtime.outputs import check_methods, prepare_outputs, remove_empty_outputs
@@ -250,14 +249,16 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                                                             device=device, roles={p: n for n, p in named if p})
             # pid -> helper, so that a report never names them by position (there is no recorder without recording)
             summary["helper_processes"]["names"] = {str(p): n for n, p in named if p}
+            realtime = LoopRealtime(cfg)
+            stack.callback(realtime.end)             # on an error: after the backend's safe stop and close
+            realtime.prepare()                       # slow, and before the device watches our heartbeat
             # open as late as possible: a device streams from open() on and nobody reads it until the loop
             stack.enter_context(backend)             # open(); on exit: safe_stop() + close()
             start = backend.read_position()
             if start is not None:                    # nothing energized that would trip on its first ticks
                 preflight.check_start(cfg, truth.lead * start[1], dt)
                 summary["start_position_m"] = truth.lead * start[1]
-            summary["realtime"] = apply_run_realtime(cfg)
-            poller = start_idle_poll(cfg, summary["realtime"], [loop.ticker], stack)
+            summary["realtime"] = realtime.begin([loop.ticker])
             # a backend's I/O threads (python-can's receiver, a SYNC sender) share this process's GIL:
             # hand it back within 50 us, not 5 ms (the hand-offs to helper processes use no thread: rt_ident.runtime.shm_ring)
             switch_interval = sys.getswitchinterval()
@@ -270,12 +271,11 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             try:
                 loop.run()
             finally:
-                if poller is not None:
-                    poller.stop()                    # the loop's CPU free again for the final fit
                 host["steal_ms"], host["steal_cpu"] = steal.elapsed_ms(), steal.cpu
                 host["interrupts"] = irqs.summary()
                 watch.freeze()
             backend.safe_stop()                      # zero torque before the (slower) final fit
+            realtime.end()                           # the final fit and the files are no real-time work
             summary["final_fit_error"] = _final_fit(loop, est)
     except RtIdentError as exc:
         if isinstance(exc, ConfigError) and not enabled:

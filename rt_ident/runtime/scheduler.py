@@ -326,35 +326,18 @@ def apply_realtime(
 ) -> dict[str, bool | str]:
     """Ask for real-time treatment of the calling process; never raises.
 
-    Tries, independently: SCHED_FIFO at ``priority`` (``None`` skips),
-    CPU affinity to ``cpus`` (``None`` skips), ``mlockall(MCL_CURRENT |
-    MCL_FUTURE)``, and ``gc.collect(); gc.freeze(); gc.disable()`` (the caller
-    may ``gc.collect()`` outside the hot path or ``gc.enable()`` afterwards).
+    Tries, independently and in this order: CPU affinity to ``cpus`` (``None``
+    skips), ``mlockall(MCL_CURRENT | MCL_FUTURE)``, ``gc.collect(); gc.freeze();
+    gc.disable()`` (the caller may ``gc.collect()`` outside the hot path or
+    ``gc.enable()`` afterwards), and SCHED_FIFO at ``priority`` (``None`` skips).
 
     Returns ``{"sched_fifo": ..., "affinity": ..., "mlockall": ..., "gc_freeze": ...}``
     where each value is ``True`` when granted, else a string saying why not
     (``"not requested"`` when skipped).
     """
-    report: dict[str, bool | str] = {}
-
-    if priority is None:
-        report["sched_fifo"] = "not requested"
-    else:
-        try:
-            lo = os.sched_get_priority_min(os.SCHED_FIFO)
-            hi = os.sched_get_priority_max(os.SCHED_FIFO)
-            prio = min(max(int(priority), lo), hi)
-            # RESET_ON_FORK: a helper restarted from the loop thread (rt_ident.runtime.helper_guard) must
-            # not inherit SCHED_FIFO - importing numpy at FIFO 50 on the loop's CPU starved the loop for
-            # seconds and a torque-mode axis ran away (seen under a CPU hog, a fit worker killed mid-run)
-            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(prio))
-            report["sched_fifo"] = True
-            if prio != priority:
-                log.info("SCHED_FIFO priority %s clamped to %s", priority, prio)
-        except AttributeError:
-            report["sched_fifo"] = "SCHED_FIFO not available on this platform"
-        except Exception as exc:  # noqa: BLE001 - the report carries the reason
-            report["sched_fifo"] = f"denied: {exc}"
+    # SCHED_FIFO last: locking the memory (faulting every page in) and collecting a large heap take
+    # tenths of a second of CPU, which need not run ahead of everything else on the loop's CPU
+    report: dict[str, bool | str] = dict.fromkeys(("sched_fifo", "affinity", "mlockall", "gc_freeze"), "")
 
     if cpus is None:
         report["affinity"] = "not requested"
@@ -385,6 +368,25 @@ def apply_realtime(
             report["gc_freeze"] = True
         except Exception as exc:  # noqa: BLE001
             report["gc_freeze"] = f"failed: {exc}"
+
+    if priority is None:
+        report["sched_fifo"] = "not requested"
+    else:
+        try:
+            lo = os.sched_get_priority_min(os.SCHED_FIFO)
+            hi = os.sched_get_priority_max(os.SCHED_FIFO)
+            prio = min(max(int(priority), lo), hi)
+            # RESET_ON_FORK: a helper restarted from the loop thread (rt_ident.runtime.helper_guard) must
+            # not inherit SCHED_FIFO - importing numpy at FIFO 50 on the loop's CPU starved the loop for
+            # seconds and a torque-mode axis ran away (seen under a CPU hog, a fit worker killed mid-run)
+            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(prio))
+            report["sched_fifo"] = True
+            if prio != priority:
+                log.info("SCHED_FIFO priority %s clamped to %s", priority, prio)
+        except AttributeError:
+            report["sched_fifo"] = "SCHED_FIFO not available on this platform"
+        except Exception as exc:  # noqa: BLE001 - the report carries the reason
+            report["sched_fifo"] = f"denied: {exc}"
 
     granted = [k for k, v in report.items() if v is True]
     refused = {k: v for k, v in report.items() if v is not True and v != "not requested"}
