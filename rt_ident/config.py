@@ -6,6 +6,13 @@ Sections: ``[axis]`` (plant truth for sim / reference values), ``[backend]``
 ``[estimator]``, ``[safety]``, ``[telemetry]``, ``[recording]``. Every
 section is optional; the defaults are the sim backend with the THOMSON X axis.
 Errors name the offending field, e.g. ``loop.tick_hz: must be > 0``.
+
+Every number must be finite (``friction_memory_s = inf`` is the one documented exception).
+A config file that holds nothing (empty, or comments only) is an error: it is more likely a
+wrong or truncated file than a wish for the defaults (run without a config for those). A file
+without ``[axis]``, ``[backend]`` or ``[safety]`` runs on their built-in defaults, and says so:
+:attr:`RunConfig.defaulted` lists them, the CLI prints a warning line and the run summary
+carries them as ``config_defaulted``.
 """
 
 from __future__ import annotations
@@ -16,14 +23,14 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class BackendConfig(BaseModel):
@@ -53,8 +60,15 @@ class ExcitationConfig(_Section):
         return self
 
 
+#: Tick rates the loop runs at [Hz]. At least 100: the host writes to the device (torque, heartbeat)
+#: once per tick, and a serial board disables itself after 0.1 s without a host frame; the safety
+#: watchdog counts ticks. At most 3333: the ticker spins the last 150 us before each deadline
+#: (runtime/scheduler.py), which must stay within half a tick.
+TICK_HZ_RANGE = (100.0, 3333.0)
+
+
 class LoopConfig(_Section):
-    tick_hz: float = Field(1000.0, gt=0, le=20000)
+    tick_hz: float = 1000.0
     duration: float = Field(10.0, gt=0)
     realtime: bool = True                      # try SCHED_FIFO, affinity, mlockall, gc.freeze
     warmup_periods: int = Field(2, ge=0)       # excitation periods discarded before estimating
@@ -65,6 +79,16 @@ class LoopConfig(_Section):
                                                # ticker then sleeps in one piece unless max_sleep_us is set
     compiled_tick: bool = True                 # each axis's tick in one compiled call where its parts allow
                                                # (runtime/tick_core.py); false: the Python path, step by step
+
+    @field_validator("tick_hz")
+    @classmethod
+    def _tick_hz_in_range(cls, v: float) -> float:
+        lo, hi = TICK_HZ_RANGE
+        if not lo <= v <= hi:
+            raise ValueError(f"must be between {lo:g} and {hi:g} ticks per second, got {v:g} (at least {lo:g}: "
+                             f"the device hears from the host every tick; at most {hi:g}: the ticker needs "
+                             "300 us per tick)")
+        return v
 
 
 class EstimatorConfig(_Section):
@@ -83,7 +107,7 @@ class EstimatorConfig(_Section):
     model: Literal["two-inertia", "two-inertia-friction", "rigid-friction"] = "two-inertia"
     friction_hz: Optional[float] = Field(None, gt=0)  # its filter corner; None: 800 Hz (two-inertia-friction:
     #                                                   passes the resonance), 100 Hz (rigid-friction)
-    friction_memory_s: float = Field(math.inf, gt=0)  # its forgetting time constant (inf: none)
+    friction_memory_s: float = Field(math.inf, gt=0, allow_inf_nan=True)  # its forgetting time constant (inf: none)
 
 
 class ControlConfig(_Section):
@@ -147,6 +171,13 @@ class SafetyConfig(_Section):
     # command drops to zero: a stalled host, or one without fresh feedback, leaves the axis coasting
     torque_hold: float = Field(0.005, ge=0)
 
+    @field_validator("window")
+    @classmethod
+    def _window_ordered(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not v[0] < v[1]:
+            raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
+        return v
+
 
 class TelemetryConfig(_Section):
     sink: Literal["rrd", "spawn", "connect", "serve", "off"] = "rrd"
@@ -181,6 +212,7 @@ class RunConfig(_Section):
     axes: dict[str, dict[str, Any]] = Field(default_factory=dict)
     contour: dict[str, Any] = Field(default_factory=dict)   # [contour]: a coordinated XY reference
     source: Optional[str] = None
+    _defaulted: tuple[str, ...] = PrivateAttr(default=())    # set by load(): see the module docstring
 
     _AXIS_SECTIONS = ("axis", "backend", "emulator", "excitation", "estimator", "safety", "control", "reference",
                       "plant")
@@ -211,6 +243,11 @@ class RunConfig(_Section):
                 raise ConfigError(f"axes.{name}.{exc.field}", msg) from None
         return out
 
+    @property
+    def defaulted(self) -> tuple[str, ...]:
+        """The sections of :data:`DEFAULTED_SECTIONS` the loaded file did not give (built-in defaults)."""
+        return self._defaulted
+
     def stuck_torque(self) -> float:
         """``[safety] stuck_torque``, or the simulated (sim or emulated) plant's breakaway torque when
         friction is configured."""
@@ -237,8 +274,8 @@ class RunConfig(_Section):
         if not isinstance(data, dict):
             return data
         fr = (data.get("plant") or {}).get("friction") if isinstance(data.get("plant"), dict) else None
-        if fr is None:
-            return data
+        if fr is None or not isinstance(data.get("backend") or {}, dict):
+            return data                              # a backend that is not a table: its own field error
         backend = dict(data.get("backend") or {})
         if backend.get("name", "sim") == "sim":
             backend.setdefault("friction", dict(fr))
@@ -256,11 +293,16 @@ def _field_name(err: dict) -> str:
 
 
 def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfig:
+    if not isinstance(data, dict):
+        raise ConfigError("config", f"must be a table of sections, got {type(data).__name__}")
     try:
         cfg = RunConfig.model_validate({**data, "source": source})
     except ValidationError as exc:
         first = exc.errors()[0]
-        raise ConfigError(_field_name(first) or "config", first["msg"]) from None
+        field, msg = _field_name(first), str(first["msg"]).removeprefix("Value error, ")
+        if not field and ": " in msg:                # a model check that names its field itself
+            field, msg = msg.split(": ", 1)
+        raise ConfigError(field or "config", msg) from None
     cfg.axis_params()  # validate physical values now, naming the field
     if cfg.axes:
         cfg.axis_configs()   # every axis validated now, errors naming axes.NAME...
@@ -283,13 +325,40 @@ def load(path: str | Path | None = None, **overrides: Any) -> RunConfig:
         if not p.is_file():
             raise ConfigError(str(path), "config file not found")
         try:
-            data = tomllib.loads(p.read_text())
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ConfigError(str(path), f"not a text file (byte 0x{exc.object[exc.start]:02x} at offset "
+                                         f"{exc.start} is not UTF-8); a config is TOML text") from None
+        except OSError as exc:
+            raise ConfigError(str(path), f"cannot read it: {exc.strerror or exc}") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(str(path), f"not valid TOML: {exc}") from None
+        if not data:
+            raise ConfigError(str(path), "config is empty (no section, no key); give at least [backend], "
+                                         "or run without a config for the built-in defaults")
         source = str(p)
     for dotted, value in overrides.items():
         if value is None:
             continue
         section, _, key = dotted.partition(".")
-        data.setdefault(section, {})[key] = value
-    return from_mapping(data, source=source)
+        if not isinstance(data.setdefault(section, {}), dict):
+            raise ConfigError(section, f"must be a table ([{section}]), got {type(data[section]).__name__}")
+        data[section][key] = value
+    cfg = from_mapping(data, source=source)
+    if path is not None:
+        cfg._defaulted = defaulted_sections(data)
+    return cfg
+
+
+#: Sections whose absence from a config file is reported (the run then drives the built-in sim
+#: plant, the THOMSON X axis's values, or the default travel window).
+DEFAULTED_SECTIONS = ("axis", "backend", "safety")
+
+
+def defaulted_sections(data: dict[str, Any]) -> tuple[str, ...]:
+    """The sections of :data:`DEFAULTED_SECTIONS` that ``data`` gives neither at the top level nor
+    in every ``[axes.NAME]`` table."""
+    axes = [a for a in (data.get("axes") or {}).values() if isinstance(a, dict)] \
+        if isinstance(data.get("axes"), dict) else []
+    return tuple(s for s in DEFAULTED_SECTIONS
+                 if s not in data and not (axes and all(s in a for a in axes)))
