@@ -14,6 +14,7 @@ from typing import Any, Mapping, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from drivers.cia402.bus import check_interface
 from drivers.cia402.profile import frame_bits
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.errors import ConfigError
@@ -30,7 +31,7 @@ HEARTBEAT_BYTES = 1
 class Cia402Config(BaseModel):
     """Options of :class:`drivers.cia402.drive.Cia402Backend` (units in the comments)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: Optional[str] = None                      # registry name, ignored here
     emulate: bool = False                           # read by the loop, ignored here
@@ -189,6 +190,7 @@ def validate(config: Mapping[str, Any] | None) -> Cia402Config:
         raise ConfigError("backend.torque_limit", f"{cfg.torque_limit} N m exceeds the int16 per-mille range "
                           f"of 0x6071 (32.767 x rated_torque = {32.767 * cfg.rated_torque:g} N m)")
     check_bus_budget(cfg)
+    check_interface(cfg.interface)
     return cfg
 
 

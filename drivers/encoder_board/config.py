@@ -14,12 +14,15 @@ from drivers.encoder_board import protocol as sp
 from rt_ident.errors import ConfigError
 
 _LINK_MARGIN = 1.1   # the link must carry 10 % more than the frame stream
+#: The board's current range [A]: it reports the motor current as an int16 in mA (docs/serial-protocol.md),
+#: so a torque beyond this x torque_constant can be neither measured nor, by the board, driven.
+MAX_CURRENT_A = 32.767
 
 
 class SerialBoardConfig(BaseModel):
     """The ``[backend]`` keys of the serial board (units in the field comments)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     name: Optional[str] = None                  # registry name, ignored here
     port: Optional[str] = None                  # device path (a pyserial URL only with allow_url); required unless emulate
     allow_url: bool = False                     # accept pyserial URLs (socket://, rfc2217://, spy://...) as port
@@ -29,7 +32,7 @@ class SerialBoardConfig(BaseModel):
     scale_resolution: float = Field(1e-7, gt=0)  # linear scale [m/count]
     lead: float = Field(7.96e-4, gt=0)          # spindle lead [m/rad]: theta2 = x / lead
     torque_constant: float = Field(0.1, gt=0)   # [N m/A]: measured torque = kt * current
-    torque_limit: float = Field(1.0, gt=0)      # [N m] clamp on the host
+    torque_limit: float = Field(1.0, gt=0)      # [N m] clamp on the host; at most MAX_CURRENT_A x torque_constant
     read_timeout: float = Field(0.05, gt=0)     # [s] without a valid frame -> DeviceTimeout
     startup_timeout: float = Field(1.0, gt=0)   # [s] for the first frame (open) / enable ack
     poll_timeout: float = Field(0.0002, ge=0)   # [s] a read() waits at most this for a first byte
@@ -54,6 +57,10 @@ class SerialBoardConfig(BaseModel):
         if self.baudrate < need:
             raise ValueError(f"baudrate: {self.baudrate} baud carries {self.baudrate / 300:.0f} frames/s; "
                              f"sample_rate_hz={self.sample_rate_hz:g} needs >= {need:.3g} baud")
+        rating = MAX_CURRENT_A * self.torque_constant
+        if self.torque_limit > rating:
+            raise ValueError(f"torque_limit: {self.torque_limit:g} N m exceeds the board's rating, {MAX_CURRENT_A:g} A "
+                             f"(its current range) x torque_constant {self.torque_constant:g} N m/A = {rating:g} N m")
         return self
 
 
@@ -77,7 +84,7 @@ def parse_serial(data: Mapping[str, Any], where: str = "backend") -> SerialBoard
 class EmulatorConfig(BaseModel):
     """The ``[emulator]`` keys of the emulated board (faults may also be changed at run time)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     seed: int = 0
     hold: bool = False                         # a drive-side position loop holding theta1 (identification-only runs)
     heartbeat_timeout: float = Field(0.1, gt=0)  # [s] without a host frame -> disable + fault
