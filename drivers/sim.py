@@ -59,7 +59,7 @@ class SimConfig(BaseModel):
     axis: Optional[dict[str, float]] = None         # I1, I2, B, K, lead; None -> Table 1
     sample_period: float = Field(PAPER_DT, le=0.1)  # s, >= MIN_SAMPLE_PERIOD
     counts_per_rev: int = Field(2**17, ge=0)        # 0: ideal (unquantized) encoder
-    scale_resolution: float = Field(1e-7, ge=0)     # m; 0: ideal scale
+    scale_resolution: float = Field(1e-7, ge=0, le=1e-3)  # m; 0: ideal scale
     angle_noise: float = Field(0.0, ge=0)
     torque_meas_noise: float = Field(0.0, ge=0)
     torque_process_noise: float = Field(0.0, ge=0)
@@ -84,6 +84,13 @@ class SimConfig(BaseModel):
     def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
         if v is not None and not v[0] < v[1]:
             raise ValueError(f"must satisfy min < max, got {list(v)}")
+        return v
+
+    @field_validator("scale_resolution")
+    @classmethod
+    def _scale_counts(cls, v: float) -> float:
+        if v != 0 and v < 1e-12:
+            raise ValueError(f"must be 0 (an ideal scale) or 1e-12 .. 1e-3 m per count, got {v:g}")
         return v
 
     @field_validator("sample_period")

@@ -46,10 +46,10 @@ class BackendConfig(BaseModel):
 
 class ExcitationConfig(_Section):
     kind: Literal["schroeder", "random", "prbs", "chirp", "none"] = "schroeder"
-    period_samples: int = Field(512, ge=4)
+    period_samples: int = Field(512, ge=4, le=65536)   # the warm-up replays a few periods: memory ~ this
     band: tuple[int, int] = (1, 20)            # harmonics of the period, inclusive
-    peak: float = Field(0.3, gt=0)             # N m, added to the position-hold torque
-    seed: int = 0
+    peak: float = Field(0.3, ge=1e-9)          # N m, added to the position-hold torque
+    seed: int = Field(0, ge=0)
 
     @model_validator(mode="after")
     def _band_fits(self) -> "ExcitationConfig":
@@ -71,7 +71,7 @@ class LoopConfig(_Section):
     tick_hz: float = 1000.0
     duration: float = Field(10.0, gt=0)
     realtime: bool = True                      # try SCHED_FIFO, affinity, mlockall, gc.freeze
-    warmup_periods: int = Field(2, ge=0)       # excitation periods discarded before estimating
+    warmup_periods: int = Field(2, ge=0, le=20)  # excitation periods discarded before estimating
     max_sleep_us: Optional[float] = Field(100.0, gt=0)  # longest single sleep while waiting for a tick
                                                # (short sleeps keep a VM's vCPU from halting; scheduler.py)
     idle_poll: bool = True                     # real time, loop on its own CPU: a SCHED_IDLE thread keeps that
@@ -94,10 +94,12 @@ class LoopConfig(_Section):
 class EstimatorConfig(_Section):
     method: str = "frequency"
     forgetting: float = Field(1.0, gt=0, le=1)
-    kalman_process_noise: float = Field(1e9, gt=0)  # rad^2/s^5 (jerk spectral density) for the velocity filter
+    kalman_process_noise: float = Field(1e9, ge=1e-12, le=1e15)  # rad^2/s^5 (jerk spectral density) for the
+    #                                                   velocity filter; beyond these its Riccati equation fails
     # the per-sample estimator that feeds the adaptive controller (rt_ident.estimators.svf)
     per_sample: Literal["svf", "none"] = "svf"      # none: the controller adapts from the frequency fit alone
-    svf_hz: float = Field(800.0, gt=0)              # state-variable filter corner (passes the resonance)
+    svf_hz: float = Field(800.0, ge=10)             # state-variable filter corner (passes the resonance); its
+    #                                                 start-up computes ~6/(svf_hz * sample period) samples of it
     svf_memory_s: float = Field(0.05, gt=0)         # forgetting time constant of the per-sample estimate
     svf_quanta: Optional[tuple[float, float]] = None  # rad (theta1, theta2) for bias compensation;
                                                     # None: from the backend's encoder and scale resolution
@@ -105,19 +107,27 @@ class EstimatorConfig(_Section):
     # linear frequency fit alone), two-inertia-friction (adds Fc1, Fv1, Fc2, Fv2, offset) or
     # rigid-friction (J, Fv, Fc, offset); its friction feeds the controller ([control] friction_feedforward)
     model: Literal["two-inertia", "two-inertia-friction", "rigid-friction"] = "two-inertia"
-    friction_hz: Optional[float] = Field(None, gt=0)  # its filter corner; None: 800 Hz (two-inertia-friction:
+    friction_hz: Optional[float] = Field(None, ge=1)  # its filter corner; None: 800 Hz (two-inertia-friction:
     #                                                   passes the resonance), 100 Hz (rigid-friction)
     friction_memory_s: float = Field(math.inf, gt=0, allow_inf_nan=True)  # its forgetting time constant (inf: none)
+
+    @field_validator("svf_quanta")
+    @classmethod
+    def _quanta_in_range(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+        if v is not None and not all(0.0 <= q <= 0.1 for q in v):
+            raise ValueError(f"must be two quanta in rad, each 0 .. 0.1 (a count of 1/63 rev at most), got {list(v)}")
+        return v
 
 
 class ControlConfig(_Section):
     """The host's position loop (:mod:`rt_ident.control`)."""
 
     mode: Literal["adaptive", "fixed", "off"] = "adaptive"  # off: excitation only (needs a drive-side hold)
-    bandwidth_hz: float = Field(20.0, gt=0)           # model controller (LQR on the identified model)
-    effort: float = Field(1.0, gt=0)                  # torque weight multiplier: larger is gentler
-    conservative_bandwidth_hz: float = Field(10.0, gt=0)  # rigid-body controller from [axis] I1 + I2 (at most)
-    conservative_load: float = Field(1.0, ge=1)       # it keeps its margins with I2 x this (a workpiece; see README)
+    # a position loop below 1 Hz holds nothing, and its LQR design fails; effort beyond 1e-6..1e6 too
+    bandwidth_hz: float = Field(20.0, ge=1)           # model controller (LQR on the identified model)
+    effort: float = Field(1.0, ge=1e-6, le=1e6)       # torque weight multiplier: larger is gentler
+    conservative_bandwidth_hz: float = Field(10.0, ge=1)  # rigid-body controller from [axis] I1 + I2 (at most)
+    conservative_load: float = Field(1.0, ge=1, le=100)  # it keeps its margins with I2 x this (a workpiece; see README)
     gain_margin_db: float = Field(6.0, ge=0)
     phase_margin_deg: float = Field(40.0, ge=0, lt=90)
     family_factors: tuple[float, ...] = (0.7, 1.3)    # each parameter x these must keep the margins
@@ -185,7 +195,7 @@ class TelemetryConfig(_Section):
     connect_url: Optional[str] = None
     bind_ip: str = "127.0.0.1"
     port: Optional[int] = Field(None, ge=1, le=65535)  # --serve / --spawn port; None: 9876, or a free one
-    rate_hz: float = Field(1000.0, gt=0)        # angle/torque samples per second sent to the viewer
+    rate_hz: float = Field(1000.0, ge=1)        # angle/torque samples per second sent to the viewer
     publish_every_ticks: int = Field(20, ge=1)
 
 
@@ -274,8 +284,8 @@ class RunConfig(_Section):
         if not isinstance(data, dict):
             return data
         fr = (data.get("plant") or {}).get("friction") if isinstance(data.get("plant"), dict) else None
-        if fr is None or not isinstance(data.get("backend") or {}, dict):
-            return data                              # a backend that is not a table: its own field error
+        if not isinstance(fr, dict) or not isinstance(data.get("backend") or {}, dict):
+            return data                              # none, or not tables: their own field errors
         backend = dict(data.get("backend") or {})
         if backend.get("name", "sim") == "sim":
             backend.setdefault("friction", dict(fr))

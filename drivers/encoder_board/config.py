@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from drivers.encoder_board import protocol as sp
 from rt_ident.errors import ConfigError
@@ -27,9 +27,9 @@ class SerialBoardConfig(BaseModel):
     port: Optional[str] = None                  # device path (a pyserial URL only with allow_url); required unless emulate
     allow_url: bool = False                     # accept pyserial URLs (socket://, rfc2217://, spy://...) as port
     baudrate: int = Field(12_000_000, gt=0)     # 8N1; ignored by USB CDC devices but checked
-    sample_rate_hz: float = Field(20000.0, gt=0, le=200_000)
+    sample_rate_hz: float = Field(20000.0, ge=100, le=200_000)  # at least a sample per 10 ms (the slowest tick)
     counts_per_rev: int = Field(131072, gt=0)   # motor encoder counts per revolution
-    scale_resolution: float = Field(1e-7, gt=0)  # linear scale [m/count]
+    scale_resolution: float = Field(1e-7, ge=1e-12, le=1e-3)  # linear scale [m/count]
     lead: float = Field(7.96e-4, gt=0)          # spindle lead [m/rad]: theta2 = x / lead
     torque_constant: float = Field(0.1, gt=0)   # [N m/A]: measured torque = kt * current
     torque_limit: float = Field(1.0, gt=0)      # [N m] clamp on the host; at most MAX_CURRENT_A x torque_constant
@@ -85,7 +85,7 @@ class EmulatorConfig(BaseModel):
     """The ``[emulator]`` keys of the emulated board (faults may also be changed at run time)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     hold: bool = False                         # a drive-side position loop holding theta1 (identification-only runs)
     heartbeat_timeout: float = Field(0.1, gt=0)  # [s] without a host frame -> disable + fault
     burst_period: float = Field(0.001, gt=0, le=0.1)  # [s] between bursts of frames
@@ -103,6 +103,13 @@ class EmulatorConfig(BaseModel):
     silent: bool = False
     deaf: bool = False
     friction: Optional[dict[str, Any]] = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
+
+    @field_validator("travel")
+    @classmethod
+    def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+        if v is not None and not v[0] < v[1]:
+            raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
+        return v
 
 
 def parse_emulator(data: Mapping[str, Any], where: str = "emulator") -> EmulatorConfig:
