@@ -333,7 +333,8 @@ def run(
     if no_realtime:
         overrides["loop.realtime"] = False
     cfg = cfgmod.load(config, **overrides)
-    _check_rrd_sink(rrd, sink or cfg.telemetry.sink, sink is not None)
+    _check_rrd_sink(rrd or (cfg.telemetry.rrd if sink is None else None), sink or cfg.telemetry.sink, sink is not None,
+                    "--rrd" if rrd else "telemetry.rrd")
     from rt_ident.runtime.preflight import preflight
 
     preflight(cfg, sink=sink, connect_url=connect)   # a setting the start would refuse: one line, nothing started
@@ -361,14 +362,15 @@ def run(
     raise typer.Exit(exit_code(summary))
 
 
-def _check_rrd_sink(rrd: str | None, sink: str, from_flag: bool) -> None:
-    """``--rrd FILE`` is written by the rrd sink only: refused with a live or no sink, not dropped."""
+def _check_rrd_sink(rrd: str | None, sink: str, from_flag: bool, field: str = "--rrd") -> None:
+    """``--rrd FILE`` (or ``telemetry.rrd``) is written by the rrd sink only: refused with a live or no
+    sink, not dropped."""
     if rrd and sink != "rrd":
         flag = ({"off": "--no-telemetry", "connect": "--connect", "serve": "--serve", "spawn": "--spawn"}[sink]
                 if from_flag else f'telemetry.sink = "{sink}"')
         does = ("sends no dashboard" if sink == "off" else "serves the dashboard live" if sink == "serve"
                 else "streams the dashboard to a viewer")
-        raise RtIdentError(f"--rrd: {flag} {does}, so {rrd} would not be written; drop --rrd, or drop {flag} "
+        raise RtIdentError(f"{field}: {flag} {does}, so {rrd} would not be written; drop {field}, or drop {flag} "
                            "to write the file (a live dashboard is saved from the viewer)")
 
 
