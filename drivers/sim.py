@@ -28,13 +28,13 @@ import time
 from typing import Any, Callable, Literal, Mapping, Optional
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from drivers.base import Backend, SampleBlock, State
 from drivers.errors import DriverError, TravelLimitTrip
 from drivers.sim_plan import PM_OFF, PM_SIZE, new_plan, plan_take, plan_write
 from rt_ident.axis.friction import Friction
-from rt_ident.axis.params import AxisParams, thomson_x
+from rt_ident.axis.params import PLAUSIBLE, UNITS, AxisParams, thomson_x
 from rt_ident.axis.plant import (DEFAULT_KD, DEFAULT_KP, HoldController, PlantBlock, PlantSimulator, SensorConfig,
                                  rest_at)
 from rt_ident.errors import ConfigError
@@ -45,22 +45,27 @@ log = logging.getLogger(__name__)
 PAPER_DT = 2.9481e-5
 #: A plan may not start further ahead than this many samples (guards against seq mix-ups).
 MAX_PLAN_LEAD = 1 << 22
+#: Shortest sample period [s]: 1 M samples/s, 1000 per 1 ms tick, the top of the loop's capacity search
+#: (rt-ident bench; it keeps pace at 170 k/s). The per-sample state (filters, buffers, the svf's impulse
+#: response) grows as 1 / sample_period: a shorter one cannot be processed in a tick, nor held in memory.
+MIN_SAMPLE_PERIOD = 1e-6
 
 
 class SimConfig(BaseModel):
     """Options of the ``sim`` backend (the ``[backend]`` table minus ``name``)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: Optional[Literal["sim"]] = None
     axis: Optional[dict[str, float]] = None         # I1, I2, B, K, lead; None -> Table 1
-    sample_period: float = Field(PAPER_DT, gt=0, le=0.1)
+    sample_period: float = Field(PAPER_DT, le=0.1)  # s, >= MIN_SAMPLE_PERIOD
     counts_per_rev: int = Field(2**17, ge=0)        # 0: ideal (unquantized) encoder
-    scale_resolution: float = Field(1e-7, ge=0)     # m; 0: ideal scale
+    scale_resolution: float = Field(1e-7, ge=0, le=1e-3)  # m; 0: ideal scale
     angle_noise: float = Field(0.0, ge=0)
     torque_meas_noise: float = Field(0.0, ge=0)
     torque_process_noise: float = Field(0.0, ge=0)
-    torque_limit: float = Field(1.0, gt=0)          # N m
+    torque_limit: float = Field(1.0, gt=0)          # N m, at most rated_torque
+    rated_torque: float = Field(3.0, gt=0)          # N m the simulated motor can deliver (3 x the default limit)
     travel: Optional[tuple[float, float]] = (-0.05, 0.05)  # m on the linear scale
     position_hold: bool = False                     # a drive-side hold loop (identification-only runs)
     kp: Optional[float] = Field(None, ge=0)
@@ -68,7 +73,7 @@ class SimConfig(BaseModel):
     integrator: Literal["zoh", "newmark"] = "zoh"
     seed: int = 0
     paced: bool = True
-    samples_per_read: Optional[int] = Field(None, ge=1)
+    samples_per_read: Optional[int] = Field(None, ge=1, le=1_000_000)   # at most 1 s at 1 M samples/s
     has_measured_torque: bool = True
     changes: list[dict[str, float]] = Field(default_factory=list)  # [{at: s, I1/I2/B/K: factor}], see _changes()
     # friction to ground and backlash (rt_ident.axis.friction.Friction keys, or preset = "thomson");
@@ -83,6 +88,28 @@ class SimConfig(BaseModel):
             raise ValueError(f"must satisfy min < max, got {list(v)}")
         return v
 
+    @field_validator("scale_resolution")
+    @classmethod
+    def _scale_counts(cls, v: float) -> float:
+        if v != 0 and v < 1e-12:
+            raise ValueError(f"must be 0 (an ideal scale) or 1e-12 .. 1e-3 m per count, got {v:g}")
+        return v
+
+    @field_validator("sample_period")
+    @classmethod
+    def _sample_period_processable(cls, v: float) -> float:
+        if not v >= MIN_SAMPLE_PERIOD:
+            raise ValueError(f"must be >= {MIN_SAMPLE_PERIOD:g} s (at most {1e-6 / MIN_SAMPLE_PERIOD:g} M "
+                             f"samples/s, what the loop can process per tick), got {v:g} s")
+        return v
+
+    @model_validator(mode="after")
+    def _limit_within_rating(self) -> "SimConfig":
+        if self.torque_limit > self.rated_torque:
+            raise ValueError(f"torque_limit: {self.torque_limit:g} N m exceeds the simulated motor's "
+                             f"rated_torque {self.rated_torque:g} N m; lower torque_limit or raise rated_torque")
+        return self
+
 
 def _validate(config: Mapping[str, Any] | None) -> SimConfig:
     try:
@@ -90,7 +117,10 @@ def _validate(config: Mapping[str, Any] | None) -> SimConfig:
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        raise ConfigError(f"backend.{loc}" if loc else "backend", err["msg"]) from None
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        if not loc and ": " in msg:                  # a model check that names its field itself
+            loc, msg = msg.split(": ", 1)
+        raise ConfigError(f"backend.{loc}" if loc else "backend", msg) from None
 
 
 class SimBackend(Backend):
@@ -380,6 +410,10 @@ def _changes(entries: list[dict[str, float]], base: AxisParams, dt: float) -> li
             if isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f) or f <= 0:
                 raise ConfigError(f"{where}.{k}", f"must be a factor > 0, got {f!r}")
             scaled[k] = getattr(base, k) * float(f)
+            lo, hi = PLAUSIBLE[k]
+            if not lo <= scaled[k] <= hi:
+                raise ConfigError(f"{where}.{k}", f"factor {f:g} makes {k} {scaled[k]:g} {UNITS[k]}, outside the "
+                                  f"range of a machine-tool axis, {lo:g} .. {hi:g} {UNITS[k]}")
         out.append((int(math.ceil(at / dt - 1e-9)), AxisParams(**scaled, lead=base.lead)))
     return sorted(out, key=lambda c: c[0])
 

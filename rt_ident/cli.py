@@ -17,6 +17,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from rt_ident.errors import RtIdentError
@@ -50,12 +51,43 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
+#: -v count: 0 one-line warnings and errors; 1 also info, and tracebacks; 2 also debug
+_VERBOSE = 0
+
+
+class _OneLineFormatter(logging.Formatter):
+    """A log record in one line: a traceback only with -v (an expected device failure is reported
+    by its message; -v shows where it came from)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        if _VERBOSE or not (record.exc_info or record.stack_info):
+            return super().format(record)
+        exc = record.exc_info[1] if record.exc_info else None
+        saved = record.exc_info, record.exc_text, record.stack_info
+        record.exc_info = record.exc_text = record.stack_info = None
+        try:
+            line = super().format(record)
+        finally:
+            record.exc_info, record.exc_text, record.stack_info = saved
+        return line if exc is None else f"{line}: {type(exc).__name__}: {exc}"
+
+
+def _set_verbosity(level: int) -> None:
+    global _VERBOSE
+    _VERBOSE = level
+    if level:                                    # else the level main() set (a test's own stays untouched)
+        logging.getLogger().setLevel(logging.INFO if level == 1 else logging.DEBUG)
+
+
 @app.callback()
 def _root(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
                                  help="Print the version and exit."),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True,
+                                help="More detail: -v info lines and tracebacks, -vv debug lines."),
 ) -> None:
     """rt-ident: model, simulate and identify a machine-tool axis; run the real-time loop."""
+    _set_verbosity(verbose)
 
 
 UNITS = {"I1": "kg m²", "I2": "kg m²", "B": "N m s/rad", "K": "N m/rad", "wn": "rad/s", "wd": "rad/s", "zeta": "-",
@@ -301,12 +333,26 @@ def run(
     if no_realtime:
         overrides["loop.realtime"] = False
     cfg = cfgmod.load(config, **overrides)
+    _check_rrd_sink(rrd or (cfg.telemetry.rrd if sink is None else None), sink or cfg.telemetry.sink, sink is not None,
+                    "--rrd" if rrd else "telemetry.rrd")
+    from rt_ident.runtime.preflight import preflight
+
+    preflight(cfg, sink=sink, connect_url=connect)   # a setting the start would refuse: one line, nothing started
+    if cfg.defaulted:
+        what = {"axis": "the THOMSON X axis's values", "backend": "the sim backend",
+                "safety": f"the travel window {list(cfg.safety.window)} m"}
+        err.print(f"[yellow]warning:[/yellow] {escape(str(cfg.source))} has no "
+                  f"{escape(', '.join(f'[{s}]' for s in cfg.defaulted))}: running on the built-in "
+                  f"{'default' if len(cfg.defaulted) == 1 else 'defaults'}, "
+                  f"{', '.join(what[s] for s in cfg.defaulted)}", highlight=False)
     if not json_out:
         err.print(f"running {cfg.backend.name} for {cfg.loop.duration:g} s "
                   f"(method {cfg.estimator.method}, tick {cfg.loop.tick_hz:g} Hz); Ctrl-C stops safely")
     if cfg.axes:                                 # an XY table: every axis in one loop
         from rt_ident.runtime.multi import run_axes as run_loop
     summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
+    if cfg.defaulted:
+        summary["config_defaulted"] = list(cfg.defaulted)
     if json_out:
         typer.echo(json.dumps(summary, indent=2, default=_json_default))
     elif "axes" in summary:
@@ -314,6 +360,18 @@ def run(
     else:
         _print_run(summary)
     raise typer.Exit(exit_code(summary))
+
+
+def _check_rrd_sink(rrd: str | None, sink: str, from_flag: bool, field: str = "--rrd") -> None:
+    """``--rrd FILE`` (or ``telemetry.rrd``) is written by the rrd sink only: refused with a live or no
+    sink, not dropped."""
+    if rrd and sink != "rrd":
+        flag = ({"off": "--no-telemetry", "connect": "--connect", "serve": "--serve", "spawn": "--spawn"}[sink]
+                if from_flag else f'telemetry.sink = "{sink}"')
+        does = ("sends no dashboard" if sink == "off" else "serves the dashboard live" if sink == "serve"
+                else "streams the dashboard to a viewer")
+        raise RtIdentError(f"{field}: {flag} {does}, so {rrd} would not be written; drop {field}, or drop {flag} "
+                           "to write the file (a live dashboard is saved from the viewer)")
 
 
 def _json_default(o):
@@ -349,7 +407,8 @@ def _print_run(s: dict) -> None:
     out.print(f"loop: {loop.get('ticks', 0)} ticks, {loop.get('samples', 0)} samples, "
               f"{loop.get('overruns', 0)} overruns, lateness p50 {_fmt(lat.get('p50'))} us, "
               f"p99 {_fmt(lat.get('p99'))} us, max {_fmt(lat.get('max'))} us; "
-              f"telemetry dropped {s['telemetry'].get('dropped', 0)}")
+              f"telemetry dropped {s['telemetry'].get('dropped', 0)}"
+              + (", [bold red]not delivered[/]" if s["telemetry"].get("delivered") is False else ""))
     _print_stalls(loop)
     lost, n = loop.get("lost_samples") or 0, loop.get("samples") or 0
     if lost and lost > 0.01 * (n + lost):
@@ -750,12 +809,27 @@ def _command():
 
 
 def main() -> None:
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    """The ``rt-ident`` entry point. Exit codes: 0 ok, 2 bad input (one line naming the setting),
+    3 a run stopped by a fault or trip, 4 data lost, 1 an internal error (one line; -v: the traceback)."""
+    handler = logging.StreamHandler()
+    handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     try:
         _command()(prog_name="rt-ident")
     except RtIdentError as exc:
-        err.print(f"[red]error:[/red] {exc}")
+        if _VERBOSE:
+            err.print_exception()
+        err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
         sys.exit(2)
+    except KeyboardInterrupt:                    # Ctrl-C before a run's own handler is installed
+        err.print("interrupted")
+        sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - a bug: one line for the user, the traceback with -v
+        if _VERBOSE:
+            err.print_exception()
+        err.print(f"[red]internal error:[/red] {type(exc).__name__}: {escape(str(exc))} (rt-ident -v ... shows where; "
+                  "please report it)", highlight=False)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,13 @@ Sections: ``[axis]`` (plant truth for sim / reference values), ``[backend]``
 ``[estimator]``, ``[safety]``, ``[telemetry]``, ``[recording]``. Every
 section is optional; the defaults are the sim backend with the THOMSON X axis.
 Errors name the offending field, e.g. ``loop.tick_hz: must be > 0``.
+
+Every number must be finite (``friction_memory_s = inf`` is the one documented exception).
+A config file that holds nothing (empty, or comments only) is an error: it is more likely a
+wrong or truncated file than a wish for the defaults (run without a config for those). A file
+without ``[axis]``, ``[backend]`` or ``[safety]`` runs on their built-in defaults, and says so:
+:attr:`RunConfig.defaulted` lists them, the CLI prints a warning line and the run summary
+carries them as ``config_defaulted``.
 """
 
 from __future__ import annotations
@@ -16,14 +23,14 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class BackendConfig(BaseModel):
@@ -39,10 +46,10 @@ class BackendConfig(BaseModel):
 
 class ExcitationConfig(_Section):
     kind: Literal["schroeder", "random", "prbs", "chirp", "none"] = "schroeder"
-    period_samples: int = Field(512, ge=4)
+    period_samples: int = Field(512, ge=4, le=65536)   # the warm-up replays a few periods: memory ~ this
     band: tuple[int, int] = (1, 20)            # harmonics of the period, inclusive
-    peak: float = Field(0.3, gt=0)             # N m, added to the position-hold torque
-    seed: int = 0
+    peak: float = Field(0.3, ge=1e-9)          # N m, added to the position-hold torque
+    seed: int = Field(0, ge=0)
 
     @model_validator(mode="after")
     def _band_fits(self) -> "ExcitationConfig":
@@ -53,11 +60,18 @@ class ExcitationConfig(_Section):
         return self
 
 
+#: Tick rates the loop runs at [Hz]. At least 100: the host writes to the device (torque, heartbeat)
+#: once per tick, and a serial board disables itself after 0.1 s without a host frame; the safety
+#: watchdog counts ticks. At most 3333: the ticker spins the last 150 us before each deadline
+#: (runtime/scheduler.py), which must stay within half a tick.
+TICK_HZ_RANGE = (100.0, 3333.0)
+
+
 class LoopConfig(_Section):
-    tick_hz: float = Field(1000.0, gt=0, le=20000)
+    tick_hz: float = 1000.0
     duration: float = Field(10.0, gt=0)
     realtime: bool = True                      # try SCHED_FIFO, affinity, mlockall, gc.freeze
-    warmup_periods: int = Field(2, ge=0)       # excitation periods discarded before estimating
+    warmup_periods: int = Field(2, ge=0, le=20)  # excitation periods discarded before estimating
     max_sleep_us: Optional[float] = Field(100.0, gt=0)  # longest single sleep while waiting for a tick
                                                # (short sleeps keep a VM's vCPU from halting; scheduler.py)
     idle_poll: bool = True                     # real time, loop on its own CPU: a SCHED_IDLE thread keeps that
@@ -66,14 +80,26 @@ class LoopConfig(_Section):
     compiled_tick: bool = True                 # each axis's tick in one compiled call where its parts allow
                                                # (runtime/tick_core.py); false: the Python path, step by step
 
+    @field_validator("tick_hz")
+    @classmethod
+    def _tick_hz_in_range(cls, v: float) -> float:
+        lo, hi = TICK_HZ_RANGE
+        if not lo <= v <= hi:
+            raise ValueError(f"must be between {lo:g} and {hi:g} ticks per second, got {v:g} (at least {lo:g}: "
+                             f"the device hears from the host every tick; at most {hi:g}: the ticker needs "
+                             "300 us per tick)")
+        return v
+
 
 class EstimatorConfig(_Section):
     method: str = "frequency"
     forgetting: float = Field(1.0, gt=0, le=1)
-    kalman_process_noise: float = Field(1e9, gt=0)  # rad^2/s^5 (jerk spectral density) for the velocity filter
+    kalman_process_noise: float = Field(1e9, ge=1e-12, le=1e15)  # rad^2/s^5 (jerk spectral density) for the
+    #                                                   velocity filter; beyond these its Riccati equation fails
     # the per-sample estimator that feeds the adaptive controller (rt_ident.estimators.svf)
     per_sample: Literal["svf", "none"] = "svf"      # none: the controller adapts from the frequency fit alone
-    svf_hz: float = Field(800.0, gt=0)              # state-variable filter corner (passes the resonance)
+    svf_hz: float = Field(800.0, ge=10)             # state-variable filter corner (passes the resonance); its
+    #                                                 start-up computes ~6/(svf_hz * sample period) samples of it
     svf_memory_s: float = Field(0.05, gt=0)         # forgetting time constant of the per-sample estimate
     svf_quanta: Optional[tuple[float, float]] = None  # rad (theta1, theta2) for bias compensation;
                                                     # None: from the backend's encoder and scale resolution
@@ -81,19 +107,27 @@ class EstimatorConfig(_Section):
     # linear frequency fit alone), two-inertia-friction (adds Fc1, Fv1, Fc2, Fv2, offset) or
     # rigid-friction (J, Fv, Fc, offset); its friction feeds the controller ([control] friction_feedforward)
     model: Literal["two-inertia", "two-inertia-friction", "rigid-friction"] = "two-inertia"
-    friction_hz: Optional[float] = Field(None, gt=0)  # its filter corner; None: 800 Hz (two-inertia-friction:
+    friction_hz: Optional[float] = Field(None, ge=1)  # its filter corner; None: 800 Hz (two-inertia-friction:
     #                                                   passes the resonance), 100 Hz (rigid-friction)
-    friction_memory_s: float = Field(math.inf, gt=0)  # its forgetting time constant (inf: none)
+    friction_memory_s: float = Field(math.inf, gt=0, allow_inf_nan=True)  # its forgetting time constant (inf: none)
+
+    @field_validator("svf_quanta")
+    @classmethod
+    def _quanta_in_range(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+        if v is not None and not all(0.0 <= q <= 0.1 for q in v):
+            raise ValueError(f"must be two quanta in rad, each 0 .. 0.1 (a count of 1/63 rev at most), got {list(v)}")
+        return v
 
 
 class ControlConfig(_Section):
     """The host's position loop (:mod:`rt_ident.control`)."""
 
     mode: Literal["adaptive", "fixed", "off"] = "adaptive"  # off: excitation only (needs a drive-side hold)
-    bandwidth_hz: float = Field(20.0, gt=0)           # model controller (LQR on the identified model)
-    effort: float = Field(1.0, gt=0)                  # torque weight multiplier: larger is gentler
-    conservative_bandwidth_hz: float = Field(10.0, gt=0)  # rigid-body controller from [axis] I1 + I2 (at most)
-    conservative_load: float = Field(1.0, ge=1)       # it keeps its margins with I2 x this (a workpiece; see README)
+    # a position loop below 1 Hz holds nothing, and its LQR design fails; effort beyond 1e-6..1e6 too
+    bandwidth_hz: float = Field(20.0, ge=1)           # model controller (LQR on the identified model)
+    effort: float = Field(1.0, ge=1e-6, le=1e6)       # torque weight multiplier: larger is gentler
+    conservative_bandwidth_hz: float = Field(10.0, ge=1)  # rigid-body controller from [axis] I1 + I2 (at most)
+    conservative_load: float = Field(1.0, ge=1, le=100)  # it keeps its margins with I2 x this (a workpiece; see README)
     gain_margin_db: float = Field(6.0, ge=0)
     phase_margin_deg: float = Field(40.0, ge=0, lt=90)
     family_factors: tuple[float, ...] = (0.7, 1.3)    # each parameter x these must keep the margins
@@ -159,7 +193,7 @@ class SafetyConfig(_Section):
     torque_hold: float = Field(0.005, ge=0)
     # a tick later than this is a loop stall (rt_ident.runtime.stall): "resume" re-plans from where the
     # table is, "stop" stops safely; a stall longer than max_stall_stop_s always stops
-    max_stall_s: float = Field(0.01, gt=0, allow_inf_nan=False)
+    max_stall_s: Optional[float] = Field(None, gt=0, allow_inf_nan=False)   # None: 10 ms, or the plan + lease + a tick
     on_stall: Literal["resume", "stop"] = "resume"
     max_stall_stop_s: float = Field(1.0, gt=0, allow_inf_nan=False)
     # m/s the table may move at (estimated from the scale); None: sized from the reference's speed, its
@@ -168,10 +202,24 @@ class SafetyConfig(_Section):
 
     @model_validator(mode="after")
     def _stall_order(self) -> "SafetyConfig":
-        if self.max_stall_stop_s < self.max_stall_s:
+        if self.max_stall_s is not None and self.max_stall_stop_s < self.max_stall_s:
             raise ValueError(f"max_stall_stop_s: must be >= max_stall_s = {self.max_stall_s:g} s, "
                              f"got {self.max_stall_stop_s:g}")
         return self
+
+    def stall_after(self, tick_hz: float) -> float:
+        """``max_stall_s``, or the default: 10 ms, and at least the plan (two ticks) and its lease and one
+        more tick (a shorter stall leaves the drive applying the last plan)."""
+        if self.max_stall_s is not None:
+            return float(self.max_stall_s)
+        return max(0.01, self.torque_hold + 3.0 / tick_hz)
+
+    @field_validator("window")
+    @classmethod
+    def _window_ordered(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not v[0] < v[1]:
+            raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
+        return v
 
 
 class TelemetryConfig(_Section):
@@ -180,7 +228,7 @@ class TelemetryConfig(_Section):
     connect_url: Optional[str] = None
     bind_ip: str = "127.0.0.1"
     port: Optional[int] = Field(None, ge=1, le=65535)  # --serve / --spawn port; None: 9876, or a free one
-    rate_hz: float = Field(1000.0, gt=0)        # angle/torque samples per second sent to the viewer
+    rate_hz: float = Field(1000.0, ge=1)        # angle/torque samples per second sent to the viewer
     publish_every_ticks: int = Field(20, ge=1)
 
 
@@ -207,6 +255,7 @@ class RunConfig(_Section):
     axes: dict[str, dict[str, Any]] = Field(default_factory=dict)
     contour: dict[str, Any] = Field(default_factory=dict)   # [contour]: a coordinated XY reference
     source: Optional[str] = None
+    _defaulted: tuple[str, ...] = PrivateAttr(default=())    # set by load(): see the module docstring
 
     _AXIS_SECTIONS = ("axis", "backend", "emulator", "excitation", "estimator", "safety", "control", "reference",
                       "plant")
@@ -236,6 +285,11 @@ class RunConfig(_Section):
                 msg = str(exc)[len(exc.field) + 2:] if str(exc).startswith(f"{exc.field}: ") else str(exc)
                 raise ConfigError(f"axes.{name}.{exc.field}", msg) from None
         return out
+
+    @property
+    def defaulted(self) -> tuple[str, ...]:
+        """The sections of :data:`DEFAULTED_SECTIONS` the loaded file did not give (built-in defaults)."""
+        return self._defaulted
 
     def stuck_torque(self) -> float:
         """``[safety] stuck_torque``, or the simulated (sim or emulated) plant's breakaway torque when
@@ -271,12 +325,13 @@ class RunConfig(_Section):
             moved["x0"] = actual["x0"]
         if not moved:
             return data
-        backend = dict(data.get("backend") or {}) if isinstance(data.get("backend"), dict) else {}
+        if not isinstance(data.get("backend") or {}, dict) or not isinstance(data.get("emulator") or {}, dict):
+            return data                              # not tables: their own field errors
+        backend = dict(data.get("backend") or {})
         if backend.get("name", "sim") == "sim":
             return {**data, "backend": {**moved, **backend}}
         if backend.get("emulate"):                 # the emulated drive or board simulates it
-            emulator = dict(data.get("emulator") or {}) if isinstance(data.get("emulator"), dict) else {}
-            return {**data, "emulator": {**moved, **emulator}}
+            return {**data, "emulator": {**moved, **dict(data.get("emulator") or {})}}
         what = "friction" if "friction" in moved else "actual"
         raise ValueError(f"plant.{what}: describes a simulated device; a real {backend.get('name')!r} device has "
                          "its own (only the sim backend and the emulated devices take it)")
@@ -287,6 +342,8 @@ def _field_name(err: dict) -> str:
 
 
 def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfig:
+    if not isinstance(data, dict):
+        raise ConfigError("config", f"must be a table of sections, got {type(data).__name__}")
     try:
         cfg = RunConfig.model_validate({**data, "source": source})
     except ValidationError as exc:
@@ -318,13 +375,40 @@ def load(path: str | Path | None = None, **overrides: Any) -> RunConfig:
         if not p.is_file():
             raise ConfigError(str(path), "config file not found")
         try:
-            data = tomllib.loads(p.read_text())
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ConfigError(str(path), f"not a text file (byte 0x{exc.object[exc.start]:02x} at offset "
+                                         f"{exc.start} is not UTF-8); a config is TOML text") from None
+        except OSError as exc:
+            raise ConfigError(str(path), f"cannot read it: {exc.strerror or exc}") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(str(path), f"not valid TOML: {exc}") from None
+        if not data:
+            raise ConfigError(str(path), "config is empty (no section, no key); give at least [backend], "
+                                         "or run without a config for the built-in defaults")
         source = str(p)
     for dotted, value in overrides.items():
         if value is None:
             continue
         section, _, key = dotted.partition(".")
-        data.setdefault(section, {})[key] = value
-    return from_mapping(data, source=source)
+        if not isinstance(data.setdefault(section, {}), dict):
+            raise ConfigError(section, f"must be a table ([{section}]), got {type(data[section]).__name__}")
+        data[section][key] = value
+    cfg = from_mapping(data, source=source)
+    if path is not None:
+        cfg._defaulted = defaulted_sections(data)
+    return cfg
+
+
+#: Sections whose absence from a config file is reported (the run then drives the built-in sim
+#: plant, the THOMSON X axis's values, or the default travel window).
+DEFAULTED_SECTIONS = ("axis", "backend", "safety")
+
+
+def defaulted_sections(data: dict[str, Any]) -> tuple[str, ...]:
+    """The sections of :data:`DEFAULTED_SECTIONS` that ``data`` gives neither at the top level nor
+    in every ``[axes.NAME]`` table."""
+    axes = [a for a in (data.get("axes") or {}).values() if isinstance(a, dict)] \
+        if isinstance(data.get("axes"), dict) else []
+    return tuple(s for s in DEFAULTED_SECTIONS
+                 if s not in data and not (axes and all(s in a for a in axes)))

@@ -188,7 +188,7 @@ def _record_order(monkeypatch) -> list[str]:
     from drivers.base import Backend
 
     events: list[str] = []
-    safe_stop, stop, final_fit = Backend.safe_stop, IdlePoller.stop, run_mod._final_fit
+    safe_stop, stop, final_fit = Backend.safe_stop, IdlePoller.stop, run_mod.final_fit
 
     def backend_safe_stop(self, *a, **k):
         events.append("safe_stop")
@@ -206,7 +206,7 @@ def _record_order(monkeypatch) -> list[str]:
 
     monkeypatch.setattr(Backend, "safe_stop", backend_safe_stop)
     monkeypatch.setattr(IdlePoller, "stop", poller_stop)
-    monkeypatch.setattr(run_mod, "_final_fit", recorded_final_fit)
+    monkeypatch.setattr(run_mod, "final_fit", recorded_final_fit)
     return events
 
 
@@ -249,13 +249,13 @@ def test_an_xy_run_fits_outside_real_time_too(restore_scheduling, monkeypatch):
 
     before = os.sched_getscheduler(0), os.sched_getaffinity(0)
     policies = []
-    final_fit = multi_mod._final_fit
+    final_fit = multi_mod.final_fit
 
     def recorded_final_fit(*a, **k):
         policies.append(os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK)
         return final_fit(*a, **k)
 
-    monkeypatch.setattr(multi_mod, "_final_fit", recorded_final_fit)
+    monkeypatch.setattr(multi_mod, "final_fit", recorded_final_fit)
     s = run_axes(load(CONFIG_DIR / "xy-sim.toml", **{**QUIET, "loop.duration": 0.3}))
     assert s["stop"]["cause"] is None and s["realtime"]["sched_fifo"] is True
     assert policies and os.SCHED_FIFO not in policies

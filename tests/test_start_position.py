@@ -133,7 +133,7 @@ def test_the_speed_limit_trips_on_a_table_faster_than_it():
 def test_every_device_reports_where_the_table_starts_before_it_is_enabled(name):
     """[plant.actual] x0 reaches the sim and both emulators, and each backend reads it before enabling."""
     from rt_ident.runtime.emulation import start_emulator
-    from rt_ident.runtime.run import backend_options
+    from rt_ident.runtime.build import backend_options
 
     path = {"sim": None, "serial": "serial-virtual.toml", "canopen": "canopen-virtual.toml"}[name]
     c = config.load(path, **{"loop.realtime": False})

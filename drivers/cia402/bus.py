@@ -38,6 +38,19 @@ def confined(bus_kwargs: Mapping[str, Any]) -> bool:
     return bus_kwargs.get("interface") == "udp_multicast" and not bus_kwargs.get("allow_network", False)
 
 
+def check_interface(interface: str) -> None:
+    """Refuse ``socketcan`` on a host whose kernel has no CAN support (one line, before anything opens)."""
+    if interface != "socketcan":
+        return
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except (AttributeError, OSError) as exc:
+        why = getattr(exc, "strerror", None) or str(exc)
+        raise ConfigError("backend.interface", f"no SocketCAN on this host ({why}); use interface = "
+                          '"udp_multicast" (with emulate = true for the emulated drive) or "virtual", or load '
+                          "the kernel's CAN modules (modprobe can_raw)") from None
+
+
 def open_bus(bus_kwargs: Mapping[str, Any]) -> can.BusABC:
     """``can.Bus(**bus_kwargs)``, or the loopback-confined ``udp_multicast`` bus (see the module)."""
     kw = dict(bus_kwargs)

@@ -14,6 +14,7 @@ from typing import Any, Mapping, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from drivers.cia402.bus import check_interface
 from drivers.cia402.profile import frame_bits
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.errors import ConfigError
@@ -30,7 +31,7 @@ HEARTBEAT_BYTES = 1
 class Cia402Config(BaseModel):
     """Options of :class:`drivers.cia402.drive.Cia402Backend` (units in the comments)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: Optional[str] = None                      # registry name, ignored here
     emulate: bool = False                           # read by the loop, ignored here
@@ -44,7 +45,7 @@ class Cia402Config(BaseModel):
     node_id: int = Field(..., ge=1, le=127)
     master_node_id: int = Field(127, ge=1, le=127)  # node id of this host's heartbeat (0x700 + id)
     eds: str = "cia402_generic.eds"                  # path; a bare relative name is also looked up in configs/
-    sync_rate_hz: float = Field(1000.0, gt=0)       # SYNC rate = sample rate
+    sync_rate_hz: float = Field(1000.0, ge=100)     # SYNC rate = sample rate; at least one per 10 ms (the slowest tick)
     max_bus_load: float = Field(0.8, gt=0, le=0.95)  # refuse rates whose worst-case load exceeds this
     # torque
     torque_limit: float = Field(..., gt=0)          # N m, host-side clamp (drivers.base)
@@ -54,7 +55,7 @@ class Cia402Config(BaseModel):
     counts_per_rev: int = Field(..., gt=0)          # motor encoder (0x6064) counts per revolution
     scale_index: int = Field(0x60E4, ge=0x1000, le=0xFFFF)  # table linear scale object
     scale_subindex: int = Field(1, ge=0, le=255)
-    scale_resolution: float = Field(..., gt=0)      # m per scale count
+    scale_resolution: float = Field(..., ge=1e-12, le=1e-3)  # m per scale count
     lead: float = Field(7.96e-4, gt=0)              # m/rad: theta2 = x / lead
     # supervision
     heartbeat_ms: int = Field(100, ge=1, le=65535)  # producer time of the drive (0x1017) and of this host
@@ -189,6 +190,7 @@ def validate(config: Mapping[str, Any] | None) -> Cia402Config:
         raise ConfigError("backend.torque_limit", f"{cfg.torque_limit} N m exceeds the int16 per-mille range "
                           f"of 0x6071 (32.767 x rated_torque = {32.767 * cfg.rated_torque:g} N m)")
     check_bus_budget(cfg)
+    check_interface(cfg.interface)
     return cfg
 
 

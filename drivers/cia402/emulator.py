@@ -22,7 +22,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 class EmulatorConfig(BaseModel):
     """The ``[emulator]`` table (plant and drive options not shared with the backend)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     eds: Optional[str] = None                      # the drive's own EDS; None: the backend's
     node_id: Optional[int] = Field(None, ge=1, le=127)  # None: the backend's
@@ -51,10 +51,17 @@ class EmulatorConfig(BaseModel):
     integrator: Literal["zoh", "newmark"] = "zoh"
     poll_us: Optional[float] = Field(None, ge=0)   # receive poll period; None: 100 us on udp_multicast,
     #                                                blocking in-process (see drivers.cia402.frames.FrameIO)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     faults: dict[str, Any] = Field(default_factory=dict)
     friction: Optional[dict[str, Any]] = None       # rt_ident.axis.friction.Friction keys or preset = "thomson"
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: where the table starts (at rest)
+
+    @field_validator("travel")
+    @classmethod
+    def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+        if v is not None and not v[0] < v[1]:
+            raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
+        return v
 
 
 def _sections(config: Any) -> tuple[dict, dict, AxisParams]:
@@ -87,7 +94,7 @@ def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        raise ConfigError(f"emulator.{loc}" if loc else "emulator", err["msg"]) from None
+        raise ConfigError(f"emulator.{loc}" if loc else "emulator", str(err["msg"]).removeprefix("Value error, ")) from None
     if abs(axis.lead - cfg.lead) > 1e-12 * axis.lead:
         log.warning("emulator: axis lead %g differs from backend.lead %g", axis.lead, cfg.lead)
     sensors = SensorConfig(counts_per_rev=cfg.counts_per_rev, scale_resolution=cfg.scale_resolution,

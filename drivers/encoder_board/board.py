@@ -108,20 +108,24 @@ class SerialBoardBackend(Backend):
         self.bytes_read += len(data)
         return data
 
-    def _stop_frames(self) -> None:
-        """Quick stop, zero torque, disable: best effort, never raises."""
+    def _stop_frames(self) -> bool:
+        """Quick stop, zero torque, disable: best effort, never raises. False when they could not be sent."""
         if self._ser is None:
-            return
+            return False
         for frame in (sp.encode_quick_stop(), sp.encode_torque_hold(0.0), sp.encode_disable()):
             try:
                 self._send(frame)
-            except Exception:  # noqa: BLE001 - a stop path must not raise
-                log.warning("serial: could not send a stop frame to %s", self.port, exc_info=True)
-                return
+            except Exception as exc:  # noqa: BLE001 - a stop path must not raise
+                # one line: the link's failure is the run's stop cause, reported by the caller
+                log.warning("serial board %s: stop frames not sent (%s); the board disables itself when the "
+                            "host's heartbeats stop", self.port, type(exc).__name__)
+                log.debug("serial board %s: stop frame failed", self.port, exc_info=True)
+                return False
+        return True
 
     def _fail(self, exc: DriverError) -> DriverError:
-        """De-energize first, then hand the error back to be raised."""
-        log.error("serial board %s: %s", self.port, exc)
+        """De-energize first, then hand the error back to be raised (the caller reports it)."""
+        log.info("serial board %s: %s", self.port, exc)
         self._stop_frames()
         return exc
 
@@ -268,9 +272,8 @@ class SerialBoardBackend(Backend):
         self._send(sp.encode_torque_plan(start_seq, torques))
 
     def _safe_stop(self) -> None:
-        self._stop_frames()
-        if self._ser is None or self.config.stop_timeout <= 0:
-            return
+        if not self._stop_frames() or self.config.stop_timeout <= 0:
+            return                                   # no link: no acknowledgement to wait for
         try:
             got = self._wait_for(lambda s: int(np.argmax((s["status"] & sp.ST_ENABLED) == 0))
                                  if np.any((s["status"] & sp.ST_ENABLED) == 0) else -1,
@@ -286,8 +289,9 @@ class SerialBoardBackend(Backend):
         if ser is not None:
             try:
                 ser.close()
-            except Exception:  # noqa: BLE001
-                log.warning("serial: closing %s failed", self.port, exc_info=True)
+            except Exception as exc:  # noqa: BLE001
+                log.warning("serial: closing %s failed: %s", self.port, exc)
+                log.debug("serial: closing %s failed", self.port, exc_info=True)
         self._stop_emulator()
 
     def _stop_emulator(self) -> None:

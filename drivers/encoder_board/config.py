@@ -8,28 +8,31 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from drivers.encoder_board import protocol as sp
 from rt_ident.errors import ConfigError
 
 _LINK_MARGIN = 1.1   # the link must carry 10 % more than the frame stream
+#: The board's current range [A]: it reports the motor current as an int16 in mA (docs/serial-protocol.md),
+#: so a torque beyond this x torque_constant can be neither measured nor, by the board, driven.
+MAX_CURRENT_A = 32.767
 
 
 class SerialBoardConfig(BaseModel):
     """The ``[backend]`` keys of the serial board (units in the field comments)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     name: Optional[str] = None                  # registry name, ignored here
     port: Optional[str] = None                  # device path (a pyserial URL only with allow_url); required unless emulate
     allow_url: bool = False                     # accept pyserial URLs (socket://, rfc2217://, spy://...) as port
     baudrate: int = Field(12_000_000, gt=0)     # 8N1; ignored by USB CDC devices but checked
-    sample_rate_hz: float = Field(20000.0, gt=0, le=200_000)
+    sample_rate_hz: float = Field(20000.0, ge=100, le=200_000)  # at least a sample per 10 ms (the slowest tick)
     counts_per_rev: int = Field(131072, gt=0)   # motor encoder counts per revolution
-    scale_resolution: float = Field(1e-7, gt=0)  # linear scale [m/count]
+    scale_resolution: float = Field(1e-7, ge=1e-12, le=1e-3)  # linear scale [m/count]
     lead: float = Field(7.96e-4, gt=0)          # spindle lead [m/rad]: theta2 = x / lead
     torque_constant: float = Field(0.1, gt=0)   # [N m/A]: measured torque = kt * current
-    torque_limit: float = Field(1.0, gt=0)      # [N m] clamp on the host
+    torque_limit: float = Field(1.0, gt=0)      # [N m] clamp on the host; at most MAX_CURRENT_A x torque_constant
     read_timeout: float = Field(0.05, gt=0)     # [s] without a valid frame -> DeviceTimeout
     startup_timeout: float = Field(1.0, gt=0)   # [s] for the first frame (open) / enable ack
     poll_timeout: float = Field(0.0002, ge=0)   # [s] a read() waits at most this for a first byte
@@ -54,6 +57,10 @@ class SerialBoardConfig(BaseModel):
         if self.baudrate < need:
             raise ValueError(f"baudrate: {self.baudrate} baud carries {self.baudrate / 300:.0f} frames/s; "
                              f"sample_rate_hz={self.sample_rate_hz:g} needs >= {need:.3g} baud")
+        rating = MAX_CURRENT_A * self.torque_constant
+        if self.torque_limit > rating:
+            raise ValueError(f"torque_limit: {self.torque_limit:g} N m exceeds the board's rating, {MAX_CURRENT_A:g} A "
+                             f"(its current range) x torque_constant {self.torque_constant:g} N m/A = {rating:g} N m")
         return self
 
 
@@ -77,8 +84,8 @@ def parse_serial(data: Mapping[str, Any], where: str = "backend") -> SerialBoard
 class EmulatorConfig(BaseModel):
     """The ``[emulator]`` keys of the emulated board (faults may also be changed at run time)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    seed: int = 0
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    seed: int = Field(0, ge=0)
     hold: bool = False                         # a drive-side position loop holding theta1 (identification-only runs)
     heartbeat_timeout: float = Field(0.1, gt=0)  # [s] without a host frame -> disable + fault
     burst_period: float = Field(0.001, gt=0, le=0.1)  # [s] between bursts of frames
@@ -97,6 +104,13 @@ class EmulatorConfig(BaseModel):
     deaf: bool = False
     friction: Optional[dict[str, Any]] = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # [m] where the table starts (at rest)
+
+    @field_validator("travel")
+    @classmethod
+    def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+        if v is not None and not v[0] < v[1]:
+            raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
+        return v
 
 
 def parse_emulator(data: Mapping[str, Any], where: str = "emulator") -> EmulatorConfig:

@@ -2,7 +2,8 @@
 
 :class:`AxisParams` is a validated, frozen value type. Construction rejects
 non-positive inertias, stiffness or lead, negative damping and non-finite
-numbers with a :class:`~rt_ident.errors.ConfigError` naming the field.
+numbers with a :class:`~rt_ident.errors.ConfigError` naming the field. Values read from a
+config (:meth:`AxisParams.from_mapping`) must also lie in :data:`PLAUSIBLE`.
 """
 
 from __future__ import annotations
@@ -17,6 +18,15 @@ from rt_ident.errors import ConfigError
 
 #: The configs folder shipped next to the package (source checkout or editable install).
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"   # <repo>/configs (rt_ident/axis/params.py)
+
+#: What a config may give for a machine-tool axis: from a micro-motor (rotor ~1e-7 kg m^2) to a
+#: heavy axis (~1 kg m^2 at the motor), with margin. Beyond these the controller design's and the
+#: plant's arithmetic overflows or loses every digit. Estimates are not held to them.
+PLAUSIBLE = {"I1": (1e-9, 10.0), "I2": (1e-9, 10.0),     # kg m^2
+             "B": (0.0, 1e3),                             # N m s/rad
+             "K": (1e-2, 1e8),                            # N m/rad
+             "lead": (1e-6, 1.0)}                         # m/rad (1 mm/rev = 1.6e-4 m/rad)
+UNITS = {"I1": "kg m^2", "I2": "kg m^2", "B": "N m s/rad", "K": "N m/rad", "lead": "m/rad"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,9 +81,15 @@ class AxisParams:
         if missing:
             raise ConfigError(f"{where}.{sorted(missing)[0]}", "missing")
         try:
-            return cls(**dict(data))
+            params = cls(**dict(data))
         except ConfigError as exc:
             raise ConfigError(f"{where}.{exc.field}", str(exc).split(": ", 1)[1]) from None
+        for name, (lo, hi) in PLAUSIBLE.items():
+            value = getattr(params, name)
+            if not lo <= value <= hi:
+                raise ConfigError(f"{where}.{name}", f"{value:g} {UNITS[name]} is outside the range of a "
+                                  f"machine-tool axis, {lo:g} .. {hi:g} {UNITS[name]}")
+        return params
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "AxisParams":

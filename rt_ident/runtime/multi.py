@@ -39,11 +39,11 @@ from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.runtime.fit_worker import make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.loop import IdentificationLoop, MultiAxisLoop
-from rt_ident.runtime.outputs import check_output, check_methods, prepare_outputs, remove_empty_outputs
+from rt_ident.runtime.outputs import check_output, prepare_outputs, remove_empty_outputs
 from rt_ident.runtime.host import HostSteal, LoopCpuInterrupts, LoopRealtime, helper_role, keep_off_loop_cpu
-from rt_ident.runtime.run import (_backend_counters, _controller, _excitation, _final_fit, _ident_summary,
-                                  _install_signals, _quanta, _warmup, backend_options, friction_estimator,
-                                  friction_summary, recording_metadata)
+from rt_ident.runtime.build import (backend_counters, backend_options, check_axes, final_fit, friction_estimator,
+                                    friction_summary, ident_summary, install_stop_signals, make_excitation, sensor_quanta,
+                                    recording_metadata, start_controller, warmup)
 from rt_ident.runtime import preflight
 
 log = logging.getLogger(__name__)
@@ -128,35 +128,6 @@ class ContourTrace:
         return fig
 
 
-def check_axes(cfg: RunConfig) -> dict[str, RunConfig]:
-    """The per-axis configs, refused in one line before anything starts when they cannot run."""
-    axes = cfg.axis_configs()
-    if len(axes) < 1:
-        raise ConfigError("axes", "no axis configured")
-    kinds = {acfg.backend.name for acfg in axes.values()}
-    if len(axes) > 1 and (len(kinds) > 1 or not kinds <= {"sim", "canopen"}):
-        name = next(n for n, a in axes.items() if a.backend.name != "sim")
-        raise ConfigError(f"axes.{name}.backend.name", "several axes in one run need every axis on the sim backend, "
-                          "or every axis a CiA 402 drive on one CAN bus (serial boards for several axes are not "
-                          f"built); got {', '.join(sorted(kinds))}")
-    if kinds == {"canopen"}:
-        from drivers.cia402.config import check_shared_bus, validate
-
-        if len({acfg.backend.emulate for acfg in axes.values()}) > 1:
-            raise ConfigError("backend.emulate", "the drives on one bus are all emulated or all real")
-        check_shared_bus([validate(acfg.backend.options()) for acfg in axes.values()])
-    for name, acfg in axes.items():
-        check_methods(acfg)
-        from rt_ident.control.anchor import split_reference_table
-        from rt_ident.control.reference import make_reference
-
-        try:
-            make_reference(split_reference_table(acfg.reference)[0])   # a bad reference is refused now
-        except ConfigError as exc:
-            raise ConfigError(f"axes.{name}.{exc.field}", str(exc)[len(exc.field) + 2:]) from None
-    return axes
-
-
 def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
              connect_url: str | None = None, stop_event: threading.Event | None = None, tick_hook=None,
              overwrite: bool = False) -> dict[str, Any]:
@@ -198,7 +169,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
     refused: ConfigError | None = None
     multi = None
     trace: ContourTrace | None = None
-    old_signals = _install_signals(stop)
+    old_signals = install_stop_signals(stop)
     try:
         with contextlib.ExitStack() as stack:
             if sink == "spawn":
@@ -241,7 +212,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                 if rec_path:
                     meta = {**recording_metadata(acfg, dt), "axis_name": name}
                     part["recorder"] = RecorderProcess(rec_path, meta, overwrite=overwrite).start()
-                q1, q2 = _quanta(acfg)
+                q1, q2 = sensor_quanta(acfg)
                 kf = AxisStateEstimator(dt, q1, q2, acfg.estimator.kalman_process_noise)
                 est = make_streaming(acfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
                                      warmup_periods=acfg.loop.warmup_periods, forgetting=acfg.estimator.forgetting,
@@ -250,14 +221,14 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                 worker = make_fit_worker(acfg.estimator.method, lead=truth.lead).start()
                 stack.callback(worker.close)
                 helpers[f"fit-{name}"] = worker
-                _warmup(kf, est, (acfg.loop.warmup_periods + 2) * ex.period_samples)
-                control, ctl_worker = _controller(acfg, backend, stack, (q1, q2))
+                warmup(kf, est, (acfg.loop.warmup_periods + 2) * ex.period_samples)
+                control, ctl_worker = start_controller(acfg, backend, stack, (q1, q2))
                 if ctl_worker is not None:
                     helpers[f"control-{name}"] = ctl_worker
                 safety = preflight.safety_monitor(acfg, dt)
                 tel, rec = part.get("telemetry"), part.get("recorder")
                 loops[name] = IdentificationLoop(
-                    backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(acfg), state_estimator=kf,
+                    backend, tick_hz=cfg.loop.tick_hz, excitation=make_excitation(acfg), state_estimator=kf,
                     estimator=est, safety=safety, duration=cfg.loop.duration, fit_worker=worker,
                     on_block=rec.put if rec else None, on_telemetry=tel.publish if tel else None,
                     on_fit=tel.publish_fit if tel else None, on_loop_gain=tel.publish_loop_gain if tel else None,
@@ -322,7 +293,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
                 backend.safe_stop()                    # every axis at zero torque before the final fits
             realtime.end()                             # the final fits and the files are no real-time work
             for name, loop in loops.items():
-                parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
+                parts[name]["final_fit_error"] = final_fit(loop, loop.est)
     except RtIdentError as exc:
         if isinstance(exc, ConfigError) and not enabled:
             refused = exc                                  # refused before enabling: a one-line error, exit 2
@@ -332,7 +303,7 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
         stop_message = str(exc) + getattr(exc, "after_stall", "")
         log.info("run stopped: %s", exc)
         for name, loop in loops.items():
-            parts[name]["final_fit_error"] = _final_fit(loop, loop.est)
+            parts[name]["final_fit_error"] = final_fit(loop, loop.est)
     finally:
         for sig, handler in old_signals.items():
             signal.signal(sig, handler)
@@ -385,13 +356,13 @@ def run_axes(cfg: RunConfig, *, rrd: str | None = None, record: str | None = Non
         ax.update({"backend": acfg.backend.name, "method": acfg.estimator.method,
                    "loop": {**loop.stats.as_dict(), "compiled_tick": loop.compiled_ticks},
                    "final_fit_error": parts[name].get("final_fit_error"),
-                   "backend_counters": _backend_counters(backends[name]),
+                   "backend_counters": backend_counters(backends[name]),
                    "control": loop.control.summary() if loop.control is not None else {"mode": "off"}})
         fr = friction_summary(loop)
         if fr is not None:
             ax["friction"] = fr
         if loop.identification is not None:
-            ax.update(_ident_summary(loop.identification))
+            ax.update(ident_summary(loop.identification))
         ax.setdefault("parameters", None)
         truth = getattr(backends[name], "current_params", None) or acfg.axis_params()
         tr = {"I1": truth.I1, "I2": truth.I2, "B": truth.B, "K": truth.K, **modal_parameters(truth)}

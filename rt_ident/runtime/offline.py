@@ -18,12 +18,22 @@ from typing import Any, Callable
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.config import RunConfig
 from rt_ident.control import redesign
+from rt_ident.errors import ConfigError
 from rt_ident.estimators import make_streaming
 from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.estimators.streaming import fit_snapshot
-from rt_ident.errors import ConfigError
-from rt_ident.runtime.fit_worker import newest_result
 from rt_ident.runtime import preflight
+from rt_ident.runtime.build import (
+    backend_options,
+    controller_for,
+    friction_estimator,
+    friction_summary,
+    make_excitation,
+    recording_metadata,
+    sensor_quanta,
+    warmup,
+)
+from rt_ident.runtime.fit_worker import newest_result
 from rt_ident.runtime.loop import IdentificationLoop
 from rt_ident.runtime.scheduler import Ticker
 
@@ -107,8 +117,6 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     consumer ``on_telemetry``). ``paced``: the sim produces the samples due on the virtual clock, as
     on the wall clock in a real run (a hook that advances ``loop.clock.now`` then stalls the loop).
     """
-    from rt_ident.runtime.run import (_excitation, _quanta, _warmup, backend_options, controller_for, friction_estimator,
-                                      friction_summary, recording_metadata)
 
     if cfg.backend.name != "sim":
         raise ConfigError("backend.name", "the offline loop runs the sim backend only")
@@ -119,14 +127,14 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     dt = backend.sample_period
     truth = cfg.axis_params()
     ex = cfg.excitation
-    q1, q2 = _quanta(cfg)
+    q1, q2 = sensor_quanta(cfg)
     kf = AxisStateEstimator(dt, q1, q2, cfg.estimator.kalman_process_noise)
     est = make_streaming(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
                          warmup_periods=cfg.loop.warmup_periods, forgetting=cfg.estimator.forgetting,
                          lead=truth.lead, quanta=(q1, q2), process_noise=cfg.estimator.kalman_process_noise)
     fit = InlineWorker(partial(fit_snapshot, cfg.estimator.method, lead=truth.lead), clock, latency=fit_latency)
     ctl = controller_for(cfg, backend, InlineWorker(redesign, clock, latency=0.05, min_interval=0.0), (q1, q2))
-    _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
+    warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
     safety = preflight.safety_monitor(cfg, dt)
     recorder = None
     if record is not None:
@@ -134,7 +142,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
 
         recorder = Recorder(record, recording_metadata(cfg, dt), flush_interval=1e9, overwrite=overwrite)
         recorder.open()
-    loop = IdentificationLoop(backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf,
+    loop = IdentificationLoop(backend, tick_hz=cfg.loop.tick_hz, excitation=make_excitation(cfg), state_estimator=kf,
                               estimator=est, safety=safety, duration=cfg.loop.duration, fit_worker=fit,
                               clock=clock, control=ctl, probe_period=ex.period_samples,
                               ticker=Ticker(1.0 / cfg.loop.tick_hz, clock=clock, sleeper=clock.sleep, spin_s=0.0,

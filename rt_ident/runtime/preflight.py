@@ -1,5 +1,10 @@
 """What a run checks and sizes from its config before any device is enabled.
 
+* :func:`preflight`: builds what the run builds (the backend without I/O, the emulated device's
+  model, the estimators, the excitation, the controller, the safety monitor, the ticker) and drops
+  it, before a process is started or a device opened: a setting they refuse surfaces as one
+  :class:`~rt_ident.errors.ConfigError` naming it (the CLI's exit 2), not as a stop halfway through a
+  start. Cheap: no kernel compiled, no process started, no file written;
 * :func:`safety_monitor` and :func:`stall_policy`: the host-side checks of ``[safety]``, with the
   speed limit sized from what the axis is asked to do when the config leaves it open;
 * :func:`check_config`: the probing multisine against the torque limit, and no host control only
@@ -15,10 +20,17 @@ import math
 
 import numpy as np
 
+from drivers import BackendNotFound, make_backend
 from rt_ident.config import RunConfig
 from rt_ident.control.anchor import path_samples, split_reference_table
 from rt_ident.errors import ConfigError
+from rt_ident.estimators import make_streaming
+from rt_ident.estimators.state_estimation import AxisStateEstimator
+from rt_ident.runtime.build import (backend_options, check_axes, controller_for, friction_estimator, make_excitation,
+                                    sensor_quanta)
+from rt_ident.runtime.outputs import check_methods
 from rt_ident.runtime.safety import SafetyMonitor
+from rt_ident.runtime.scheduler import Ticker
 from rt_ident.runtime.stall import StallPolicy
 
 #: the sized speed limit is this multiple of the fastest motion the run asks for (a runaway at the
@@ -74,7 +86,8 @@ def safety_monitor(cfg: RunConfig, sample_period: float) -> SafetyMonitor:
 
 def stall_policy(cfg: RunConfig) -> StallPolicy:
     s = cfg.safety
-    return StallPolicy(s.max_stall_s, s.on_stall, s.max_stall_stop_s)
+    after = s.stall_after(cfg.loop.tick_hz)
+    return StallPolicy(after, s.on_stall, max(s.max_stall_stop_s, after))
 
 
 def drive_holds(cfg: RunConfig) -> bool:
@@ -100,10 +113,11 @@ def check_config(cfg: RunConfig, torque_limit: float) -> None:
         raise ConfigError("excitation.peak", f"{ex.peak:g} N m is more than {PROBE_SHARE:g} x the torque limit "
                           f"({torque_limit:g} N m): the position loop needs the rest; lower the peak")
     held = cfg.safety.torque_hold + 2.0 / cfg.loop.tick_hz      # the plan (two ticks) and its lease
-    if cfg.safety.max_stall_s <= held:
-        raise ConfigError("safety.max_stall_s", f"{cfg.safety.max_stall_s:g} s is within the {held:g} s the drive holds "
-                          "the last plan (torque_hold + 2 ticks): a resume would assume the torque dropped while "
-                          "the drive still applies it; make it longer")
+    after = cfg.safety.stall_after(cfg.loop.tick_hz)
+    if after <= held:
+        raise ConfigError("safety.max_stall_s", f"{after:g} s is within the {held:g} s the drive holds the last plan "
+                          "(torque_hold + 2 ticks): a resume would assume the torque dropped while the drive still "
+                          "applies it; make it longer")
     if cfg.control.mode == "off" and not drive_holds(cfg):
         raise ConfigError("control.mode", "'off' leaves a torque-mode axis with nothing holding it; run with "
                           "control, or give it a drive-side hold ([control] drive_holds = true for a real drive "
@@ -136,4 +150,68 @@ def check_start(cfg: RunConfig, x: float, sample_period: float, where: str = "")
                           f"+-{shake * 1e6:.1f} um), outside {span}")
 
 
-__all__ = ["check_config", "check_start", "drive_holds", "max_speed", "probe_motion", "safety_monitor", "stall_policy"]
+def preflight(cfg: RunConfig, *, sink: str | None = None, connect_url: str | None = None) -> None:
+    """Raise the first :class:`ConfigError` a run of ``cfg`` would meet while starting (``sink``,
+    ``connect_url``: the command line's, as :func:`rt_ident.runtime.run.run` takes them)."""
+    _telemetry(cfg, sink or cfg.telemetry.sink, connect_url or cfg.telemetry.connect_url)
+    if not cfg.axes:
+        _axis(cfg)
+        return
+    for name, acfg in check_axes(cfg).items():
+        try:
+            _axis(acfg)
+        except ConfigError as exc:
+            msg = str(exc)[len(exc.field) + 2:] if str(exc).startswith(f"{exc.field}: ") else str(exc)
+            raise ConfigError(f"axes.{name}.{exc.field}", msg) from None
+
+
+def _axis(cfg: RunConfig) -> None:
+    check_methods(cfg)
+    truth = cfg.axis_params()
+    opts = backend_options(cfg)
+    if cfg.backend.emulate:
+        _emulator(cfg)
+        if cfg.backend.name == "serial":
+            opts.setdefault("port", "emulated")        # the run hands the emulated board's pty over
+    try:
+        backend = make_backend(cfg.backend.name, opts)    # validates its options, opens nothing
+    except BackendNotFound as exc:
+        raise ConfigError("backend.name", str(exc)) from None
+    dt = backend.sample_period
+    q = sensor_quanta(cfg)
+    AxisStateEstimator(dt, *q, cfg.estimator.kalman_process_noise)
+    ex = cfg.excitation
+    make_streaming(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
+                   warmup_periods=cfg.loop.warmup_periods, forgetting=cfg.estimator.forgetting, lead=truth.lead,
+                   quanta=q, process_noise=cfg.estimator.kalman_process_noise)
+    make_excitation(cfg)
+    controller_for(cfg, backend, None, q)
+    friction_estimator(cfg, dt, q)
+    safety_monitor(cfg, dt)
+    check_config(cfg, backend.torque_limit)
+    Ticker(1.0 / cfg.loop.tick_hz, max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6)
+
+
+def _telemetry(cfg: RunConfig, sink: str, connect_url: str | None) -> None:
+    from rt_ident.runtime.telemetry import TelemetryConfig
+
+    try:
+        TelemetryConfig(sink=sink, rrd_path="check.rrd", connect_url=connect_url, bind_ip=cfg.telemetry.bind_ip)
+    except ConfigError as exc:
+        field = {"connect_url": "--connect / telemetry.connect_url"}.get(exc.field, f"telemetry.{exc.field}")
+        raise ConfigError(field, str(exc)[len(exc.field) + 2:]) from None
+
+
+def _emulator(cfg: RunConfig) -> None:
+    """The emulated device's own options (``[emulator]``), as the emulator will read them."""
+    if cfg.backend.name == "serial":
+        from drivers.encoder_board.config import parse_emulator
+
+        parse_emulator(dict(cfg.emulator))
+    elif cfg.backend.name == "canopen":
+        from drivers.cia402.emulator import build_emulator_for
+
+        build_emulator_for(cfg)                       # the drive's model, not started: no bus opened
+
+
+__all__ = ["check_config", "check_start", "drive_holds", "preflight", "max_speed", "probe_motion", "safety_monitor", "stall_policy"]

@@ -158,7 +158,30 @@ def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, w
     )
 
 
-def _table_columns(table: Any) -> dict[str, np.ndarray]:
+def _check_types(schema: Any, where: Path) -> None:
+    """The columns read as numbers (``seq`` an integer) hold numbers: a text or nested column is named
+    in one line, not met as a TypeError in the first arithmetic on it."""
+    import pyarrow as pa
+
+    for name in (*COLUMNS, *CSV_REQUIRED, *CSV_OPTIONAL):
+        i = schema.get_field_index(name)
+        if i < 0:
+            continue
+        typ = schema.field(i).type
+        ok = pa.types.is_integer(typ) if name == "seq" else (pa.types.is_floating(typ) or pa.types.is_integer(typ))
+        if not ok:
+            raise DataError(f"{where}: column {name!r} holds {typ}, not {'integers' if name == 'seq' else 'numbers'}")
+
+
+def _check_seq(table: Any, where: Path, row0: int = 0) -> None:
+    if "seq" in table.column_names and table.column("seq").null_count:
+        i = int(np.flatnonzero(table.column("seq").is_null().to_numpy(zero_copy_only=False))[0])
+        raise DataError(f"{where}: column 'seq' has no value at data row {row0 + i + 1}")
+
+
+def _table_columns(table: Any, where: Path) -> dict[str, np.ndarray]:
+    _check_types(table.schema, where)
+    _check_seq(table, where)
     return {name: table.column(name).to_numpy() for name in table.column_names}
 
 
@@ -270,17 +293,17 @@ def read_recording(path: str | os.PathLike[str], *, require_theta2: bool = True)
         journal = journal_path(p)
         if p.is_file():
             table, meta = _read_parquet(p)
-            return _build(_table_columns(table), meta, "parquet", p)
+            return _build(_table_columns(table, p), meta, "parquet", p)
         if journal.is_file():
             log.warning("%s was not closed; recovering up to the last flush from %s", p, journal.name)
             table, meta = _read_journal(journal)
-            return _build(_table_columns(table), meta, "journal", p)
+            return _build(_table_columns(table, p), meta, "journal", p)
         raise DataError(f"{p}: no such file (and no journal {journal.name} to recover from)")
     if ext == JOURNAL_SUFFIX:
         if not p.is_file():
             raise DataError(f"{p}: no such file")
         table, meta = _read_journal(p)
-        return _build(_table_columns(table), meta, "journal", p)
+        return _build(_table_columns(table, p), meta, "journal", p)
     raise DataError(f"{p}: unknown extension {p.suffix!r} (expected .parquet, .arrows or .csv)")
 
 
@@ -313,10 +336,12 @@ def iter_parquet_blocks(path: str | os.PathLike[str], rows: int = 1 << 16):
     # sample read, measured: 2.5 GB for an hour); this stays flat (a recording's row groups are its
     # 0.5 s flushes)
     f = pq.ParquetFile(str(p), pre_buffer=False, buffer_size=1 << 20)
+    _check_types(f.schema_arrow, p)
     names = [c for c in COLUMNS if c in f.schema_arrow.names]
     last_t = -math.inf
     row0 = 0
     for batch in _row_group_slices(f, names, rows):
+        _check_seq(batch, p, row0)
         cols = {n: batch.column(n).to_numpy(zero_copy_only=False) for n in names}
         t = np.asarray(cols["t"], dtype=np.float64)
         cmd = np.asarray(cols["torque_cmd"], dtype=np.float64)

@@ -18,127 +18,25 @@ import sys
 import threading
 from typing import Any
 
-import numpy as np
 
 from drivers import make_backend
-from rt_ident.axis.excitation import schroeder_multisine
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.config import RunConfig
 from rt_ident.errors import ConfigError, RtIdentError
 from rt_ident.estimators import make_streaming
-from rt_ident.estimators.svf import make_svf
-from rt_ident.estimators.state_estimation import AxisStateEstimator, encoder_quanta
+from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.runtime.emulation import start_emulator
-from rt_ident.control import make_controller, redesign
-from rt_ident.runtime.fit_worker import JobWorker, make_fit_worker
+from rt_ident.runtime.fit_worker import make_fit_worker
 from rt_ident.runtime.helper_guard import HelperWatch
 from rt_ident.runtime.host import HostSteal, LoopCpuInterrupts, LoopRealtime, keep_off_loop_cpu
 from rt_ident.runtime.loop import IdentificationLoop
 from rt_ident.runtime import preflight
+from rt_ident.runtime.build import (backend_counters, backend_options, final_fit, friction_estimator, friction_summary,
+                                    ident_summary, install_stop_signals, make_excitation, sensor_quanta, recording_metadata,
+                                    start_controller, warmup)
 from rt_ident.runtime.outputs import check_methods, prepare_outputs, remove_empty_outputs
 
 log = logging.getLogger(__name__)
-
-
-def backend_options(cfg: RunConfig) -> dict[str, Any]:
-    opts = cfg.backend.options()
-    if cfg.backend.name == "sim":
-        opts.setdefault("axis", cfg.axis_params().as_dict())
-        if cfg.plant.change:
-            opts.setdefault("changes", [dict(c) for c in cfg.plant.change])
-    elif cfg.plant.change:
-        raise ConfigError("plant.change", f"only the sim backend can change its plant mid-run "
-                          f"(backend is {cfg.backend.name!r})")
-    return opts
-
-
-def per_sample_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float]):
-    """The recursive estimator the adaptive controller follows (``[estimator] per_sample``), or None
-    (not adaptive, switched off, or a sample rate too low for it: logged, the controller then
-    follows the frequency fit)."""
-    e = cfg.estimator
-    if cfg.control.mode != "adaptive" or e.per_sample == "none":
-        return None
-    q = tuple(e.svf_quanta) if e.svf_quanta is not None else quanta
-    est, why = make_svf(dt, cfg.axis_params(), filter_hz=e.svf_hz, memory_s=e.svf_memory_s, quanta=q)
-    if est is None:
-        log.warning("per-sample estimator off (%s): the adaptive controller follows the frequency fit", why)
-    return est
-
-
-def friction_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float]):
-    """The per-sample friction-model estimator of ``[estimator] model`` (None for ``two-inertia``)."""
-    e = cfg.estimator
-    if e.model == "two-inertia":
-        return None
-    from rt_ident.estimators.friction import RecursiveFrictionEstimator
-
-    hz = e.friction_hz or (800.0 if e.model == "two-inertia-friction" else 100.0)
-    hz = min(hz, 0.25 / dt)
-    return RecursiveFrictionEstimator(dt, e.model, filter_hz=hz, memory_s=e.friction_memory_s, quanta=quanta)
-
-
-def friction_summary(loop) -> dict[str, Any] | None:
-    """``{"model", "parameters", "feedforward"}`` of the loop's friction-model estimate, or None."""
-    est = getattr(loop, "friction", None)
-    if est is None:
-        return None
-    p = est.estimate()
-    ff = getattr(getattr(loop.control, "law", None), "friction", None) if loop.control is not None else None
-    return {"model": est.model, "parameters": p,
-            "feedforward": None if ff is None else {"Fc": ff.Fc, "Fv": ff.Fv}}
-
-
-def controller_for(cfg: RunConfig, backend, worker, quanta: tuple[float, float]):
-    """The host's position controller for ``cfg`` (None with ``control.mode = "off"``), redesigning
-    through ``worker`` (a process worker here, an inline one in :mod:`rt_ident.runtime.offline`)."""
-    settings = cfg.control.settings()
-    if settings.mode == "off":
-        return None
-    from rt_ident.control.anchor import split_reference_table
-    from rt_ident.control.reference import make_reference
-
-    table, options = split_reference_table(cfg.reference)
-    last = cfg.plant.last_change_s()
-    return make_controller(settings, cfg.axis_params(), tick=1.0 / cfg.loop.tick_hz,
-                           torque_limit=backend.torque_limit, reference=make_reference(table),
-                           worker=worker, error_after_s=None if last is None else last + 0.5,
-                           per_sample=per_sample_estimator(cfg, backend.sample_period, quanta),
-                           reference_options=options)
-
-
-def _controller(cfg: RunConfig, backend, stack: contextlib.ExitStack, quanta: tuple[float, float]):
-    """The host's position controller (None with ``control.mode = "off"``) and its redesign worker."""
-    worker = None
-    if cfg.control.mode == "adaptive":
-        worker = JobWorker(redesign, name="rt_ident-control", min_interval=0.0).start()
-        stack.callback(worker.close)
-    return controller_for(cfg, backend, worker, quanta), worker
-
-
-def _excitation(cfg: RunConfig):
-    ex = cfg.excitation
-    if ex.kind == "none":
-        return lambda seq: np.zeros(seq.shape)
-    if ex.kind not in ("schroeder", "random"):
-        raise RtIdentError(f"excitation.kind: the loop needs a periodic multisine ('schroeder' or 'random'), "
-                           f"got {ex.kind!r}")
-    ms = schroeder_multisine(ex.period_samples, ex.band, peak=ex.peak,
-                             phases="schroeder" if ex.kind == "schroeder" else "random", seed=ex.seed)
-    return ms.at
-
-
-def _install_signals(stop: threading.Event) -> dict:
-    old = {}
-    if threading.current_thread() is not threading.main_thread():
-        return old
-
-    def handler(signum, frame):  # noqa: ARG001
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        old[sig] = signal.signal(sig, handler)
-    return old
 
 
 def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
@@ -178,7 +76,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     refused: ConfigError | None = None
     loop = None
     telemetry = recorder = watch = None
-    old_signals = _install_signals(stop)
+    old_signals = install_stop_signals(stop)
     try:
         with contextlib.ExitStack() as stack:
             if emulator is not None:
@@ -200,7 +98,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             meta = recording_metadata(cfg, dt)
             if rec_path:
                 recorder = RecorderProcess(rec_path, meta, overwrite=overwrite).start()
-            q1, q2 = _quanta(cfg)
+            q1, q2 = sensor_quanta(cfg)
             kf = AxisStateEstimator(dt, q1, q2, cfg.estimator.kalman_process_noise)
             est = make_streaming(cfg.estimator.method, dt=dt, period=ex.period_samples, band=ex.band,
                                            warmup_periods=cfg.loop.warmup_periods,
@@ -208,8 +106,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                                            process_noise=cfg.estimator.kalman_process_noise)
             worker = make_fit_worker(cfg.estimator.method, lead=truth.lead).start()
             stack.callback(worker.close)
-            _warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
-            control, ctl_worker = _controller(cfg, backend, stack, (q1, q2))
+            warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
+            control, ctl_worker = start_controller(cfg, backend, stack, (q1, q2))
             safety = preflight.safety_monitor(cfg, dt)
             watch = HelperWatch({"telemetry": telemetry, "fit": worker, "control": ctl_worker},
                                 restartable=("telemetry", "fit", "control"))
@@ -221,7 +119,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                     user_hook(n)
 
             loop = IdentificationLoop(
-                backend, tick_hz=cfg.loop.tick_hz, excitation=_excitation(cfg), state_estimator=kf, estimator=est,
+                backend, tick_hz=cfg.loop.tick_hz, excitation=make_excitation(cfg), state_estimator=kf, estimator=est,
                 safety=safety, duration=cfg.loop.duration, fit_worker=worker,
                 on_block=recorder.put if recorder else None,
                 on_telemetry=telemetry.publish if telemetry else None,
@@ -232,7 +130,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 stop_event=stop, tick_hook=hooks,
                 max_sleep_s=None if cfg.loop.max_sleep_us is None else cfg.loop.max_sleep_us * 1e-6,
                 control=control, probe_period=ex.period_samples,
-                friction=friction_estimator(cfg, dt, _quanta(cfg)),
+                friction=friction_estimator(cfg, dt, sensor_quanta(cfg)),
                 friction_feedforward=cfg.control.friction_feedforward, compiled_tick=cfg.loop.compiled_tick,
                 stall=preflight.stall_policy(cfg))
             if recorder is not None:
@@ -276,7 +174,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 watch.freeze()
             backend.safe_stop()                      # zero torque before the (slower) final fit
             realtime.end()                           # the final fit and the files are no real-time work
-            summary["final_fit_error"] = _final_fit(loop, est)
+            summary["final_fit_error"] = final_fit(loop, est)
     except RtIdentError as exc:
         if isinstance(exc, ConfigError) and not enabled:
             refused = exc                            # refused before enabling: a one-line error, exit 2
@@ -284,7 +182,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         stop_message = str(exc) + getattr(exc, "after_stall", "")
         log.info("run stopped: %s", exc)        # the summary carries it (the CLI prints it once)
         if loop is not None:                         # nothing lost: still fit what was measured
-            summary["final_fit_error"] = _final_fit(loop, loop.est)
+            summary["final_fit_error"] = final_fit(loop, loop.est)
     finally:
         for sig, handler in old_signals.items():
             signal.signal(sig, handler)
@@ -320,7 +218,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         raise refused
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set(),
                        "final_torque": backend.last_torque, "backend_state": backend.state.value}
-    summary["backend_counters"] = _backend_counters(backend)
+    summary["backend_counters"] = backend_counters(backend)
     if loop is not None:
         summary["loop"] = {**loop.stats.as_dict(), "host": host, "compiled_tick": loop.compiled_ticks}
         summary["control"] = loop.control.summary() if loop.control is not None else {"mode": "off"}
@@ -329,7 +227,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             summary["friction"] = fr
         ident = loop.identification
         if ident is not None:
-            summary.update(_ident_summary(ident))
+            summary.update(ident_summary(ident))
     summary.setdefault("parameters", None)
     if cfg.backend.name == "sim" or cfg.backend.emulate:
         truth = getattr(backend, "current_params", None) or truth    # after the last [[plant.change]]
@@ -342,76 +240,6 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
 
 def _url_host(ip: str) -> str:
     return f"[{ip}]" if ":" in ip else ip
-
-
-def _final_fit(loop: IdentificationLoop, est) -> str | None:
-    """Cold fit of everything seen (what `identify` replays); an error is reported, not raised."""
-    try:
-        final = est.final()
-    except RtIdentError as exc:
-        log.warning("final fit failed: %s", exc)
-        return str(exc)
-    if final is not None:
-        loop.identification = final
-        # the dashboard ends on the final fit's FRF: during a short run (or beside a busy machine) the
-        # fit worker may not have sent one, and the last it sent was of fewer samples
-        try:
-            if loop.on_fit is not None and getattr(final, "frf", None) is not None:
-                loop.on_fit(max(loop._next_seq - 1, 0) * loop.backend.sample_period, final.frf)
-            loop.publish_final()                     # ... and its estimate lines on the final values
-        except RtIdentError as exc:
-            log.warning("final estimate not sent to the dashboard: %s", exc)
-    return None
-
-
-def _ident_summary(ident) -> dict[str, Any]:
-    d = ident.as_dict()
-    return {"parameters": d["parameters"], "ci95": d.get("ci95"), "trusted": d.get("trusted"),
-            "trust": d.get("trust"), "method": d.get("method")}
-
-
-def _quanta(cfg: RunConfig) -> tuple[float, float]:
-    opts = cfg.backend.options()
-    lead = cfg.axis_params().lead
-    cpr = int(opts.get("counts_per_rev", 2**17) or 2**17)
-    res = float(opts.get("scale_resolution", 1e-7) or 1e-7)
-    return encoder_quanta(cpr, res, lead)
-
-
-def recording_metadata(cfg, dt: float) -> dict[str, Any]:
-    """What a recording carries about its run: enough for ``rt-ident identify`` to replay the loop's estimator."""
-    return {"backend": cfg.backend.name, "sample_period": dt, "axis": cfg.axis_params().as_dict(),
-            "excitation": cfg.excitation.model_dump(), "method": cfg.estimator.method,
-            "warmup_periods": cfg.loop.warmup_periods, "forgetting": cfg.estimator.forgetting}
-
-
-def _warmup(kf, est, n: int) -> None:
-    """Compile/load every kernel before the first tick, on clones (the real state stays untouched).
-
-    ``n`` covers the warm-up periods and one completed period, so the period-completion path of the
-    streaming estimator is loaded here too, not at the first full period of the run.
-    """
-    import copy
-
-    z = np.zeros(8)
-    copy.deepcopy(kf).filter_block(z, z)
-    w = copy.deepcopy(est)
-    t = np.arange(n, dtype=float)
-    w.update_block(np.sin(t * 0.1), np.sin(t * 0.1), np.cos(t * 0.1), np.arange(n))
-    w.snapshot()
-
-
-def _backend_counters(backend) -> dict[str, Any] | None:
-    """The link-health counters a backend keeps (CANopen: ``counters``; serial board: ``stats()``)."""
-    for name in ("counters", "stats"):
-        value = getattr(backend, name, None)
-        try:
-            value = value() if callable(value) else value
-        except Exception:  # noqa: BLE001 - a summary must not fail on a closed device
-            continue
-        if isinstance(value, dict):
-            return value
-    return None
 
 
 def exit_code(summary: dict[str, Any]) -> int:

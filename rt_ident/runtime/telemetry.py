@@ -186,6 +186,27 @@ def _port_open(host: str, port: int) -> bool:
         return False
 
 
+#: Sinks that send to a viewer over a gRPC client: rerun buffers and retries without telling the
+#: caller, so whether the viewer got the data is checked at the end (:meth:`TelemetryProcess._delivered`).
+CLIENT_SINKS = ("connect", "spawn")
+#: ``failed`` codes the child leaves for the parent (0: none)
+FAIL_DISK_FULL, FAIL_NO_VIEWER, FAIL_FLUSH = 1, 2, 3
+
+
+def viewer_address(cfg: TelemetryConfig) -> tuple[str, int]:
+    """(host, port) a client sink sends to: the connect URL's, or the spawned viewer's."""
+    if cfg.sink == "connect" and cfg.connect_url:
+        from urllib.parse import urlparse
+
+        u = urlparse(cfg.connect_url.replace("rerun+", "", 1).replace("rerun://", "http://", 1))
+        try:
+            port = u.port
+        except ValueError:
+            port = None
+        return u.hostname or "127.0.0.1", port or DEFAULT_PORT
+    return _local_host(cfg.bind_ip), cfg.port
+
+
 def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
     """Attach the configured sink to ``rec`` (child process only; may block there)."""
     from rt_ident.runtime.dashboard import default_blueprint
@@ -449,9 +470,15 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     """Body of the telemetry process: poll the ring, send what is there, stop when the writer closes
     (or the run's main process dies: the .rrd is then finished with what arrived)."""
     watch = become_helper()
+    if failed is None:
+        from types import SimpleNamespace
+
+        failed = SimpleNamespace(value=0)
     os.environ.setdefault("CI", "1")  # rerun: no analytics config written under HOME
     if cfg.sink == "rrd":   # warnings only (an INFO line reached the terminal), and not the missing-footer one (_open_sink)
         os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
+    elif cfg.sink in CLIENT_SINKS:   # not rerun's retry lines: an undelivered dashboard is reported in the summary
+        os.environ.setdefault("RUST_LOG", "warn,re_grpc_client=off,re_sdk::recording_stream=off")
     import rerun as rr
 
     rec = rr.RecordingStream(cfg.application_id)
@@ -487,8 +514,8 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
         if pending and (now - last_send >= cfg.batch_seconds or len(pending) >= _MAX_PENDING or final):
             full = _disk_full(cfg.rrd_path, cfg.min_free_bytes) if cfg.sink == "rrd" else None
             if full:                              # stop writing; the parent reports it (never "sent")
-                if failed is not None and not failed.value:
-                    failed.value = 1
+                if not failed.value:
+                    failed.value = FAIL_DISK_FULL
                     log.error("telemetry: %s; the dashboard stops here", full)
             else:
                 sender.send(pending, truth, final=final)
@@ -502,10 +529,20 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
                 sender.finish(truth)
                 break
             time.sleep(_POLL_S)
-    try:
-        rec.flush(timeout_sec=cfg.flush_timeout)
-    except Exception as e:  # noqa: BLE001 - rerun raises RuntimeError on flush timeout
-        log.warning("telemetry flush incomplete: %s", e)
+    client = cfg.sink in CLIENT_SINKS
+    if client and not _port_open(*viewer_address(cfg)):
+        failed.value = FAIL_NO_VIEWER
+    else:
+        try:
+            rec.flush(timeout_sec=cfg.flush_timeout)
+        except Exception as e:  # noqa: BLE001 - rerun raises RuntimeError on flush timeout
+            if client:
+                failed.value = FAIL_FLUSH
+            else:
+                log.warning("telemetry flush incomplete: %s", e)
+    if client and failed.value:
+        # nothing more can reach the viewer; rerun would spend 5 s at exit on a last connection attempt
+        os._exit(0)
     rec.disconnect()  # finalizes the .rrd (footer) / closes connections and servers
 
 
@@ -561,7 +598,7 @@ class TelemetryProcess:
         # Lock-free, one writer (the child). A child terminated while holding a lock would
         # otherwise hang every later read.
         self._sent = self._ctx.Value("q", 0, lock=False)
-        self._failed = self._ctx.Value("b", 0, lock=False)   # the child found its .rrd's disk full
+        self._failed = self._ctx.Value("b", 0, lock=False)   # FAIL_*: a full disk, an undelivered dashboard
         self._ready = self._ctx.Event()
         self._proc = self._ctx.Process(target=_telemetry_main, name="rt_ident-telemetry", daemon=True,
                                        args=(self.config, self._ring, self._sent, self._ready, dict(self._truth),
@@ -790,6 +827,7 @@ class TelemetryProcess:
         self._closed = True
         return {
             **self._written(),
+            **self._delivered(terminated),
             "sink": self.config.sink,
             "rrd_path": self.config.rrd_path if self.config.sink == "rrd" else None,
             "earlier_rrd": list(self.earlier_rrd),
@@ -801,6 +839,22 @@ class TelemetryProcess:
             "seconds": time.monotonic() - t0,
         }
 
+    def _delivered(self, terminated: bool) -> dict[str, Any]:
+        """Whether a viewer sink's viewer got the dashboard: ``{"delivered": bool, "write_error": why}``
+        (``write_error``, as an .rrd's, makes the run report the dashboard lost); {} for other sinks."""
+        if self.config.sink not in CLIENT_SINKS or self._proc is None:
+            return {}
+        host, port = viewer_address(self.config)
+        code = self._failed.value if self._failed is not None else 0
+        why = None
+        if code == FAIL_NO_VIEWER:
+            why = f"nothing listens at {host}:{port}: the dashboard was not delivered"
+        elif code == FAIL_FLUSH:
+            why = f"the viewer at {host}:{port} did not take the whole dashboard within {self.config.flush_timeout:g} s"
+        elif terminated:
+            why = f"the telemetry process did not finish sending to {host}:{port}: delivery not confirmed"
+        return {"delivered": why is None, "write_error": why}
+
     def _written(self) -> dict[str, Any]:
         """Whether the .rrd holds what was sent: ``{"written": bool, "write_error": str | None}``.
         A disk found full by the child, a file that is not a regular file or is empty though blocks
@@ -809,7 +863,7 @@ class TelemetryProcess:
             return {"written": None, "write_error": None}
         path = Path(self.config.rrd_path)
         why = None
-        if getattr(self, "_failed", None) is not None and self._failed.value:
+        if getattr(self, "_failed", None) is not None and self._failed.value == FAIL_DISK_FULL:
             why = f"no space left on the device of {path}: the dashboard stopped early"
         else:
             try:
