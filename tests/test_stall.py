@@ -221,3 +221,26 @@ def test_a_stalled_host_leaves_the_table_coasting_at_the_probes_own_speed():
         detail = next(e["detail"] for e in out["control"]["events"] if e["kind"] == "stall")
         speeds.append(abs(float(_re.search(r"at ([-+\d.]+) mm/s", detail).group(1))))
     assert max(speeds) < 12.0, speeds
+
+
+def test_a_stall_between_the_ticks_wait_and_its_read_is_caught_by_the_device_time_the_block_covers():
+    # the host stops after the ticker let the tick start: the tick is on time, its block is not
+    from drivers.sim import SimBackend
+
+    cfg = load(None, **FAST).model_copy(update={"reference": MOVES})
+    jumped = []
+    real_read = SimBackend.read
+
+    def read(self):
+        if len(jumped) == 0 and self.samples_produced > int(1.5 / self.sample_period):
+            jumped.append(1)
+            self._clock.now += 0.5                    # the virtual clock: the host froze right before the read
+        return real_read(self)
+
+    from unittest import mock
+
+    with mock.patch.object(SimBackend, "read", read):
+        out = run_offline(cfg, paced=True)
+    assert jumped and out["stop"] is None
+    assert out["loop"]["stalls"]["count"] == 1 and out["loop"]["stalls"]["longest_ms"] >= 490
+    assert out["control"]["fallbacks"] == 0 and out["control"]["max_error_m"] < 1e-4

@@ -9,6 +9,8 @@ tracking error; at the end, how many runs ended as asked.
     python tools/busy_runs.py                 # 10 runs of the default config
     python tools/busy_runs.py -n 3 --duration 5 --json
     python tools/busy_runs.py --config configs/sim-load-change.toml
+    python tools/busy_runs.py --stall-ms 300  # and a real-time process that takes the loop's CPU
+                                              # for 300 ms every 2 s (the loop stalls that long)
 
 Exit code 0 when every run exited 0, 1 otherwise.
 """
@@ -30,6 +32,18 @@ def _hog() -> None:
     x = 0
     while True:
         x += 1
+
+
+def _stealer(cpu: int, busy_s: float, every_s: float) -> None:
+    """SCHED_FIFO above the loop's priority on the loop's CPU, busy ``busy_s`` every ``every_s``: another
+    real-time program that stalls the loop (the kernel's RT throttle leaves it 5 % of each second)."""
+    os.sched_setaffinity(0, {cpu})
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(60))
+    while True:
+        time.sleep(every_s)
+        end = time.monotonic() + busy_s
+        while time.monotonic() < end:
+            pass
 
 
 def one_run(config: str | None, duration: float | None, workdir: Path, k: int) -> dict:
@@ -63,9 +77,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", default=None, help="run config (default: the quick start's)")
     ap.add_argument("--duration", type=float, default=None, help="seconds per run (default: the config's)")
     ap.add_argument("--hogs", type=int, default=os.cpu_count() or 1, help="busy loops beside the runs (default: one a core)")
+    ap.add_argument("--stall-ms", type=float, default=0.0,
+                    help="also a SCHED_FIFO process that takes the loop's CPU this long every 2 s (needs root)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     hogs = [mp.Process(target=_hog, daemon=True) for _ in range(args.hogs)]
+    if args.stall_ms > 0:
+        cpu = max(os.sched_getaffinity(0))                 # the loop's CPU (rt_ident.runtime.host.loop_cpu)
+        hogs.append(mp.Process(target=_stealer, args=(cpu, args.stall_ms / 1e3, 2.0), daemon=True))
     for h in hogs:
         h.start()
     rows = []
@@ -84,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             h.kill()
             h.join(5)
     ok = sum(1 for r in rows if r["rc"] == 0)
-    summary = {"runs": len(rows), "exit_0": ok, "hogs": args.hogs,
+    summary = {"runs": len(rows), "exit_0": ok, "hogs": args.hogs, "stall_ms": args.stall_ms,
                "trips": sorted({r.get("cause") for r in rows if r.get("cause")}),
                "stalls": sum(r.get("stalls") or 0 for r in rows),
                "longest_stall_ms": max((r.get("longest_stall_ms") or 0.0 for r in rows), default=0.0),

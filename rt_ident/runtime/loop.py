@@ -103,11 +103,11 @@ SIM_AHEAD_MARGIN_S = 100e-6
 
 
 def _stall_before(loops: list["IdentificationLoop"], blocks: list[SampleBlock], stats: LoopStats,
-                  policy: StallPolicy, info, period: float, now: float) -> None:
-    """A tick whose deadline came ``skipped`` periods and ``lateness`` late: past ``policy.max_s`` it is a
-    stall (rt_ident.runtime.stall). Each axis then resumes on this tick, or the blocks read are recorded
-    and the loop stops."""
-    stall_s = info.skipped * period + info.lateness_s
+                  policy: StallPolicy, stall_s: float, now: float) -> None:
+    """The host stopped for ``stall_s`` between two reads (the wall time between them less a period):
+    past ``policy.max_s`` it is a stall (rt_ident.runtime.stall), wherever in the tick it came - while
+    waiting, before the read, after it. Each axis then resumes on this tick, or the blocks read are
+    recorded and the loop stops."""
     verdict = policy.verdict(stall_s)
     if verdict is None:
         return
@@ -260,7 +260,7 @@ class IdentificationLoop(TelemetryWindow):
         cpu_clock = time.thread_time
         last_cpu = 0.0
         policy = self.stall_policy
-        self.ticker.start()
+        last_read = self.ticker.start()
         try:
             for _ in range(n_ticks):
                 if self.stop_event.is_set():
@@ -270,8 +270,10 @@ class IdentificationLoop(TelemetryWindow):
                 c0 = cpu_clock()
                 _count_tick(stats, info, last_cpu, period)
                 block = backend.read()
-                if info.skipped or info.lateness_s > policy.max_s:
-                    _stall_before([self], [block], stats, policy, info, period, t0)
+                t_read = clock()
+                if t_read - last_read > period + policy.max_s:
+                    _stall_before([self], [block], stats, policy, t_read - last_read - period, t_read)
+                last_read = t_read
                 self._process(block, info.lateness_s)
                 self._write_plan()
                 t1 = clock()
@@ -495,7 +497,7 @@ class MultiAxisLoop:
         spent = [0.0] * len(axes)
         any_simulated = any(ax.backend.simulated for ax in axes)
         policy = self.stall_policy
-        self.ticker.start()
+        last_read = self.ticker.start()
         try:
             for _ in range(int(round(self.duration * self.tick_hz))):
                 if self.stop_event.is_set():
@@ -511,8 +513,10 @@ class MultiAxisLoop:
                     blocks.append(ax.backend.read())
                     spent[cur] = clock() - t1
                 cur = -1
-                if info.skipped or info.lateness_s > policy.max_s:
-                    _stall_before(axes, blocks, stats, policy, info, period, t0)
+                t_read = clock()
+                if t_read - last_read > period + policy.max_s:
+                    _stall_before(axes, blocks, stats, policy, t_read - last_read - period, t_read)
+                last_read = t_read
                 for cur, (ax, block) in enumerate(zip(axes, blocks)):
                     _count_tick(ax.stats, info, last_cpu, period)
                     t1 = clock()
