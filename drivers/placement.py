@@ -4,7 +4,7 @@ A real drive or encoder board has its own processor and clock. An emulated one s
 host's CPUs with the loop, which (when real-time) runs SCHED_FIFO on the last CPU and barely
 yields it. An emulator on that CPU then answers late and the loop sees stale data. Both ways of
 starting an emulator use the same placement: the loop's own child process
-(:class:`rt_ident.runtime.emulation.EmulatorProcess`) and the command line
+(:class:`rt_ident.processes.emulation.EmulatorProcess`) and the command line
 (``python -m drivers.cia402.emulator``, ``python -m drivers.encoder_board.emulator``).
 """
 
@@ -19,7 +19,7 @@ EMULATOR_FIFO_PRIORITY = 40
 
 
 def helper_cpus(realtime: bool) -> list[int] | None:
-    """Every CPU but the loop's (the last one, see rt_ident.runtime.run) when the loop is real-time."""
+    """Every CPU but the loop's (the last one, see rt_ident.compose.run) when the loop is real-time."""
     try:
         cpus = sorted(os.sched_getaffinity(0))
     except (AttributeError, OSError):

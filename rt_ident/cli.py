@@ -21,6 +21,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from rt_ident.errors import RtIdentError
+from rt_ident.outputs.text import fmt, json_default, um
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Identify a machine-tool axis (two-inertia spring-damper) from simulation or a bench.")
@@ -30,13 +31,15 @@ err = Console(stderr=True, soft_wrap=True)
 out = Console(soft_wrap=True)
 
 
-def _mount_fleet() -> None:
+def _mount_subcommands() -> None:
+    from rt_ident.bench.commands import bench_app
     from rt_ident.fleet.commands import fleet_app
 
     app.add_typer(fleet_app, name="fleet")
+    app.add_typer(bench_app, name="bench")
 
 
-_mount_fleet()
+_mount_subcommands()
 
 
 def _version(value: bool) -> None:
@@ -114,19 +117,15 @@ def _summary_table(title: str, s: dict) -> Table:
     tab = _param_table(title, truth)
     ci = s.get("ci95") or {}
     for k, v in (s.get("parameters") or {}).items():
-        row = [k, UNITS.get(k, ""), _fmt(v), _interval(ci.get(k))]
+        row = [k, UNITS.get(k, ""), fmt(v), _interval(ci.get(k))]
         if truth:
-            row += [_fmt(s["truth"][k]), f"{s['error_pct'][k]:+.3f}"]
+            row += [fmt(s["truth"][k]), f"{s['error_pct'][k]:+.3f}"]
         tab.add_row(*row)
     return tab
 
 
 def _interval(ci) -> str:
-    return "-" if not ci else f"{_fmt(ci[0])} .. {_fmt(ci[1])}"
-
-
-def _fmt(x: float) -> str:
-    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4g}"
+    return "-" if not ci else f"{fmt(ci[0])} .. {fmt(ci[1])}"
 
 
 def _progress():
@@ -221,7 +220,7 @@ def _print_study(rows) -> None:
             vals = {r["method"]: r["max_error_pct"] for r in rows
                     if r["counts_per_rev"] == cpr and r["torque_noise_pct"] == noise}
             tab.add_row("ideal" if cpr == 0 else str(cpr), f"{noise:g}",
-                        *["failed" if math.isnan(vals[m]) else _fmt(vals[m]) for m in METHODS])
+                        *["failed" if math.isnan(vals[m]) else fmt(vals[m]) for m in METHODS])
     out.print(tab)
 
 
@@ -239,8 +238,8 @@ def _print_reproduce(result, sens) -> None:
     for col in ("N", "k", "wn paper", "wn ours", "w0 paper", "w0 ours", "Dt paper [s]", "Dt ours [s]", "Dt diff %"):
         t2.add_column(col, justify="right")
     for paper, ours in zip(paper_tables.TABLE2, result.table2):
-        t2.add_row(str(ours["N"]), str(ours["k"]), _fmt(paper["wn"]), _fmt(ours["wn"]), _fmt(paper["w0"]),
-                   _fmt(ours["w0"]), _fmt(paper["dt"]), _fmt(ours["dt"]), f"{error_pct(ours['dt'], paper['dt']):.3g}")
+        t2.add_row(str(ours["N"]), str(ours["k"]), fmt(paper["wn"]), fmt(ours["wn"]), fmt(paper["w0"]),
+                   fmt(ours["w0"]), fmt(paper["dt"]), fmt(ours["dt"]), f"{error_pct(ours['dt'], paper['dt']):.3g}")
     out.print(t2)
     tables = (("Table 3 - LS, physical parameters", "ls", paper_tables.LS, PARAM_KEYS),
               ("Table 4 - LS, modal parameters", "ls", paper_tables.LS, MODAL_KEYS),
@@ -261,8 +260,8 @@ def _print_reproduce(result, sens) -> None:
                 flag = ""
                 if ratio > 10 or ratio < 0.1:
                     flag, flagged = ">10x", True
-                tab.add_row(f"N={c.N} k={c.k}" if i == 0 else "", key, _fmt(result.truth[key]),
-                            _fmt(pc["estimate"][key]), _fmt(ours), _fmt(e_paper), _fmt(e_ours), flag,
+                tab.add_row(f"N={c.N} k={c.k}" if i == 0 else "", key, fmt(result.truth[key]),
+                            fmt(pc["estimate"][key]), fmt(ours), fmt(e_paper), fmt(e_ours), flag,
                             end_section=(i == len(keys) - 1))
         out.print(tab)
     fit = Table(title="Eq. (18) - identified excitation, NRMSE against the true torque")
@@ -270,7 +269,7 @@ def _print_reproduce(result, sens) -> None:
     fit.add_column("LS", justify="right")
     fit.add_column("RLS", justify="right")
     for c in result.cases:
-        fit.add_row(f"N={c.N} k={c.k}", _fmt(c.ls_fit_nrmse), _fmt(c.rls_fit_nrmse))
+        fit.add_row(f"N={c.N} k={c.k}", fmt(c.ls_fit_nrmse), fmt(c.rls_fit_nrmse))
     out.print(fit)
     if any(c.beyond for c in result.cases):
         bt = Table(title="Beyond the paper - error % of each method on the same data (paper's LS/RLS for reference)")
@@ -280,19 +279,19 @@ def _print_reproduce(result, sens) -> None:
             bt.add_column(key, justify="right")
         for c in result.cases:
             pl, pr = paper_tables.LS[(c.N, c.k)], paper_tables.RLS[(c.N, c.k)]
-            bt.add_row(f"N={c.N}", "paper LS (printed)", *[_fmt(pl["error_pct"][k]) for k in ALL_KEYS])
-            bt.add_row("", "paper RLS (printed)", *[_fmt(pr["error_pct"][k]) for k in ALL_KEYS])
-            bt.add_row("", "Euler LS (ours)", *[_fmt(error_pct(c.ls[k], result.truth[k])) for k in ALL_KEYS])
+            bt.add_row(f"N={c.N}", "paper LS (printed)", *[fmt(pl["error_pct"][k]) for k in ALL_KEYS])
+            bt.add_row("", "paper RLS (printed)", *[fmt(pr["error_pct"][k]) for k in ALL_KEYS])
+            bt.add_row("", "Euler LS (ours)", *[fmt(error_pct(c.ls[k], result.truth[k])) for k in ALL_KEYS])
             for name, est in c.beyond.items():
-                bt.add_row("", name, *[_fmt(error_pct(est[k], result.truth[k])) for k in ALL_KEYS])
+                bt.add_row("", name, *[fmt(error_pct(est[k], result.truth[k])) for k in ALL_KEYS])
         out.print(bt)
     if sens:
         st = Table(title="Sensitivity of the paper's LS to the unstated band and amplitude (error %)")
         for col in ("N", "band", "peak [N m]", *ALL_KEYS):
             st.add_column(col, justify="right")
         for r in sens:
-            st.add_row(str(r["N"]), f"{r['band'][0]}..{r['band'][1]}", _fmt(r["peak"]),
-                       *[_fmt(r["error_pct"][k]) for k in ALL_KEYS])
+            st.add_row(str(r["N"]), f"{r['band'][0]}..{r['band'][1]}", fmt(r["peak"]),
+                       *[fmt(r["error_pct"][k]) for k in ALL_KEYS])
         out.print(st)
     out.print(f"Excitation: Schroeder multisine, harmonics 1..{result.band_factor:g}*k, peak {result.peak_torque:g} N m, "
               f"{result.periods} periods, Newmark alpha=1/4 delta=1/2, from rest.")
@@ -323,8 +322,8 @@ def run(
 ) -> None:
     """Run the real-time identification loop (sim by default) with a live dashboard and a recording."""
     from rt_ident import config as cfgmod
-    from rt_ident.runtime.run import exit_code
-    from rt_ident.runtime.run import run as run_loop
+    from rt_ident.compose.run import exit_code
+    from rt_ident.compose.run import run as run_loop
 
     sink = "off" if no_telemetry else "spawn" if spawn else "connect" if connect else "serve" if serve else None
     if control is not None and control not in ("adaptive", "fixed", "off"):
@@ -335,7 +334,7 @@ def run(
     cfg = cfgmod.load(config, **overrides)
     _check_rrd_sink(rrd or (cfg.telemetry.rrd if sink is None else None), sink or cfg.telemetry.sink, sink is not None,
                     "--rrd" if rrd else "telemetry.rrd")
-    from rt_ident.runtime.preflight import preflight
+    from rt_ident.compose.preflight import preflight
 
     preflight(cfg, sink=sink, connect_url=connect)   # a setting the start would refuse: one line, nothing started
     if cfg.defaulted:
@@ -348,13 +347,11 @@ def run(
     if not json_out:
         err.print(f"running {cfg.backend.name} for {cfg.loop.duration:g} s "
                   f"(method {cfg.estimator.method}, tick {cfg.loop.tick_hz:g} Hz); Ctrl-C stops safely")
-    if cfg.axes:                                 # an XY table: every axis in one loop
-        from rt_ident.runtime.multi import run_axes as run_loop
     summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
     if cfg.defaulted:
         summary["config_defaulted"] = list(cfg.defaulted)
     if json_out:
-        typer.echo(json.dumps(summary, indent=2, default=_json_default))
+        typer.echo(json.dumps(summary, indent=2, default=json_default))
     elif "axes" in summary:
         _print_axes(summary)
     else:
@@ -374,20 +371,6 @@ def _check_rrd_sink(rrd: str | None, sink: str, from_flag: bool, field: str = "-
                            "to write the file (a live dashboard is saved from the viewer)")
 
 
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
-
-
-def _um(v):
-    return None if v is None else 1e6 * v
-
-
 def _print_run(s: dict) -> None:
     loop = s.get("loop") or {}
     if not loop.get("samples"):
@@ -405,8 +388,8 @@ def _print_run(s: dict) -> None:
     else:
         _print_trust(s.get("trust"), s.get("trusted"))
     out.print(f"loop: {loop.get('ticks', 0)} ticks, {loop.get('samples', 0)} samples, "
-              f"{loop.get('overruns', 0)} overruns, lateness p50 {_fmt(lat.get('p50'))} us, "
-              f"p99 {_fmt(lat.get('p99'))} us, max {_fmt(lat.get('max'))} us; "
+              f"{loop.get('overruns', 0)} overruns, lateness p50 {fmt(lat.get('p50'))} us, "
+              f"p99 {fmt(lat.get('p99'))} us, max {fmt(lat.get('max'))} us; "
               f"telemetry dropped {s['telemetry'].get('dropped', 0)}"
               + (", [bold red]not delivered[/]" if s["telemetry"].get("delivered") is False else ""))
     _print_stalls(loop)
@@ -420,10 +403,10 @@ def _print_run(s: dict) -> None:
     ctl = s.get("control") or {}
     if ctl.get("mode") not in (None, "off"):
         rd = ctl.get("redesigns") or {}
-        line = (f"control: {ctl['mode']}, table error rms {_fmt(_um(ctl.get('rms_error_m')))} um, "
-                f"max {_fmt(_um(ctl.get('max_error_m')))} um")
+        line = (f"control: {ctl['mode']}, table error rms {fmt(um(ctl.get('rms_error_m')))} um, "
+                f"max {fmt(um(ctl.get('max_error_m')))} um")
         if ctl.get("rms_error_after_change_m") is not None:
-            line += f", rms after the plant change {_fmt(_um(ctl['rms_error_after_change_m']))} um"
+            line += f", rms after the plant change {fmt(um(ctl['rms_error_after_change_m']))} um"
         line += (f"; redesigns accepted {rd.get('accepted', 0)}, rejected {rd.get('rejected', 0)}; "
                  f"fallbacks {ctl.get('fallbacks', 0)}; running the {ctl.get('controller')} controller")
         out.print(line)
@@ -434,8 +417,8 @@ def _print_run(s: dict) -> None:
     work = loop.get("work_us") or {}
     if work:
         cpu = loop.get("work_cpu_us") or {}
-        out.print(f"tick work: p50 {_fmt(work.get('p50'))} us, p99 {_fmt(work.get('p99'))} us, "
-                  f"max {_fmt(work.get('max'))} us (CPU time max {_fmt(cpu.get('max'))} us); overruns from the "
+        out.print(f"tick work: p50 {fmt(work.get('p50'))} us, p99 {fmt(work.get('p99'))} us, "
+                  f"max {fmt(work.get('max'))} us (CPU time max {fmt(cpu.get('max'))} us); overruns from the "
                   f"tick's own work {loop.get('overruns_work', 0)}, from a late start or a stolen CPU "
                   f"{loop.get('overruns_late_start', 0)}")
     rt = s.get("realtime") or {}
@@ -469,8 +452,8 @@ def _print_axes(s: dict) -> None:
         ctl = ax.get("control") or {}
         if ctl.get("mode") not in (None, "off"):
             rd = ctl.get("redesigns") or {}
-            out.print(f"control {name}: {ctl['mode']}, table error rms {_fmt(_um(ctl.get('rms_error_m')))} um, "
-                      f"max {_fmt(_um(ctl.get('max_error_m')))} um; redesigns accepted {rd.get('accepted', 0)}, "
+            out.print(f"control {name}: {ctl['mode']}, table error rms {fmt(um(ctl.get('rms_error_m')))} um, "
+                      f"max {fmt(um(ctl.get('max_error_m')))} um; redesigns accepted {rd.get('accepted', 0)}, "
                       f"rejected {rd.get('rejected', 0)}; running the {ctl.get('controller')} controller")
         files = ax.get("files") or {}
         for key, what in (("rrd", "dashboard"), ("recording", "recording")):
@@ -499,8 +482,8 @@ def _print_axes(s: dict) -> None:
     if loop:
         work, lat = loop.get("work_us") or {}, loop.get("lateness_us") or {}
         out.print(f"loop (all axes): {loop.get('ticks', 0)} ticks, {loop.get('samples', 0)} samples, "
-                  f"{loop.get('overruns', 0)} overruns; tick work p50 {_fmt(work.get('p50'))} us, "
-                  f"p99 {_fmt(work.get('p99'))} us; lateness p99 {_fmt(lat.get('p99'))} us")
+                  f"{loop.get('overruns', 0)} overruns; tick work p50 {fmt(work.get('p50'))} us, "
+                  f"p99 {fmt(work.get('p99'))} us; lateness p99 {fmt(lat.get('p99'))} us")
         _print_stalls(loop)
     if s.get("data_lost"):
         out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
@@ -531,7 +514,7 @@ def _print_trust(trust: dict | None, trusted: bool | None = None) -> None:
         out.print(f"  - {why}", highlight=False)
     for c in trust["criteria"]:
         if c["passed"]:
-            out.print(f"  ok: {c['criterion']} {_fmt(c['value'])} {c['limit']}", highlight=False, style="dim")
+            out.print(f"  ok: {c['criterion']} {fmt(c['value'])} {c['limit']}", highlight=False, style="dim")
 
 
 def _print_stop(s: dict) -> None:
@@ -587,11 +570,11 @@ def identify(
     if validation is not None:
         d["validation"] = validation
     if json_out:
-        typer.echo(json.dumps({**d, "input": info}, indent=2, default=_json_default))
+        typer.echo(json.dumps({**d, "input": info}, indent=2, default=json_default))
         return
     tab = _param_table(f"{file} - method {d['method']} ({info['how']}, {info['samples']} samples)")
     for k, v in d["parameters"].items():
-        tab.add_row(k, UNITS.get(k, ""), _fmt(v), _interval((d.get("ci95") or {}).get(k)))
+        tab.add_row(k, UNITS.get(k, ""), fmt(v), _interval((d.get("ci95") or {}).get(k)))
     out.print(tab)
     if "fit" in d:      # a --model fit (svf-ls): units are the file's own (N m and rad, or N and m)
         out.print(f"model {d['model']}: torque fit NRMSE {d['fit']['nrmse_percent']:.2f} %")
@@ -600,187 +583,6 @@ def identify(
         out.print(f"validation on {v['file']}: torque prediction error {v['torque_error_percent']:.2f} % "
                   f"(correlation {v['correlation']:.4f}, {v['samples_used']} samples in motion)")
     _print_trust(d.get("trust"), d["trusted"])
-
-
-# --------------------------------------------------------------------------- bench
-@app.command()
-def bench(
-    json_out: bool = typer.Option(False, "--json", help="Print the results as JSON on stdout."),
-    quick: bool = typer.Option(False, "--quick", help="Short loop trials (3 s)."),
-    loop_seconds: float = typer.Option(60.0, "--loop-seconds", help="Seconds per loop trial (0 skips the loop)."),
-    repeats: int = typer.Option(5, min=1, help="Repeats per micro-benchmark (medians are reported)."),
-    loop_rates: str = typer.Option("", "--loop-rates",
-                                   help="Comma-separated sample rates the loop search tries, e.g. 34000,170000."),
-    soak_seconds: float = typer.Option(0.0, "--soak", min=0.0,
-                                       help="Instead: one loop run this long (e.g. 600) and its memory (RSS) over time."),
-    soak_rate: float = typer.Option(170_000.0, "--soak-rate", min=1000.0, help="Samples/s of the --soak run."),
-    soak_sink: str = typer.Option("rrd", "--soak-sink", help="Telemetry of the --soak run: rrd or off."),
-    soak_record: bool = typer.Option(True, "--soak-record/--soak-no-record",
-                                     help="The --soak run records a Parquet too (its recorder process is sampled)."),
-    control: bool = typer.Option(False, "--control",
-                                 help="Instead: fixed vs adaptive vs oracle control after load changes, and the "
-                                      "nominal design on 100 random plants."),
-    figure: Optional[Path] = typer.Option(None, "--figure", help="With --control: write the comparison as a PNG."),
-    estimator: bool = typer.Option(False, "--estimator",
-                                   help="Instead: the per-sample estimator's bias and tracking on bench-like data "
-                                        "in closed loop."),
-    xy: bool = typer.Option(False, "--xy", help="Instead: the XY table's tick budget, both axes in one loop "
-                                                "(configs/xy-sim.toml) against X alone, real time."),
-    xy_seconds: float = typer.Option(10.0, "--xy-seconds", min=1.0, help="Seconds of each --xy run."),
-) -> None:
-    """Speed of our kernels vs peers (padasip, filterpy, numpy, scipy) and the loop's capacity, in one run."""
-    if estimator:
-        _bench_estimator(json_out)
-        return
-    if xy:
-        _bench_xy(xy_seconds, json_out)
-        return
-    if control:
-        _bench_control(json_out, quick, figure)
-        return
-    if soak_seconds > 0:
-        _soak(soak_seconds, soak_rate, soak_sink, json_out, soak_record)
-        return
-    from rt_ident.reports.bench import bench_main
-
-    try:
-        rates = tuple(sorted(int(float(r)) for r in loop_rates.split(",") if r.strip())) or None
-    except ValueError:
-        raise RtIdentError(f"--loop-rates: not a comma-separated list of numbers: {loop_rates!r}") from None
-    if rates is not None and min(rates) <= 0:
-        raise RtIdentError(f"--loop-rates: rates must be > 0, got {loop_rates!r}")
-    bench_main(json_out=json_out, quick=quick, loop_seconds=loop_seconds, repeats=repeats, loop_rates=rates)
-
-
-def _bench_control(json_out: bool, quick: bool, figure: Optional[Path]) -> None:
-    from rt_ident.reports.control_bench import control_bench, targets
-
-    res = control_bench(quick=quick, progress=lambda s: err.print(f"control bench: {s}", highlight=False))
-    if figure is not None:
-        from rt_ident.reports.control_bench import control_comparison
-
-        control_comparison(res, figure)
-    if json_out:
-        typer.echo(json.dumps(res, indent=2, default=_json_default))
-        return
-    tab = Table(title="table tracking error after the plant change, µm: RMS / max")
-    for col in ("scenario", "fixed", "adaptive", "oracle", "adaptive / oracle", "adaptive / fixed"):
-        tab.add_column(col, justify="right")
-    for r in res["control"]["scenarios"]:
-        cells = []
-        for m in ("fixed", "adaptive", "oracle"):
-            e = r[m]
-            cell = f"{_fmt(_um(e['rms_error_m']))} / {_fmt(_um(e['max_error_m']))}"
-            cells.append(cell + (" (stopped)" if e.get("stop") else ""))
-        tab.add_row(r["name"], *cells, _fmt(r.get("adaptive_over_oracle")), _fmt(r.get("adaptive_over_fixed")))
-    out.print(tab)
-    rp = res["control"]["random_plants"]
-    out.print(f"random plants (I1, I2, B, K each x 0.5..2, seed {rp['seed']}): {rp['unstable']} of {rp['n']} unstable "
-              f"with the nominal design; worst overshoot {100 * rp['worst_overshoot']:.1f} %")
-    for name, ok, fig in targets(res):
-        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
-    if figure is not None:
-        out.print(f"figure: {figure}")
-
-
-def _bench_xy(seconds: float, json_out: bool) -> None:
-    from rt_ident.reports.bench_xy import xy_budget
-
-    res = xy_budget(seconds, progress=lambda s: err.print(f"xy bench: {s}", highlight=False))
-    if json_out:
-        typer.echo(json.dumps(res, indent=2, default=_json_default))
-        return
-    tab = Table(title=f"tick work (µs), {seconds:g} s real time at the sim's 34 k samples/s per axis, 1 ms tick")
-    for col in ("run", "p50", "p99", "max", "samples", "overruns", "idle poll", "stop"):
-        tab.add_column(col, justify="right")
-
-    def row(name: str, r: dict) -> None:
-        w = r.get("work_us") or {}
-        tab.add_row(name, _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), str(r.get("samples")),
-                    str(r.get("overruns")), "on" if r.get("idle_poll") else "off", str(r.get("stop") or "-"))
-
-    row("X and Y in one loop", res["two_axes"])
-    for axis, w in (res["two_axes"].get("per_axis_work_us") or {}).items():
-        tab.add_row(f"  axis {axis}'s share", _fmt(w.get("p50")), _fmt(w.get("p99")), _fmt(w.get("max")), "", "", "", "")
-    row("X alone", res["one_axis"])
-    row("X and Y, no idle poll", res["two_axes_no_idle_poll"])
-    row("X and Y, Python path", res["two_axes_python_path"])
-    out.print(tab)
-    ratio = res.get("p99_ratio_two_over_one")
-    ahead = res["two_axes"].get("sim_ahead_us") or {}
-    out.print(f"the simulated plants' stepping after each tick (the devices' part, not in the work): "
-              f"p50 {_fmt(ahead.get('p50'))}, p99 {_fmt(ahead.get('p99'))} us")
-    out.print(f"p99 two axes / one axis: {_fmt(ratio)}")
-    off99 = (res["two_axes_no_idle_poll"].get("work_us") or {}).get("p99")
-    if p99_on := (res["two_axes"].get("work_us") or {}).get("p99"):
-        out.print(f"p99 two axes, idle poller on / off: {_fmt(p99_on / off99 if off99 else None)}")
-    out.print(f"p99 two axes, compiled tick / Python path: {_fmt(res.get('p99_ratio_compiled_over_python'))}")
-    p99 = (res["two_axes"].get("work_us") or {}).get("p99")
-    out.print(f"{'met' if res['met'] else 'NOT met'}: p99 of the two-axis tick <= {res['target_p99_us']:g} us "
-              f"(40 % of the tick): {_fmt(p99)} us")
-
-
-def _bench_estimator(json_out: bool) -> None:
-    from rt_ident.reports.svf_bench import KEYS, estimator_bench, targets
-
-    res = estimator_bench(progress=lambda s: err.print(f"estimator bench: {s}", highlight=False))
-    if json_out:
-        typer.echo(json.dumps(res, indent=2, default=_json_default))
-        return
-    r = res["estimator"]
-    tab = Table(title=f"per-sample estimator (svf, {r['filter_hz']:g} Hz filter, {1e3 * r['memory_s']:g} ms memory), "
-                      "closed loop, bench-like sensors: error [%]")
-    tab.add_column("trial")
-    for k in KEYS:
-        tab.add_column(k, justify="right")
-    tab.add_column("settled [ms]", justify="right")
-    b = r["bias"]
-    tab.add_row("bias, last 5 s of 10", *(f"{100 * b['bias'][k]:+.2f}" for k in KEYS), "")
-    tab.add_row("std, last 5 s of 10", *(f"{100 * b['std'][k]:.2f}" for k in KEYS), "")
-    for s in r["steps"]:
-        settle = s["settle_s"]
-        tab.add_row(f"{s['param']} x 1.2: error 0.2 s after", *(f"{100 * s['error_at_0_2_s'][k]:+.2f}" for k in KEYS),
-                    f"{1e3 * settle:.0f}" if math.isfinite(settle) else "never")
-    out.print(tab)
-    for name, ok, fig in targets(res):
-        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
-
-
-def _soak(seconds: float, rate: float, sink: str, json_out: bool, record: bool = True) -> None:
-    from rt_ident.reports.bench_loop import soak
-
-    if sink not in ("rrd", "off"):
-        raise RtIdentError(f"--soak-sink must be rrd or off, got {sink!r}")
-    err.print(f"soak: {seconds:g} s at {rate / 1e3:g} k samples/s, telemetry {sink} ...")
-    res = soak(seconds, rate, sink, record=record)
-    if json_out:
-        typer.echo(json.dumps(res, indent=2, default=_json_default))
-        return
-    if "error" in res and res["error"]:
-        raise RtIdentError(f"soak run failed: {res['error']}")
-    rss, lat = res.get("rss_kb") or {}, res.get("lateness_us") or {}
-    tab = Table(title=f"loop soak: {seconds:g} s at {rate / 1e3:g} k samples/s, telemetry {sink}")
-    tab.add_column("figure")
-    tab.add_column("value", justify="right")
-    for name, value in (("samples/s", f"{res.get('samples_per_s', 0):,.0f}"),
-                        ("overruns", res.get("overruns")), ("overruns in the first second", res.get("overruns_first_1s")),
-                        ("lateness p50 / p99 / max (us)",
-                         " / ".join(f"{lat.get(k, float('nan')):.1f}" for k in ("p50", "p99", "max"))),
-                        ("telemetry dropped", res.get("telemetry_dropped")),
-                        ("host steal on the loop CPU (ms)", res.get("host_steal_ms")),
-                        ("RSS at first tick (MiB)", f"{(rss.get('first_tick_kb') or 0) / 1024:.1f}"),
-                        ("RSS at last tick (MiB)", f"{(rss.get('last_tick_kb') or 0) / 1024:.1f}"),
-                        ("RSS growth (%)", f"{res.get('rss_growth_pct') or 0:+.2f}"),
-                        ("RSS growth after the first 10 % (%)", f"{res.get('rss_growth_after_10pct_pct') or 0:+.2f}"),
-                        ("RSS flat within +-5 %", res.get("rss_flat_within_5pct"))):
-        tab.add_row(name, str(value))
-    for name, h in (res.get("helpers") or {}).items():
-        g = h.get("growth_after_10pct_pct")
-        tab.add_row(f"{name}: RSS first / last (MiB), growth after 10 % (%)",
-                    f"{h['first_kb'] / 1024:.1f} / {h['last_kb'] / 1024:.1f}, "
-                    f"{'n/a' if g is None else f'{g:+.2f}'}")
-    tab.add_row("every helper flat within +-5 %", str(res.get("helpers_flat_within_5pct")))
-    out.print(tab)
 
 
 def _command():

@@ -191,13 +191,13 @@ class SafetyConfig(_Section):
     # s the loop's last planned torque is held past the end of its plan (about two ticks ahead) before the
     # command drops to zero: a stalled host, or one without fresh feedback, leaves the axis coasting
     torque_hold: float = Field(0.005, ge=0)
-    # a tick later than this is a loop stall (rt_ident.runtime.stall): "resume" re-plans from where the
+    # a tick later than this is a loop stall (rt_ident.loop.stall): "resume" re-plans from where the
     # table is, "stop" stops safely; a stall longer than max_stall_stop_s always stops
     max_stall_s: Optional[float] = Field(None, gt=0, allow_inf_nan=False)   # None: 10 ms, or the plan + lease + a tick
     on_stall: Literal["resume", "stop"] = "resume"
     max_stall_stop_s: float = Field(1.0, gt=0, allow_inf_nan=False)
     # m/s the table may move at (estimated from the scale); None: sized from the reference's speed, its
-    # approach limits and the probing excitation's own motion (rt_ident.runtime.preflight)
+    # approach limits and the probing excitation's own motion (rt_ident.compose.preflight)
     max_speed_m_s: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
 
     @model_validator(mode="after")

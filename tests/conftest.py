@@ -35,24 +35,24 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 @pytest.fixture
 def emulators(monkeypatch) -> list:
-    """The emulators ``rt_ident.runtime.run.run`` starts (handles kept for the checks after the run)."""
-    from rt_ident.runtime import run as run_mod
+    """The emulators ``rt_ident.compose.run.run`` starts (handles kept for the checks after the run)."""
+    from rt_ident.processes import emulation
 
     started: list = []
-    original = run_mod.start_emulator
+    original = emulation.start_emulator
 
     def start(cfg):
         dev = original(cfg)
         started.append(dev)
         return dev
 
-    monkeypatch.setattr(run_mod, "start_emulator", start)
+    monkeypatch.setattr(emulation, "start_emulator", start)
     return started
 
 
 @pytest.fixture
 def restore_scheduling():
-    """``rt_ident.runtime.run`` with ``loop.realtime`` makes the calling thread real-time (SCHED_FIFO,
+    """``rt_ident.compose.run`` with ``loop.realtime`` makes the calling thread real-time (SCHED_FIFO,
     one CPU, mlockall, GC frozen): undo it after the test."""
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     cpus = os.sched_getaffinity(0)

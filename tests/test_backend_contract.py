@@ -183,7 +183,7 @@ def _start_config_emulator(path: str, devices: dict[str, Any]) -> None:
     if not path or path in devices:
         return
     from rt_ident.config import load
-    from rt_ident.runtime.emulation import start_emulator
+    from rt_ident.processes.emulation import start_emulator
 
     cfg = load(path)
     if cfg.backend.emulate:

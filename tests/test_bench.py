@@ -13,10 +13,10 @@ import pytest
 
 from rt_ident.config import from_mapping
 from rt_ident.estimators.rls import RecursiveLeastSquares
-from rt_ident.reports import bench
-from rt_ident.reports.bench import bench_ls, bench_rls, bench_sim, filterpy_rls, numpy_rls, rls_data
-from rt_ident.reports.bench_loop import _saturated, _steady_ok, loop_trial, trial_config
-from rt_ident.reports.bench_report import print_report
+from rt_ident.bench import kernels as bench
+from rt_ident.bench.kernels import bench_ls, bench_rls, bench_sim, filterpy_rls, numpy_rls, rls_data
+from rt_ident.bench.loop import _saturated, _steady_ok, loop_trial, trial_config
+from rt_ident.bench.report import print_report
 
 
 def test_every_rls_peer_gives_our_answer_and_the_batch_ls_answer_on_the_same_data():
@@ -145,7 +145,7 @@ def test_report_renders_loop_trials_and_the_largest_clean_rates(capsys):
 
 
 def test_soak_calls_rss_flat_only_within_five_percent(monkeypatch):
-    from rt_ident.reports import bench_loop
+    from rt_ident.bench import loop as bench_loop
 
     for growth, flat in ((4.9, True), (-4.9, True), (5.1, False), (None, None)):
         monkeypatch.setattr(bench_loop, "loop_trial", lambda *a, g=growth, **k: {"rss_growth_pct": g, "ok": True})
@@ -156,14 +156,14 @@ def test_bench_soak_command_prints_the_memory_table(monkeypatch):
     from typer.testing import CliRunner
 
     from rt_ident.cli import app
-    from rt_ident.reports import bench_loop
+    from rt_ident.bench import loop as bench_loop
 
     fake = {"ok": True, "samples_per_s": 170001.0, "overruns": 0, "overruns_first_1s": 0,
             "lateness_us": {"p50": 0.1, "p99": 9.0, "max": 300.0}, "telemetry_dropped": 0,
             "rss_kb": {"first_tick_kb": 512000, "last_tick_kb": 513024}, "rss_growth_pct": 0.2,
             "rss_growth_after_10pct_pct": 0.1}
     monkeypatch.setattr(bench_loop, "loop_trial", lambda *a, **k: dict(fake))
-    res = CliRunner().invoke(app, ["bench", "--soak", "5", "--soak-rate", "170000"])
+    res = CliRunner().invoke(app, ["bench", "soak", "5", "--rate", "170000"])
     assert res.exit_code == 0, res.output
     assert "RSS flat within +-5 %" in res.output and "True" in res.output and "500.0" in res.output
 
@@ -172,20 +172,20 @@ def test_bench_loop_rates_option_is_parsed_sorted_and_bad_values_are_refused(mon
     from typer.testing import CliRunner
 
     from rt_ident.cli import app
-    from rt_ident.reports import bench as bench_mod
+    from rt_ident.bench import kernels as bench_mod
 
     seen = {}
     monkeypatch.setattr(bench_mod, "bench_main", lambda **kw: seen.update(kw))
-    res = CliRunner().invoke(app, ["bench", "--loop-rates", "170000, 34000"])
+    res = CliRunner().invoke(app, ["bench", "kernels", "--loop-rates", "170000, 34000"])
     assert res.exit_code == 0, res.output
     assert seen["loop_rates"] == (34000, 170000)
     for bad in ("fast", "0,170000"):
-        res = CliRunner().invoke(app, ["bench", "--loop-rates", bad])
+        res = CliRunner().invoke(app, ["bench", "kernels", "--loop-rates", bad])
         assert res.exit_code != 0 and "--loop-rates" in res.output + str(res.exception)
 
 
 def test_soak_reports_every_helper_process_and_flags_one_that_grows():
-    from rt_ident.reports.bench_loop import _helper_growth
+    from rt_ident.bench.loop import _helper_growth
 
     series = [(t, {"11": 100_000, "12": 100_000 + 50 * t, "13": 20_000}) for t in range(0, 20_000, 1000)]
     out = _helper_growth({"helpers_rss": series, "helper_processes": {"pids": [12, 11]}})
@@ -195,8 +195,8 @@ def test_soak_reports_every_helper_process_and_flags_one_that_grows():
 
 
 def test_soak_names_helpers_by_pid_when_there_is_no_recorder():
-    """Recording off (as in the soak): the fit worker is the second helper, not a recorder."""
-    from rt_ident.reports.bench_loop import _helper_growth
+    """Recording off (as in the soak): the fit process is the second helper, not a recorder."""
+    from rt_ident.bench.loop import _helper_growth
 
     series = [(t, {"11": 100_000, "12": 100_000, "13": 20_000}) for t in range(0, 20_000, 1000)]
     out = _helper_growth({"helpers_rss": series, "helper_processes": {

@@ -1,8 +1,8 @@
 """The emulated CiA 402 drive in its own process on python-can's udp_multicast bus (issue #5).
 
-The whole product (``rt_ident.runtime.run.run``) runs briefly against
+The whole product (``rt_ident.compose.run.run``) runs briefly against
 ``configs/canopen-virtual.toml`` with its drive in a child process
-(:class:`rt_ident.runtime.emulation.EmulatorProcess`); each test gets a free UDP port. The
+(:class:`rt_ident.processes.emulation.EmulatorProcess`); each test gets a free UDP port. The
 drive's state is read from the report its process sends when it is closed - taken
 before the drive leaves the bus, i.e. as the host left it. The runs are real-time like
 the product (SCHED_FIFO where permitted; the test process's scheduling, memory locking
@@ -25,14 +25,14 @@ from pathlib import Path
 import can
 import pytest
 
-import rt_ident.runtime.run as run_mod
+import rt_ident.compose.run as run_mod
 from drivers.cia402 import profile as p402
 from drivers.cia402.bus import open_bus
 from drivers.cia402.frames import FrameIO
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.config import load
 from rt_ident.errors import RtIdentError
-from rt_ident.runtime.emulation import EmulatorProcess, free_udp_port
+from rt_ident.processes.emulation import EmulatorProcess, free_udp_port
 
 CONFIG = CONFIG_DIR / "canopen-virtual.toml"
 ROOT = Path(__file__).resolve().parent.parent
@@ -190,7 +190,7 @@ def test_emulator_process_exits_when_its_parent_is_killed(tmp_path):
     script.write_text(
         "import sys, time\n"
         "from rt_ident.config import load\n"
-        "from rt_ident.runtime.emulation import start_emulator\n"
+        "from rt_ident.processes.emulation import start_emulator\n"
         "if __name__ == '__main__':\n"
         f"    emu = start_emulator(load({str(CONFIG)!r}, **{{'loop.realtime': False}}))\n"
         "    print(emu.pid, flush=True)\n"

@@ -37,10 +37,11 @@ def _script(tmp_path: Path, body: str) -> Path:
 def test_a_serial_board_that_dies_mid_run_is_reported_once_without_traceback(tmp_path):
     script = _script(tmp_path, """
         import os, signal, sys
-        from rt_ident.runtime import run as run_mod
+        from rt_ident.compose import run as run_mod
+        from rt_ident.processes import emulation
 
         started = []
-        original_start, original_run = run_mod.start_emulator, run_mod.run
+        original_start, original_run = emulation.start_emulator, run_mod.run
 
         def start(cfg):
             dev = original_start(cfg)
@@ -54,7 +55,7 @@ def test_a_serial_board_that_dies_mid_run_is_reported_once_without_traceback(tmp
             return original_run(cfg, tick_hook=kill_board, **kw)
 
         if __name__ == "__main__":
-            run_mod.start_emulator, run_mod.run = start, run
+            emulation.start_emulator, run_mod.run = start, run
     """)
     res = subprocess.run([sys.executable, str(script), "run", str(REPO / "configs" / "serial-virtual.toml"),
                           "--duration", "3", "--no-telemetry", "--no-realtime", "--record", str(tmp_path / "r.parquet")],

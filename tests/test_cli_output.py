@@ -95,7 +95,7 @@ def test_version_prints_the_installed_version(capsys, monkeypatch):
     assert code == 0 and text.strip() == f"rt-ident {version('rt-ident')}"
 
 
-@pytest.mark.parametrize("command", [[], ["run"], ["identify"], ["reproduce"], ["bench"]])
+@pytest.mark.parametrize("command", [[], ["run"], ["identify"], ["reproduce"], ["bench", "kernels"], ["bench", "soak"]])
 def test_help_shows_flags_without_a_bool_value(command, capsys, monkeypatch):
     code, text = _invoke([*command, "--help"], capsys, monkeypatch)
     assert code == 0 and "--help" in text

@@ -1,5 +1,5 @@
 """Fuzzed run configs never end in a traceback: each either passes the run's start-up checks
-(``rt_ident.config.from_mapping`` + :func:`rt_ident.runtime.preflight.preflight`: everything a
+(``rt_ident.config.from_mapping`` + :func:`rt_ident.compose.preflight.preflight`: everything a
 run builds before it starts a process or enables a device) or is refused with one line naming a
 field. The shipped configs are mutated with wrong types, negative, NaN, infinite and huge
 numbers, unknown keys and sections that are not tables; the same configs as TOML files go
@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 
 from rt_ident.config import RunConfig, from_mapping
 from rt_ident.errors import RtIdentError
-from rt_ident.runtime.preflight import preflight
+from rt_ident.compose.preflight import preflight
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 BASES = {name: tomllib.loads((CONFIGS / name).read_text())
@@ -182,8 +182,8 @@ def test_rt_ident_run_on_fuzzed_config_files_exits_2_with_one_line_naming_a_fiel
         raise _WouldRun
 
     argv = ["rt-ident", "run", str(path), "--no-telemetry"]
-    with mock.patch("rt_ident.runtime.run.run", would_run), mock.patch("rt_ident.runtime.multi.run_axes", would_run), \
-            mock.patch.object(sys, "argv", argv), contextlib.redirect_stderr(stderr):
+    with mock.patch("rt_ident.compose.run.run", would_run), mock.patch.object(sys, "argv", argv), \
+            contextlib.redirect_stderr(stderr):
         try:
             cli.main()
         except _WouldRun:

@@ -12,8 +12,8 @@ from rt_ident.axis.params import CONFIG_DIR, thomson_x
 from rt_ident.config import load
 from rt_ident.control import ControlFallbackStop, ControlSettings, Supervisor
 from rt_ident.control.reference import Hold
-from rt_ident.runtime import run as run_mod
-from rt_ident.runtime.offline import run_offline
+from rt_ident.compose import run as run_mod
+from rt_ident.compose.offline import run_offline
 
 P = thomson_x()
 FAST = {"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False}
@@ -138,7 +138,7 @@ def _landing(delay: int) -> np.ndarray:
     from types import SimpleNamespace
 
     from drivers.sim import SimBackend
-    from rt_ident.runtime.loop import IdentificationLoop
+    from rt_ident.loop.loop import IdentificationLoop
 
     class Recorder:
         law = SimpleNamespace(delay=delay)
@@ -240,8 +240,8 @@ class _GoesSilent:
 
 def test_stale_feedback_without_a_lease_holds_the_last_torque_until_the_watchdog_stops_the_axis():
     from drivers.errors import WatchdogTrip
-    from rt_ident.runtime.loop import IdentificationLoop
-    from rt_ident.runtime.safety import SafetyMonitor
+    from rt_ident.loop.loop import IdentificationLoop
+    from rt_ident.loop.safety import SafetyMonitor
 
     backend = _GoesSilent(after=300)
     calls = []
@@ -273,8 +273,8 @@ def test_feedback_that_stops_ends_the_torque_at_the_lease_before_the_watchdog_tr
     long before the 20-tick watchdog. Without it the held torque accelerated the free axis."""
     from drivers.errors import WatchdogTrip
     from rt_ident.estimators.state_estimation import AxisStateEstimator
-    from rt_ident.runtime.loop import IdentificationLoop
-    from rt_ident.runtime.safety import SafetyMonitor
+    from rt_ident.loop.loop import IdentificationLoop
+    from rt_ident.loop.safety import SafetyMonitor
 
     backend = _GoesSilent(after=300)
     hold = 0.003

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from rt_ident.runtime.emulation import free_udp_port
+from rt_ident.processes.emulation import free_udp_port
 
 ROOT = Path(__file__).resolve().parents[1]
 RT_IDENT = [sys.executable, "-c", "from rt_ident.cli import main; main()"]

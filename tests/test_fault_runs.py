@@ -1,4 +1,4 @@
-"""Each injected device fault, through the whole product (`rt_ident.runtime.run.run` with the emulator in its own
+"""Each injected device fault, through the whole product (`rt_ident.compose.run.run` with the emulator in its own
 process): the run stops with a cause, zero torque, the device disabled, and a readable recording that
 holds every sample the loop read.
 
@@ -13,8 +13,8 @@ import pytest
 
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.config import load
-from rt_ident.runtime import run as run_mod
-from rt_ident.runtime.recording import read_recording
+from rt_ident.compose import run as run_mod
+from rt_ident.processes.recorder import read_recording
 
 COLUMNS = {"t", "seq", "theta1", "theta2", "torque_cmd", "torque_meas"}
 

@@ -273,7 +273,7 @@ def test_model_derivatives_match_finite_differences(hold):
         assert np.allclose((Np - Nm) / 2e-6, dN[i], rtol=1e-6, atol=1e-7 * np.abs(dN[i]).max() + 1e-300)
 
 
-# --------------------------------------------------------------------------- fit worker process
+# --------------------------------------------------------------------------- fit process process
 def _stream_snapshot():
     """Table 1 held by the drive, five periods of a multisine: the streaming estimator's snapshot."""
     from rt_ident.estimators.streaming import make_streaming
@@ -291,10 +291,10 @@ def test_fit_worker_returns_the_fit_of_a_submitted_snapshot_and_skips_while_busy
     import time
 
     from rt_ident.estimators.streaming import fit_snapshot
-    from rt_ident.runtime.fit_worker import make_fit_worker
+    from rt_ident.processes.jobs import make_fit_process
 
     p, snap = _stream_snapshot()
-    worker = make_fit_worker("frequency", lead=p.lead, min_interval=5.0).start()
+    worker = make_fit_process("frequency", lead=p.lead, min_interval=5.0).start()
     try:
         deadline = time.monotonic() + 30.0
         while not worker.ready and time.monotonic() < deadline:
@@ -360,10 +360,10 @@ def test_a_fit_that_lands_on_the_mirror_of_a_mode_below_nyquist_is_refitted_from
 def test_fit_worker_sends_the_frf_view_at_most_every_view_interval():
     import time
 
-    from rt_ident.runtime.fit_worker import make_fit_worker
+    from rt_ident.processes.jobs import make_fit_process
 
     p, snap = _stream_snapshot()
-    worker = make_fit_worker("frequency", lead=p.lead, min_interval=0.0, view_interval=60.0).start()
+    worker = make_fit_process("frequency", lead=p.lead, min_interval=0.0, view_interval=60.0).start()
     got = []
     try:
         deadline = time.monotonic() + 60.0
@@ -398,13 +398,13 @@ def test_spectra_sent_as_fields_come_back_bit_for_bit():
 
 
 def test_restarting_a_live_fit_worker_leaves_no_old_process_behind():
-    """The worker ignores SIGTERM (a helper outlives the group's Ctrl-C): restart() kills it, or
+    """The job process ignores SIGTERM (a helper outlives the group's Ctrl-C): restart() kills it, or
     the old process would poll on beside the new one."""
     import os
 
-    from rt_ident.runtime.fit_worker import make_fit_worker
+    from rt_ident.processes.jobs import make_fit_process
 
-    worker = make_fit_worker("frequency").start()
+    worker = make_fit_process("frequency").start()
     try:
         old = worker.pid
         worker.restart()

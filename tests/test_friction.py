@@ -114,7 +114,7 @@ def test_backlash_lets_the_motor_turn_inside_the_gap_without_moving_the_table():
 
 def test_plant_friction_of_a_run_config_reaches_the_sim_backend_and_is_validated():
     from drivers import make_backend
-    from rt_ident.runtime.build import backend_options
+    from rt_ident.compose.build import backend_options
 
     cfg = from_mapping({"plant": {"friction": {"preset": "thomson", "Fc1": 0.02}}})
     be = make_backend("sim", {**backend_options(cfg), "paced": False})
@@ -237,7 +237,7 @@ def test_two_inertia_models_need_theta2():
 # ----------------------------------------------------------------------------- controller
 def test_friction_feedforward_shrinks_the_reversal_spikes_of_a_sine():
     from rt_ident.control.feedforward import FrictionFeedforward
-    from rt_ident.runtime.offline import run_offline
+    from rt_ident.compose.offline import run_offline
 
     fr = thomson_friction()
     ff = FrictionFeedforward(Fc=fr.Fc1 + fr.Fc2, Fv=fr.Fv1 + fr.Fv2)

@@ -8,7 +8,7 @@ import pytest
 
 from rt_ident.axis.friction import thomson_friction
 from rt_ident.config import load
-from rt_ident.runtime.offline import run_offline
+from rt_ident.compose.offline import run_offline
 
 
 def _run(ff: bool, seconds: float = 4.0):
@@ -35,7 +35,7 @@ def test_loop_identifies_friction_per_sample_and_its_feedforward_shrinks_the_rev
 
 
 def test_stuck_encoder_check_ignores_torque_below_the_sims_breakaway_torque():
-    from rt_ident.runtime.safety import SafetyMonitor
+    from rt_ident.loop.safety import SafetyMonitor
 
     plain = load(None)
     assert plain.stuck_torque() == 0.0

@@ -1,4 +1,4 @@
-"""The idle poller (rt_ident.runtime.idle_poll): a SCHED_IDLE thread on the loop's CPU that keeps it
+"""The idle poller (rt_ident.loop.idle_poll): a SCHED_IDLE thread on the loop's CPU that keeps it
 busy while the loop sleeps, never holds the GIL while it spins, and is gone when the run ends."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import time
 import pytest
 
 from rt_ident.config import load
-from rt_ident.runtime import run as run_mod
-from rt_ident.runtime.host import loop_cpu
-from rt_ident.runtime.idle_poll import IdlePoller
-from rt_ident.runtime.multi import run_axes
+from rt_ident.compose import run as run_mod
+from rt_ident.loop.host import loop_cpu
+from rt_ident.loop.idle_poll import IdlePoller
+from rt_ident.compose.run import run as run_axes
 
 QUIET = {"telemetry.sink": "off", "recording.enabled": False}
 
@@ -105,7 +105,7 @@ def test_idle_poll_off_or_not_real_time_starts_no_poller(restore_scheduling):
 def test_a_poller_that_fails_to_start_is_reported_and_the_run_goes_on(restore_scheduling, monkeypatch):
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("the loop gets a CPU of its own only with two or more")
-    import rt_ident.runtime.idle_poll as ip
+    import rt_ident.loop.idle_poll as ip
 
     def broken():
         raise RuntimeError("no compiler today")
@@ -119,7 +119,7 @@ def test_a_poller_that_fails_to_start_is_reported_and_the_run_goes_on(restore_sc
 
 
 def test_the_device_interrupts_of_proc_interrupts_are_read_per_cpu_without_timer_and_ipi_lines(tmp_path):
-    from rt_ident.runtime.host import read_interrupts
+    from rt_ident.loop.host import read_interrupts
 
     f = tmp_path / "interrupts"
     f.write_text("           CPU0       CPU1       \n"
@@ -244,7 +244,7 @@ def test_a_run_that_fails_in_its_loop_leaves_real_time_after_the_safe_stop(resto
 
 
 def test_an_xy_run_fits_outside_real_time_too(restore_scheduling, monkeypatch):
-    import rt_ident.runtime.multi as multi_mod
+    import rt_ident.compose.run as multi_mod
     from rt_ident.axis.params import CONFIG_DIR
 
     before = os.sched_getscheduler(0), os.sched_getaffinity(0)

@@ -38,3 +38,17 @@ def test_no_module_left_at_the_top_of_rt_ident_but_the_face():
 def test_drivers_top_holds_only_the_contract_sim_and_shared_emulator_placement():
     top = sorted(p.name for p in (ROOT / "drivers").glob("*.py"))
     assert top == ["__init__.py", "base.py", "errors.py", "placement.py", "sim.py", "sim_plan.py"], top
+
+
+def test_no_module_imports_another_modules_private_names():
+    import ast
+
+    offenders = []
+    for path in sorted([*(ROOT / "rt_ident").rglob("*.py"), *(ROOT / "drivers").rglob("*.py")]):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in ("rt_ident", "drivers"):
+                for alias in node.names:
+                    if alias.name.startswith("_") and not alias.name.startswith("__"):
+                        offenders.append(f"{path.relative_to(ROOT)}: from {node.module} import {alias.name}")
+    assert not offenders, "private names imported across modules:\n" + "\n".join(offenders)

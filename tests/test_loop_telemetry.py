@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.base import SampleBlock
-from rt_ident.runtime.loop import IdentificationLoop
+from rt_ident.loop.loop import IdentificationLoop
 
 
 class _Backend:

@@ -14,7 +14,7 @@ import pytest
 from drivers.base import SampleBlock
 from rt_ident.axis.params import thomson_x
 from rt_ident.errors import ConfigError, DataError, RtIdentError
-from rt_ident.runtime.recording import (
+from rt_ident.processes.recorder import (
     Recorder,
     RecorderProcess,
     journal_path,
@@ -266,7 +266,7 @@ def test_recorder_process_rejects_a_malformed_block_in_the_caller(tmp_path: Path
 
 
 def test_a_finished_recording_streams_in_bounded_blocks_equal_to_the_whole_read(tmp_path):
-    from rt_ident.runtime.recording_reader import iter_parquet_blocks
+    from rt_ident.outputs.recording_reader import iter_parquet_blocks
 
     path = tmp_path / "s.parquet"
     rng = np.random.default_rng(0)
@@ -285,7 +285,7 @@ def test_a_finished_recording_streams_in_bounded_blocks_equal_to_the_whole_read(
 
 
 def test_streamed_blocks_still_refuse_time_going_backwards_across_a_block_edge(tmp_path):
-    from rt_ident.runtime.recording_reader import iter_parquet_blocks
+    from rt_ident.outputs.recording_reader import iter_parquet_blocks
 
     path = tmp_path / "b.parquet"
     with Recorder(path, {}, flush_interval=1.0) as rec:

@@ -11,8 +11,8 @@ import pytest
 
 from rt_ident import config
 from rt_ident.reports.identify import identify_file
-from rt_ident.runtime.recording import read_recording
-from rt_ident.runtime.run import run
+from rt_ident.processes.recorder import read_recording
+from rt_ident.compose.run import run
 
 PARAMS = ("I1", "I2", "B", "K", "wn", "wd", "zeta")
 
@@ -175,7 +175,7 @@ def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_prio
     import subprocess
     import sys
 
-    from rt_ident.runtime.host import keep_off_loop_cpu
+    from rt_ident.loop.host import keep_off_loop_cpu
 
     code = "import threading, time\nfor _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\ntime.sleep(30)"
     helper = subprocess.Popen([sys.executable, "-c", code])
@@ -190,7 +190,7 @@ def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_prio
             assert os.getpriority(os.PRIO_PROCESS, int(tid)) == 10
         for tid in os.listdir(f"/proc/{device.pid}/task"):     # as started: this process's nice value
             assert os.getpriority(os.PRIO_PROCESS, int(tid)) == os.getpriority(os.PRIO_PROCESS, 0)
-        # by role: the control worker (rare, urgent) above the fit worker (refits without pause)
+        # by role: the control process (rare, urgent) above the fit process (refits without pause)
         keep_off_loop_cpu([helper.pid], realtime=False, roles={helper.pid: "fit"})
         assert {os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{helper.pid}/task")} == {15}
         report = keep_off_loop_cpu([device.pid], realtime=False, roles={device.pid: "control"})
@@ -207,10 +207,10 @@ def _report_env(q):
 
 
 def test_helpers_are_spawned_with_single_threaded_blas_and_this_process_keeps_its_environment(monkeypatch):
-    # two OpenBLAS threads that only spin made a redesign cost the control worker 5x its CPU
+    # two OpenBLAS threads that only spin made a redesign cost the control process 5x its CPU
     import multiprocessing as mp
 
-    from rt_ident.runtime.helper_guard import start_ignoring_signals
+    from rt_ident.processes.guard import start_ignoring_signals
 
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
     monkeypatch.setenv("OMP_NUM_THREADS", "3")                   # the user's own setting is kept
@@ -226,16 +226,16 @@ def test_helpers_are_spawned_with_single_threaded_blas_and_this_process_keeps_it
 
 
 def test_a_run_without_any_fit_worker_result_still_ends_its_dashboard_on_the_final_estimate(tmp_path, monkeypatch):
-    # beside a CPU hog a short run had no fit-worker result in time: its .rrd had no estimate, no true
-    # value, no FRF. The worker's results are withheld here; the final fit's must reach the dashboard.
+    # beside a CPU hog a short run had no fit-jobs result in time: its .rrd had no estimate, no true
+    # value, no FRF. The job process's results are withheld here; the final fit's must reach the dashboard.
     from rerun.chunk import RrdReader
 
-    from rt_ident.runtime.loop import IdentificationLoop
+    from rt_ident.loop.loop import IdentificationLoop
 
     monkeypatch.setattr(IdentificationLoop, "_fit_exchange", lambda self, ctl, t, tick: None)
     rrd = tmp_path / "r.rrd"
     s = run(cfg(telemetry__sink="rrd", recording__enabled=False), rrd=str(rrd))
-    assert s["stop"]["cause"] is None and s["loop"]["estimates"] == 0      # no worker result was taken
+    assert s["stop"]["cause"] is None and s["loop"]["estimates"] == 0      # no jobs result was taken
     rows, paths = {}, set()
     for chunk in RrdReader(str(rrd)).stream():
         batch = chunk.to_record_batch()

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rt_ident.runtime.recording import read_recording
+from rt_ident.processes.recorder import read_recording
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="process groups and /proc")
 
@@ -97,7 +97,7 @@ def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_
     import multiprocessing as mp
 
     from rt_ident.config import load
-    from rt_ident.runtime import run as run_mod
+    from rt_ident.compose import run as run_mod
 
     killed = []
     before = {p.pid for p in mp.active_children()}       # helpers of earlier tests are not this run's
@@ -120,7 +120,7 @@ def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_
             self.records.append(record)
 
     keep = Keep()
-    helpers_log = logging.getLogger("rt_ident.runtime.helpers")
+    helpers_log = logging.getLogger("rt_ident.processes.guard")
     helpers_log.addHandler(keep)
     rrd = tmp_path / "d.rrd"
     # what is tested is the helper watch, not the control: the drive holds the axis (a torque-mode axis

@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 from rt_ident.cli import app
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
-from rt_ident.runtime import outputs
-from rt_ident.runtime import run as run_mod
-from rt_ident.runtime.recording import read_recording
+from rt_ident.outputs import paths as outputs
+from rt_ident.compose import run as run_mod
+from rt_ident.processes.recorder import read_recording
 
 runner = CliRunner()
 
@@ -105,7 +105,7 @@ def test_a_run_that_fails_before_any_sample_says_why_once_and_leaves_no_file(tmp
 def test_serve_moves_to_a_free_port_when_9876_is_taken_and_refuses_a_taken_configured_port():
     import socket
 
-    from rt_ident.runtime.telemetry import DEFAULT_PORT
+    from rt_ident.processes.telemetry import DEFAULT_PORT
 
     holder, mine = socket.socket(), socket.socket()
     try:
@@ -199,7 +199,7 @@ def test_a_disk_that_fills_mid_run_stops_safely_and_never_reports_rows_it_did_no
 
 
 def test_a_dashboard_file_that_cannot_be_written_is_reported_lost_with_exit_4(tmp_path, monkeypatch):
-    from rt_ident.runtime.telemetry import TelemetryProcess
+    from rt_ident.processes.telemetry import TelemetryProcess
 
     def written(self):
         return {"written": False, "write_error": f"no space left on the device of {self.config.rrd_path}"}
@@ -218,7 +218,7 @@ def test_a_full_disk_stops_the_dashboard_and_is_never_reported_as_written(tmp_pa
     nobody): with a bound no disk meets, nothing is sent and close() says why."""
     import numpy as np
 
-    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
 
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "f.rrd"), min_free_bytes=1 << 62))
     tp.start()
@@ -230,8 +230,35 @@ def test_a_full_disk_stops_the_dashboard_and_is_never_reported_as_written(tmp_pa
 
 
 def test_free_space_check_names_the_file(tmp_path):
-    from rt_ident.runtime import telemetry as tel
+    from rt_ident.processes import telemetry as tel
 
     assert tel._disk_full(str(tmp_path / "x.rrd"), 1) is None
     why = tel._disk_full(str(tmp_path / "x.rrd"), 1 << 62)
     assert why is not None and "x.rrd" in why and "no space left" in why
+
+
+def test_a_recording_that_is_not_complete_is_reported_in_the_same_words_on_one_axis_and_two(tmp_path, monkeypatch):
+    from rt_ident.compose.run import run
+    from rt_ident.processes.recorder import RecorderProcess
+
+    real_close = RecorderProcess.close
+
+    def close(self, *a, **k):
+        r = real_close(self, *a, **k)
+        return {**r, "complete": False, "rows_written": 7, "failure": "no space left on the device"}
+
+    monkeypatch.setattr(RecorderProcess, "close", close)
+    quiet = {"loop.realtime": False, "loop.duration": 0.3, "telemetry.sink": "off"}
+    one = run(load(None, **quiet), record=str(tmp_path / "one.parquet"))
+    two = run(load("configs/xy-sim.toml", **quiet), record=str(tmp_path / "two.parquet"))
+    import re
+
+    def words(text: str, path) -> str:
+        return re.sub(r"\d+ of \d+", "N of M", text.replace(str(path), "PATH"))
+
+    expected = "recording PATH incomplete: N of M samples written: no space left on the device"
+    assert words(one["data_lost"], tmp_path / "one.parquet") == expected
+    for axis, text in zip("xy", two["data_lost"].split("; "), strict=True):
+        name, body = text.split(": ", 1)
+        assert name == axis and words(body, tmp_path / f"two-{axis}.parquet") == expected
+    assert run_mod.exit_code(one) == run_mod.exit_code(two) == 4

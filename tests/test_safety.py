@@ -1,7 +1,7 @@
 import pytest
 
 from drivers.errors import TravelLimitTrip, WatchdogTrip
-from rt_ident.runtime.safety import SafetyMonitor
+from rt_ident.loop.safety import SafetyMonitor
 
 
 def monitor(**kw):

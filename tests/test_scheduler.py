@@ -1,4 +1,4 @@
-"""Tests for rt_ident.runtime.scheduler: absolute-deadline ticks, overrun skipping, lateness histogram, RT setup."""
+"""Tests for rt_ident.loop.scheduler: absolute-deadline ticks, overrun skipping, lateness histogram, RT setup."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from rt_ident.errors import ConfigError
-from rt_ident.runtime import scheduler
-from rt_ident.runtime.scheduler import LatenessHistogram, Ticker, apply_realtime
+from rt_ident.loop import scheduler
+from rt_ident.loop.scheduler import LatenessHistogram, Ticker, apply_realtime
 
 P = 1e-3
 
@@ -181,7 +181,7 @@ def test_apply_realtime_reports_denials_without_raising(monkeypatch: pytest.Monk
 def test_apply_realtime_in_a_child_process_returns_a_full_report() -> None:
     # Run in a short-lived child: SCHED_FIFO / mlockall must not leak into the test process.
     code = (
-        "import json; from rt_ident.runtime.scheduler import apply_realtime;"
+        "import json; from rt_ident.loop.scheduler import apply_realtime;"
         "print(json.dumps(apply_realtime(priority=10, cpus=[0])))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
@@ -195,7 +195,7 @@ def test_apply_realtime_locks_memory_and_collects_before_it_turns_sched_fifo(res
     # both take tenths of a second of CPU: not at SCHED_FIFO, ahead of everything else on the loop's CPU
     import gc
 
-    import rt_ident.runtime.scheduler as sched
+    import rt_ident.loop.scheduler as sched
 
     seen = {}
 

@@ -1,5 +1,5 @@
 """A loop stall (the host stops ticking while the drive runs on): the loop resumes from where the table is,
-or stops, and says so (rt_ident.runtime.stall, rt_ident.control.anchor)."""
+or stops, and says so (rt_ident.loop.stall, rt_ident.control.anchor)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 
 from rt_ident.config import load
 from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator
-from rt_ident.runtime.offline import run_offline
-from rt_ident.runtime.stall import StallLog, StallPolicy
+from rt_ident.compose.offline import run_offline
+from rt_ident.loop.stall import StallLog, StallPolicy
 
 FAST = {"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False, "loop.duration": 4.0}
 # a back-and-forth move: a stall mid-move leaves the table coasting at the move's speed
@@ -129,7 +129,7 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet"):
     import sys
     import time
 
-    from rt_ident.runtime.recording_reader import read_recording
+    from rt_ident.outputs.recording_reader import read_recording
 
     rec = tmp_path / "s.parquet"
     cmd = [sys.executable, "-m", "rt_ident", "run", "--duration", "6", "--json", "--no-telemetry",
@@ -197,7 +197,7 @@ def test_a_sigstop_of_an_xy_run_resumes_both_axes(tmp_path):
 
 
 def test_the_value_a_lease_holds_is_the_control_torque_not_the_probes_instant():
-    from rt_ident.runtime import tick_kernel as tk
+    from rt_ident.loop import tick_kernel as tk
 
     bi, bf = tk.new_books()
     bf[tk.BF_U_BASE] = 0.05                                  # the control torque in force

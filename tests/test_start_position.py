@@ -1,6 +1,6 @@
 """The run starts where the table is: the reference is anchored at the position at enable (or moves there
 from the scale's origin within its limits), and a config that would trip on its first ticks is refused
-before anything is energized (rt_ident.runtime.preflight, rt_ident.control.anchor)."""
+before anything is energized (rt_ident.compose.preflight, rt_ident.control.anchor)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ from drivers import make_backend
 from rt_ident import config
 from rt_ident.control.anchor import DEFAULT_LIMITS, rejoin
 from rt_ident.errors import ConfigError
-from rt_ident.runtime.offline import run_offline
-from rt_ident.runtime.preflight import check_config, max_speed, probe_motion
-from rt_ident.runtime.run import run
-from rt_ident.runtime.safety import SafetyMonitor
+from rt_ident.compose.offline import run_offline
+from rt_ident.compose.build import max_speed, probe_motion
+from rt_ident.compose.preflight import check_config
+from rt_ident.compose.run import run
+from rt_ident.loop.safety import SafetyMonitor
 
 LEAD = 7.96e-4
 
@@ -132,8 +133,8 @@ def test_the_speed_limit_trips_on_a_table_faster_than_it():
 @pytest.mark.parametrize("name", ["sim", "serial", "canopen"])
 def test_every_device_reports_where_the_table_starts_before_it_is_enabled(name):
     """[plant.actual] x0 reaches the sim and both emulators, and each backend reads it before enabling."""
-    from rt_ident.runtime.emulation import start_emulator
-    from rt_ident.runtime.build import backend_options
+    from rt_ident.processes.emulation import start_emulator
+    from rt_ident.compose.build import backend_options
 
     path = {"sim": None, "serial": "serial-virtual.toml", "canopen": "canopen-virtual.toml"}[name]
     c = config.load(path, **{"loop.realtime": False})

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.runtime import dashboard
-from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess, default_sink, viewer_command
+from rt_ident.outputs import dashboard
+from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess, default_sink, viewer_command
 
 
 def _free_port() -> int:
@@ -278,7 +278,7 @@ def test_fit_and_loop_gain_views_are_drawn_under_frf(tmp_path: Path) -> None:
 
 
 def test_step_points_keep_each_change_and_the_row_before_it() -> None:
-    from rt_ident.runtime.telemetry import _step_points
+    from rt_ident.processes.telemetry import _step_points
 
     v = np.array([[1.0], [1.0], [1.0], [2.0], [2.0], [np.nan], [np.nan]])
     assert list(_step_points(v, np.array([1.0]), extend=False)) == [2, 3, 4, 5]
@@ -379,7 +379,7 @@ def test_blueprint_has_a_view_for_every_entity() -> None:
 def test_a_wild_fits_resonance_mark_never_ends_the_telemetry_process(monkeypatch, last, new) -> None:
     # a loaded non-real-time XY run: a fit with a 0 Hz resonance, then another -> ZeroDivisionError killed
     # both telemetry processes; the FRF must be drawn (or waited for), never raise
-    from rt_ident.runtime import telemetry
+    from rt_ident.processes import telemetry
 
     sender = telemetry._Sender(rec=None, rr=None)
     drawn = []

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""The compiled tick (rt_ident.runtime.tick_core) against the Python path it replaces: the same run, bit for bit."""
+"""The compiled tick (rt_ident.loop.tick_core) against the Python path it replaces: the same run, bit for bit."""
 
 from __future__ import annotations
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from rt_ident.config import load
-from rt_ident.runtime import offline
-from rt_ident.runtime import tick_core as tc
-from rt_ident.runtime import tick_kernel as tk
-from rt_ident.runtime.recording import _block_message
-from rt_ident.runtime.shm_ring import MessageRing, key_words, put_rows, put_seq_floats
+from rt_ident.compose import offline
+from rt_ident.loop import tick_core as tc
+from rt_ident.loop import tick_kernel as tk
+from rt_ident.processes.recorder import _block_message
+from rt_ident.processes.shm_ring import MessageRing, key_words, put_rows, put_seq_floats
 
 FAST = {"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False}
 # a tight error bound (the supervisor's fallback clock runs: ticks the compiled path leaves to Python from the
@@ -41,7 +41,7 @@ class _RingRecorder:
 
 def _telemetry_process():
     """A TelemetryProcess without its child: its ring, drained by the test."""
-    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
 
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="unused.rrd"))
     tp._ring = MessageRing(1 << 22)
@@ -112,7 +112,7 @@ def _assert_same(a, b, path="") -> None:
 
 def _control_summary(out: dict) -> dict:
     ctl = dict(out["control"])
-    if "redesigns" in ctl:           # the worker's CPU seconds are measured, not computed
+    if "redesigns" in ctl:           # the job process's CPU seconds are measured, not computed
         ctl["redesigns"] = {k: v for k, v in ctl["redesigns"].items() if k != "worker_cpu_s"}
     return ctl
 
@@ -218,7 +218,7 @@ def test_the_compiled_ring_writes_are_the_python_puts_byte_for_byte():
 
 
 def test_publish_rows_queues_what_publish_queues_byte_for_byte():
-    from rt_ident.runtime.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
 
     def process() -> TelemetryProcess:
         tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="unused.rrd"))
@@ -246,7 +246,7 @@ def test_publish_rows_queues_what_publish_queues_byte_for_byte():
 
 def test_the_kernels_snapshot_message_is_the_python_paths_for_the_fit_worker():
     from rt_ident.estimators.frequency import SpectraSums
-    from rt_ident.runtime.shm_ring import put_sums
+    from rt_ident.processes.shm_ring import put_sums
 
     rng = np.random.default_rng(2)
     a, b = MessageRing(1 << 14), MessageRing(1 << 14)
@@ -258,7 +258,7 @@ def test_the_kernels_snapshot_message_is_the_python_paths_for_the_fit_worker():
         H = 20
         ss = SpectraSums(np.arange(1, H + 1), 512, 2.9e-5, rng.normal(size=(3, H)) + 1j * rng.normal(size=(3, H)),
                          rng.normal(size=(H, 3, 3)) + 1j * rng.normal(size=(H, 3, 3)), 3.0, 2.5, 3, rng.normal(size=2))
-        fields = {**ss.to_fields(), "codec": np.frombuffer(name, dtype=np.uint8)}   # JobWorker._put's message
+        fields = {**ss.to_fields(), "codec": np.frombuffer(name, dtype=np.uint8)}   # JobProcess._put's message
         ok = a.put(fields)
         got = put_sums(h, di, df, b.capacity, b.max_messages, keys, ss.harmonics.astype(np.int64), ss.S1.ravel(),
                        ss.S2.ravel(), ss.quantum, np.array([512, 2.9e-5, 3.0, 2.5, 3.0]), codec, len(name))
@@ -270,27 +270,27 @@ def test_the_kernels_snapshot_message_is_the_python_paths_for_the_fit_worker():
 
 
 def test_a_run_hands_every_snapshot_to_the_fit_worker_from_the_kernel(monkeypatch):
-    from rt_ident.runtime import run as run_mod
-    from rt_ident.runtime.fit_worker import JobWorker
+    from rt_ident.compose import run as run_mod
+    from rt_ident.processes.jobs import JobProcess
 
     submitted: list = []
     workers: list = []
-    put = JobWorker._put
-    make = run_mod.make_fit_worker
+    put = JobProcess._put
+    make = run_mod.make_fit_process
 
     def spy(self, request):
         submitted.append(type(request).__name__)
         return put(self, request)
 
-    monkeypatch.setattr(JobWorker, "_put", spy)
-    monkeypatch.setattr(run_mod, "make_fit_worker", lambda *a, **k: workers.append(make(*a, **k)) or workers[-1])
+    monkeypatch.setattr(JobProcess, "_put", spy)
+    monkeypatch.setattr(run_mod, "make_fit_process", lambda *a, **k: workers.append(make(*a, **k)) or workers[-1])
     cfg = load(None, **{**FAST, "loop.duration": 2.0})
     s = run_mod.run(cfg)
     assert s["stop"]["cause"] is None and s["loop"]["compiled_tick"]["on"]
-    # snapshots reached the worker's ring (its message count), none through the Python put; beside a busy
-    # machine the (niced) worker may not have answered yet, so its estimates are not counted on here
-    (worker,) = workers
-    assert worker._in.compiled_views()[0][1] >= 1 and "SpectraSums" not in submitted
+    # snapshots reached the job process's ring (its message count), none through the Python put; beside a busy
+    # machine the (niced) jobs may not have answered yet, so its estimates are not counted on here
+    (jobs,) = workers
+    assert jobs._in.compiled_views()[0][1] >= 1 and "SpectraSums" not in submitted
 
 
 def test_a_recorder_that_dies_under_the_compiled_tick_stops_the_run(tmp_path):
@@ -298,7 +298,7 @@ def test_a_recorder_that_dies_under_the_compiled_tick_stops_the_run(tmp_path):
     import os
     import signal
 
-    from rt_ident.runtime import run as run_mod
+    from rt_ident.compose import run as run_mod
 
     killed: dict[str, int] = {}
 

@@ -31,7 +31,7 @@ def _good_pe():
 def _run_recording(path, seconds: float = 1.0):
     """A recording of the default sim run, made by the loop's own code on virtual time."""
     from rt_ident.config import load
-    from rt_ident.runtime.offline import run_offline
+    from rt_ident.compose.offline import run_offline
 
     cfg = load(None, **{"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False,
                         "loop.duration": seconds})

@@ -8,8 +8,8 @@ import pytest
 
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
-from rt_ident.runtime import run as run_mod
-from rt_ident.runtime.multi import run_axes
+from rt_ident.compose import run as run_mod
+from rt_ident.compose.run import run as run_axes
 
 
 def _xy(**over):
@@ -135,7 +135,7 @@ def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(
 
 @pytest.mark.slow
 def test_the_xy_budget_bench_times_both_axes_against_one_and_each_axis_share():
-    from rt_ident.reports.bench_xy import TARGET_P99_US, xy_budget
+    from rt_ident.bench.xy import TARGET_P99_US, xy_budget
 
     res = xy_budget(1.5, realtime=False)
     two, one = res["two_axes"], res["one_axis"]
@@ -162,7 +162,7 @@ def test_the_axes_hand_their_telemetry_windows_over_on_different_ticks(tmp_path,
     # each hand-off (a window's samples, its per-tick signals) costs tens of microseconds: two on one
     # tick set the two-axis tick's p99, so no two of them, on either axis, share a tick. A hand-off is a
     # message the axis's telemetry process counts as published (the compiled tick's own, or the Python path's)
-    from rt_ident.runtime.loop import MultiAxisLoop
+    from rt_ident.loop.loop import MultiAxisLoop
 
     handed: dict[str, list[int]] = {}
     late: set[int] = set()           # ticks after skipped periods: a burst of samples is published at once
@@ -282,7 +282,7 @@ def test_a_live_xy_run_streams_both_axes_to_one_viewer(rerun_server):
 
 
 def test_the_contour_dashboard_goes_to_the_viewer_of_a_live_run(rerun_server):
-    from rt_ident.runtime.dashboard import write_contour_rrd
+    from rt_ident.outputs.dashboard import write_contour_rrd
 
     url, out, stop = rerun_server
     a = np.linspace(0.0, 2 * np.pi, 400)

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark rt_ident against peers on this machine (thin wrapper of :func:`rt_ident.reports.bench.bench_main`).
+"""Benchmark rt_ident against peers on this machine (thin wrapper of :func:`rt_ident.bench.kernels.bench_main`).
 
     python tools/bench.py                      # full run, 60 s loop trials (takes ~15-25 min)
     python tools/bench.py --quick              # small data, 3 s loop trials
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from rt_ident.reports.bench import bench_main
+from rt_ident.bench.kernels import bench_main
 
 
 def main() -> None:

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     hogs = [mp.Process(target=_hog, daemon=True) for _ in range(args.hogs)]
     if args.stall_ms > 0:
-        cpu = max(os.sched_getaffinity(0))                 # the loop's CPU (rt_ident.runtime.host.loop_cpu)
+        cpu = max(os.sched_getaffinity(0))                 # the loop's CPU (rt_ident.loop.host.loop_cpu)
         hogs.append(mp.Process(target=_stealer, args=(cpu, args.stall_ms / 1e3, 2.0), daemon=True))
     for h in hogs:
         h.start()

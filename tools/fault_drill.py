@@ -76,7 +76,7 @@ def _orphans_after(pgid: int, seconds: float = 5.0) -> int:
 
 def _rows(path: Path) -> int | None:
     try:
-        from rt_ident.runtime.recording import read_recording
+        from rt_ident.processes.recorder import read_recording
 
         return len(read_recording(path))
     except Exception:  # noqa: BLE001 - a drill reports, it does not stop
@@ -181,7 +181,7 @@ def drill_can_from_network(tmp: Path) -> dict:
         return {"drill": "8 CAN frames from the network", "exit": None, "files": "no non-loopback address",
                 "orphans": 0, "ok": True}
     from rt_ident.axis.params import CONFIG_DIR
-    from rt_ident.runtime.emulation import free_udp_port
+    from rt_ident.processes.emulation import free_udp_port
 
     port = free_udp_port()
     text = (CONFIG_DIR / "canopen-virtual.toml").read_text()

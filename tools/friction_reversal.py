@@ -6,7 +6,7 @@
    Karnopp sticking, Stribeck), 2^17-count encoder, 0.1 um scale, 0.5 mN m torque noise, in closed loop
    (a host PD at 1 kHz tracking a sine, a white probing torque), fitted with ``two-inertia-friction``
    by ``svf-ls`` (:func:`rt_ident.estimators.friction.fit_friction`);
-2. control: :func:`rt_ident.runtime.offline.run_offline` (the real loop on virtual time) with the same
+2. control: :func:`rt_ident.compose.offline.run_offline` (the real loop on virtual time) with the same
    plant, ``control.mode = "fixed"`` (the model controller of the nominal axis, 20 Hz) and a sine
    reference, twice: inertia feedforward only (the law's default) and inertia + friction feedforward from
    the *estimated* Fc1 + Fc2, Fv1 + Fv2 (:class:`rt_ident.control.feedforward.FrictionFeedforward`,
@@ -31,7 +31,7 @@ from rt_ident.axis.plant import PlantSimulator, SensorConfig
 from rt_ident.config import from_mapping
 from rt_ident.control.feedforward import FrictionFeedforward
 from rt_ident.estimators.friction import fit_friction
-from rt_ident.runtime.offline import run_offline
+from rt_ident.compose.offline import run_offline
 
 DT = 2.9481e-5
 

@@ -4,7 +4,7 @@
     python tools/identify_memory.py --minutes 1 10 60
 
 For each length a recording is written the way ``rt-ident run`` writes one (the sim plant, the
-Schroeder multisine, the run's metadata, :class:`rt_ident.runtime.recording.Recorder`), then
+Schroeder multisine, the run's metadata, :class:`rt_ident.processes.recorder.Recorder`), then
 ``rt-ident identify FILE`` runs in a child process and its peak resident memory (``ru_maxrss``) is
 read; as the peer in the same run, the same file is read whole (``read_recording``) in another
 child. Prints minutes, samples, file size, peak RSS of identify (streamed) and of the whole read,
@@ -31,7 +31,7 @@ def write_recording(path: Path, minutes: float) -> int:
     from rt_ident.axis.excitation import schroeder_multisine
     from rt_ident.axis.params import thomson_x
     from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
-    from rt_ident.runtime.recording import Recorder
+    from rt_ident.processes.recorder import Recorder
 
     p = thomson_x()
     ms = schroeder_multisine(512, (1, 20), peak=0.3)
@@ -83,7 +83,7 @@ def main() -> int:
             streamed, out = _peak_rss_mb([sys.executable, "-m", "rt_ident", "identify", str(path), "--json"])
             whole = float("nan")
             if minutes <= args.peer_max_minutes:     # the whole read needs ~120 B/sample: 15 GB for an hour
-                whole, _ = _peak_rss_mb([sys.executable, "-c", "import sys; from rt_ident.runtime.recording "
+                whole, _ = _peak_rss_mb([sys.executable, "-c", "import sys; from rt_ident.processes.recorder "
                                          "import read_recording; r = read_recording(sys.argv[1]); print(len(r))",
                                          str(path)])
             d = json.loads(out)

@@ -27,7 +27,7 @@ import numpy as np
 from rt_ident.axis.params import thomson_x
 from rt_ident.config import load
 from rt_ident.fleet.manifest import Entry, write_manifest
-from rt_ident.runtime.offline import run_offline
+from rt_ident.compose.offline import run_offline
 
 K_PER_DAY = -0.005
 B_PER_DAY = 0.02

@@ -17,7 +17,7 @@ import argparse
 import json
 
 from rt_ident.config import load
-from rt_ident.runtime.multi import run_axes
+from rt_ident.compose.run import run as run_axes
 
 
 def _run(mode: str, args) -> dict:

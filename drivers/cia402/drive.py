@@ -31,7 +31,7 @@ import numpy as np
 from drivers.base import Backend, SampleBlock
 from drivers.cia402 import profile as p402
 from drivers.cia402.config import Cia402Config, validate
-from drivers.cia402.setup import NodeSetup
+from drivers.cia402.node import NodeSetup
 from drivers.cia402.stream import ECHO, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
 from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
 

@@ -23,7 +23,7 @@ for that sample. The plant still advances; the master sees a stale sample
 
 Works on the ``virtual`` bus (in-process) and ``udp_multicast`` (across processes;
 needs msgpack). CLI: ``python -m drivers.cia402.emulator --config configs/canopen-virtual.toml``;
-:class:`rt_ident.runtime.emulation.EmulatorProcess` runs it in a child process.
+:class:`rt_ident.processes.emulation.EmulatorProcess` runs it in a child process.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@
   loop does when ``[backend] emulate = true``;
 * :func:`main` - ``python -m drivers.cia402.emulator --config configs/canopen-virtual.toml --port N``
   runs the drive alone, reachable from other processes on ``udp_multicast`` (the loop starts
-  it in a child process itself: :class:`rt_ident.runtime.emulation.EmulatorProcess`).
+  it in a child process itself: :class:`rt_ident.processes.emulation.EmulatorProcess`).
 """
 
 from __future__ import annotations

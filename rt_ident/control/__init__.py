@@ -13,12 +13,12 @@ from rt_ident.control.adaptation import ControlFallbackStop, ControlSettings, Su
 
 
 def make_controller(settings: ControlSettings, nominal, *, tick: float, torque_limit: float, reference,
-                    worker: Any = None, error_after_s: float | None = None,
+                    jobs: Any = None, error_after_s: float | None = None,
                     per_sample: Any = None, reference_options: Any = None) -> Supervisor | None:
     """The host's position controller for one axis, or None when ``settings.mode == "off"``.
 
     ``nominal``: the configured axis (the conservative controller's rigid-body inertia and the
-    fixed controller's model); ``worker``: a job worker running :func:`redesign` (adaptive mode);
+    fixed controller's model); ``jobs``: a job process running :func:`redesign` (adaptive mode);
     ``per_sample``: the recursive estimator fed every sample whose estimate the redesigns follow
     (:class:`rt_ident.estimators.svf.SvfEstimator`), cross-checked against the frequency fit;
     ``reference_options``: the reference's origin and rejoin limits (:mod:`rt_ident.control.anchor`).
@@ -26,7 +26,7 @@ def make_controller(settings: ControlSettings, nominal, *, tick: float, torque_l
     if settings.mode == "off":
         return None
     return Supervisor(settings, nominal, tick=tick, torque_limit=torque_limit, reference=reference,
-                      worker=worker if settings.mode == "adaptive" else None, error_after_s=error_after_s,
+                      jobs=jobs if settings.mode == "adaptive" else None, error_after_s=error_after_s,
                       per_sample=per_sample if settings.mode == "adaptive" else None,
                       reference_options=reference_options)
 

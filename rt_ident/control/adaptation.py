@@ -4,7 +4,7 @@ Certainty equivalence (Åström & Wittenmark, *Adaptive Control*, ch. 5: the ind
 regulator) with a supervisor around it, because certainty equivalence alone can destabilize a
 plant when the estimate is wrong:
 
-* :func:`redesign` runs in a worker process (never in the tick): it designs the model controller
+* :func:`redesign` runs in a job process (never in the tick): it designs the model controller
   (:func:`rt_ident.control.design.design_lqr`) for the trusted estimate and accepts it only if
   it stabilizes the estimate *and* its family (each parameter x 0.7 and x 1.3, and the corners of
   the estimate's 95 % intervals) with the configured gain and phase margins;
@@ -104,13 +104,13 @@ def model_controller(p: AxisParams, tick: float, s: ControlSettings, kind: str =
 
 
 def redesign(request: dict[str, Any]) -> dict[str, Any]:
-    """Worker job: design for ``request["params"]`` and check it over the family.
+    """Job: design for ``request["params"]`` and check it over the family.
 
     Returns ``{"accepted", "reason", "controller" (when accepted), "check", "seq", "cpu_s"}``.
     """
     c0 = time.process_time()
     out = _redesign(request)
-    out["cpu_s"] = time.process_time() - c0       # the worker's CPU for this job (the summary's "redesigns")
+    out["cpu_s"] = time.process_time() - c0       # the job process's CPU for this job (the summary's "redesigns")
     return out
 
 
@@ -174,10 +174,10 @@ class ControlStats:
     # one array, changed in place by track_error (the compiled tick holds a view)
     err: np.ndarray = field(default_factory=lambda: np.zeros(6))
     max_step_nm: float = 0.0     # largest torque step a switch would have caused without re-seeding
-    requests: int = 0            # redesigns asked of the control worker
+    requests: int = 0            # redesigns asked of the control process
     why_requested: dict[str, int] = field(default_factory=dict)   # the parameter that moved most, per request
     latency_s: list[float] = field(default_factory=list)   # request -> answer, loop time
-    cpu_s: list[float] = field(default_factory=list)       # the worker's CPU per redesign
+    cpu_s: list[float] = field(default_factory=list)       # the job process's CPU per redesign
     checks_agreed: int = 0       # cross-checks of the per-sample estimate against the frequency fit
     checks_disagreed: int = 0
     last_disagreement: str = ""
@@ -233,11 +233,11 @@ class Supervisor:
 
     ``tick()`` is called every tick with the state estimate at the newest sample and returns the
     control torque for the next tick. ``offer()`` passes a new identification (from the fit
-    worker); ``poll()`` collects redesigns from the control worker. Nothing here blocks.
+    jobs); ``poll()`` collects redesigns from the control process. Nothing here blocks.
     """
 
     def __init__(self, settings: ControlSettings, nominal: AxisParams, *, tick: float, torque_limit: float,
-                 reference, worker=None, error_after_s: float | None = None, per_sample=None,
+                 reference, jobs=None, error_after_s: float | None = None, per_sample=None,
                  reference_options: ReferenceOptions | None = None) -> None:
         self.s = settings
         self.per_sample = per_sample            # e.g. rt_ident.estimators.svf.SvfEstimator, fed every sample
@@ -247,7 +247,7 @@ class Supervisor:
         self.reference = reference              # the configured path; the controller follows self.anchor
         self.anchor = Anchor(reference, reference_options or ReferenceOptions())
         self._last_stall: tuple[float, float] | None = None     # (t, length [s]) of the newest loop stall
-        self.worker = worker
+        self.jobs = jobs
         self.error_after_s = error_after_s
         self.conservative = rigid_controller(nominal, tick, settings)
         initial = self.conservative
@@ -413,7 +413,7 @@ class Supervisor:
         a redesign).
 
         With a per-sample estimator, *it* is the estimate the controller follows, and it is trusted
-        when the frequency fit (independent data use, the worker's Gauss-Newton) agrees with it within
+        when the frequency fit (independent data use, the job process's Gauss-Newton) agrees with it within
         ``trust_tolerance`` on every parameter. Without one, the frequency fit's own trust decides.
         """
         est = self.per_sample
@@ -437,7 +437,7 @@ class Supervisor:
         return p, None, False, None
 
     def offer(self, ident, trusted: bool) -> None:
-        """A new identification from the fit worker: cross-check, and redesign when adaptive, trusted
+        """A new identification from the fit process: cross-check, and redesign when adaptive, trusted
         and due. ``trusted`` is the frequency fit's own verdict (used when there is no per-sample
         estimator)."""
         if self.s.mode != "adaptive" or ident is None:
@@ -449,7 +449,7 @@ class Supervisor:
             if not self.in_fallback and self.controller.kind == "model":
                 self._fall_back(self.t, f"estimate diverged: {why}")
             return
-        if params is None or not trusted or self.worker is None or self._pending:
+        if params is None or not trusted or self.jobs is None or self._pending:
             return
         if self.t - self._last_request_t < self.s.redesign_interval_s:
             return
@@ -459,7 +459,7 @@ class Supervisor:
         if self.controller.kind == "model" and \
                 abs(getattr(params, moved) / getattr(cur, moved) - 1.0) < self._threshold(moved):
             return
-        if not self.worker.ready:
+        if not self.jobs.ready:
             return
         self._req += 1
         if callable(ci95):
@@ -468,7 +468,7 @@ class Supervisor:
                "params": {**{k: float(getattr(params, k)) for k in KEYS}, "lead": float(params.lead)},
                "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}
-        if self.worker.submit(req):
+        if self.jobs.submit(req):
             self._pending = True
             self._last_request_t = self.t
             st = self.stats
@@ -482,9 +482,9 @@ class Supervisor:
         return max(t, 1e-12)
 
     def poll(self) -> None:
-        if self.worker is None or not self._pending:
+        if self.jobs is None or not self._pending:
             return
-        res = self.worker.poll()
+        res = self.jobs.poll()
         if res is None:
             return
         self._pending = False

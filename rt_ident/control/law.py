@@ -56,7 +56,7 @@ class Controller:
         return min(vals) if vals else (math.inf if m else math.nan)
 
 
-# StateFeedback's per-tick state ``st`` (one float array; the compiled tick of rt_ident.runtime.tick_core
+# StateFeedback's per-tick state ``st`` (one float array; the compiled tick of rt_ident.loop.tick_core
 # holds a view of it): the integral, the last total torque, its feedforward part, the ticks saturated,
 # whether a friction feedforward is on (then only the Python step runs), then the torques in flight
 ST_XI, ST_U, ST_UFF, ST_SAT, ST_FRICTION, ST_FLIGHT = range(6)
@@ -65,7 +65,7 @@ C_TICK, C_LIMIT, C_FF, C_INERTIA, C_I2, C_K = range(6)
 
 
 @numba.njit(cache=True)
-def _errors(c, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead):
+def tracking_errors(c, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead):
     th2r, w2r, al2r = x_ref / lead, v_ref / lead, a_ref / lead
     th1r = th2r + c[C_I2] * al2r / c[C_K]         # Eq. (3), 2nd row: K (th1 - th2) = I2 th2'' (B term dropped)
     return th1 - th1r, w1 - w2r, th2 - th2r, w2 - w2r
@@ -74,7 +74,7 @@ def _errors(c, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead):
 @numba.njit(cache=True)
 def feedback_torque(g, st, c, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead):
     """The feedback part of the law at this state (no side effects)."""
-    e1, e2, e3, e4 = _errors(c, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
+    e1, e2, e3, e4 = tracking_errors(c, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
     d = g.shape[0] - 5
     s = 0.0                                        # the torques in flight, oldest first
     for i in range(d):
@@ -116,7 +116,7 @@ class StateFeedback:
     """Runs a :class:`Controller` every tick; :meth:`switch` swaps it without a torque step.
 
     Its state lives in two float arrays, changed in place only: ``gains`` and ``st`` (``ST_*``), with
-    the constants in ``consts`` (``C_*``); the compiled tick (:mod:`rt_ident.runtime.tick_core`) holds
+    the constants in ``consts`` (``C_*``); the compiled tick (:mod:`rt_ident.loop.tick_core`) holds
     views of them and runs the same :func:`law_step`.
     """
 
@@ -206,7 +206,7 @@ class StateFeedback:
         """xi such that the feedback torque under the gains in force is ``u_fb`` (unchanged without an
         integral gain or a finite target)."""
         g = self.gains
-        e1, e2, e3, e4 = _errors(self.consts, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
+        e1, e2, e3, e4 = tracking_errors(self.consts, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
         rest = g[0] * e1 + g[1] * e2 + g[2] * e3 + g[3] * e4 + _dot(g[4:-1], self.st[ST_FLIGHT:])
         if abs(g[-1]) > 0.0 and math.isfinite(u_fb):
             self.st[ST_XI] = (-u_fb - rest) / g[-1]

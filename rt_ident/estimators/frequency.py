@@ -200,7 +200,7 @@ class Spectra:
 
     def to_fields(self) -> dict[str, np.ndarray]:
         """The spectra as flat arrays (a shared-memory ring message, :meth:`from_fields` undoes it):
-        the loop hands a snapshot to the fit worker this way, without pickling it."""
+        the loop hands a snapshot to the fit process this way, without pickling it."""
         return {"harmonics": np.ascontiguousarray(self.harmonics, dtype=np.int64),
                 "mean": np.ascontiguousarray(self.mean, dtype=complex).view(np.float64).ravel(),
                 "cov": np.ascontiguousarray(self.cov, dtype=complex).view(np.float64).ravel(),
@@ -226,10 +226,10 @@ class SpectraSums:
     W = sum w, W2 = sum w^2, over ``periods`` periods, and the leakage features' sums Svf (3, H, K),
     Sff (K, K), Sf (K,) over the periods of weight Wf that have features, Smv (2,) the weight of those
     whose angles shifted by more than MOVED_STEPS quantization steps; None: not kept): what the
-    loop hands the fit worker, which turns them into :class:`Spectra` (:meth:`spectra`). Copying two
+    loop hands the fit process, which turns them into :class:`Spectra` (:meth:`spectra`). Copying two
     arrays is all the loop does; the means and covariances (an ``einsum``, divisions: ~150 us of a tick
-    on these VMs) are the worker's. The compiled tick writes this message itself
-    (rt_ident.runtime.shm_ring.put_sums): ``sums`` is S1, then the flat buffer of :func:`sums_layout`."""
+    on these VMs) are the job process's. The compiled tick writes this message itself
+    (rt_ident.processes.shm_ring.put_sums): ``sums`` is S1, then the flat buffer of :func:`sums_layout`."""
 
     harmonics: np.ndarray
     N: int

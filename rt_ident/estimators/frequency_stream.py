@@ -220,7 +220,7 @@ class StreamingFrequencyEstimator:
         self._state[_M] = leak_window(self.period)
         self._last = np.zeros(3)
         self._qmin = np.zeros(2)
-        self._count = np.zeros(1, dtype=np.int64)     # samples fed (in place: see rt_ident.runtime.tick_core)
+        self._count = np.zeros(1, dtype=np.int64)     # samples fed (in place: see rt_ident.loop.tick_core)
         self._fit: FitResult | None = None
 
     # -- feeding ------------------------------------------------------------------------
@@ -257,7 +257,7 @@ class StreamingFrequencyEstimator:
         return int(self._count[0])
 
     def sums(self) -> SpectraSums:
-        """The running sums now (copies): what :meth:`spectra` and the fit worker make the spectra from."""
+        """The running sums now (copies): what :meth:`spectra` and the fit process make the spectra from."""
         q = self.quantum if self.quantum is not None else self._qmin.copy()
         return SpectraSums.from_flat(self.harmonics, self.period, self.dt, self._S1.copy(), self._S2.copy(),
                                      float(self._state[_W]), float(self._state[_W2]), self.periods, q)

@@ -1,6 +1,6 @@
 """The frequency-response view of a fit: measured FRF at the excited lines, the model's over it.
 
-Built in the fit worker (never in the tick) from the streaming DFT sums of the ``frequency``
+Built in the fit process (never in the tick) from the streaming DFT sums of the ``frequency``
 method (:class:`~rt_ident.estimators.frequency.Spectra`) and the Gauss-Newton fit, and sent to
 the dashboard once per fit:
 

@@ -114,7 +114,7 @@ def process_noise_for_bandwidth(dt: float, quantum: float, bandwidth_hz: float, 
 
 
 @numba.njit(cache=True)
-def _ssk_block(z: np.ndarray, F: np.ndarray, K: np.ndarray, x: np.ndarray, xp: np.ndarray, out: np.ndarray,
+def kalman_block(z: np.ndarray, F: np.ndarray, K: np.ndarray, x: np.ndarray, xp: np.ndarray, out: np.ndarray,
                skip: np.ndarray, zlast: np.ndarray) -> None:
     """x <- F x + K (z - H F x) per sample; writes the first 3 state components to out.
 
@@ -211,7 +211,7 @@ class SteadyStateKalman:
             out = np.empty((z.shape[0], 3))
         elif out.shape != (z.shape[0], 3) or out.dtype != np.float64:
             raise DataError(f"out must be float64 of shape {(z.shape[0], 3)}, got {out.dtype} {out.shape}")
-        _ssk_block(z, self.F, self.gain, self.x, self._xp, out, _NO_GAPS, self._zlast)
+        kalman_block(z, self.F, self.gain, self.x, self._xp, out, _NO_GAPS, self._zlast)
         return out
 
     def filter_block_reference(self, z: np.ndarray) -> np.ndarray:
@@ -279,7 +279,7 @@ class AxisStateEstimator:
             self.filters = tuple(SteadyStateKalman.from_bandwidth(dt, q, bw, model) for q, bw in zip(quanta, bws))
         self.dt = float(dt)
         # the sample expected next (filter_block with seq; -1: none yet), in place: the compiled tick
-        # (rt_ident.runtime.tick_core) holds a view
+        # (rt_ident.loop.tick_core) holds a view
         self.next_seq = np.full(1, -1, dtype=np.int64)
 
     @property
@@ -328,8 +328,8 @@ class AxisStateEstimator:
                 skip[1:] = np.diff(s) - 1
                 np.clip(skip, 0, MAX_GAP, out=skip)
         big = np.empty((3, z1.shape[0], 2))
-        _ssk_block(z1, f1.F, f1.gain, f1.x, f1._xp, big[:, :, 0].T, skip, f1._zlast)
-        _ssk_block(z2, f2.F, f2.gain, f2.x, f2._xp, big[:, :, 1].T, skip, f2._zlast)
+        kalman_block(z1, f1.F, f1.gain, f1.x, f1._xp, big[:, :, 0].T, skip, f1._zlast)
+        kalman_block(z2, f2.F, f2.gain, f2.x, f2._xp, big[:, :, 1].T, skip, f2._zlast)
         return AxisStates(theta=big[0], omega=big[1], alpha=big[2])
 
 

@@ -9,7 +9,7 @@ model: ~90 ms measured). So each streaming estimator splits in two:
   update for "paper"); returns True when a new snapshot is worth fitting;
 - ``snapshot()``: a small picklable summary of everything seen so far, and
   :func:`fit_snapshot` (method, snapshot) -> Identification, run by
-  :func:`rt_ident.runtime.fit_worker.make_fit_worker` in its own process, never in the loop.
+  :func:`rt_ident.processes.jobs.make_fit_process` in its own process, never in the loop.
 
 After the loop ends, :meth:`final` fits the last snapshot *cold* (no warm
 start), so the loop's final estimate is a pure function of the samples: the
@@ -44,7 +44,7 @@ class _GapFiller:
 
     def __init__(self) -> None:
         # the last sequence number seen (-1: none) and its samples, in place: the compiled tick
-        # (rt_ident.runtime.tick_core) holds views
+        # (rt_ident.loop.tick_core) holds views
         self.seq = np.full(1, -1, dtype=np.int64)
         self.last = np.zeros(3)
         self.filled = 0
@@ -192,7 +192,7 @@ def make_streaming(method: str, *, dt: float, period: int, band: tuple[int, int]
 
 
 def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.96e-4) -> Identification:
-    """Fit one snapshot, cold (deterministic). Runs in the worker process or after the loop."""
+    """Fit one snapshot, cold (deterministic). Runs in the job process or after the loop."""
     if method == "frequency":
         from rt_ident.estimators.frequency import fit_spectra, identification_from_fit
 

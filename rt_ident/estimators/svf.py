@@ -265,7 +265,7 @@ class SvfEstimator:
 
     def reset(self) -> None:
         """Start over. The arrays are changed in place, never replaced: the compiled tick
-        (rt_ident.runtime.tick_core) holds views of them."""
+        (rt_ident.loop.tick_core) holds views of them."""
         if not hasattr(self, "_xs"):
             self._xs = np.zeros((4, 3))
             self._prev = np.zeros(4)

@@ -23,8 +23,8 @@ import numpy as np
 
 from rt_ident.errors import EstimationError
 from rt_ident.estimators.base import IdentData, Identification
-from rt_ident.runtime.recording import read_recording
-from rt_ident.runtime.recording_reader import iter_parquet_blocks, parquet_metadata
+from rt_ident.processes.recorder import read_recording
+from rt_ident.outputs.recording_reader import iter_parquet_blocks, parquet_metadata
 
 REPLAY_CHUNK = 4096
 

@@ -1,0 +1,81 @@
+"""The XY circular test's trace: the table's path on X and Y, one point per tick, when both axes follow a
+:class:`~rt_ident.control.reference.Circle` reference, and afterwards the test's figures (ISO 230-4 G, F,
+H: :mod:`rt_ident.control.contour`), its polar plot and its dashboard."""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+
+from rt_ident.loop.loop import IdentificationLoop
+
+log = logging.getLogger(__name__)
+
+
+class ContourTrace:
+    """The table's path on X and Y, one point per tick, when both axes follow a :class:`Circle` reference
+    (``kind = "circle"``, ``axis = "x"`` / ``"y"``): afterwards, the circular test's figures (ISO 230-4 G,
+    F, H: :mod:`rt_ident.control.contour`) and its polar plot. Preallocated; a tick stores three floats."""
+
+    def __init__(self, loops: dict[str, IdentificationLoop], n_ticks: int) -> None:
+        from rt_ident.control.reference import Circle
+
+        self.ctl = {}
+        refs = {}
+        for name in ("x", "y"):
+            lp = loops.get(name)
+            ref = getattr(getattr(lp, "control", None), "reference", None)
+            if isinstance(ref, Circle) and ref.axis == name:
+                self.ctl[name], refs[name] = lp.control, ref
+        self.active = len(self.ctl) == 2 and refs["x"].radius == refs["y"].radius and \
+            refs["x"].windows() == refs["y"].windows()
+        self.ref = refs.get("x")
+        n = n_ticks + 8 if self.active else 0
+        self.buf = np.full((n, 5), np.nan)        # t, x, y of the table, x, y of the reference
+        self.n = 0
+
+    def __call__(self) -> None:
+        if not self.active or self.n >= self.buf.shape[0]:
+            return
+        cx, cy = self.ctl["x"], self.ctl["y"]           # relative to each axis's origin: the circle's frame
+        ox, oy = cx.anchor.origin, cy.anchor.origin
+        self.buf[self.n] = (cx.t, cx.x_ref + cx.error - ox, cy.x_ref + cy.error - oy, cx.x_ref - ox, cy.x_ref - oy)
+        self.n += 1
+
+    def result(self, png: str | None, rrd: str | None = None, live_url: str | None = None) -> dict[str, Any] | None:
+        if not self.active or self.n < 16:
+            return None
+        from rt_ident.control.contour import circle_figures, polar_plot
+
+        t, x, y, xr, yr = self.buf[:self.n].T
+        R = self.ref.radius
+        paths = {}
+        for d, (t0, t1) in self.ref.measured().items():          # constant feed: overshoot arcs excluded
+            sel = (t >= t0) & (t <= t1) & np.isfinite(x) & np.isfinite(y)
+            if sel.sum() >= 16:
+                paths[d] = (x[sel], y[sel])
+        if not paths:
+            return {"note": "the run ended before the circle began"}
+        fig = circle_figures(paths, R, (0.0, -R))
+        fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * self.ref.frequency_hz
+        stalls = [t for c in self.ctl.values() for t, kind, _ in c.stats.events if kind == "stall"]
+        for d, (t0, t1) in self.ref.measured().items():
+            hit = [t for t in stalls if t0 - 0.5 <= t <= t1]     # the rejoin after a stall lasts up to ~0.5 s
+            if d in fig and hit:                                 # the host, not the axis, made that turn
+                fig[d]["disturbed_by_stall_at_s"] = round(hit[0], 3)
+        fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.measured()[d][1] for d in ("ccw", "cw")}
+        fig["overshoot_deg"] = self.ref.overshoot_deg
+        if png:
+            fig["polar_png"] = polar_plot(paths, R, (0.0, -R), fig, png, title="XY circular test (table scale)")
+        if rrd or live_url:
+            from rt_ident.outputs.dashboard import write_contour_rrd
+
+            try:
+                fig["rrd"] = write_contour_rrd(rrd, (xr, yr), paths, R, (0.0, -R), fig, connect_url=live_url)
+            except Exception as exc:  # noqa: BLE001 - the figures are in hand; the dashboard is extra
+                log.warning("contour dashboard %s not written: %s", rrd or live_url, exc)
+                fig["rrd_error"] = f"{type(exc).__name__}: {exc}"
+        return fig

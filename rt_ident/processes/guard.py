@@ -1,0 +1,169 @@
+"""How a run's helper processes (recorder, telemetry, fit and control processes) live and die.
+
+* **Signals go to the main process only.** Ctrl-C in a terminal sends SIGINT to the whole process
+  group, systemd's stop sends SIGTERM to the whole group. A helper that took them would die in the
+  middle of its work (the recorder with samples still in its ring) or print a KeyboardInterrupt
+  traceback. So helpers are started with SIGINT and SIGTERM *ignored* (:func:`start_ignoring_signals`:
+  the disposition is inherited through the spawn's exec, and Python keeps an inherited SIG_IGN, so
+  there is no window during the child's start-up), and set them ignored again first thing
+  (:func:`become_helper`). The main process stops them in order: loop, then recorder (drains every
+  sample, closes the file), telemetry, workers.
+* **A helper notices its parent's death** (kill -9 of the main process) within ~0.2 s
+  (:class:`ParentWatch`: the parent pid changes when the helper is re-parented) and then finishes
+  what it holds (the recorder writes the Parquet file from every sample it received) and exits:
+  no orphan keeps files open.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from typing import Any
+
+_GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_log = logging.getLogger("rt_ident.processes.guard")
+
+
+#: A helper's BLAS runs on one thread unless the user set otherwise. Its matrices are tiny (the control
+#: process's 10-state loops, the fit process's 4-parameter normal equations): extra OpenBLAS threads only
+#: spin between calls. With the default two threads on this 2-CPU host a redesign cost the control
+#: process 0.36-0.65 s of CPU (measured, Y's I2 x 3 on configs/xy-sim.toml), the helpers' CPU was full
+#: and Y's redesign came 2 s after the load change had been identified. ``rt-ident`` sets the same in
+#: its own process (rt_ident.cli); this covers helpers started by any other caller too.
+HELPER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def start_with_helper_env(proc: Any) -> None:
+    """``proc.start()`` with :data:`HELPER_ENV` in the environment the child is spawned with (a
+    variable the user set is kept); this process's environment is restored afterwards."""
+    added = [k for k in HELPER_ENV if k not in os.environ]
+    for k in added:
+        os.environ[k] = HELPER_ENV[k]
+    try:
+        proc.start()
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+def end_helper(proc: Any, term_wait_s: float = 1.0, kill_wait_s: float = 1.0) -> None:
+    """End a helper process that is still alive: SIGTERM, then SIGKILL if it is there after
+    ``term_wait_s``. Helpers are born ignoring SIGTERM (:func:`start_ignoring_signals`), so without
+    the SIGKILL one lives on - and writes into shared memory a later helper may reuse."""
+    if proc is None or not proc.is_alive():
+        return
+    proc.terminate()
+    proc.join(term_wait_s)
+    if proc.is_alive():
+        proc.kill()
+        proc.join(kill_wait_s)
+
+
+def start_ignoring_signals(proc: Any) -> None:
+    """``proc.start()`` with SIGINT/SIGTERM ignored, so the child is born ignoring them (and with
+    :data:`HELPER_ENV`)."""
+    if threading.current_thread() is not threading.main_thread():
+        start_with_helper_env(proc)  # cannot touch dispositions here; become_helper() covers the child
+        return
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in _GROUP_SIGNALS}
+    try:
+        start_with_helper_env(proc)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def become_helper() -> "ParentWatch":
+    """First call in a helper's main: ignore the group's SIGINT/SIGTERM, leave the loop's CPU; returns
+    the parent watch.
+
+    A helper restarted during the run is forked from the loop thread and inherits its single-CPU
+    affinity (its scheduling policy is reset: the loop sets SCHED_RESET_ON_FORK): it moves to every
+    other CPU here, as the helpers started before the loop were moved by the run."""
+    for s in _GROUP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+    try:
+        ppid = os.getppid()
+        loop_cpus = os.sched_getaffinity(ppid)       # the parent's main thread: the loop, when it runs
+        mine = os.sched_getaffinity(0)
+        every = set(range(os.cpu_count() or 1))
+        # only a helper that inherited the real-time loop's own CPU moves (one the run already placed
+        # elsewhere stays where it is)
+        if (os.sched_getscheduler(ppid) == os.SCHED_FIFO and mine == loop_cpus and len(mine) < len(every)):
+            os.sched_setaffinity(0, every - loop_cpus)
+    except (AttributeError, OSError):
+        pass
+    return ParentWatch()
+
+
+class ParentWatch:
+    """``gone`` becomes True once the process that started this helper has died."""
+
+    def __init__(self, every_s: float = 0.2) -> None:
+        self.ppid = os.getppid()
+        self.every_s = every_s
+        self._next = 0.0
+        self._gone = False
+
+    @property
+    def gone(self) -> bool:
+        if self._gone:
+            return True
+        now = time.monotonic()
+        if now >= self._next:
+            self._next = now + self.every_s
+            self._gone = os.getppid() != self.ppid
+        return self._gone
+
+
+class HelperWatch:
+    """Notices, within ``every_ticks`` ticks, a helper process that died, says so at once (one log
+    line, and the run summary's ``helpers``), and restarts it once where that is safe (the fit and
+    control processes; telemetry, which then writes a new file). The recorder is watched by the loop
+    itself: its death stops the run (samples could no longer be recorded)."""
+
+    def __init__(self, helpers: dict[str, Any], *, restartable: tuple[str, ...] = (), max_restarts: int = 1,
+                 every_ticks: int = 100) -> None:
+        self.helpers = {k: v for k, v in helpers.items() if v is not None}
+        self.restartable = set(restartable)
+        self.max_restarts = max_restarts
+        self.every_ticks = every_ticks
+        self.status: dict[str, dict[str, Any]] = {
+            k: {"pid": getattr(v, "pid", None), "deaths": 0, "restarts": 0, "alive": True, "exitcodes": []}
+            for k, v in self.helpers.items()}
+
+    def __call__(self, tick: int) -> None:
+        if tick % self.every_ticks:
+            return
+        for name, h in self.helpers.items():
+            st = self.status[name]
+            if not st["alive"] or h.alive:
+                continue
+            code = h.exitcode
+            st["deaths"] += 1
+            st["exitcodes"].append(code)
+            if name in self.restartable and st["restarts"] < self.max_restarts:
+                st["restarts"] += 1
+                h.restart()
+                st["pid"] = getattr(h, "pid", None)
+                _log.error("helper %s died (exit code %s); restarted it (pid %s)", name, code, st["pid"])
+            else:
+                st["alive"] = False
+                _log.error("helper %s died (exit code %s); not restarted", name, code)
+
+    def freeze(self) -> None:
+        """Take the status when the loop ends (the helpers are closed after that)."""
+        for name, h in self.helpers.items():
+            st = self.status[name]
+            st["alive"] = st["alive"] and bool(h.alive)
+            if hasattr(h, "fits") and st["restarts"]:
+                st["results_since_restart"] = h.fits - h.fits_at_restart
+        self._frozen = True
+
+    def summary(self) -> dict[str, dict[str, Any]]:
+        if not getattr(self, "_frozen", False):
+            self.freeze()
+        return self.status

@@ -1,0 +1,229 @@
+"""The process that fits streaming-estimator snapshots, so that no fit ever runs in the tick.
+
+The per-sample halves (:mod:`rt_ident.estimators.streaming`) run in the loop and hand over a
+small snapshot now and then; :func:`make_fit_process` fits it with
+:func:`rt_ident.estimators.streaming.fit_snapshot` in its own process and hands the result back,
+both ways through shared-memory rings (:mod:`rt_ident.processes.shm_ring`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Callable
+
+import numpy as np
+
+from rt_ident.estimators.streaming import fit_snapshot
+from rt_ident.processes.guard import become_helper, end_helper, start_ignoring_signals
+from rt_ident.processes.shm_ring import MessageRing
+
+log = logging.getLogger(__name__)
+
+_WORKER_POLL_S = 0.002  # fit process: sleep between polls of an empty inbox
+
+
+def _job_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing, min_interval: float,
+                 view_interval: float = 0.0) -> None:
+    import dataclasses
+    import time
+
+    watch = become_helper()
+    last_view = -math.inf
+    inbox.flag = 1                                   # ready for a snapshot
+    while True:
+        if watch.gone:                               # the run's main process died: nobody to answer
+            return
+        closed = inbox.writer_closed
+        if not inbox.pending_messages:
+            if closed:
+                return
+            time.sleep(_WORKER_POLL_S)
+            continue
+        inbox.flag = 0                               # busy: the loop keeps its snapshots
+        snap = _decode(inbox.get(1)[0])
+        t0 = time.monotonic()
+        try:
+            result: Any = job(snap)
+        except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
+            result = exc
+        if getattr(result, "frf", None) is not None and dataclasses.is_dataclass(result):
+            # the dashboard's FRF view is 16 of a result's 17 kB: unpickling it cost the loop's tick
+            # ~100 us, and the dashboard draws one at most every few seconds - send one that often
+            if time.monotonic() - last_view < view_interval:
+                result = dataclasses.replace(result, frf=None)
+            else:
+                last_view = time.monotonic()
+        try:
+            ok = outbox.put_object(result)
+        except Exception as exc:  # noqa: BLE001 - e.g. an exception that does not pickle
+            ok = outbox.put_object(RuntimeError(f"{type(result).__name__}: {exc}"))
+        if not ok:
+            log.warning("fit process: result ring full, result dropped")
+        # duty-cycle limit: a fit takes ~25 ms; a few per second are plenty for a live view, and
+        # the CPU left over belongs to the loop (meanwhile the loop keeps its newer snapshots)
+        while time.monotonic() - t0 < min_interval and not inbox.writer_closed:
+            time.sleep(0.01)
+        inbox.flag = 1
+
+
+_CODEC = "codec"     # ring key naming the class of a snapshot sent as its fields (see JobProcess.submit)
+
+
+def _decoders() -> dict[str, Callable[[dict], Any]]:
+    """Snapshot classes sent as their fields (``to_fields`` here, ``from_fields`` in the job process), by name."""
+    from rt_ident.estimators.frequency import Spectra, SpectraSums
+
+    return {"Spectra": Spectra.from_fields, "SpectraSums": SpectraSums.from_fields}
+
+
+def _decode(msg: dict) -> Any:
+    """A snapshot from its ring message: pickled, or as the fields of a class with ``from_fields``."""
+    if MessageRing.is_object(msg):
+        return MessageRing.unpickle(msg)
+    name = bytes(msg.pop(_CODEC)).decode("ascii")
+    return _decoders()[name](msg)
+
+
+@dataclass
+class JobProcess:
+    """Runs ``job(request)`` in a separate process. ``submit`` and ``poll`` never block the caller.
+
+    Snapshots and results travel through shared-memory rings (:mod:`rt_ident.processes.shm_ring`: no
+    feeder thread in the loop's process). The job process says when it is ready for the next
+    snapshot; ``submit`` sends one only then, so a snapshot is pickled at most a few times
+    per second (``skipped`` counts the ones not sent because a fit was running).
+    """
+
+    job: Callable[[Any], Any]       # picklable (a module-level function or a partial of one)
+    name: str = "rt_ident-job"
+    min_interval: float = 0.25      # s between jobs
+    view_interval: float = 0.0      # s between results that keep their ``frf`` view (others: frf=None)
+    ring_bytes: int = 4 << 20       # per direction; a snapshot is a few kB
+
+    def __post_init__(self) -> None:
+        self._make()
+        self.skipped = 0
+        self.fits_at_restart = 0        # results before the last restart (see restart)
+        self.fits = 0
+        self.errors = 0
+        self.last_error: str | None = None
+
+    def _make(self) -> None:
+        ctx = mp.get_context("spawn")
+        self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
+        self._out = MessageRing(self.ring_bytes, ctx=ctx)
+        self._proc = ctx.Process(target=_job_main, args=(self.job, self._in, self._out, self.min_interval,
+                                                                 self.view_interval),
+                                 name=self.name, daemon=True)
+
+    def start(self) -> "JobProcess":
+        start_ignoring_signals(self._proc)
+        return self
+
+    @property
+    def alive(self) -> bool:
+        return self._proc.is_alive()
+
+    @property
+    def exitcode(self) -> int | None:
+        return self._proc.exitcode
+
+    def restart(self) -> "JobProcess":
+        """A new job process (and rings) in place of a dead one; results in flight are lost."""
+        end_helper(self._proc)
+        self._make()
+        self.fits_at_restart = self.fits
+        return self.start()
+
+    def wait_ready(self, timeout: float = 30.0) -> bool:
+        """Block (before the loop starts) until the job process has imported everything and waits for
+        its first job; False on timeout. On a 2-CPU machine the job process shares the non-loop CPU with
+        an emulated device's real-time threads, and its imports alone take seconds there."""
+        import time
+
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self._in.flag:
+                return True
+            if not self._proc.is_alive():
+                return False
+            time.sleep(0.01)
+        return False
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    @property
+    def ready(self) -> bool:
+        """True when the job process waits for a snapshot (and none is on its way)."""
+        return bool(self._in.flag) and not self._in.pending_messages
+
+    def submit(self, snap: Any) -> bool:
+        """Send ``snap`` if the job process is ready for it (True), else count it as skipped."""
+        if snap is None:
+            return False
+        if not self.ready or not self._put(snap):
+            self.skipped += 1
+            return False
+        return True
+
+    def _put(self, snap: Any) -> bool:
+        # a snapshot class the job process knows goes as flat arrays: pickling a Spectra cost the loop's
+        # tick ~100 us (its arrays through pickle's reduce machinery), its fields a few
+        name = type(snap).__name__
+        if name in _decoders():
+            fields = snap.to_fields()
+            fields[_CODEC] = np.frombuffer(name.encode("ascii"), dtype=np.uint8)
+            return self._in.put(fields)
+        return self._in.put_object(snap)
+
+    def poll(self) -> Any:
+        """The newest result the job process has returned since the last poll, or None."""
+        return self.unpack(self.take())
+
+    def take(self) -> list:
+        """The results returned since the last call, still packed (:meth:`unpack` opens them): the
+        loop takes them on one tick and unpickles them on the next, each step tens of microseconds."""
+        if not self._out.pending_messages:
+            return []
+        return self._out.get()
+
+    def unpack(self, msgs: list) -> Any:
+        """The newest result of ``msgs`` (from :meth:`take`), or None; counts fits and errors."""
+        if not msgs:
+            return None
+        return newest_result(self, (MessageRing.unpickle(msg) for msg in msgs))
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._in.close_writer()
+        self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(1.0)
+
+
+def newest_result(jobs: Any, items: Any) -> Any:
+    """The last non-exception of ``items`` (None if none); counts ``jobs.fits`` and ``jobs.errors``
+    (and keeps ``jobs.last_error``) on the way. Shared by the job process and its in-process stand-in."""
+    latest = None
+    for item in items:
+        if isinstance(item, Exception):
+            jobs.errors += 1
+            jobs.last_error = str(item)
+        else:
+            jobs.fits += 1
+            latest = item
+    return latest
+
+
+def make_fit_process(method: str, hold: str = "zoh", lead: float = 7.96e-4, min_interval: float = 0.25,
+              ring_bytes: int = 4 << 20, view_interval: float = 2.0) -> JobProcess:
+    """The fit process: :func:`rt_ident.estimators.streaming.fit_snapshot` of one method, per snapshot.
+    A fit's FRF view (for the dashboard) comes back at most every ``view_interval`` seconds."""
+    return JobProcess(partial(fit_snapshot, method, hold=hold, lead=lead), name="rt_ident-fit",
+                     min_interval=min_interval, ring_bytes=ring_bytes, view_interval=view_interval)
