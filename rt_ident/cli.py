@@ -298,7 +298,7 @@ def _print_reproduce(result, sens) -> None:
     if flagged:
         out.print("[bold]>10x[/bold]: our error differs from the paper's by more than 10x. The paper does not state "
                   "the multisine band or amplitude, and its RLS beating its LS on the same data contradicts its own "
-                  "Theorem 1; see the README section 'Reproducing the paper'.")
+                  "Theorem 1; see docs/theory/paper.md.")
 
 
 # --------------------------------------------------------------------------- run

@@ -127,7 +127,7 @@ class ControlConfig(_Section):
     bandwidth_hz: float = Field(20.0, ge=1)           # model controller (LQR on the identified model)
     effort: float = Field(1.0, ge=1e-6, le=1e6)       # torque weight multiplier: larger is gentler
     conservative_bandwidth_hz: float = Field(10.0, ge=1)  # rigid-body controller from [axis] I1 + I2 (at most)
-    conservative_load: float = Field(1.0, ge=1, le=100)  # it keeps its margins with I2 x this (a workpiece; see README)
+    conservative_load: float = Field(1.0, ge=1, le=100)  # it keeps its margins with I2 x this (a workpiece; docs/theory/control.md)
     gain_margin_db: float = Field(6.0, ge=0)
     phase_margin_deg: float = Field(40.0, ge=0, lt=90)
     family_factors: tuple[float, ...] = (0.7, 1.3)    # each parameter x these must keep the margins

@@ -1,4 +1,4 @@
-"""The emulated drive started by hand, the way configs/canopen-virtual.toml and the README describe it:
+"""The emulated drive started by hand, the way configs/canopen-virtual.toml and docs/operation/hardware.md describe it:
 ``python -m drivers.cia402.emulator --config ... --port N`` in one process, ``rt-ident run`` with
 ``emulate = false`` in another."""
 
@@ -25,7 +25,7 @@ def _config(tmp_path: Path, port: int) -> Path:
     text = re.sub(r"(?m)^emulate = true", "emulate = false", text)
     text = re.sub(r"(?m)^# port: unset.*$", f"port = {port}", text)
     # a busy CI machine gets 100 ms of stale data before a stop, not 10 ms: what is tested is the path the
-    # README describes and the drive's placement (its READY line), not this host's worst 10 ms
+    # docs describe and the drive's placement (its READY line), not this host's worst 10 ms
     text = re.sub(r"(?m)^stale_limit = .*$", "stale_limit = 200", text)
     text = re.sub(r"(?m)^position_hold = false", "position_hold = true", text)    # [emulator]: the drive holds
     # ... and the host, which sees a real drive, is told so (without it, --control off is refused)

@@ -1,4 +1,4 @@
-"""The folder layout's import directions (README "Layout"), checked by import-linter's contracts in pyproject.toml."""
+"""The folder layout's import directions (docs/development.md "Layout"), checked by import-linter's contracts in pyproject.toml."""
 
 from __future__ import annotations
 

@@ -27,3 +27,15 @@ def test_quick_start_is_two_commands_that_make_their_own_venv():
 def test_ci_runs_the_readme_test_command_as_written():
     ci = (ROOT / ".ci" / "run").read_text().strip().splitlines()
     assert ci[-1].strip() == _quick_start()[1]
+
+
+def test_every_relative_link_in_the_readme_resolves_to_a_file():
+    text = (ROOT / "README.md").read_text()
+    links = [m for m in re.findall(r"\]\(([^)\s]+)\)", text) if "://" not in m and not m.startswith(("#", "mailto:"))]
+    assert links, "the README links its docs pages"
+    missing = [m for m in links if not (ROOT / m.split("#", 1)[0]).exists()]
+    assert not missing, missing
+
+
+def test_the_readme_stays_short():
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 200
