@@ -7,7 +7,8 @@ so a missing vendor package fails only for the backend that needs it.
 from __future__ import annotations
 
 import importlib
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from drivers.base import Backend, SampleBlock
 from drivers.errors import BackendNotFound, DriverError

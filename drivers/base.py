@@ -28,8 +28,9 @@ import enum
 import logging
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -73,7 +74,7 @@ class SampleBlock:
         return self.torque_meas if self.torque_meas is not None else self.torque_cmd
 
     @staticmethod
-    def empty(with_measured: bool = False) -> "SampleBlock":
+    def empty(with_measured: bool = False) -> SampleBlock:
         z = np.empty(0)
         return SampleBlock(z, np.empty(0, dtype=np.int64), z, z, z, z if with_measured else None)
 
@@ -118,7 +119,7 @@ class Backend(ABC):
         return False
 
     # ----- lifecycle (template methods) ------------------------------------
-    def open(self) -> "Backend":
+    def open(self) -> Backend:
         if self.state is not State.CREATED:
             raise BackendStateError(f"open() in state {self.state.value}")
         self._open()
@@ -150,7 +151,7 @@ class Backend(ABC):
     #: a simulation in this process (the loop reports its stepping apart from the tick's work)
     simulated = False
 
-    def step_ahead(self, seconds: float) -> None:
+    def step_ahead(self, seconds: float) -> None:  # noqa: B027 - optional: a real device needs nothing
         """Called by the loop after each tick with the time to its next deadline: a simulated device
         may produce the samples due by then now, so that read() only hands them out (the sim does,
         in paced mode). A real device produces them by itself: nothing to do."""
@@ -219,7 +220,7 @@ class Backend(ABC):
             log.exception("%s: close failed", self.name)
         self.state = State.CLOSED
 
-    def __enter__(self) -> "Backend":
+    def __enter__(self) -> Backend:
         return self.open()
 
     def __exit__(self, exc_type, exc, tb) -> None:

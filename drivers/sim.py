@@ -25,7 +25,8 @@ import dataclasses
 import logging
 import math
 import time
-from typing import Any, Callable, Literal, Mapping, Optional
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -35,8 +36,15 @@ from drivers.errors import DriverError, TravelLimitTrip
 from drivers.sim_plan import PM_OFF, PM_SIZE, new_plan, plan_take, plan_write
 from rt_ident.axis.friction import Friction
 from rt_ident.axis.params import PLAUSIBLE, UNITS, AxisParams, thomson_x
-from rt_ident.axis.plant import (DEFAULT_KD, DEFAULT_KP, HoldController, PlantBlock, PlantSimulator, SensorConfig,
-                                 rest_at)
+from rt_ident.axis.plant import (
+    DEFAULT_KD,
+    DEFAULT_KP,
+    HoldController,
+    PlantBlock,
+    PlantSimulator,
+    SensorConfig,
+    rest_at,
+)
 from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -56,8 +64,8 @@ class SimConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    name: Optional[Literal["sim"]] = None
-    axis: Optional[dict[str, float]] = None         # I1, I2, B, K, lead; None -> Table 1
+    name: Literal["sim"] | None = None
+    axis: dict[str, float] | None = None         # I1, I2, B, K, lead; None -> Table 1
     sample_period: float = Field(PAPER_DT, le=0.1)  # s, >= MIN_SAMPLE_PERIOD
     counts_per_rev: int = Field(2**17, ge=0)        # 0: ideal (unquantized) encoder
     scale_resolution: float = Field(1e-7, ge=0, le=1e-3)  # m; 0: ideal scale
@@ -66,24 +74,24 @@ class SimConfig(BaseModel):
     torque_process_noise: float = Field(0.0, ge=0)
     torque_limit: float = Field(1.0, gt=0)          # N m, at most rated_torque
     rated_torque: float = Field(3.0, gt=0)          # N m the simulated motor can deliver (3 x the default limit)
-    travel: Optional[tuple[float, float]] = (-0.05, 0.05)  # m on the linear scale
+    travel: tuple[float, float] | None = (-0.05, 0.05)  # m on the linear scale
     position_hold: bool = False                     # a drive-side hold loop (identification-only runs)
-    kp: Optional[float] = Field(None, ge=0)
-    kd: Optional[float] = Field(None, ge=0)
+    kp: float | None = Field(None, ge=0)
+    kd: float | None = Field(None, ge=0)
     integrator: Literal["zoh", "newmark"] = "zoh"
     seed: int = 0
     paced: bool = True
-    samples_per_read: Optional[int] = Field(None, ge=1, le=1_000_000)   # at most 1 s at 1 M samples/s
+    samples_per_read: int | None = Field(None, ge=1, le=1_000_000)   # at most 1 s at 1 M samples/s
     has_measured_torque: bool = True
     changes: list[dict[str, float]] = Field(default_factory=list)  # [{at: s, I1/I2/B/K: factor}], see _changes()
     # friction to ground and backlash (rt_ident.axis.friction.Friction keys, or preset = "thomson");
     # None / all zero: the frictionless plant. [plant.friction] of a run config lands here.
-    friction: Optional[dict[str, Any]] = None
+    friction: dict[str, Any] | None = None
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: the table's start on the scale (at rest)
 
     @field_validator("travel")
     @classmethod
-    def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+    def _travel_ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
         if v is not None and not v[0] < v[1]:
             raise ValueError(f"must satisfy min < max, got {list(v)}")
         return v
@@ -104,7 +112,7 @@ class SimConfig(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _limit_within_rating(self) -> "SimConfig":
+    def _limit_within_rating(self) -> SimConfig:
         if self.torque_limit > self.rated_torque:
             raise ValueError(f"torque_limit: {self.torque_limit:g} N m exceeds the simulated motor's "
                              f"rated_torque {self.rated_torque:g} N m; lower torque_limit or raise rated_torque")

@@ -13,14 +13,13 @@ import logging
 import math
 import sys
 from pathlib import Path
-from typing import Optional
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from rt_ident.errors import RtIdentError
+from rt_ident.errors import RtIdentError, require
 from rt_ident.outputs.text import fmt, json_default, um
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -84,7 +83,7 @@ def _set_verbosity(level: int) -> None:
 
 @app.callback()
 def _root(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,  # noqa: ARG001 - the callback acts
                                  help="Print the version and exit."),
     verbose: int = typer.Option(0, "--verbose", "-v", count=True,
                                 help="More detail: -v info lines and tracebacks, -vv debug lines."),
@@ -139,18 +138,21 @@ def _progress():
 @app.command()
 def reproduce(
     json_out: bool = typer.Option(False, "--json", help="Print the results as JSON on stdout."),
-    figures: Optional[Path] = typer.Option(None, "--figures", help="Write PNG figures (Figs. 4, 7-12) here."),
+    figures: Path | None = typer.Option(None, "--figures", help="Write PNG figures (Figs. 4, 7-12) here."),
     band_factor: float = typer.Option(2.0, help="Excite harmonics 1..band_factor*k (k of Table 2)."),
     periods: int = typer.Option(4, min=1, help="Multisine periods simulated per case."),
     peak: float = typer.Option(0.3, min=1e-9, help="Peak excitation torque [N m]."),
     beyond: bool = typer.Option(True, help="Also run the estimators beyond the paper."),
     sensitivity: bool = typer.Option(False, "--sensitivity", help="Also sweep band and amplitude (LS errors)."),
-    noise_study: Optional[Path] = typer.Option(None, "--noise-study",
+    noise_study: Path | None = typer.Option(None, "--noise-study",
                                                help="Run the quantization x torque-noise x method study; "
                                                     "write noise_study.png and .csv here."),
 ) -> None:
     """Run both cases of Table 2 and print Tables 2-6: paper value, our value, error %."""
     from rt_ident.reports import reproduce as rp
+
+    if figures is not None or noise_study is not None:
+        require("matplotlib", "plots", "--figures / --noise-study")
 
     methods = _beyond_methods() if beyond else ()
     with _progress() as prog:
@@ -293,7 +295,8 @@ def _print_reproduce(result, sens) -> None:
             st.add_row(str(r["N"]), f"{r['band'][0]}..{r['band'][1]}", fmt(r["peak"]),
                        *[fmt(r["error_pct"][k]) for k in ALL_KEYS])
         out.print(st)
-    out.print(f"Excitation: Schroeder multisine, harmonics 1..{result.band_factor:g}*k, peak {result.peak_torque:g} N m, "
+    out.print(f"Excitation: Schroeder multisine, harmonics 1..{result.band_factor:g}*k, "
+              f"peak {result.peak_torque:g} N m, "
               f"{result.periods} periods, Newmark alpha=1/4 delta=1/2, from rest.")
     if flagged:
         out.print("[bold]>10x[/bold]: our error differs from the paper's by more than 10x. The paper does not state "
@@ -304,16 +307,16 @@ def _print_reproduce(result, sens) -> None:
 # --------------------------------------------------------------------------- run
 @app.command()
 def run(
-    config: Optional[Path] = typer.Argument(None, help="Run config (TOML). Default: configs/sim.toml."),
-    duration: Optional[float] = typer.Option(None, "--duration", min=0.001, help="Seconds to run."),
-    rrd: Optional[str] = typer.Option(None, "--rrd", help="Write the dashboard recording here (.rrd)."),
-    record: Optional[str] = typer.Option(None, "--record", help="Record raw samples here (.parquet)."),
+    config: Path | None = typer.Argument(None, help="Run config (TOML). Default: configs/sim.toml."),
+    duration: float | None = typer.Option(None, "--duration", min=0.001, help="Seconds to run."),
+    rrd: str | None = typer.Option(None, "--rrd", help="Write the dashboard recording here (.rrd)."),
+    record: str | None = typer.Option(None, "--record", help="Record raw samples here (.parquet)."),
     spawn: bool = typer.Option(False, "--spawn", help="Spawn a rerun viewer (bound to 127.0.0.1)."),
-    connect: Optional[str] = typer.Option(None, "--connect", help="Stream to a viewer at rerun+http://HOST:PORT/proxy."),
+    connect: str | None = typer.Option(None, "--connect", help="Stream to a viewer at rerun+http://HOST:PORT/proxy."),
     serve: bool = typer.Option(False, "--serve", help="Serve telemetry over gRPC on 127.0.0.1."),
     no_telemetry: bool = typer.Option(False, "--no-telemetry", help="No rerun streaming."),
-    method: Optional[str] = typer.Option(None, "--method", help="Streaming estimator (frequency, paper)."),
-    control: Optional[str] = typer.Option(None, "--control",
+    method: str | None = typer.Option(None, "--method", help="Streaming estimator (frequency, paper)."),
+    control: str | None = typer.Option(None, "--control",
                                           help="Host position loop: adaptive, fixed (nominal design) or off "
                                                "(excitation only; needs a drive-side hold)."),
     no_realtime: bool = typer.Option(False, "--no-realtime", help="Do not ask for SCHED_FIFO/mlockall."),
@@ -526,15 +529,15 @@ def _print_stop(s: dict) -> None:
 # --------------------------------------------------------------------------- identify
 @app.command()
 def identify(
-    file: Optional[Path] = typer.Argument(None, help="A recording (.parquet from `run`) or a CSV t,theta1,theta2,torque "
+    file: Path | None = typer.Argument(None, help="A recording (.parquet from `run`) or a CSV t,theta1,theta2,torque "
                                           "(t,theta1,torque with --model rigid-friction)."),
-    method: Optional[str] = typer.Option(None, "--method", help="Estimator name (see --methods)."),
-    model: Optional[str] = typer.Option(None, "--model", help="two-inertia (default), two-inertia-friction or "
+    method: str | None = typer.Option(None, "--method", help="Estimator name (see --methods)."),
+    model: str | None = typer.Option(None, "--model", help="two-inertia (default), two-inertia-friction or "
                                         "rigid-friction (the friction models: method svf-ls)."),
-    validate: Optional[Path] = typer.Option(None, "--validate", help="Another recording: report the identified "
+    validate: Path | None = typer.Option(None, "--validate", help="Another recording: report the identified "
                                             "model's relative torque-prediction error on it (--model fits)."),
     methods: bool = typer.Option(False, "--methods", help="List the estimators and exit."),
-    period: Optional[int] = typer.Option(None, "--period", min=2, help="Excitation period in samples (else detected)."),
+    period: int | None = typer.Option(None, "--period", min=2, help="Excitation period in samples (else detected)."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Identify I1, I2, B, K (and wn, wd, zeta) offline from a recording; with --model, friction too."""

@@ -18,10 +18,9 @@ carries them as ``config_defaulted``.
 from __future__ import annotations
 
 import math
-
 import tomllib
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
@@ -52,7 +51,7 @@ class ExcitationConfig(_Section):
     seed: int = Field(0, ge=0)
 
     @model_validator(mode="after")
-    def _band_fits(self) -> "ExcitationConfig":
+    def _band_fits(self) -> ExcitationConfig:
         lo, hi = self.band
         if not (1 <= lo <= hi <= self.period_samples // 2 - 1):
             raise ValueError(f"band {list(self.band)} must satisfy 1 <= lo <= hi <= period_samples//2 - 1 "
@@ -72,7 +71,7 @@ class LoopConfig(_Section):
     duration: float = Field(10.0, gt=0)
     realtime: bool = True                      # try SCHED_FIFO, affinity, mlockall, gc.freeze
     warmup_periods: int = Field(2, ge=0, le=20)  # excitation periods discarded before estimating
-    max_sleep_us: Optional[float] = Field(100.0, gt=0)  # longest single sleep while waiting for a tick
+    max_sleep_us: float | None = Field(100.0, gt=0)  # longest single sleep while waiting for a tick
                                                # (short sleeps keep a VM's vCPU from halting; scheduler.py)
     idle_poll: bool = True                     # real time, loop on its own CPU: a SCHED_IDLE thread keeps that
                                                # CPU busy while the loop sleeps (runtime/idle_poll.py); the
@@ -101,19 +100,19 @@ class EstimatorConfig(_Section):
     svf_hz: float = Field(800.0, ge=10)             # state-variable filter corner (passes the resonance); its
     #                                                 start-up computes ~6/(svf_hz * sample period) samples of it
     svf_memory_s: float = Field(0.05, gt=0)         # forgetting time constant of the per-sample estimate
-    svf_quanta: Optional[tuple[float, float]] = None  # rad (theta1, theta2) for bias compensation;
+    svf_quanta: tuple[float, float] | None = None  # rad (theta1, theta2) for bias compensation;
                                                     # None: from the backend's encoder and scale resolution
     # the model the loop also identifies per sample (rt_ident.estimators.friction): two-inertia (the
     # linear frequency fit alone), two-inertia-friction (adds Fc1, Fv1, Fc2, Fv2, offset) or
     # rigid-friction (J, Fv, Fc, offset); its friction feeds the controller ([control] friction_feedforward)
     model: Literal["two-inertia", "two-inertia-friction", "rigid-friction"] = "two-inertia"
-    friction_hz: Optional[float] = Field(None, ge=1)  # its filter corner; None: 800 Hz (two-inertia-friction:
+    friction_hz: float | None = Field(None, ge=1)  # its filter corner; None: 800 Hz (two-inertia-friction:
     #                                                   passes the resonance), 100 Hz (rigid-friction)
     friction_memory_s: float = Field(math.inf, gt=0, allow_inf_nan=True)  # its forgetting time constant (inf: none)
 
     @field_validator("svf_quanta")
     @classmethod
-    def _quanta_in_range(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+    def _quanta_in_range(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
         if v is not None and not all(0.0 <= q <= 0.1 for q in v):
             raise ValueError(f"must be two quanta in rad, each 0 .. 0.1 (a count of 1/63 rev at most), got {list(v)}")
         return v
@@ -127,7 +126,8 @@ class ControlConfig(_Section):
     bandwidth_hz: float = Field(20.0, ge=1)           # model controller (LQR on the identified model)
     effort: float = Field(1.0, ge=1e-6, le=1e6)       # torque weight multiplier: larger is gentler
     conservative_bandwidth_hz: float = Field(10.0, ge=1)  # rigid-body controller from [axis] I1 + I2 (at most)
-    conservative_load: float = Field(1.0, ge=1, le=100)  # it keeps its margins with I2 x this (a workpiece; docs/theory/control.md)
+    # it keeps its margins with I2 x this (a workpiece; docs/theory/control.md)
+    conservative_load: float = Field(1.0, ge=1, le=100)
     gain_margin_db: float = Field(6.0, ge=0)
     phase_margin_deg: float = Field(40.0, ge=0, lt=90)
     family_factors: tuple[float, ...] = (0.7, 1.3)    # each parameter x these must keep the margins
@@ -163,13 +163,13 @@ class PlantConfig(_Section):
     "thomson"``; handed to the sim backend as ``[backend] friction``)."""
 
     change: list[dict[str, float]] = Field(default_factory=list)  # {at = s, I1/I2/B/K = factor}
-    friction: Optional[dict[str, Any]] = None
+    friction: dict[str, Any] | None = None
     # the simulated device as it truly is where it differs from what the host is told: x0 = where the
     # table starts [m on the scale] (handed to the sim backend or the emulator as its x0)
-    actual: Optional[ActualPlant] = None
+    actual: ActualPlant | None = None
 
     @model_validator(mode="after")
-    def _friction_valid(self) -> "PlantConfig":
+    def _friction_valid(self) -> PlantConfig:
         if self.friction is not None:
             from rt_ident.axis.friction import Friction
 
@@ -187,21 +187,21 @@ class SafetyConfig(_Section):
     # N m: a motor encoder that does not move counts as stuck only while |torque| exceeds this. None: the
     # sim's configured breakaway torque Fs1 + Fs2 (both sides stick together), else 0 (any torque).
     # Set it to the breakaway torque of a real axis with friction.
-    stuck_torque: Optional[float] = Field(None, ge=0)
+    stuck_torque: float | None = Field(None, ge=0)
     # s the loop's last planned torque is held past the end of its plan (about two ticks ahead) before the
     # command drops to zero: a stalled host, or one without fresh feedback, leaves the axis coasting
     torque_hold: float = Field(0.005, ge=0)
     # a tick later than this is a loop stall (rt_ident.loop.stall): "resume" re-plans from where the
     # table is, "stop" stops safely; a stall longer than max_stall_stop_s always stops
-    max_stall_s: Optional[float] = Field(None, gt=0, allow_inf_nan=False)   # None: 10 ms, or the plan + lease + a tick
+    max_stall_s: float | None = Field(None, gt=0, allow_inf_nan=False)   # None: 10 ms, or the plan + lease + a tick
     on_stall: Literal["resume", "stop"] = "resume"
     max_stall_stop_s: float = Field(1.0, gt=0, allow_inf_nan=False)
     # m/s the table may move at (estimated from the scale); None: sized from the reference's speed, its
     # approach limits and the probing excitation's own motion (rt_ident.compose.preflight)
-    max_speed_m_s: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
+    max_speed_m_s: float | None = Field(None, gt=0, allow_inf_nan=False)
 
     @model_validator(mode="after")
-    def _stall_order(self) -> "SafetyConfig":
+    def _stall_order(self) -> SafetyConfig:
         if self.max_stall_s is not None and self.max_stall_stop_s < self.max_stall_s:
             raise ValueError(f"max_stall_stop_s: must be >= max_stall_s = {self.max_stall_s:g} s, "
                              f"got {self.max_stall_stop_s:g}")
@@ -224,21 +224,21 @@ class SafetyConfig(_Section):
 
 class TelemetryConfig(_Section):
     sink: Literal["rrd", "spawn", "connect", "serve", "off"] = "rrd"
-    rrd: Optional[str] = None
-    connect_url: Optional[str] = None
+    rrd: str | None = None
+    connect_url: str | None = None
     bind_ip: str = "127.0.0.1"
-    port: Optional[int] = Field(None, ge=1, le=65535)  # --serve / --spawn port; None: 9876, or a free one
+    port: int | None = Field(None, ge=1, le=65535)  # --serve / --spawn port; None: 9876, or a free one
     rate_hz: float = Field(1000.0, ge=1)        # angle/torque samples per second sent to the viewer
     publish_every_ticks: int = Field(20, ge=1)
 
 
 class RecordingConfig(_Section):
-    path: Optional[str] = None
+    path: str | None = None
     enabled: bool = True
 
 
 class RunConfig(_Section):
-    axis: Optional[dict[str, float]] = None
+    axis: dict[str, float] | None = None
     backend: BackendConfig = BackendConfig()
     emulator: dict[str, Any] = Field(default_factory=dict)
     excitation: ExcitationConfig = ExcitationConfig()
@@ -254,13 +254,13 @@ class RunConfig(_Section):
     # (axis, backend, estimator, control, safety, reference, plant, excitation) on this config
     axes: dict[str, dict[str, Any]] = Field(default_factory=dict)
     contour: dict[str, Any] = Field(default_factory=dict)   # [contour]: a coordinated XY reference
-    source: Optional[str] = None
+    source: str | None = None
     _defaulted: tuple[str, ...] = PrivateAttr(default=())    # set by load(): see the module docstring
 
     _AXIS_SECTIONS = ("axis", "backend", "emulator", "excitation", "estimator", "safety", "control", "reference",
                       "plant")
 
-    def axis_configs(self) -> dict[str, "RunConfig"]:
+    def axis_configs(self) -> dict[str, RunConfig]:
         """One validated config per ``[axes.NAME]`` (this config with the axis's sections laid over;
         a table merges key by key, ``reference`` and ``axis`` are replaced whole). Empty for a
         one-axis config. Errors name the field as ``axes.NAME.section.key``."""

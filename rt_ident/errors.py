@@ -26,3 +26,16 @@ class EstimationError(RtIdentError):
 
 class DataError(RtIdentError, ValueError):
     """Input data (a recording, a CSV, arrays) is malformed."""
+
+
+class MissingExtra(RtIdentError):
+    """A feature needs a package the core install leaves out (an optional extra of the project)."""
+
+
+def require(module: str, extra: str, what: str) -> None:
+    """Raise :class:`MissingExtra` in one line when ``module`` cannot be imported: ``what`` needs the
+    ``extra`` of ``pip install 'rt-ident[extra]'``."""
+    import importlib.util
+
+    if importlib.util.find_spec(module) is None:
+        raise MissingExtra(f"{what} needs {module}: pip install 'rt-ident[{extra}]' (or -e '.[{extra}]' in a checkout)")

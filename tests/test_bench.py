@@ -11,12 +11,12 @@ import json
 import numpy as np
 import pytest
 
-from rt_ident.config import from_mapping
-from rt_ident.estimators.rls import RecursiveLeastSquares
 from rt_ident.bench import kernels as bench
 from rt_ident.bench.kernels import bench_ls, bench_rls, bench_sim, filterpy_rls, numpy_rls, rls_data
 from rt_ident.bench.loop import _saturated, _steady_ok, loop_trial, trial_config
 from rt_ident.bench.report import print_report
+from rt_ident.config import from_mapping
+from rt_ident.estimators.rls import RecursiveLeastSquares
 
 
 def test_every_rls_peer_gives_our_answer_and_the_batch_ls_answer_on_the_same_data():
@@ -155,8 +155,8 @@ def test_soak_calls_rss_flat_only_within_five_percent(monkeypatch):
 def test_bench_soak_command_prints_the_memory_table(monkeypatch):
     from typer.testing import CliRunner
 
-    from rt_ident.cli import app
     from rt_ident.bench import loop as bench_loop
+    from rt_ident.cli import app
 
     fake = {"ok": True, "samples_per_s": 170001.0, "overruns": 0, "overruns_first_1s": 0,
             "lateness_us": {"p50": 0.1, "p99": 9.0, "max": 300.0}, "telemetry_dropped": 0,
@@ -171,8 +171,8 @@ def test_bench_soak_command_prints_the_memory_table(monkeypatch):
 def test_bench_loop_rates_option_is_parsed_sorted_and_bad_values_are_refused(monkeypatch):
     from typer.testing import CliRunner
 
-    from rt_ident.cli import app
     from rt_ident.bench import kernels as bench_mod
+    from rt_ident.cli import app
 
     seen = {}
     monkeypatch.setattr(bench_mod, "bench_main", lambda **kw: seen.update(kw))

@@ -58,7 +58,8 @@ def test_a_serial_board_that_dies_mid_run_is_reported_once_without_traceback(tmp
             emulation.start_emulator, run_mod.run = start, run
     """)
     res = subprocess.run([sys.executable, str(script), "run", str(REPO / "configs" / "serial-virtual.toml"),
-                          "--duration", "3", "--no-telemetry", "--no-realtime", "--record", str(tmp_path / "r.parquet")],
+                          "--duration", "3", "--no-telemetry", "--no-realtime",
+                          "--record", str(tmp_path / "r.parquet")],
                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=180)
     text = res.stdout + res.stderr
     assert res.returncode == 3, text[-3000:]

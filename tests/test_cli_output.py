@@ -10,8 +10,8 @@ import pytest
 from rich.console import Console
 
 from rt_ident import cli
-from rt_ident.axis.integrators import Newmark
 from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.integrators import Newmark
 from rt_ident.axis.params import thomson_x
 from rt_ident.estimators.frequency import fit_frequency
 
@@ -103,10 +103,9 @@ def test_help_shows_flags_without_a_bool_value(command, capsys, monkeypatch):
 
 
 def test_a_frequency_fit_carries_its_frf_view_with_model_and_band():
+    from rt_ident.axis.plant import HoldController, PlantSimulator
     from rt_ident.estimators.frequency import compute_spectra
     from rt_ident.estimators.streaming import fit_snapshot
-
-    from rt_ident.axis.plant import HoldController, PlantSimulator
 
     p, dt = thomson_x(), 2.9481e-5      # closed loop: periodic response, so Theta/T is the FRF
     ms = schroeder_multisine(512, (1, 60), peak=0.3)

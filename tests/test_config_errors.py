@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rt_ident.compose.preflight import preflight
 from rt_ident.config import TICK_HZ_RANGE, from_mapping, load
 from rt_ident.errors import ConfigError, DataError, RtIdentError
-from rt_ident.compose.preflight import preflight
 
 REPO = Path(__file__).resolve().parents[1]
 AXIS = {"I1": 2.7e-5, "I2": 8.3e-6, "B": 2.1e-3, "K": 110.0, "lead": 7.96e-4}

@@ -22,9 +22,9 @@ from unittest import mock
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
+from rt_ident.compose.preflight import preflight
 from rt_ident.config import RunConfig, from_mapping
 from rt_ident.errors import RtIdentError
-from rt_ident.compose.preflight import preflight
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 BASES = {name: tomllib.loads((CONFIGS / name).read_text())
@@ -37,7 +37,8 @@ SECTIONS = set(RunConfig.model_fields)
 KEYS = [("axis", k) for k in ("I1", "I2", "B", "K", "lead", "mass")] + \
     [("backend", k) for k in ("name", "emulate", "sample_period", "torque_limit", "rated_torque", "counts_per_rev",
                               "scale_resolution", "interface", "sync_rate_hz", "sample_rate_hz", "node_id",
-                              "torque_constant", "paced", "samples_per_read", "travel", "axis", "friction", "baudrate")] + \
+                              "torque_constant", "paced", "samples_per_read", "travel", "axis", "friction",
+                              "baudrate")] + \
     [("safety", k) for k in ("window", "max_decel", "watchdog_ticks", "stuck_torque", "torque_hold", "windw")] + \
     [("loop", k) for k in ("tick_hz", "duration", "warmup_periods", "max_sleep_us", "realtime", "compiled_tick")] + \
     [("excitation", k) for k in ("kind", "period_samples", "band", "peak", "seed")] + \

@@ -9,8 +9,7 @@ import pytest
 
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.control.adaptation import ControlSettings, redesign
-from rt_ident.control.design import (check_family, design_lqr, design_rigid, loop_margins, plant_family,
-                                     sampled_model)
+from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_margins, plant_family, sampled_model
 from rt_ident.control.law import Controller, StateFeedback
 from rt_ident.errors import ConfigError
 

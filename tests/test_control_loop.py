@@ -9,11 +9,11 @@ import pytest
 
 from drivers.base import SampleBlock
 from rt_ident.axis.params import CONFIG_DIR, thomson_x
+from rt_ident.compose import run as run_mod
+from rt_ident.compose.offline import run_offline
 from rt_ident.config import load
 from rt_ident.control import ControlFallbackStop, ControlSettings, Supervisor
 from rt_ident.control.reference import Hold
-from rt_ident.compose import run as run_mod
-from rt_ident.compose.offline import run_offline
 
 P = thomson_x()
 FAST = {"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False}
@@ -256,7 +256,8 @@ def test_stale_feedback_without_a_lease_holds_the_last_torque_until_the_watchdog
 
     kf = AxisStateEstimator(backend.sample_period, 2 * math.pi / 2**17, 1e-7 / P.lead, 1e9)
     loop = IdentificationLoop(backend, tick_hz=1000, excitation=lambda s: np.zeros(s.shape), state_estimator=kf,
-                              estimator=_Est(), safety=SafetyMonitor(lead=P.lead, window=(-0.04, 0.04), max_decel=1e4, watchdog_ticks=20), duration=1.0,
+                              estimator=_Est(), duration=1.0,
+                              safety=SafetyMonitor(lead=P.lead, window=(-0.04, 0.04), max_decel=1e4, watchdog_ticks=20),
                               control=ctl)
     with backend:
         backend.activate()

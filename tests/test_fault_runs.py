@@ -12,8 +12,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from rt_ident.axis.params import CONFIG_DIR
-from rt_ident.config import load
 from rt_ident.compose import run as run_mod
+from rt_ident.config import load
 from rt_ident.processes.recorder import read_recording
 
 COLUMNS = {"t", "seq", "theta1", "theta2", "torque_cmd", "torque_meas"}

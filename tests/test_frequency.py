@@ -23,10 +23,17 @@ from rt_ident.axis.modal import modal_parameters
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError, DataError, EstimationError
-from rt_ident.estimators.consistent import fit_tustin_angles
 from rt_ident.estimators import frequency_stream as fstream
-from rt_ident.estimators.frequency import (SpectraSums, compute_spectra, detect_period, fit_frequency, leak_features,
-                                           leak_window, sums_layout)
+from rt_ident.estimators.consistent import fit_tustin_angles
+from rt_ident.estimators.frequency import (
+    SpectraSums,
+    compute_spectra,
+    detect_period,
+    fit_frequency,
+    leak_features,
+    leak_window,
+    sums_layout,
+)
 from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator, rdft_accumulate, rdft_accumulate_py
 
 FAST, SLOW = (2.9481e-5, 4096), (2.5e-4, 1024)    # (dt, period N) at 34 kHz and 4 kHz

@@ -236,8 +236,8 @@ def test_two_inertia_models_need_theta2():
 
 # ----------------------------------------------------------------------------- controller
 def test_friction_feedforward_shrinks_the_reversal_spikes_of_a_sine():
-    from rt_ident.control.feedforward import FrictionFeedforward
     from rt_ident.compose.offline import run_offline
+    from rt_ident.control.feedforward import FrictionFeedforward
 
     fr = thomson_friction()
     ff = FrictionFeedforward(Fc=fr.Fc1 + fr.Fc2, Fv=fr.Fv1 + fr.Fv2)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from rt_ident.axis.friction import thomson_friction
-from rt_ident.config import load
 from rt_ident.compose.offline import run_offline
+from rt_ident.config import load
 
 
 def _run(ff: bool, seconds: float = 4.0):

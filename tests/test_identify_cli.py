@@ -97,7 +97,7 @@ def test_absurd_torque_and_non_utf8_csv_are_one_line_errors_not_tracebacks(tmp_p
     rows[:, 1] *= 1e300                                   # torque x 1e300 (a unit mix-up gone wild)
     np.savetxt(big, rows, delimiter=",", header="t,torque,theta2,theta1,command", comments="")
     latin = tmp_path / "latin.csv"
-    latin.write_bytes("t,theta1,theta2,torque\n".encode() + "0,1,2,\xe9\n".encode("latin-1"))
+    latin.write_bytes(b"t,theta1,theta2,torque\n" + "0,1,2,\xe9\n".encode("latin-1"))
     for f, needle in ((big, "beyond any plausible value"), (latin, "not UTF-8")):
         p = subprocess.run([sys.executable, "-m", "rt_ident", "identify", str(f)], capture_output=True, text=True,
                            timeout=120)

@@ -9,11 +9,11 @@ import time
 
 import pytest
 
-from rt_ident.config import load
 from rt_ident.compose import run as run_mod
+from rt_ident.compose.run import run as run_axes
+from rt_ident.config import load
 from rt_ident.loop.host import loop_cpu
 from rt_ident.loop.idle_poll import IdlePoller
-from rt_ident.compose.run import run as run_axes
 
 QUIET = {"telemetry.sink": "off", "recording.enabled": False}
 
@@ -200,7 +200,8 @@ def _record_order(monkeypatch) -> list[str]:
         return stop(self, *a, **k)
 
     def recorded_final_fit(*a, **k):
-        events.append(f"final fit {'FIFO' if os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO else 'not FIFO'}"
+        fifo = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
+        events.append(f"final fit {'FIFO' if fifo else 'not FIFO'}"
                       f" on {sorted(os.sched_getaffinity(0))}")
         return final_fit(*a, **k)
 

@@ -1,4 +1,5 @@
-"""The folder layout's import directions (docs/development.md "Layout"), checked by import-linter's contracts in pyproject.toml."""
+"""The folder layout's import directions (docs/development.md "Layout"), checked by import-linter's contracts in
+pyproject.toml."""
 
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ def test_no_module_imports_another_modules_private_names():
     for path in sorted([*(ROOT / "rt_ident").rglob("*.py"), *(ROOT / "drivers").rglob("*.py")]):
         tree = ast.parse(path.read_text(), filename=str(path))
         for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in ("rt_ident", "drivers"):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in ("rt_ident", "drivers"):
                 for alias in node.names:
                     if alias.name.startswith("_") and not alias.name.startswith("__"):
                         offenders.append(f"{path.relative_to(ROOT)}: from {node.module} import {alias.name}")

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rt_ident import config
-from rt_ident.reports.identify import identify_file
-from rt_ident.processes.recorder import read_recording
 from rt_ident.compose.run import run
+from rt_ident.processes.recorder import read_recording
+from rt_ident.reports.identify import identify_file
 
 PARAMS = ("I1", "I2", "B", "K", "wn", "wd", "zeta")
 
@@ -177,7 +177,9 @@ def test_helpers_are_niced_in_every_thread_but_an_emulated_device_keeps_its_prio
 
     from rt_ident.loop.host import keep_off_loop_cpu
 
-    code = "import threading, time\nfor _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\ntime.sleep(30)"
+    code = ("import threading, time\n"
+            "for _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
+            "time.sleep(30)")
     helper = subprocess.Popen([sys.executable, "-c", code])
     device = subprocess.Popen([sys.executable, "-c", code])
     try:

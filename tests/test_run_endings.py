@@ -96,8 +96,8 @@ def test_kill_9_of_the_main_process_leaves_no_orphan_and_a_finished_recording(tm
 def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_path):
     import multiprocessing as mp
 
-    from rt_ident.config import load
     from rt_ident.compose import run as run_mod
+    from rt_ident.config import load
 
     killed = []
     before = {p.pid for p in mp.active_children()}       # helpers of earlier tests are not this run's

@@ -13,10 +13,10 @@ import pytest
 from typer.testing import CliRunner
 
 from rt_ident.cli import app
+from rt_ident.compose import run as run_mod
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
 from rt_ident.outputs import paths as outputs
-from rt_ident.compose import run as run_mod
 from rt_ident.processes.recorder import read_recording
 
 runner = CliRunner()
@@ -85,9 +85,9 @@ def test_bad_paths_and_methods_fail_in_one_line_before_anything_starts(tmp_path,
 
 
 def test_a_run_that_fails_before_any_sample_says_why_once_and_leaves_no_file(tmp_path):
-    from rt_ident.axis.params import CONFIG_DIR
-
     import re
+
+    from rt_ident.axis.params import CONFIG_DIR
 
     text = re.sub(r"^emulate = true", 'emulate = false\nport = "/dev/ttyNOPE"',
                   (CONFIG_DIR / "serial-virtual.toml").read_text(), flags=re.M)

@@ -109,8 +109,8 @@ def test_step_ahead_does_nothing_unpaced_or_before_activation():
 
 
 def test_a_paced_run_steps_the_sim_ahead_and_reports_that_apart_from_the_tick_work():
-    from rt_ident.config import load
     from rt_ident.compose import run as run_mod
+    from rt_ident.config import load
 
     s = run_mod.run(load(None, **{"loop.duration": 0.5, "loop.realtime": False, "telemetry.sink": "off",
                                   "recording.enabled": False, "backend.paced": True}))

@@ -8,9 +8,9 @@ import re
 import numpy as np
 import pytest
 
+from rt_ident.compose.offline import run_offline
 from rt_ident.config import load
 from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator
-from rt_ident.compose.offline import run_offline
 from rt_ident.loop.stall import StallLog, StallPolicy
 
 FAST = {"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False, "loop.duration": 4.0}

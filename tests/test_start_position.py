@@ -9,12 +9,12 @@ import pytest
 
 from drivers import make_backend
 from rt_ident import config
-from rt_ident.control.anchor import DEFAULT_LIMITS, rejoin
-from rt_ident.errors import ConfigError
-from rt_ident.compose.offline import run_offline
 from rt_ident.compose.build import max_speed, probe_motion
+from rt_ident.compose.offline import run_offline
 from rt_ident.compose.preflight import check_config
 from rt_ident.compose.run import run
+from rt_ident.control.anchor import DEFAULT_LIMITS, rejoin
+from rt_ident.errors import ConfigError
 from rt_ident.loop.safety import SafetyMonitor
 
 LEAD = 7.96e-4
@@ -88,7 +88,8 @@ def test_a_start_outside_the_window_is_refused_before_the_device_is_enabled(monk
 
     real = SimBackend._activate
     monkeypatch.setattr(SimBackend, "_activate", lambda self: (activated.append(1), real(self)))
-    with pytest.raises(ConfigError, match=r"safety.window: the table is at 0.000 mm, outside safety.window \[10.000, 40.000\] mm"):
+    outside = r"safety.window: the table is at 0.000 mm, outside safety.window \[10.000, 40.000\] mm"
+    with pytest.raises(ConfigError, match=outside):
         run(cfg(safety__window=[0.01, 0.04]))
     assert activated == []
 
@@ -133,8 +134,8 @@ def test_the_speed_limit_trips_on_a_table_faster_than_it():
 @pytest.mark.parametrize("name", ["sim", "serial", "canopen"])
 def test_every_device_reports_where_the_table_starts_before_it_is_enabled(name):
     """[plant.actual] x0 reaches the sim and both emulators, and each backend reads it before enabling."""
-    from rt_ident.processes.emulation import start_emulator
     from rt_ident.compose.build import backend_options
+    from rt_ident.processes.emulation import start_emulator
 
     path = {"sim": None, "serial": "serial-virtual.toml", "canopen": "canopen-virtual.toml"}[name]
     c = config.load(path, **{"loop.realtime": False})

@@ -11,12 +11,12 @@ import pytest
 from rt_ident.axis.excitation import schroeder_multisine
 from rt_ident.axis.params import AxisParams
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.bench import estimator as svf_bench
 from rt_ident.config import from_mapping, load
 from rt_ident.control.adaptation import ControlSettings, Supervisor
 from rt_ident.control.reference import Hold
 from rt_ident.errors import ConfigError
 from rt_ident.estimators.svf import SvfEstimator, SvfSettings, make_svf, regressor_noise
-from rt_ident.bench import estimator as svf_bench
 
 P = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110.0)
 DT = 2.9481e-5
@@ -105,7 +105,8 @@ def _short(**over):
 
 
 def test_svf_bias_on_bench_like_closed_loop_data_is_small():
-    # quantized encoder and scale, torque noise, the host's loop closed, moves: tight figures in rt-ident bench estimator
+    # quantized encoder and scale, torque noise, the host's loop closed, moves: tight figures in rt-ident bench
+    # estimator
     r = svf_bench.bias_trial(_short(), duration=3.0)
     assert r["stop"] is None
     for k, v in r["bias"].items():

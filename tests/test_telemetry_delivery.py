@@ -84,11 +84,11 @@ def test_rrd_beside_a_live_sink_is_refused_in_one_line_and_writes_nothing(tmp_pa
     cfg = tmp_path / "c.toml"                           # a config asking for both
     cfg.write_text(f'[backend]\nname = "sim"\n[telemetry]\nsink = "connect"\nrrd = "{rrd}"\n'
                    'connect_url = "rerun+http://127.0.0.1:9/proxy"\n')
-    res = subprocess.run([sys.executable, "-m", "rt_ident", "run", str(cfg), "--duration", "0.5"], cwd=tmp_path, env=env,
-                         capture_output=True, text=True, timeout=120)
+    res = subprocess.run([sys.executable, "-m", "rt_ident", "run", str(cfg), "--duration", "0.5"], cwd=tmp_path,
+                         env=env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2
-    assert res.stderr.strip().splitlines() == [f'error: telemetry.rrd: telemetry.sink = "connect" streams the dashboard '
-                                               f"to a viewer, so {rrd} would not be written; drop telemetry.rrd, or drop "
-                                               'telemetry.sink = "connect" to write the file (a live dashboard is saved '
-                                               "from the viewer)"]
+    assert res.stderr.strip().splitlines() == [
+        f'error: telemetry.rrd: telemetry.sink = "connect" streams the dashboard to a viewer, so {rrd} would not be '
+        'written; drop telemetry.rrd, or drop telemetry.sink = "connect" to write the file (a live dashboard is saved '
+        "from the viewer)"]
     assert not rrd.exists() and not (tmp_path / "runs").exists()

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rt_ident.config import load
 from rt_ident.compose import offline
+from rt_ident.config import load
 from rt_ident.loop import tick_core as tc
 from rt_ident.loop import tick_kernel as tk
 from rt_ident.processes.recorder import _block_message
@@ -254,7 +254,7 @@ def test_the_kernels_snapshot_message_is_the_python_paths_for_the_fit_worker():
     keys = np.concatenate([key_words(k) for k in ("harmonics", "sums", "quantum", "scalars", "codec")])
     name = b"SpectraSums"
     codec = np.frombuffer(name.ljust(16, b"\0"), dtype=np.int64)
-    for it in range(30):                     # through wraps of the 16 kB ring
+    for _it in range(30):                     # through wraps of the 16 kB ring
         H = 20
         ss = SpectraSums(np.arange(1, H + 1), 512, 2.9e-5, rng.normal(size=(3, H)) + 1j * rng.normal(size=(3, H)),
                          rng.normal(size=(H, 3, 3)) + 1j * rng.normal(size=(H, 3, 3)), 3.0, 2.5, 3, rng.normal(size=2))

@@ -16,8 +16,13 @@ from typer.testing import CliRunner
 
 from rt_ident.axis.params import thomson_x
 from rt_ident.cli import app
-from rt_ident.estimators.uncertainty import (build_identification, excitation_report, excited_bands,
-                                             interval_criterion, resonance_criterion)
+from rt_ident.estimators.uncertainty import (
+    build_identification,
+    excitation_report,
+    excited_bands,
+    interval_criterion,
+    resonance_criterion,
+)
 from rt_ident.reports.identify import identify_file
 
 runner = CliRunner()
@@ -30,8 +35,8 @@ def _good_pe():
 
 def _run_recording(path, seconds: float = 1.0):
     """A recording of the default sim run, made by the loop's own code on virtual time."""
-    from rt_ident.config import load
     from rt_ident.compose.offline import run_offline
+    from rt_ident.config import load
 
     cfg = load(None, **{"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False,
                         "loop.duration": seconds})

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rt_ident.config import load
-from rt_ident.errors import ConfigError
 from rt_ident.compose import run as run_mod
 from rt_ident.compose.run import run as run_axes
+from rt_ident.config import load
+from rt_ident.errors import ConfigError
 
 
 def _xy(**over):
@@ -76,7 +76,8 @@ def test_a_watchdog_trip_on_either_axis_names_that_axis_when_both_have_the_same_
 
     cfg = _xy(**{"loop.duration": 3.0})
     silent_seed = {"x": 0, "y": 1}[axis]                             # configs/xy-sim.toml: y's sim has seed 1
-    assert cfg.axis_configs()["y"].backend.options()["seed"] == 1 and "seed" not in cfg.axis_configs()["x"].backend.options()
+    axes = cfg.axis_configs()
+    assert axes["y"].backend.options()["seed"] == 1 and "seed" not in axes["x"].backend.options()
     assert cfg.axis_configs()["x"].safety == cfg.axis_configs()["y"].safety
     real_read = SimBackend._read
     reads: dict[int, int] = {}

@@ -17,10 +17,10 @@ from drivers.cia402.drive import Cia402Backend
 from drivers.cia402.emulator import start_emulator_for
 from drivers.cia402.node import BusConnection
 from drivers.cia402.stream import ECHO, MARK, SKIP, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
-from rt_ident.config import load
-from rt_ident.errors import ConfigError
 from rt_ident.compose import run as run_mod
 from rt_ident.compose.run import run as run_axes
+from rt_ident.config import load
+from rt_ident.errors import ConfigError
 from tests.test_canopen_backend import assert_drive_safe, backend_cfg
 
 TPDO1, TPDO2 = 0x185, 0x285

@@ -76,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-n", "--runs", type=int, default=10)
     ap.add_argument("--config", default=None, help="run config (default: the quick start's)")
     ap.add_argument("--duration", type=float, default=None, help="seconds per run (default: the config's)")
-    ap.add_argument("--hogs", type=int, default=os.cpu_count() or 1, help="busy loops beside the runs (default: one a core)")
+    ap.add_argument("--hogs", type=int, default=os.cpu_count() or 1,
+                    help="busy loops beside the runs (default: one a core)")
     ap.add_argument("--stall-ms", type=float, default=0.0,
                     help="also a SCHED_FIFO process that takes the loop's CPU this long every 2 s (needs root)")
     ap.add_argument("--json", action="store_true")

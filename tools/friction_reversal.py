@@ -28,10 +28,10 @@ import numpy as np
 from rt_ident.axis.friction import thomson_friction
 from rt_ident.axis.params import thomson_x
 from rt_ident.axis.plant import PlantSimulator, SensorConfig
+from rt_ident.compose.offline import run_offline
 from rt_ident.config import from_mapping
 from rt_ident.control.feedforward import FrictionFeedforward
 from rt_ident.estimators.friction import fit_friction
-from rt_ident.compose.offline import run_offline
 
 DT = 2.9481e-5
 

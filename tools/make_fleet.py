@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from rt_ident.axis.params import thomson_x
+from rt_ident.compose.offline import run_offline
 from rt_ident.config import load
 from rt_ident.fleet.manifest import Entry, write_manifest
-from rt_ident.compose.offline import run_offline
 
 K_PER_DAY = -0.005
 B_PER_DAY = 0.02
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     axes = [a.strip() for a in args.axes.split(",") if a.strip()]
     rec_dir = args.out / "recordings"
     rec_dir.mkdir(parents=True, exist_ok=True)
-    day0 = dt.datetime.fromisoformat(args.start).replace(hour=6, tzinfo=dt.timezone.utc)
+    day0 = dt.datetime.fromisoformat(args.start).replace(hour=6, tzinfo=dt.UTC)
     nominal = thomson_x()
     series = [(f"m{i + 1:02d}", a) for i in range(args.machines) for a in axes]
     n_worn = int(round(args.worn * len(series)))

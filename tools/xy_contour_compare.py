@@ -16,8 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from rt_ident.config import load
 from rt_ident.compose.run import run as run_axes
+from rt_ident.config import load
 
 
 def _run(mode: str, args) -> dict:
@@ -35,7 +35,8 @@ def _run(mode: str, args) -> dict:
     return {"mode": mode, "stop": s["stop"]["cause"],
             "G_ccw_um": (c.get("ccw") or {}).get("G_um"), "G_cw_um": (c.get("cw") or {}).get("G_um"),
             "H_um": c.get("H_um"),
-            "rms_error_um": {n: 1e6 * (ax["control"].get("rms_error_m") or float("nan")) for n, ax in s["axes"].items()},
+            "rms_error_um": {n: 1e6 * (ax["control"].get("rms_error_m") or float("nan"))
+                             for n, ax in s["axes"].items()},
             "redesigns_y": (s["axes"]["y"]["control"].get("redesigns") or {}).get("accepted")}
 
 

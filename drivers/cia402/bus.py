@@ -21,7 +21,8 @@ from __future__ import annotations
 import errno
 import socket
 import struct
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import can
 from can import CanProtocol

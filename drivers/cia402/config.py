@@ -8,9 +8,10 @@ naming the field, e.g. ``backend.sync_rate_hz: 10000 Hz needs ...``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -33,13 +34,13 @@ class Cia402Config(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    name: Optional[str] = None                      # registry name, ignored here
+    name: str | None = None                      # registry name, ignored here
     emulate: bool = False                           # read by the loop, ignored here
     # python-can bus (python-can's own option names)
     interface: str = "socketcan"
     channel: str = "can0"
     bitrate: int = Field(1_000_000, gt=0, le=1_000_000)    # bit/s (CAN 2.0: at most 1 Mbit/s)
-    port: Optional[int] = Field(None, ge=1, le=65535)      # udp_multicast only
+    port: int | None = Field(None, ge=1, le=65535)      # udp_multicast only
     bus_options: dict[str, Any] = Field(default_factory=dict)  # further can.Bus keyword arguments
     # CANopen
     node_id: int = Field(..., ge=1, le=127)
@@ -49,8 +50,8 @@ class Cia402Config(BaseModel):
     max_bus_load: float = Field(0.8, gt=0, le=0.95)  # refuse rates whose worst-case load exceeds this
     # torque
     torque_limit: float = Field(..., gt=0)          # N m, host-side clamp (drivers.base)
-    rated_torque: Optional[float] = Field(None, gt=0)  # N m; None: read 0x6076 (mN m) from the drive
-    max_torque_permille: Optional[int] = Field(None, ge=1, le=65535)  # 0x6072; None: from torque_limit
+    rated_torque: float | None = Field(None, gt=0)  # N m; None: read 0x6076 (mN m) from the drive
+    max_torque_permille: int | None = Field(None, ge=1, le=65535)  # 0x6072; None: from torque_limit
     # positions
     counts_per_rev: int = Field(..., gt=0)          # motor encoder (0x6064) counts per revolution
     scale_index: int = Field(0x60E4, ge=0x1000, le=0xFFFF)  # table linear scale object
@@ -59,19 +60,19 @@ class Cia402Config(BaseModel):
     lead: float = Field(7.96e-4, gt=0)              # m/rad: theta2 = x / lead
     # supervision
     heartbeat_ms: int = Field(100, ge=1, le=65535)  # producer time of the drive (0x1017) and of this host
-    heartbeat_consumer_ms: Optional[int] = Field(None, ge=1, le=65535)  # None: 3 x heartbeat_ms
+    heartbeat_consumer_ms: int | None = Field(None, ge=1, le=65535)  # None: 3 x heartbeat_ms
     sdo_timeout: float = Field(0.5, gt=0, le=10)    # s per SDO request
     stale_limit: int = Field(10, ge=1)              # consecutive samples without fresh TPDO data tolerated
-    stuck_torque_min: Optional[float] = Field(None, ge=0)  # N m applied + frozen encoder = stuck; None: 5 %
+    stuck_torque_min: float | None = Field(None, ge=0)  # N m applied + frozen encoder = stuck; None: 5 %
     #                                                       of torque_limit
     startup_timeout: float = Field(2.0, gt=0, le=60)  # s from NMT OPERATIONAL to OPERATION ENABLED
     stop_timeout: float = Field(0.2, gt=0, le=5)    # s per safe-stop step (quick stop, disable)
     # the SYNC sender thread waits for the GIL at each deadline for up to the interpreter's switch
     # interval; while active the backend lowers it to this (restored when the SYNCs stop); None: untouched
-    gil_switch_interval_us: Optional[float] = Field(50.0, ge=5, le=5000)
+    gil_switch_interval_us: float | None = Field(50.0, ge=5, le=5000)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Cia402Config":
+    def _consistent(self) -> Cia402Config:
         if not math.isfinite(self.torque_limit):
             raise ValueError("torque_limit must be finite for a CANopen drive")
         if self.scale_index == 0x60E4 and self.scale_subindex == 0:

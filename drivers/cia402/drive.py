@@ -24,7 +24,8 @@ import logging
 import math
 import struct
 import time
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -247,7 +248,7 @@ class Cia402Backend(Backend):
         if n == 0:
             return SampleBlock.empty(with_measured=True)
         sw = rows["sw"]
-        for i, word in enumerate(sw):
+        for _i, word in enumerate(sw):
             if p402.decode_state(word) != p402.OPERATION_ENABLED:
                 self.statusword = word
                 raise DeviceFault(f"node {self.config.node_id} left OPERATION ENABLED: state "

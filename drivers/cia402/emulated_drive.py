@@ -36,8 +36,9 @@ import random
 import struct
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Any, Literal
 
 import canopen
 import numpy as np
@@ -83,7 +84,7 @@ class EmulatedCia402Drive:
     """
 
     def __init__(self, node_id: int, eds_path: str | Path, bus: Mapping[str, Any], plant: PlantSimulator,
-                 faults: FaultConfig = FaultConfig(), *, counts_per_rev: int = 2**17,
+                 faults: FaultConfig | None = None, *, counts_per_rev: int = 2**17,
                  scale_resolution: float = 1e-7, scale_index: int = 0x60E4, scale_subindex: int = 1,
                  rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto") -> None:
         if not 1 <= int(node_id) <= 127:
@@ -92,7 +93,7 @@ class EmulatedCia402Drive:
         self.eds_path = Path(eds_path)
         self.bus_kwargs = dict(bus)
         self.plant = plant
-        self.faults = faults
+        self.faults = faults if faults is not None else FaultConfig()
         self.counts_per_rev = int(counts_per_rev)
         self.scale_resolution = float(scale_resolution)
         self.scale_key = (int(scale_index), int(scale_subindex))
@@ -112,7 +113,7 @@ class EmulatedCia402Drive:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._rng = random.Random(faults.seed)
+        self._rng = random.Random(self.faults.seed)
         # drive state (guarded by _lock: the receive thread and the worker both touch it)
         self._state = p402.NOT_READY
         self._prev_cw = 0
@@ -167,7 +168,7 @@ class EmulatedCia402Drive:
                     "answer_time": dict(zip(edges, self.answer_us))}
 
     # ----- lifecycle --------------------------------------------------------------------
-    def start(self) -> "EmulatedCia402Drive":
+    def start(self) -> EmulatedCia402Drive:
         if self._net is not None:
             return self
         self.plant.step_block(np.empty(0))            # compile the plant kernel before going on the bus
@@ -230,7 +231,7 @@ class EmulatedCia402Drive:
             if self._state in (p402.OPERATION_ENABLED, p402.QUICK_STOP_ACTIVE, p402.SWITCHED_ON):
                 self._set_state(p402.SWITCH_ON_DISABLED)
 
-    def __enter__(self) -> "EmulatedCia402Drive":
+    def __enter__(self) -> EmulatedCia402Drive:
         return self.start()
 
     def __exit__(self, *exc: Any) -> None:

@@ -20,7 +20,7 @@ import sys
 import threading
 import tomllib
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
@@ -37,28 +37,28 @@ class EmulatorConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    eds: Optional[str] = None                      # the drive's own EDS; None: the backend's
-    node_id: Optional[int] = Field(None, ge=1, le=127)  # None: the backend's
-    rated_torque: Optional[float] = Field(None, gt=0)   # N m (0x6076); None: backend's or the EDS default
+    eds: str | None = None                      # the drive's own EDS; None: the backend's
+    node_id: int | None = Field(None, ge=1, le=127)  # None: the backend's
+    rated_torque: float | None = Field(None, gt=0)   # N m (0x6076); None: backend's or the EDS default
     position_hold: bool = False                    # a drive-side position loop under the CST torque
-    kp: Optional[float] = Field(None, ge=0)
-    kd: Optional[float] = Field(None, ge=0)
+    kp: float | None = Field(None, ge=0)
+    kd: float | None = Field(None, ge=0)
     angle_noise: float = Field(0.0, ge=0)          # rad rms
     torque_meas_noise: float = Field(0.0, ge=0)    # N m rms on 0x6077
     torque_process_noise: float = Field(0.0, ge=0)  # N m rms on the applied torque
-    torque_limit: Optional[float] = Field(None, gt=0)  # N m peak of the power stage; None: backend's limit
-    travel: Optional[tuple[float, float]] = (-0.05, 0.05)  # m on the scale; outside -> fault 0x8612
+    torque_limit: float | None = Field(None, gt=0)  # N m peak of the power stage; None: backend's limit
+    travel: tuple[float, float] | None = (-0.05, 0.05)  # m on the scale; outside -> fault 0x8612
     integrator: Literal["zoh", "newmark"] = "zoh"
-    poll_us: Optional[float] = Field(None, ge=0)   # receive poll period; None: 100 us on udp_multicast,
+    poll_us: float | None = Field(None, ge=0)   # receive poll period; None: 100 us on udp_multicast,
     #                                                blocking in-process (see drivers.cia402.frames.FrameIO)
     seed: int = Field(0, ge=0)
     faults: dict[str, Any] = Field(default_factory=dict)
-    friction: Optional[dict[str, Any]] = None       # rt_ident.axis.friction.Friction keys or preset = "thomson"
+    friction: dict[str, Any] | None = None       # rt_ident.axis.friction.Friction keys or preset = "thomson"
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: where the table starts (at rest)
 
     @field_validator("travel")
     @classmethod
-    def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+    def _travel_ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
         if v is not None and not v[0] < v[1]:
             raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
         return v
@@ -82,7 +82,7 @@ def _eds_path(name: str) -> Path:
     return p
 
 
-def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
+def build_emulator_for(config: Any) -> EmulatedCia402Drive:
     """Construct (not start) the emulated drive a run configuration describes."""
     from drivers.cia402.config import validate
     from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig, rest_at
@@ -94,7 +94,8 @@ def build_emulator_for(config: Any) -> "EmulatedCia402Drive":
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        raise ConfigError(f"emulator.{loc}" if loc else "emulator", str(err["msg"]).removeprefix("Value error, ")) from None
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        raise ConfigError(f"emulator.{loc}" if loc else "emulator", msg) from None
     if abs(axis.lead - cfg.lead) > 1e-12 * axis.lead:
         log.warning("emulator: axis lead %g differs from backend.lead %g", axis.lead, cfg.lead)
     sensors = SensorConfig(counts_per_rev=cfg.counts_per_rev, scale_resolution=cfg.scale_resolution,
@@ -133,7 +134,7 @@ class EmulatedDrives:
     def node_id(self) -> str:
         return "+".join(str(d.node_id) for d in self.drives)
 
-    def start(self) -> "EmulatedDrives":
+    def start(self) -> EmulatedDrives:
         started = []
         try:
             for d in self.drives:
@@ -154,14 +155,14 @@ class EmulatedDrives:
     def __getitem__(self, node_id: int) -> EmulatedCia402Drive:
         return next(d for d in self.drives if d.node_id == node_id)
 
-    def __enter__(self) -> "EmulatedDrives":
+    def __enter__(self) -> EmulatedDrives:
         return self.start()
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
 
 
-def start_emulator_for(config: Any) -> "EmulatedCia402Drive | EmulatedDrives":
+def start_emulator_for(config: Any) -> EmulatedCia402Drive | EmulatedDrives:
     """Build and start the emulated drive for a run configuration.
 
     ``config``: a mapping with ``backend`` (the canopen backend options), optional

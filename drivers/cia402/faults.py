@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import math
 import random
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any, Mapping, Optional
+from typing import Any
 
 from rt_ident.errors import ConfigError
 
@@ -39,10 +40,10 @@ class FaultConfig:
     drop_tpdo_every: int = 0
     delay_tpdo_s: float = 0.0
     corrupt_tpdo_every: int = 0
-    emcy_at_sample: Optional[int] = None
+    emcy_at_sample: int | None = None
     emcy_code: int = 0x2310
-    heartbeat_stop_at_s: Optional[float] = None
-    stuck_encoder_at_sample: Optional[int] = None
+    heartbeat_stop_at_s: float | None = None
+    stuck_encoder_at_sample: int | None = None
     garbage_frames_per_sync: int = 0
     seed: int = 0
 
@@ -79,7 +80,7 @@ class FaultConfig:
                 for _ in range(self.garbage_frames_per_sync)]
 
     @classmethod
-    def from_mapping(cls, data: Mapping[str, Any] | None) -> "FaultConfig":
+    def from_mapping(cls, data: Mapping[str, Any] | None) -> FaultConfig:
         data = dict(data or {})
         known = {f.name for f in fields(cls)}
         for key in data:

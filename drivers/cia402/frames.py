@@ -17,7 +17,8 @@ import socket
 import struct
 import threading
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import can
 
@@ -106,7 +107,7 @@ class FrameIO:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def open(self) -> "FrameIO":
+    def open(self) -> FrameIO:
         """The duplicate socket (udp_multicast; idempotent). :meth:`start` and :meth:`pump` call it."""
         if self.udp and self._sock is None:
             import msgpack
@@ -123,7 +124,7 @@ class FrameIO:
             self._sock = sock
         return self
 
-    def start(self) -> "FrameIO":
+    def start(self) -> FrameIO:
         """Read in a thread (it inherits the creating thread's CPU set and scheduling)."""
         if self.running:
             return self

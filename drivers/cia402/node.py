@@ -20,7 +20,8 @@ import struct
 import sys
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
@@ -62,7 +63,7 @@ class BusConnection:
     deque can tell the SYNCs sent before its channel joined from its own (``(ECHO, t, n)``).
     """
 
-    _open: dict[tuple, "BusConnection"] = {}
+    _open: dict[tuple, BusConnection] = {}
     _registry = threading.Lock()
 
     def __init__(self, cfg: Cia402Config) -> None:
@@ -85,7 +86,7 @@ class BusConnection:
         return (kw.get("interface"), str(kw.get("channel")), kw.get("port"))
 
     @classmethod
-    def acquire(cls, cfg: Cia402Config) -> "BusConnection":
+    def acquire(cls, cfg: Cia402Config) -> BusConnection:
         """The open connection to ``cfg``'s bus, opened now if it is not; one reference more."""
         with cls._registry:
             conn = cls._open.get(cls.key_of(cfg))

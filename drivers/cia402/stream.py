@@ -46,7 +46,7 @@ import os
 import struct
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -191,7 +191,7 @@ class SyncSender:
 
     @classmethod
     def for_channel(cls, send: Callable[[int, bytes], None], period: float, channel: RpdoChannel,
-                    sent_before: int = 0, heartbeat: tuple[int, int] | None = None) -> "SyncSender":
+                    sent_before: int = 0, heartbeat: tuple[int, int] | None = None) -> SyncSender:
         sender = cls(send, period, channel.sink, channel.plan, channel.encode, channel.rpdo_cob,
                      sent_before=sent_before, heartbeat=heartbeat)
         sender.primary = channel
@@ -215,7 +215,7 @@ class SyncSender:
         """Channels sending now or about to (joins and leaves not yet applied counted)."""
         with self._lock:
             n = len(self._channels)
-            for join, ch in self._changes:
+            for join, _ch in self._changes:
                 n += 1 if join else -1
             return n
 

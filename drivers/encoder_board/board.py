@@ -20,7 +20,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 import serial
@@ -160,7 +161,7 @@ class SerialBoardBackend(Backend):
             raise DeviceConnectionError(f"cannot open serial port {self.port!r}: {exc}{hint}") from exc
         try:
             self._send(sp.encode_disable())          # a known, de-energized state
-            got = self._wait_for(lambda s: 0, cfg.startup_timeout)
+            got = self._wait_for(lambda _s: 0, cfg.startup_timeout)
         except DriverError:
             self._close()
             raise

@@ -6,7 +6,8 @@ Shared by the backend (:mod:`drivers.encoder_board.board`) and the emulated boar
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Optional
+from collections.abc import Mapping
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -23,8 +24,8 @@ class SerialBoardConfig(BaseModel):
     """The ``[backend]`` keys of the serial board (units in the field comments)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    name: Optional[str] = None                  # registry name, ignored here
-    port: Optional[str] = None                  # device path (a pyserial URL only with allow_url); required unless emulate
+    name: str | None = None                  # registry name, ignored here
+    port: str | None = None                  # device path (a pyserial URL only with allow_url); required unless emulate
     allow_url: bool = False                     # accept pyserial URLs (socket://, rfc2217://, spy://...) as port
     baudrate: int = Field(12_000_000, gt=0)     # 8N1; ignored by USB CDC devices but checked
     sample_rate_hz: float = Field(20000.0, ge=100, le=200_000)  # at least a sample per 10 ms (the slowest tick)
@@ -41,13 +42,13 @@ class SerialBoardConfig(BaseModel):
     stop_timeout: float = Field(0.1, ge=0)      # [s] safe_stop waits this long for the disable ack
     crc_storm_limit: int = Field(20, ge=0)      # CRC + header errors per read above which ProtocolError
     garbage_storm_limit: int = Field(4096, ge=0)  # discarded bytes per read above which ProtocolError
-    encoder_mismatch_limit: Optional[float] = Field(0.2, gt=0)  # [rad] |twist drift|; None: off
+    encoder_mismatch_limit: float | None = Field(0.2, gt=0)  # [rad] |twist drift|; None: off
     plan_capacity: int = Field(4096, ge=1)      # samples the board can queue ahead
     emulate: bool = False                       # start an EmulatedBoard on a pty in open()
     emulator: dict[str, Any] = Field(default_factory=dict)  # EmulatorConfig keys
 
     @model_validator(mode="after")
-    def _checks(self) -> "SerialBoardConfig":
+    def _checks(self) -> SerialBoardConfig:
         if self.port is None and not self.emulate:
             raise ValueError("port: required unless emulate = true")
         if self.port is not None and "://" in self.port and not self.allow_url:
@@ -92,7 +93,7 @@ class EmulatorConfig(BaseModel):
     angle_noise: float = Field(0.0, ge=0)      # [rad] rms before quantization
     torque_meas_noise: float = Field(0.0, ge=0)  # [N m] rms on the reported current
     torque_process_noise: float = Field(0.0, ge=0)  # [N m] rms on the applied torque
-    travel: Optional[tuple[float, float]] = None  # [m] table travel; outside -> limit-switch fault
+    travel: tuple[float, float] | None = None  # [m] table travel; outside -> limit-switch fault
     tx_buffer: int = Field(65536, ge=sp.DATA_FRAME_SIZE)  # [bytes] transmit FIFO; full -> frames dropped
     seq0: int = Field(0, ge=0, lt=2**32)       # first sequence number (test wrap-around)
     t0_us: int = Field(0, ge=0, lt=2**32)      # first time stamp [us]
@@ -102,12 +103,12 @@ class EmulatorConfig(BaseModel):
     stuck_encoder: bool = False
     silent: bool = False
     deaf: bool = False
-    friction: Optional[dict[str, Any]] = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
+    friction: dict[str, Any] | None = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # [m] where the table starts (at rest)
 
     @field_validator("travel")
     @classmethod
-    def _travel_ordered(cls, v: Optional[tuple[float, float]]) -> Optional[tuple[float, float]]:
+    def _travel_ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
         if v is not None and not v[0] < v[1]:
             raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
         return v

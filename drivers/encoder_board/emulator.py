@@ -24,15 +24,16 @@ import os
 import threading
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from drivers.encoder_board import protocol as sp
 from drivers.encoder_board.config import EmulatorConfig, SerialBoardConfig, parse_emulator, parse_serial
-from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.friction import Friction
+from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig, rest_at
 
 log = logging.getLogger(__name__)
@@ -119,7 +120,7 @@ class EmulatedBoard:
         self.cpu_seconds = 0.0           # CPU time used by the board thread (emulation cost)
 
     # ----- lifecycle ---------------------------------------------------------------------
-    def start(self) -> "EmulatedBoard":
+    def start(self) -> EmulatedBoard:
         """Open the pty (raw, slave kept open) and start streaming."""
         if self._thread is not None:
             return self
@@ -148,7 +149,7 @@ class EmulatedBoard:
                     pass
         self._master = self._slave = -1
 
-    def __enter__(self) -> "EmulatedBoard":
+    def __enter__(self) -> EmulatedBoard:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import struct
 from binascii import crc_hqx
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable, Union
 
 import numpy as np
 
@@ -172,7 +172,7 @@ class TorquePlan:
                                                        *self.torques))
 
 
-Frame = Union[DataFrame, Enable, Disable, QuickStop, Heartbeat, TorqueHold, TorquePlan]
+Frame = DataFrame | Enable | Disable | QuickStop | Heartbeat | TorqueHold | TorquePlan
 
 
 # ----- encoders (pure) ----------------------------------------------------------------
@@ -348,12 +348,12 @@ class FrameDecoder:
                 self._hunting = True
                 self.resyncs += 1
 
-    def _scan(self, data: bytes) -> list[Union[np.ndarray, Frame]]:
+    def _scan(self, data: bytes) -> list[np.ndarray | Frame]:
         buf = self._tail + bytes(data)
         mv = memoryview(buf)
         n = len(buf)
         pos = 0
-        items: list[Union[np.ndarray, Frame]] = []
+        items: list[np.ndarray | Frame] = []
         while True:
             i = buf.find(SYNC, pos)
             if i < 0:

@@ -44,8 +44,9 @@ No backlash (a preloaded nut); ``backlash`` is there to study a worn one.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -103,11 +104,11 @@ class Friction:
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
 
-    def with_(self, **changes: float) -> "Friction":
+    def with_(self, **changes: float) -> Friction:
         return replace(self, **changes)
 
     @classmethod
-    def from_mapping(cls, data: Mapping[str, Any] | None, *, where: str = "friction") -> "Friction":
+    def from_mapping(cls, data: Mapping[str, Any] | None, *, where: str = "friction") -> Friction:
         """From a config table (``[plant.friction]`` / ``[backend.friction]``). ``preset = "thomson"``
         starts from :func:`thomson_friction` and the other keys override it."""
         if data is None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numba
 import numpy as np
@@ -50,7 +50,7 @@ def linear_recursion_py(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.nda
     _linear_recursion_for(S.shape[0])(S, G0, G1, u, Z, k0)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _linear_recursion_nb(nz: int) -> Callable[..., None]:
     """Compiled :func:`_linear_recursion_for` (memoised per nz; nz is part of numba's cache key)."""
     return numba.njit(cache=True)(_linear_recursion_for(nz))
@@ -123,7 +123,7 @@ def trajectory_recursion_py(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np
     return _trajectory_recursion_for(S.shape[0])(S, G0, G1, u, z0, k0, dt, par, t, theta, omega, alpha, torque)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _trajectory_recursion_nb(nz: int) -> Callable[..., int]:
     """Compiled :func:`_trajectory_recursion_for` (memoised per nz)."""
     return numba.njit(cache=True)(_trajectory_recursion_for(nz))

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from rt_ident.errors import ConfigError
 
@@ -67,12 +68,12 @@ class AxisParams:
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
 
-    def with_(self, **changes: float) -> "AxisParams":
+    def with_(self, **changes: float) -> AxisParams:
         """A copy with some fields changed (validated again)."""
         return replace(self, **changes)
 
     @classmethod
-    def from_mapping(cls, data: Mapping[str, Any], *, where: str = "axis") -> "AxisParams":
+    def from_mapping(cls, data: Mapping[str, Any], *, where: str = "axis") -> AxisParams:
         known = {f.name for f in fields(cls)}
         unknown = set(data) - known
         if unknown:
@@ -92,7 +93,7 @@ class AxisParams:
         return params
 
     @classmethod
-    def from_toml(cls, path: str | Path) -> "AxisParams":
+    def from_toml(cls, path: str | Path) -> AxisParams:
         """Read the ``[axis]`` table of a TOML file."""
         path = Path(path)
         try:

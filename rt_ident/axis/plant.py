@@ -33,10 +33,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rt_ident.axis.integrators import Newmark, check_dt, check_x0, zoh_matrices
 from rt_ident.axis.friction import Friction, friction_matrices, friction_par
-from rt_ident.axis.kernels import (first_non_finite3, plant_block, plant_block_friction, plant_block_friction_py,
-                                    plant_block_py)
+from rt_ident.axis.integrators import Newmark, check_dt, check_x0, zoh_matrices
+from rt_ident.axis.kernels import (
+    first_non_finite3,
+    plant_block,
+    plant_block_friction,
+    plant_block_friction_py,
+    plant_block_py,
+)
 from rt_ident.axis.params import AxisParams
 from rt_ident.errors import ConfigError, DataError
 

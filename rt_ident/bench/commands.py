@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Optional
 
 import typer
 from rich.console import Console
@@ -46,9 +45,13 @@ def kernels_cmd(
 def control_cmd(
     json_out: bool = JSON,
     quick: bool = typer.Option(False, "--quick", help="Shorter runs."),
-    figure: Optional[Path] = typer.Option(None, "--figure", help="Write the comparison as a PNG."),
+    figure: Path | None = typer.Option(None, "--figure", help="Write the comparison as a PNG."),
 ) -> None:
     """Fixed vs adaptive vs oracle control after load changes, and the nominal design on 100 random plants."""
+    if figure is not None:
+        from rt_ident.errors import require
+
+        require("matplotlib", "plots", "--figure")
     _print_control(json_out, quick, figure)
 
 
@@ -77,7 +80,7 @@ def soak_cmd(
     _print_soak(seconds, rate, sink, json_out, record)
 
 
-def _print_control(json_out: bool, quick: bool, figure: Optional[Path]) -> None:
+def _print_control(json_out: bool, quick: bool, figure: Path | None) -> None:
     from rt_ident.bench.control import control_bench, targets
 
     res = control_bench(quick=quick, progress=lambda s: err.print(f"control bench: {s}", highlight=False))
@@ -188,7 +191,8 @@ def _print_soak(seconds: float, rate: float, sink: str, json_out: bool, record: 
     tab.add_column("figure")
     tab.add_column("value", justify="right")
     for name, value in (("samples/s", f"{res.get('samples_per_s', 0):,.0f}"),
-                        ("overruns", res.get("overruns")), ("overruns in the first second", res.get("overruns_first_1s")),
+                        ("overruns", res.get("overruns")),
+                        ("overruns in the first second", res.get("overruns_first_1s")),
                         ("lateness p50 / p99 / max (us)",
                          " / ".join(f"{lat.get(k, float('nan')):.1f}" for k in ("p50", "p99", "max"))),
                         ("telemetry dropped", res.get("telemetry_dropped")),

@@ -20,16 +20,17 @@ overshoot of the table after a small reference step.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from rt_ident.axis.params import AxisParams
+from rt_ident.compose.offline import run_offline
 from rt_ident.config import RunConfig, from_mapping, load
 from rt_ident.control.adaptation import model_controller
 from rt_ident.control.design import delay_of, design_lqr, sampled_model
-from rt_ident.compose.offline import run_offline
 
 #: (name, factors applied at the change)
 SCENARIOS: tuple[tuple[str, dict[str, float]], ...] = (

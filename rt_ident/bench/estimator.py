@@ -17,12 +17,13 @@ Targets (issue 12): bias <= 1 % on I1, I2, B, K in 10 s; settling <= 0.2 s after
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
-from rt_ident.config import RunConfig, from_mapping, load
 from rt_ident.compose.offline import run_offline
+from rt_ident.config import RunConfig, from_mapping, load
 
 KEYS = ("I1", "I2", "B", "K")
 

@@ -28,7 +28,8 @@ import os
 import platform
 import sys
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -332,7 +333,8 @@ def bench_ls(periods: int = 40, repeats: int = 7) -> dict[str, Any]:
     t_ours = _time(lambda: box.__setitem__("ours", lstsq(A, b)), repeats)
     t_np = _time(lambda: box.__setitem__("np", np.linalg.lstsq(A, b, rcond=None)[0]), repeats)
     ratio = t_ours["median_s"] / t_np["median_s"]
-    return {"rows": [_row("ours lstsq (scaled pivoted QR)", A.shape[0], t_ours, _rel_diff(box["ours"].theta, box["np"])),
+    diff = _rel_diff(box["ours"].theta, box["np"])
+    return {"rows": [_row("ours lstsq (scaled pivoted QR)", A.shape[0], t_ours, diff),
                      _row("numpy lstsq (SVD, gelsd)", A.shape[0], t_np, 0.0)],
             "shape": list(A.shape), "cond_scaled": box["ours"].cond, "time_ratio_ours_over_numpy": ratio,
             "targets": {"ours <= 2x numpy lstsq": ratio <= 2.0}}

@@ -96,7 +96,8 @@ def print_report(result: dict[str, Any]) -> None:
                         f"method {loop['method']}, SCHED_FIFO, one subprocess per trial")
         for col in ("telemetry", "samples/s", "0 overruns", "overruns (1st s)", "from work / late start",
                     "tick work p50/p99/max us", "lateness p50/p99/max us",
-                    "longest gap ms @tick", "host steal ms", "lost", "tel. dropped", "RSS 1st/last tick MB", "RSS growth (after 10 %)"):
+                    "longest gap ms @tick", "host steal ms", "lost", "tel. dropped", "RSS 1st/last tick MB",
+                    "RSS growth (after 10 %)"):
             t.add_column(col, justify="right")
         for r in loop["trials"]:
             lat = r.get("lateness_us") or {}

@@ -5,8 +5,9 @@ per-sample estimation and control, in one loop - against one axis alone, in the 
 and recordings written into a temporary directory, real time), cut to ``seconds``; the one-axis run is
 its X axis alone (the same sections, no ``[axes]``); a third run is the two-axis one with ``[loop]
 idle_poll = false`` (rt_ident.loop.idle_poll: what keeping the loop's CPU busy while it sleeps
-buys, measured beside it); a fourth with ``[loop] compiled_tick = false`` (every tick on the Python path
-the compiled tick replaces: rt_ident.loop.tick_core). Reported: the tick's work (read, estimate, control, plan of every axis;
+buys, measured beside it); a fourth with ``[loop] compiled_tick = false`` (every tick on the Python
+path the compiled tick replaces: rt_ident.loop.tick_core). Reported: the tick's work (read, estimate,
+control, plan of every axis;
 ``loop.work_us``) at p50/p99/max, each axis's share, overruns, whether the idle poller ran, the
 simulated plant's stepping after the tick (``loop.sim_ahead_us``: a real device's part, not in the
 work) and the target (p99 <= 40 % of the 1 ms tick, on the shipped config).
@@ -59,11 +60,11 @@ def _scheduling_restored():
 
 
 def xy_budget(seconds: float = 10.0, *, realtime: bool = True, progress=None) -> dict[str, Any]:
-    from rt_ident.config import from_mapping, load
-    from rt_ident.compose.run import run as run_axes
     from rt_ident.compose.run import run
+    from rt_ident.compose.run import run as run_axes
+    from rt_ident.config import from_mapping, load
 
-    say = progress or (lambda s: None)
+    say = progress or (lambda _s: None)
     with tempfile.TemporaryDirectory(prefix="rt_ident-xy-bench-") as tmp:
         over = {"loop.duration": seconds, "loop.realtime": realtime}
         cfg = load(CONFIG_DIR / "xy-sim.toml", **over, **{"telemetry.rrd": str(Path(tmp) / "xy.rrd"),

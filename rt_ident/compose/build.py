@@ -17,17 +17,17 @@ import numpy as np
 
 from rt_ident.axis.excitation import schroeder_multisine
 from rt_ident.config import RunConfig
-from rt_ident.control.anchor import path_samples, split_reference_table
 from rt_ident.control import make_controller, redesign
+from rt_ident.control.anchor import path_samples, split_reference_table
 from rt_ident.errors import ConfigError, RtIdentError
 from rt_ident.estimators import make_streaming
 from rt_ident.estimators.state_estimation import AxisStateEstimator, encoder_quanta
 from rt_ident.estimators.svf import make_svf
-from rt_ident.processes.jobs import JobProcess
 from rt_ident.loop.loop import IdentificationLoop
 from rt_ident.loop.safety import SafetyMonitor
 from rt_ident.loop.stall import StallPolicy
 from rt_ident.outputs.paths import check_methods
+from rt_ident.processes.jobs import JobProcess
 
 log = logging.getLogger(__name__)
 
@@ -115,8 +115,9 @@ def state_and_streaming(cfg: RunConfig, dt: float):
     truth, ex, e = cfg.axis_params(), cfg.excitation, cfg.estimator
     q1, q2 = sensor_quanta(cfg)
     kf = AxisStateEstimator(dt, q1, q2, e.kalman_process_noise)
-    est = make_streaming(e.method, dt=dt, period=ex.period_samples, band=ex.band, warmup_periods=cfg.loop.warmup_periods,
-                         forgetting=e.forgetting, lead=truth.lead, quanta=(q1, q2), process_noise=e.kalman_process_noise)
+    est = make_streaming(e.method, dt=dt, period=ex.period_samples, band=ex.band,
+                         warmup_periods=cfg.loop.warmup_periods, forgetting=e.forgetting, lead=truth.lead,
+                         quanta=(q1, q2), process_noise=e.kalman_process_noise)
     return kf, est
 
 

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from rt_ident.errors import MissingExtra, require
 from rt_ident.loop.loop import IdentificationLoop
 
 log = logging.getLogger(__name__)
@@ -69,7 +70,11 @@ class ContourTrace:
         fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.measured()[d][1] for d in ("ccw", "cw")}
         fig["overshoot_deg"] = self.ref.overshoot_deg
         if png:
-            fig["polar_png"] = polar_plot(paths, R, (0.0, -R), fig, png, title="XY circular test (table scale)")
+            try:
+                require("matplotlib", "plots", "the circular test's polar plot")
+                fig["polar_png"] = polar_plot(paths, R, (0.0, -R), fig, png, title="XY circular test (table scale)")
+            except MissingExtra as exc:                          # the figures stand without the picture
+                fig["polar_png_error"] = str(exc)
         if rrd or live_url:
             from rt_ident.outputs.dashboard import write_contour_rrd
 

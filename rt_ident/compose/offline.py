@@ -11,21 +11,30 @@ is what the loop's code does, not what a model of it does.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Callable
+from typing import Any
 
 from rt_ident.axis.modal import modal_parameters
+from rt_ident.compose import preflight
+from rt_ident.compose.build import (
+    backend_options,
+    controller_for,
+    friction_summary,
+    identification_loop,
+    recording_metadata,
+    safety_monitor,
+    state_and_streaming,
+    warmup,
+)
 from rt_ident.config import RunConfig
 from rt_ident.control import redesign
 from rt_ident.errors import ConfigError
 from rt_ident.estimators.streaming import fit_snapshot
-from rt_ident.compose import preflight
-from rt_ident.compose.build import (backend_options, controller_for, friction_summary, identification_loop,
-                                    recording_metadata, safety_monitor, state_and_streaming, warmup)
-from rt_ident.processes.jobs import newest_result
 from rt_ident.loop.loop import IdentificationLoop
 from rt_ident.loop.scheduler import Ticker
+from rt_ident.processes.jobs import newest_result
 
 
 class VirtualClock:

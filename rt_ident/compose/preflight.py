@@ -18,17 +18,25 @@ from __future__ import annotations
 
 import math
 
-
 from drivers import BackendNotFound, make_backend
+from rt_ident.compose.build import (
+    backend_options,
+    check_axes,
+    controller_for,
+    friction_estimator,
+    make_excitation,
+    probe_motion,
+    reference_path,
+    safety_monitor,
+    sensor_quanta,
+)
 from rt_ident.config import RunConfig
 from rt_ident.control.anchor import path_samples
 from rt_ident.errors import ConfigError
 from rt_ident.estimators import make_streaming
 from rt_ident.estimators.state_estimation import AxisStateEstimator
-from rt_ident.compose.build import (probe_motion, reference_path, safety_monitor, backend_options, check_axes, controller_for, friction_estimator, make_excitation,
-                                    sensor_quanta)
-from rt_ident.outputs.paths import check_methods
 from rt_ident.loop.scheduler import Ticker
+from rt_ident.outputs.paths import check_methods
 
 #: the probe may take at most this share of the torque limit: the position loop needs the rest
 PROBE_SHARE = 0.5

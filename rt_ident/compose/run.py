@@ -34,9 +34,22 @@ from typing import Any
 from drivers import make_backend
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.compose import preflight
-from rt_ident.compose.build import (backend_counters, backend_options, check_axes, final_fit, friction_summary,
-                                    ident_summary, identification_loop, install_stop_signals, recording_metadata,
-                                    safety_monitor, stall_policy, start_controller, state_and_streaming, warmup)
+from rt_ident.compose.build import (
+    backend_counters,
+    backend_options,
+    check_axes,
+    final_fit,
+    friction_summary,
+    ident_summary,
+    identification_loop,
+    install_stop_signals,
+    recording_metadata,
+    safety_monitor,
+    stall_policy,
+    start_controller,
+    state_and_streaming,
+    warmup,
+)
 from rt_ident.compose.contour import ContourTrace
 from rt_ident.compose.helpers import AxisHelpers, Helpers
 from rt_ident.config import RunConfig

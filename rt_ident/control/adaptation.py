@@ -512,7 +512,8 @@ class Supervisor:
                 self._switch(res["controller"])
             else:
                 self._held = res["controller"]
-            if self.in_fallback and fb is not None:                 # recovering: onto the conservative controller that suits the axis
+            # recovering: onto the conservative controller that suits the axis
+            if self.in_fallback and fb is not None:
                 self._switch(fb)
         else:
             st.rejected += 1

@@ -24,8 +24,9 @@ stay within ``a_max`` and ``j_max``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal, Mapping, Optional
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -53,9 +54,9 @@ _COMMON = ("origin", "v_max", "a_max", "j_max")
 class _Options(BaseModel):
     model_config = ConfigDict(extra="forbid")
     origin: Literal["enable", "scale"] = "enable"
-    v_max: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
-    a_max: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
-    j_max: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
+    v_max: float | None = Field(None, gt=0, allow_inf_nan=False)
+    a_max: float | None = Field(None, gt=0, allow_inf_nan=False)
+    j_max: float | None = Field(None, gt=0, allow_inf_nan=False)
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,7 @@ class ReferenceOptions:
     limits: MotionLimits = DEFAULT_LIMITS
 
 
-def split_reference_table(mapping: Optional[Mapping[str, Any]]) -> tuple[dict[str, Any], ReferenceOptions]:
+def split_reference_table(mapping: Mapping[str, Any] | None) -> tuple[dict[str, Any], ReferenceOptions]:
     """``[reference]`` -> (the path's own table, its :class:`ReferenceOptions`). ``moves`` keeps
     ``v_max``, ``a_max``, ``j_max`` (its own limits are also its rejoin limits); the other kinds take
     them as optional approach limits. Errors name the field."""

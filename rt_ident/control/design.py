@@ -106,7 +106,8 @@ def _check_design_inputs(tick: float, bandwidth_hz: float, effort: float) -> Non
         raise ConfigError("loop.tick_hz", f"tick period must be > 0, got {tick!r}")
     if not (math.isfinite(bandwidth_hz) and 0 < bandwidth_hz < 0.25 / tick):
         raise ConfigError("control.bandwidth_hz",
-                          f"must be > 0 and below a quarter of the tick rate ({0.25 / tick:g} Hz), got {bandwidth_hz!r}")
+                          f"must be > 0 and below a quarter of the tick rate ({0.25 / tick:g} Hz), "
+                          f"got {bandwidth_hz!r}")
     if not (math.isfinite(effort) and effort > 0):
         raise ConfigError("control.effort", f"must be a finite number > 0, got {effort!r}")
 

@@ -18,8 +18,8 @@ is spread over w_band / |alpha_ref|.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 from rt_ident.errors import ConfigError
 
@@ -46,7 +46,7 @@ class FrictionFeedforward:
         return self.Fv * w_ref + self.Fc * s
 
     @classmethod
-    def from_parameters(cls, params: Mapping[str, float], w_band: float = 0.05) -> "FrictionFeedforward":
+    def from_parameters(cls, params: Mapping[str, float], w_band: float = 0.05) -> FrictionFeedforward:
         """From the ``parameters`` of a ``two-inertia-friction`` (Fc1 + Fc2, Fv1 + Fv2) or
         ``rigid-friction`` (Fc, Fv) identification; negative estimates are clipped to 0."""
         if "Fc1" in params:

@@ -22,9 +22,10 @@ from __future__ import annotations
 import bisect
 import csv
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Mapping, Optional, Union
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -103,7 +104,7 @@ class Segments:
 
     @classmethod
     def build(cls, x_start: float, segments: list[tuple[float, float]], t_start: float = 0.0,
-              v_start: float = 0.0) -> "Segments":
+              v_start: float = 0.0) -> Segments:
         t, x, v, a = t_start, x_start, v_start, 0.0
         rows = []
         for dur, jerk in segments:
@@ -400,7 +401,7 @@ class CsvTrajectory:
         return float(self.t[-1])
 
     @classmethod
-    def load(cls, path: str | Path) -> "CsvTrajectory":
+    def load(cls, path: str | Path) -> CsvTrajectory:
         p = Path(path)
         where = "reference.path"
         if not p.is_file():
@@ -491,13 +492,13 @@ class _CsvCfg(BaseModel):
 
 
 class _ReferenceCfg(BaseModel):
-    ref: Union[_HoldCfg, _MovesCfg, _SineCfg, _CircleCfg, _CsvCfg] = Field(discriminator="kind")
+    ref: _HoldCfg | _MovesCfg | _SineCfg | _CircleCfg | _CsvCfg = Field(discriminator="kind")
 
 
-Reference = Union[Hold, Moves, Sine, Circle, CsvTrajectory]
+Reference = Hold | Moves | Sine | Circle | CsvTrajectory
 
 
-def make_reference(mapping: Optional[Mapping[str, Any]], base_dir: str | Path | None = None) -> Reference:
+def make_reference(mapping: Mapping[str, Any] | None, base_dir: str | Path | None = None) -> Reference:
     """The reference a ``[reference]`` table describes (default: hold at 0). Errors name the field."""
     data = dict(mapping or {"kind": "hold"})
     data.setdefault("kind", "hold")

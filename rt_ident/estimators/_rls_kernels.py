@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numba
 
@@ -277,12 +277,12 @@ def _make_cov(n: int, q: int) -> Callable:
     return core
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _core(form: str, n: int, q: int) -> Callable:
     return _make_ud(n, q) if form == "ud" else _make_cov(n, q)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def block_kernel(form: str, n: int, q: int) -> Callable:
     """``block(S, Phi, Y, hist, hpos, record) -> (accepted, hpos)`` for this form and shape.
 
@@ -298,7 +298,7 @@ def block_kernel(form: str, n: int, q: int) -> Callable:
     return block
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def update_kernel(form: str, n: int, q: int) -> Callable:
     """``update(S, phi, y) -> bool`` for this form and shape, compiled now for exactly one signature.
 

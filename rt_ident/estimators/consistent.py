@@ -26,16 +26,22 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import scipy.linalg
 
 from rt_ident.errors import DataError, EstimationError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.uncertainty import (build_identification, excitation_report, excited_band_of,
-                                             excited_bands, inverse_normal_matrix, log_covariance,
-                                             params_from_vector)
+from rt_ident.estimators.uncertainty import (
+    build_identification,
+    excitation_report,
+    excited_band_of,
+    excited_bands,
+    inverse_normal_matrix,
+    log_covariance,
+    params_from_vector,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -163,7 +169,7 @@ def fit_tustin_angles(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray
 
 
 # --------------------------------------------------------------------------- one-step maps
-def physical_from_continuous(A: np.ndarray, b: np.ndarray, lead: float = DEFAULT_LEAD) -> np.ndarray:
+def physical_from_continuous(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """[I1, I2, B, K] from a continuous (A, b) of the Eq. (8) form (+1/I1 input column).
 
     I1 = 1/b[1]. Each of K/I1, B/I1, K/I2, B/I2 appears twice in A (rows 1 and 3);
@@ -247,7 +253,7 @@ def _map_fit(X: np.ndarray, U: np.ndarray, dt: float, to_continuous: Callable, m
 
     def params_of(ph: np.ndarray) -> np.ndarray:
         A, b = to_continuous(ph[:4].T, ph[4], dt)
-        return physical_from_continuous(A, b, lead)
+        return physical_from_continuous(A, b)
 
     p_vec = params_of(phi)
     p = params_from_vector(p_vec, lead, what=method)

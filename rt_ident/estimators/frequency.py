@@ -42,10 +42,15 @@ import numpy as np
 
 from rt_ident.errors import ConfigError, DataError, EstimationError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.sampled_model import (HOLDS, POS, check_hold, frequency_response,  # noqa: F401
-                                               hold_model)
-from rt_ident.estimators.uncertainty import (build_identification, covariance_from_jacobian, criterion,
-                                             excitation_report, excited_bands, params_from_log)
+from rt_ident.estimators.sampled_model import HOLDS, POS, check_hold, frequency_response, hold_model  # noqa: F401
+from rt_ident.estimators.uncertainty import (
+    build_identification,
+    covariance_from_jacobian,
+    criterion,
+    excitation_report,
+    excited_bands,
+    params_from_log,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -151,7 +156,7 @@ class Spectra:
     def from_sums(cls, harmonics: np.ndarray, N: int, dt: float, S1: np.ndarray, S2: np.ndarray,
                   W: float, W2: float, periods: int, quantum: np.ndarray, *, Svf: np.ndarray | None = None,
                   Sff: np.ndarray | None = None, Sf: np.ndarray | None = None, Wf: float = 0.0,
-                  Smv: np.ndarray | None = None) -> "Spectra":
+                  Smv: np.ndarray | None = None) -> Spectra:
         """From running sums S1 = sum w v, S2 = sum w v v^H, W = sum w, W2 = sum w^2, and the
         leakage features' sums Svf = sum w v f^T (3, H, K), Sff = sum w f f^T, Sf = sum w f over the
         periods that have features (weight Wf), of which Smv (2,) shifted by more than MOVED_STEPS
@@ -210,7 +215,7 @@ class Spectra:
                 "moved": np.zeros(0) if self.moved is None else np.asarray(self.moved, dtype=np.float64).ravel()}
 
     @classmethod
-    def from_fields(cls, f: dict[str, np.ndarray]) -> "Spectra":
+    def from_fields(cls, f: dict[str, np.ndarray]) -> Spectra:
         h = np.asarray(f["harmonics"], dtype=np.int64)
         N, dt, W, W2, periods, *rest = (float(v) for v in f["scalars"])
         mean = np.ascontiguousarray(f["mean"], dtype=np.float64).view(complex).reshape(3, h.size)
@@ -248,7 +253,7 @@ class SpectraSums:
 
     @classmethod
     def from_flat(cls, harmonics: np.ndarray, N: int, dt: float, S1: np.ndarray, flat: np.ndarray, W: float,
-                  W2: float, periods: int, quantum: np.ndarray) -> "SpectraSums":
+                  W2: float, periods: int, quantum: np.ndarray) -> SpectraSums:
         """From S1 and the flat complex buffer of :func:`sums_layout` (S2 alone: no features)."""
         H = np.asarray(harmonics).size
         K = LEAK_FEATURES
@@ -286,7 +291,7 @@ class SpectraSums:
                 "scalars": np.array([self.N, self.dt, self.W, self.W2, self.periods], dtype=np.float64)}
 
     @classmethod
-    def from_fields(cls, f: dict[str, np.ndarray]) -> "SpectraSums":
+    def from_fields(cls, f: dict[str, np.ndarray]) -> SpectraSums:
         h = np.asarray(f["harmonics"], dtype=np.int64)
         N, dt, W, W2, periods = (float(v) for v in f["scalars"])
         z = np.ascontiguousarray(f["sums"], dtype=np.float64).view(complex)
@@ -620,7 +625,7 @@ def fit_spectra(sp: Spectra, hold: str = "zoh", *, transient: bool = True, x0: n
     converged = False
     it = 0
     model = _evaluate(x, sp, hold, True)
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 - the count is read after the loop
         Li = _whitener(model.G, sp)
         r, J = _residual(model, x, sp, Li, True)
         cost = float(r @ r)

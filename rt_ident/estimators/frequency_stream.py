@@ -41,9 +41,19 @@ import numpy as np
 from rt_ident.axis.kernels import first_non_finite3
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.frequency import (DEFAULT_LEAD, LEAK_FEATURES, MOVED_STEPS, FitResult, Spectra, SpectraSums,
-                                           check_hold, fit_spectra, identification_from_fit, leak_window,
-                                           sums_layout)
+from rt_ident.estimators.frequency import (
+    DEFAULT_LEAD,
+    LEAK_FEATURES,
+    MOVED_STEPS,
+    FitResult,
+    Spectra,
+    SpectraSums,
+    check_hold,
+    fit_spectra,
+    identification_from_fit,
+    leak_window,
+    sums_layout,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -51,8 +61,8 @@ logger = logging.getLogger(__name__)
 # flag; the leakage features' window m, its sums over the current period (theta1, theta2: first and second
 # half of the last m samples), the previous period's means and slopes there, whether there is one, the
 # torque sum; the count of completed periods up to which periods stay out of the sums (a loop stall)
-_POS, _W, _W2, _DONE, _USED, _HAS_LAST, _M, _E, _PREV, _HAS_PREV, _TSUM, _SKIP, STATE_SIZE = (0, 1, 2, 3, 4, 5, 6, 7, 11,
-                                                                                            15, 16, 17, 18)
+_POS, _W, _W2, _DONE, _USED, _HAS_LAST, _M, _E = range(8)
+_PREV, _HAS_PREV, _TSUM, _SKIP, STATE_SIZE = 11, 15, 16, 17, 18
 
 
 def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, harmonics: np.ndarray,
@@ -135,9 +145,9 @@ def rdft_accumulate_py(th1: np.ndarray, th2: np.ndarray, torque: np.ndarray, har
                             i2 = o_vf + (r * H + j) * K + k
                             S2[i2] = lam * S2[i2] + (acc[r, j] * f[k] if has else 0.0)
                 for k in range(K):
-                    for l in range(K):
-                        i2 = o_ff + k * K + l
-                        S2[i2] = lam * S2[i2] + (f[k] * f[l] if has else 0.0)
+                    for k2 in range(K):
+                        i2 = o_ff + k * K + k2
+                        S2[i2] = lam * S2[i2] + (f[k] * f[k2] if has else 0.0)
                     S2[o_f + k] = lam * S2[o_f + k] + (f[k] if has else 0.0)
                 S2[o_wf] = lam * S2[o_wf] + (1.0 if has else 0.0)
                 # shifted by more than MOVED_STEPS of the smallest step seen: new quantization errors

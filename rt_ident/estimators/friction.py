@@ -50,8 +50,9 @@ The frequency method stays linear-only (no friction model); this method accepts 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Mapping
+from typing import Any
 
 import numba
 import numpy as np
@@ -59,8 +60,14 @@ import scipy.linalg
 import scipy.signal
 
 from rt_ident.errors import ConfigError, DataError, EstimationError
-from rt_ident.estimators.uncertainty import (MAX_REL_HALFWIDTH, criterion, excited_band_of, excited_bands,
-                                             interval_criterion, resonance_criterion)
+from rt_ident.estimators.uncertainty import (
+    MAX_REL_HALFWIDTH,
+    criterion,
+    excited_band_of,
+    excited_bands,
+    interval_criterion,
+    resonance_criterion,
+)
 
 MODELS: dict[str, tuple[str, ...]] = {
     "two-inertia": ("I1", "I2", "B", "K", "offset"),
@@ -117,7 +124,7 @@ class FrictionIdentification:
     def trust(self) -> dict[str, Any]:
         return {"trusted": self.trusted, "reasons": self.reasons, "criteria": [dict(c) for c in self.trust_criteria]}
 
-    def with_validation(self, validation: Mapping[str, Any]) -> "FrictionIdentification":
+    def with_validation(self, validation: Mapping[str, Any]) -> FrictionIdentification:
         """This result with the validation on another recording as one more criterion: its torque
         prediction error must be <= MAX_VALIDATION_ERROR (a missing or non-finite error fails)."""
         err = validation.get("torque_error_percent")
@@ -143,7 +150,7 @@ def friction_criteria(key: str, params: Mapping[str, float], ci: Mapping[str, tu
     out = [criterion("regression: condition number of the normal equations", cond < MAX_COND, cond,
                      f"< {MAX_COND:g}", f"the regression is ill-conditioned (condition number {cond:.3g})")]
     bad = [f"{k} = {v:.4g} must be > 0" for k, v in params.items() if k in POSITIVE and not v > 0.0]
-    bad += [f"{k} = {v:.4g} must be >= 0" + _sign_note(k, ci.get(k))
+    bad += [f"{k} = {v:.4g} must be >= 0" + _sign_note(ci.get(k))
             for k, v in params.items() if k in NON_NEGATIVE and not v >= 0.0]
     out.append(criterion("physical values: I1, I2, K, J > 0; B, Fc, Fv >= 0", not bad, None, "all",
                          "not physical: " + "; ".join(bad)))
@@ -172,7 +179,7 @@ def _finite_problem(c: tuple[float, float] | None) -> str | None:
     return f"[{lo:.4g}, {hi:.4g}] has negative width" if hi < lo else None
 
 
-def _sign_note(key: str, c: tuple[float, float] | None) -> str:
+def _sign_note(c: tuple[float, float] | None) -> str:
     if c is not None and math.isfinite(c[1]) and c[1] >= 0.0:
         return f" (its 95 % interval reaches {c[1]:.3g}: consistent with none)"
     return ""
@@ -422,7 +429,8 @@ def fit_friction(theta1: np.ndarray, torque: np.ndarray, dt: float, *, model: st
     cond = float(np.linalg.cond(R))
     positive = [k for k in names if k in POSITIVE]
     diag = {"samples": int(n), "rows_used": int(m), "filter_hz": float(filter_hz), "velocity_hz": float(velocity_hz),
-            "dead_band": float(db1), "torque_hold": torque_hold, "quanta": [float(q1), float(q2)], "regressor_cond": cond,
+            "dead_band": float(db1), "torque_hold": torque_hold, "quanta": [float(q1), float(q2)],
+            "regressor_cond": cond,
             "autocorrelation_time": float(tau),
             "well_posed": bool(cond < MAX_COND and all(params[k] > 0 for k in positive))}
     bands = excited_bands(*excited_band_of(tq, dt), dt if torque_hold == "zoh" else None)
@@ -588,8 +596,8 @@ class RecursiveFrictionEstimator:
     Differences from the batch fit: the sign comes from the *causal* filtered velocity (sF th, lag
     ~3/lam), so rows are used only once ``n_gate`` samples (the filter memory plus that lag) have
     passed since the last standstill sample, and each row waits that lag before it enters the sums
-    (a standstill sample meanwhile discards it: its sign may have been stale); the dead band is 5 sigma of the quantization noise of
-    sF th and at least 2 % of the running rms velocity. ``estimate()`` solves the
+    (a standstill sample meanwhile discards it: its sign may have been stale); the dead band is 5
+    sigma of the quantization noise of sF th and at least 2 % of the running rms velocity. ``estimate()`` solves the
     bias-compensated normal equations (Jacobi-scaled) on request - the update itself is O(p^2) per
     row. ``memory_s`` = inf: no forgetting (the batch answer, up to the causal sign)."""
 

@@ -26,16 +26,18 @@ from __future__ import annotations
 import inspect
 import logging
 import types
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.estimators.base import Identification, IdentData
+from rt_ident.estimators.base import IdentData, Identification
 from rt_ident.estimators.consistent import fit_tustin_angles, fit_tustin_states, fit_zoh
 from rt_ident.estimators.frequency import fit_frequency
-from rt_ident.estimators.friction import MODELS as FRICTION_MODELS, check_model, fit_friction
+from rt_ident.estimators.friction import MODELS as FRICTION_MODELS
+from rt_ident.estimators.friction import check_model, fit_friction
 from rt_ident.estimators.uncertainty import build_identification, excitation_report, excited_band_of, excited_bands
 
 logger = logging.getLogger(__name__)

@@ -182,7 +182,7 @@ class SteadyStateKalman:
         return self.dt ** (2 * self.dim - 1 - i[:, None] - i[None, :])
 
     @classmethod
-    def from_bandwidth(cls, dt: float, quantum: float, bandwidth_hz: float, model: str = "ca") -> "SteadyStateKalman":
+    def from_bandwidth(cls, dt: float, quantum: float, bandwidth_hz: float, model: str = "ca") -> SteadyStateKalman:
         """Filter whose poles have radius about 2*pi*bandwidth_hz (see :func:`process_noise_for_bandwidth`)."""
         return cls(dt, quantum, process_noise_for_bandwidth(dt, quantum, bandwidth_hz, model), model)
 
@@ -301,9 +301,9 @@ class AxisStateEstimator:
 
         ``seq``: the samples' sequence numbers. Samples missing from them (within the block, or since
         the previous block) are stepped through on interpolated angles, not skipped: without that a
-        lost sample reads as a twice-as-long step, and the velocity estimate jumps by the lost fraction (30-50 % of samples on
-        a loaded host's CANopen exchange drove the host's position loop and the stopping-distance check
-        with inflated speeds). Without ``seq`` samples are taken as consecutive.
+        lost sample reads as a twice-as-long step, and the velocity estimate jumps by the lost fraction,
+        which the position loop and the stopping-distance check would act on. Without ``seq`` samples are
+        taken as consecutive.
         """
         z1 = np.ascontiguousarray(theta1, dtype=np.float64)
         z2 = np.ascontiguousarray(theta2, dtype=np.float64)

@@ -194,10 +194,9 @@ def make_streaming(method: str, *, dt: float, period: int, band: tuple[int, int]
 def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.96e-4) -> Identification:
     """Fit one snapshot, cold (deterministic). Runs in the job process or after the loop."""
     if method == "frequency":
-        from rt_ident.estimators.frequency import fit_spectra, identification_from_fit
-
         import dataclasses
 
+        from rt_ident.estimators.frequency import fit_spectra, identification_from_fit
         from rt_ident.estimators.frf import frf_view
 
         if hasattr(snap, "spectra"):              # the loop's snapshot: the running sums

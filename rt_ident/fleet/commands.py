@@ -5,15 +5,24 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
-fleet_app = typer.Typer(no_args_is_help=True, help="Many axes' recordings: identify on Dask, keep a history, flag drift.")
+fleet_app = typer.Typer(no_args_is_help=True,
+                        help="Many axes' recordings: identify on Dask, keep a history, flag drift.")
 err = Console(stderr=True, soft_wrap=True)
 out = Console(soft_wrap=True)
+
+@fleet_app.callback()
+def _needs_the_fleet_extra() -> None:
+    from rt_ident.errors import require
+
+    for module in ("dask", "distributed", "duckdb", "matplotlib"):
+        require(module, "fleet", "rt-ident fleet")
+
 
 HISTORY = typer.Option(..., "--history", help="The fleet's Parquet history: a folder (created if missing) or an "
                        "fsspec URL such as s3://bucket/fleet.")
@@ -23,11 +32,11 @@ HISTORY = typer.Option(..., "--history", help="The fleet's Parquet history: a fo
 def identify_cmd(
     manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601)."),
     history: str = HISTORY,
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="A running Dask scheduler, e.g. "
+    scheduler: str | None = typer.Option(None, "--scheduler", help="A running Dask scheduler, e.g. "
                                             "tcp://10.0.0.5:8786 (workers need rt-ident installed). Default: a "
                                             "LocalCluster on 127.0.0.1."),
     workers: int = typer.Option(2, "--workers", min=1, help="LocalCluster worker processes."),
-    method: Optional[str] = typer.Option(None, "--method", help="Estimator (default: the recording's own)."),
+    method: str | None = typer.Option(None, "--method", help="Estimator (default: the recording's own)."),
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
     """Identify every recording of MANIFEST (one Dask task each); append new results to the history."""
@@ -42,7 +51,8 @@ def identify_cmd(
     state: dict[str, Any] = {"failed": 0}
 
     def started(n: int, dashboard: str | None) -> None:
-        err.print(f"{n} recordings; Dask {'dashboard ' + dashboard if dashboard else 'dashboard: none (bokeh not installed)'}")
+        where = f"dashboard {dashboard}" if dashboard else "dashboard: none (bokeh not installed)"
+        err.print(f"{n} recordings; Dask {where}")
         state["task"] = bar.add_task("identifying", total=n, failed=0)
 
     def done(row: dict[str, Any]) -> None:

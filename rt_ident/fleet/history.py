@@ -6,7 +6,8 @@ filesystem installed, e.g. ``s3fs``); DuckDB reads a URL through the registered 
 :func:`connect` gives an in-memory DuckDB connection with one view, ``history``: every row ever
 identified (hive partition ``machine`` included), with its verdict (``trusted``, ``reasons``,
 ``trust_criteria`` as JSON). Files written before verdicts were recorded lack those columns: their
-rows read as NULL there, an unknown verdict (:func:`verdict_sql`). ``rt-ident fleet query "SQL"`` runs the user's SQL on it.
+rows read as NULL there, an unknown verdict (:func:`verdict_sql`). ``rt-ident fleet query "SQL"`` runs
+the user's SQL on it.
 """
 
 from __future__ import annotations

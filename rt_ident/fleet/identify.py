@@ -24,8 +24,9 @@ import os
 import shutil
 import tempfile
 import uuid
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 from rt_ident import __version__
 from rt_ident.fleet.manifest import Entry

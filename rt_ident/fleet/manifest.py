@@ -36,8 +36,8 @@ def parse_time(text: str, where: str) -> _dt.datetime:
     except ValueError:
         raise ConfigError(where, f"time {text!r} is not ISO 8601 (e.g. 2026-11-24 or 2026-11-24T06:00:00)") from None
     if t.tzinfo is None:
-        t = t.replace(tzinfo=_dt.timezone.utc)
-    return t.astimezone(_dt.timezone.utc)
+        t = t.replace(tzinfo=_dt.UTC)
+    return t.astimezone(_dt.UTC)
 
 
 def read_manifest(path: str | Path) -> list[Entry]:

@@ -98,8 +98,9 @@ def _summary_png(rows: list[dict[str, Any]], path: Path, limit: int = 40) -> Non
     plt.close(fig)
 
 
-def write_report(history: str | Path, out_dir: str | Path, settings: DriftSettings = DriftSettings()) -> dict[str, Any]:
+def write_report(history: str | Path, out_dir: str | Path, settings: DriftSettings | None = None) -> dict[str, Any]:
     """Write ``OUT/summary.csv``, ``OUT/summary.png`` and ``OUT/<machine>-<axis>.png``; returns the paths."""
+    settings = settings or DriftSettings()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result = drift(history, settings)

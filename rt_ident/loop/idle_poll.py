@@ -173,7 +173,7 @@ class IdlePoller:
     def alive(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def __enter__(self) -> "IdlePoller":
+    def __enter__(self) -> IdlePoller:
         self.start()
         return self
 

@@ -34,19 +34,20 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from drivers.base import Backend, SampleBlock
 from rt_ident.errors import RtIdentError
 from rt_ident.loop import tick_kernel as tk
-from rt_ident.loop.window import TelemetryWindow
-from rt_ident.loop.tick_core import AxisCore
 from rt_ident.loop.safety import SafetyMonitor
 from rt_ident.loop.scheduler import LatenessHistogram, Ticker
 from rt_ident.loop.stall import LoopStall, StallLog, StallPolicy
+from rt_ident.loop.tick_core import AxisCore
+from rt_ident.loop.window import TelemetryWindow
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +103,7 @@ class LoopStats:
 SIM_AHEAD_MARGIN_S = 100e-6
 
 
-def _stall_before(loops: list["IdentificationLoop"], blocks: list[SampleBlock], stats: LoopStats,
+def _stall_before(loops: list[IdentificationLoop], blocks: list[SampleBlock], stats: LoopStats,
                   policy: StallPolicy, stall_s: float, now: float) -> None:
     """The host stopped for ``stall_s`` between two reads (the wall time between them less a period):
     past ``policy.max_s`` it is a stall (rt_ident.loop.stall), wherever in the tick it came - while
@@ -531,7 +532,7 @@ class MultiAxisLoop:
                 for i, ax in enumerate(axes):
                     ax.stats.work.record(spent[i])
                 horizon = self.ticker.next_deadline() - t1 + SIM_AHEAD_MARGIN_S
-                for cur, ax in enumerate(axes):     # simulated devices step ahead (IdentificationLoop.run)
+                for cur, ax in enumerate(axes):  # noqa: B007 - cur names the axis if it raises; devices step ahead
                     t2 = clock()
                     ax.backend.step_ahead(horizon)
                     if ax.backend.simulated:

@@ -38,8 +38,8 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -92,7 +92,8 @@ class Ticker:
             period_s = float(period_s)
             spin_s = float(spin_s)
         except (TypeError, ValueError):
-            raise ConfigError("period_s", f"period_s and spin_s must be numbers, got {period_s!r}, {spin_s!r}") from None
+            raise ConfigError("period_s", f"period_s and spin_s must be numbers, got {period_s!r}, "
+                                          f"{spin_s!r}") from None
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ConfigError("period_s", f"must be a finite number > 0, got {period_s!r}")
         if not (math.isfinite(spin_s) and 0.0 <= spin_s <= 0.5 * period_s):

@@ -238,7 +238,7 @@ class AxisCore:
 
     # -------------------------------------------------------------------------------- construction
     @classmethod
-    def for_loop(cls, loop: Any) -> "AxisCore | None":
+    def for_loop(cls, loop: Any) -> AxisCore | None:
         """The compiled tick for ``loop``, or None (with the reason logged at debug level) when its parts
         are not the ones the kernel knows: a frequency-method streaming estimator, the Kalman state
         estimator, a supervisor (or none) with an SVF per-sample estimator (or none), the safety monitor,

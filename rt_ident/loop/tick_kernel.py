@@ -22,7 +22,6 @@ from rt_ident.estimators.svf import svf_block
 from rt_ident.loop.safety import SAFE_LAST_THETA1, SAFE_STALE, SAFE_STUCK
 from rt_ident.processes.shm_ring import consumer_waits, put_rows, put_seq_floats, put_sums
 
-
 # --------------------------------------------------------------------------- the loop's bookkeeping
 # IdentificationLoop.book_i (int64): the sample expected next, the control clock's first sample (-1:
 # none yet), the probe amplitude's next period edge, the torques in flight to the drive (count, then
@@ -458,7 +457,7 @@ def warm_up() -> None:
     """Compile (or load from the cache) the steps the Python path calls one by one, with the argument
     types it calls them with, before a loop's first tick: left to their first call, each cost that
     tick 0.1-2 s (an emulated drive's heartbeat watchdog tripped on one)."""
-    from rt_ident.control.law import tracking_errors, feedback_torque
+    from rt_ident.control.law import feedback_torque, tracking_errors
 
     bi, bf = new_books()
     z1, z2 = np.zeros(3), np.zeros((3, 2))

@@ -49,8 +49,9 @@ the path constants without loading rerun.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -326,7 +327,8 @@ def default_blueprint() -> Any:
     ]
     # "following": the time cursor stays at the newest data (live and when a finished .rrd opens), so
     # the FRF and loop-gain views show the latest fit rather than the first one
-    return rrb.Blueprint(rrb.Grid(*views, grid_columns=6), rrb.TimePanel(timeline="time", state="collapsed", play_state="following"),
+    return rrb.Blueprint(rrb.Grid(*views, grid_columns=6),
+                         rrb.TimePanel(timeline="time", state="collapsed", play_state="following"),
                          collapse_panels=True)
 
 
@@ -385,8 +387,8 @@ def write_contour_rrd(path: str | None, reference: tuple[np.ndarray, np.ndarray]
                                                                radii=[0.01]), static=True)
             ang = np.arctan2(y - cy, x - cx)
             rho = 1.0 + devs[d] * 1e6 / scale
-            rec.log(f"{CONTOUR_BALLBAR}/{d}", rr.LineStrips2D([np.column_stack([rho * np.cos(ang), -rho * np.sin(ang)])],
-                                                             colors=[color], radii=[0.006]), static=True)
+            strip = np.column_stack([rho * np.cos(ang), -rho * np.sin(ang)])
+            rec.log(f"{CONTOUR_BALLBAR}/{d}", rr.LineStrips2D([strip], colors=[color], radii=[0.006]), static=True)
             tenth = np.round(np.degrees(np.mod(ang, 2 * math.pi)) * 10).astype(np.int64)
             order = np.argsort(tenth, kind="stable")
             rec.send_columns(f"{CONTOUR_RADIAL}/{d}", indexes=[rr.TimeColumn("angle", sequence=tenth[order])],

@@ -154,7 +154,7 @@ class EmulatorProcess:
 
     stop = close
 
-    def __enter__(self) -> "EmulatorProcess":
+    def __enter__(self) -> EmulatorProcess:
         return self
 
     def __exit__(self, *exc: Any) -> None:

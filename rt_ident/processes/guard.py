@@ -76,7 +76,7 @@ def start_ignoring_signals(proc: Any) -> None:
             signal.signal(s, h)
 
 
-def become_helper() -> "ParentWatch":
+def become_helper() -> ParentWatch:
     """First call in a helper's main: ignore the group's SIGINT/SIGTERM, leave the loop's CPU; returns
     the parent watch.
 

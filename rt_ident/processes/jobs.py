@@ -11,9 +11,10 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing as mp
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -120,7 +121,7 @@ class JobProcess:
                                                                  self.view_interval),
                                  name=self.name, daemon=True)
 
-    def start(self) -> "JobProcess":
+    def start(self) -> JobProcess:
         start_ignoring_signals(self._proc)
         return self
 
@@ -132,7 +133,7 @@ class JobProcess:
     def exitcode(self) -> int | None:
         return self._proc.exitcode
 
-    def restart(self) -> "JobProcess":
+    def restart(self) -> JobProcess:
         """A new job process (and rings) in place of a dead one; results in flight are lost."""
         end_helper(self._proc)
         self._make()

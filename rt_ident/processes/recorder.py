@@ -33,14 +33,14 @@ import math
 import multiprocessing as mp
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from rt_ident.errors import ConfigError, DataError, RtIdentError
-from rt_ident.processes.guard import become_helper, start_ignoring_signals
 from rt_ident.outputs.recording_reader import (
     COLUMNS,
     FORMAT_KEY,
@@ -51,6 +51,7 @@ from rt_ident.outputs.recording_reader import (
     part_path,
     read_recording,
 )
+from rt_ident.processes.guard import become_helper, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
@@ -229,7 +230,7 @@ class Recorder:
         finally:
             self._closed = True
 
-    def __enter__(self) -> "Recorder":
+    def __enter__(self) -> Recorder:
         self.open()
         return self
 
@@ -247,7 +248,8 @@ def _block_message(block: Any) -> dict[str, np.ndarray]:
     if isinstance(block, dict) or (not hasattr(block, "seq") and isinstance(block, Mapping)):
         get = block.get
     else:
-        get = (lambda name, _d=None: getattr(block, name, None))
+        def get(name, _d=None):
+            return (getattr(block, name, None))
     seq = get("seq", None)
     if seq is None:
         raise DataError("RecorderProcess.put(): block has no 'seq'")
@@ -399,7 +401,7 @@ class RecorderProcess:
         self._exited = False
         self._closed = False
 
-    def start(self) -> "RecorderProcess":
+    def start(self) -> RecorderProcess:
         if self._proc is not None:
             return self
         self._ring = MessageRing(self.ring_bytes, max_messages=self.queue_size, ctx=self._ctx)
@@ -525,7 +527,7 @@ class RecorderProcess:
         return (summary.get("exitcode") == 0 and not summary.get("terminated")
                 and summary.get("rows_written") == self.samples_put and self.path.exists())
 
-    def __enter__(self) -> "RecorderProcess":
+    def __enter__(self) -> RecorderProcess:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

@@ -36,7 +36,8 @@ import multiprocessing as mp
 import pickle
 import platform
 import struct
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numba
 import numpy as np
@@ -288,10 +289,10 @@ def key_words(key: str) -> np.ndarray:
 
 
 @intrinsic
-def _release_fence(typingctx):
+def _release_fence(typingctx):  # noqa: ARG001 - numba's intrinsic signature
     """A release fence: the stores before it are not moved after it by the compiler (x86-64 needs no
     instruction for it: total store order; see the module docstring on ordering)."""
-    def codegen(context, builder, signature, args):
+    def codegen(context, builder, signature, args):  # noqa: ARG001 - numba's codegen signature
         builder.fence("release")
         return context.get_dummy_value()
     return types.none(), codegen

@@ -41,15 +41,25 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.outputs.dashboard import (BLOCK_ENTITIES, CONTROL_ENTITIES, ENTITY_SERIES, ESTIMATE_KEYS, SERIES_STYLES,
-                                        TORQUE_NRMSE, draw_fit_frf, draw_loop_gain, truth_path)
+from rt_ident.outputs.dashboard import (
+    BLOCK_ENTITIES,
+    CONTROL_ENTITIES,
+    ENTITY_SERIES,
+    ESTIMATE_KEYS,
+    SERIES_STYLES,
+    TORQUE_NRMSE,
+    draw_fit_frf,
+    draw_loop_gain,
+    truth_path,
+)
 from rt_ident.processes.guard import become_helper, end_helper, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, key_words, put_rows
 
@@ -63,8 +73,9 @@ TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("lateness_us",
 #: tick stays visible); the per-sample estimates settle over ~100 ms, 100 points/s draw them whole.
 THIN_KEYS: Mapping[str, int] = {"lateness_us": 10, **{f"svf_{k}": 10 for k in ("I1", "I2", "B", "K")}}
 #: Tick-rate signals that change only now and then (a fit, a redesign, an overrun): sent as steps.
-STEP_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("overruns", "stalls", "gain_theta2", "gain_omega1", "pm_deg",
-                                                       "gm_db", "n_accepted", "n_rejected", "fallbacks"))
+STEP_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("overruns", "stalls", "gain_theta2", "gain_omega1",
+                                                                   "pm_deg", "gm_db", "n_accepted", "n_rejected",
+                                                                   "fallbacks"))
 _MAX_COALESCE = 256  # blocks taken from the ring per poll
 _MAX_PENDING = 2048  # blocks held in the child before a send even if batch_seconds has not passed
 _TRUTH = "truth:"    # key prefix of a truth message in the ring
@@ -371,7 +382,8 @@ class _Sender:
         for key, value in truth.items():
             start = self.truth_sent.get(truth_path(key))
             if start is not None and t_end > start:
-                self.rec.send_columns(truth_path(key), indexes=[rr.TimeColumn("time", duration=np.array([start, t_end]))],
+                span = rr.TimeColumn("time", duration=np.array([start, t_end]))
+                self.rec.send_columns(truth_path(key), indexes=[span],
                                       columns=rr.Scalars.columns(scalars=np.full(2, value)))
 
     def _nrmse(self, blocks: list[dict[str, np.ndarray]]) -> None:
@@ -475,7 +487,8 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
 
         failed = SimpleNamespace(value=0)
     os.environ.setdefault("CI", "1")  # rerun: no analytics config written under HOME
-    if cfg.sink == "rrd":   # warnings only (an INFO line reached the terminal), and not the missing-footer one (_open_sink)
+    # warnings only (an INFO line reached the terminal), and not the missing-footer one (_open_sink)
+    if cfg.sink == "rrd":
         os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
     elif cfg.sink in CLIENT_SINKS:   # not rerun's retry lines: an undelivered dashboard is reported in the summary
         os.environ.setdefault("RUST_LOG", "warn,re_grpc_client=off,re_sdk::recording_stream=off")
@@ -590,7 +603,7 @@ class TelemetryProcess:
     def pid(self) -> int | None:
         return None if self._proc is None else self._proc.pid
 
-    def start(self) -> "TelemetryProcess":
+    def start(self) -> TelemetryProcess:
         if self._proc is not None or self.config.sink == "off":
             return self
         self._ring = MessageRing(self.config.ring_bytes, max_messages=self.config.queue_size, ctx=self._ctx)
@@ -615,7 +628,7 @@ class TelemetryProcess:
     def exitcode(self) -> int | None:
         return None if self._proc is None else self._proc.exitcode
 
-    def restart(self) -> "TelemetryProcess":
+    def restart(self) -> TelemetryProcess:
         """A new telemetry process in place of a dead one. An .rrd sink continues in a new file
         (``<name>-2.rrd``: the dead child's file keeps what it wrote, never overwritten)."""
         end_helper(self._proc)
@@ -878,7 +891,7 @@ class TelemetryProcess:
                 why = f"{path}: {exc.strerror or exc}"
         return {"written": why is None, "write_error": why}
 
-    def __enter__(self) -> "TelemetryProcess":
+    def __enter__(self) -> TelemetryProcess:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

@@ -23,8 +23,8 @@ import numpy as np
 
 from rt_ident.errors import EstimationError
 from rt_ident.estimators.base import IdentData, Identification
-from rt_ident.processes.recorder import read_recording
 from rt_ident.outputs.recording_reader import iter_parquet_blocks, parquet_metadata
+from rt_ident.processes.recorder import read_recording
 
 REPLAY_CHUNK = 4096
 
@@ -101,8 +101,7 @@ def validate_file(ident: Any, path: str | Path) -> dict[str, Any]:
     of the torque it predicts from that recording's measured motion (and, for ``rigid-friction``,
     of the position an open-loop simulation from its torque gives, which drifts)."""
     from rt_ident.estimators.base import uniform_dt
-    from rt_ident.estimators.friction import (NEEDS_THETA2, FrictionIdentification, predict_torque,
-                                              simulate_rigid)
+    from rt_ident.estimators.friction import NEEDS_THETA2, FrictionIdentification, predict_torque, simulate_rigid
 
     if not isinstance(ident, FrictionIdentification):
         raise EstimationError("--validate needs a model fitted by svf-ls (give --model)")

@@ -16,8 +16,8 @@ a non-physical value is reported as NaN (drawn at the top of the plot).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 

@@ -16,8 +16,8 @@ LS results (every signal scales with it); :func:`sensitivity` shows both.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
 
 import numpy as np
 
