@@ -53,3 +53,12 @@ def test_no_module_imports_another_modules_private_names():
                     if alias.name.startswith("_") and not alias.name.startswith("__"):
                         offenders.append(f"{path.relative_to(ROOT)}: from {node.module} import {alias.name}")
     assert not offenders, "private names imported across modules:\n" + "\n".join(offenders)
+
+
+def test_tests_live_in_a_folder_per_package():
+    packages = {p.name for p in (ROOT / "rt_ident").iterdir() if (p / "__init__.py").is_file()} | {"drivers", "tools"}
+    folders = {p.name for p in (ROOT / "tests").iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert folders <= packages, sorted(folders - packages)
+    top = sorted(p.stem for p in (ROOT / "tests").glob("test_*.py"))
+    # at the top: what tests the project as a whole or its top-level modules (cli, config, the layout, the README)
+    assert all(name.split("_")[1] in ("cli", "config", "layout", "readme") for name in top), top

@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 #: Primitive polynomials over GF(2), x^order + sum(x^t for t in taps) + 1, by order.
 #: Each was checked to give a maximum-length sequence (every non-zero state once per
-#: period; see tests/test_excitation.py). Low-degree middle terms were preferred.
+#: period; see tests/axis/test_excitation.py). Low-degree middle terms were preferred.
 PRBS_TAPS: dict[int, tuple[int, ...]] = {
     2: (1,), 3: (1,), 4: (1,), 5: (2,), 6: (1,), 7: (1,), 8: (4, 3, 2), 9: (4,),
     10: (3,), 11: (2,), 12: (6, 4, 1), 13: (4, 3, 1), 14: (10, 6, 1), 15: (1,),

@@ -24,7 +24,7 @@ more than 100 times). The estimators monitor the motor equation of Eq. (3)
 is singular by construction) and the stacked regression. A single sine in steady
 state leaves the motor regressor rank-deficient (three columns spanned by one sine
 and one cosine) and fails; the broadband Schroeder multisine gives min_eig of
-0.2-0.7 (see tests/test_uncertainty.py).
+0.2-0.7 (see tests/estimators/test_uncertainty.py).
 
 ``trusted`` additionally requires every physical parameter's 95 % interval to exist, be
 finite and narrower than +-``MAX_REL_HALFWIDTH`` (10 %) of its value, which catches zero

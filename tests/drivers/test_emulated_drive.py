@@ -24,7 +24,7 @@ from rt_ident.axis.params import CONFIG_DIR, thomson_x
 from rt_ident.axis.plant import PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 EDS = CONFIG_DIR / "cia402_generic.eds"
 
 

@@ -35,7 +35,7 @@ from rt_ident.errors import RtIdentError
 from rt_ident.processes.emulation import EmulatorProcess, free_udp_port
 
 CONFIG = CONFIG_DIR / "canopen-virtual.toml"
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 GROUP = "239.74.163.2"
 _ALL_CPUS = os.sched_getaffinity(0)
 

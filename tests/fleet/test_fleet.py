@@ -22,7 +22,7 @@ from rt_ident.fleet.history import query
 from rt_ident.fleet.identify import PARAMS, identify_fleet, identify_recording
 from rt_ident.fleet.manifest import read_manifest, write_manifest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
 import make_fleet  # noqa: E402
 

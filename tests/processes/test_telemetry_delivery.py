@@ -14,7 +14,7 @@ import numpy as np
 
 from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _free_port() -> int:

@@ -16,7 +16,7 @@ import pytest
 
 from rt_ident.processes.emulation import free_udp_port
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RT_IDENT = [sys.executable, "-c", "from rt_ident.cli import main; main()"]
 
 

@@ -21,7 +21,7 @@ from rt_ident.compose import run as run_mod
 from rt_ident.compose.run import run as run_axes
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
-from tests.test_canopen_backend import assert_drive_safe, backend_cfg
+from tests.drivers.test_canopen_backend import assert_drive_safe, backend_cfg
 
 TPDO1, TPDO2 = 0x185, 0x285
 
@@ -189,8 +189,8 @@ def _xy_canopen(**over):
     # both drives faulted on heartbeat loss at once, cause not found yet), nor 20 ticks without a sample
     # (seen once in a fresh-clone CI run: X's watchdog tripped in the run that injects Y's fault; 20 runs
     # here, 8 of them beside a busy loop on each core, did not repeat it). What is tested here is the two
-    # drives on one bus and a drive's own fault, not the watchdogs or the speed limit: tests/test_canopen_backend.py and
-    # tests/test_xy.py cover those
+    # drives on one bus and a drive's own fault, not the watchdogs or the speed limit: tests/drivers/test_canopen_backend.py and
+    # tests/compose/test_xy.py cover those
     return load("configs/xy-canopen-virtual.toml", **{"loop.realtime": True, "telemetry.sink": "off",
                                                       "recording.enabled": False, "backend.stale_limit": 200,
                                                       "backend.heartbeat_consumer_ms": 1000,

@@ -6,7 +6,7 @@ import importlib.util
 from pathlib import Path
 
 spec = importlib.util.spec_from_file_location("cpu_stall_probe",
-                                              Path(__file__).parent.parent / "tools" / "cpu_stall_probe.py")
+                                              Path(__file__).parents[2] / "tools" / "cpu_stall_probe.py")
 probe_mod = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(probe_mod)
 

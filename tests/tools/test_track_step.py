@@ -1,7 +1,7 @@
 import importlib.util
 from pathlib import Path
 
-spec = importlib.util.spec_from_file_location("track_step", Path(__file__).parent.parent / "tools" / "track_step.py")
+spec = importlib.util.spec_from_file_location("track_step", Path(__file__).parents[2] / "tools" / "track_step.py")
 track_step = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(track_step)
 

@@ -19,7 +19,7 @@ from rt_ident.axis.params import thomson_x
 from rt_ident.config import load
 from rt_ident.errors import ConfigError
 
-CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def wait_until(pred, timeout: float = 1.0) -> bool:
