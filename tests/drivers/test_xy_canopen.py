@@ -189,8 +189,8 @@ def _xy_canopen(**over):
     # both drives faulted on heartbeat loss at once, cause not found yet), nor 20 ticks without a sample
     # (seen once in a fresh-clone CI run: X's watchdog tripped in the run that injects Y's fault; 20 runs
     # here, 8 of them beside a busy loop on each core, did not repeat it). What is tested here is the two
-    # drives on one bus and a drive's own fault, not the watchdogs or the speed limit: tests/drivers/test_canopen_backend.py and
-    # tests/compose/test_xy.py cover those
+    # drives on one bus and a drive's own fault, not the watchdogs or the speed limit:
+    # tests/drivers/test_canopen_backend.py and tests/compose/test_xy.py cover those
     return load("configs/xy-canopen-virtual.toml", **{"loop.realtime": True, "telemetry.sink": "off",
                                                       "recording.enabled": False, "backend.stale_limit": 200,
                                                       "backend.heartbeat_consumer_ms": 1000,
