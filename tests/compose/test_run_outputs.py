@@ -80,7 +80,7 @@ def test_bad_paths_and_methods_fail_in_one_line_before_anything_starts(tmp_path,
     res = runner.invoke(app, ["run", "--duration", "0.2", "--no-realtime", *args])
     assert res.exit_code != 0, res.output
     assert needle in str(res.exception)
-    assert not started and time.monotonic() - t0 < 10
+    assert not started and time.monotonic() - t0 < 30        # refused at once, nothing started
     assert not Path("runs").exists() or not any(Path("runs").iterdir())      # no file left behind
 
 

@@ -294,11 +294,11 @@ def test_connect_to_absent_viewer_never_blocks_publish_and_counts_drops() -> Non
         t0 = time.perf_counter()
         tp.publish(_block(k, n=400))
         worst = max(worst, time.perf_counter() - t0)
-    assert worst < 0.05
+    assert worst < 1.0          # a publish that waited on the connection would take its seconds-long timeout
     assert tp.dropped > 0 and tp.published + tp.dropped == n
     t0 = time.perf_counter()
     summary = tp.close(timeout=2.0)
-    assert time.perf_counter() - t0 < 2.5
+    assert time.perf_counter() - t0 < 15.0   # bounded by the timeout and the termination, not by rerun
     assert summary["dropped"] == tp.dropped and summary["exitcode"] is not None  # the child is gone
 
 
