@@ -117,9 +117,11 @@ class SerialBoardBackend(Backend):
             try:
                 self._send(frame)
             except Exception as exc:  # noqa: BLE001 - a stop path must not raise
-                # one line: the link's failure is the run's stop cause, reported by the caller
-                log.warning("serial board %s: stop frames not sent (%s); the board disables itself when the "
-                            "host's heartbeats stop", self.port, type(exc).__name__)
+                # one line, once: the link's failure is the run's stop cause, reported by the caller
+                if not getattr(self, "_stop_unsent", False):
+                    self._stop_unsent = True
+                    log.warning("serial board %s: stop frames not sent (%s); the board disables itself when the "
+                                "host's heartbeats stop", self.port, type(exc).__name__)
                 log.debug("serial board %s: stop frame failed", self.port, exc_info=True)
                 return False
         return True
