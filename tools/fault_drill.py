@@ -30,9 +30,8 @@ from pathlib import Path
 
 RUN = [sys.executable, "-m", "rt_ident", "run", "--no-realtime"]
 # drill 8 runs the CANopen loop as a bench does, real-time where the host allows it: without real time,
-# on a 2-CPU machine the drill's own burst of datagrams beside the loop can starve it until the drive's
-# 10 ms stale-data watchdog stops the run - a correct stop, but not what drill 8 is about
-# (docs/measurements.md, "Run endings and faults")
+# a run beside the drill's own burst of datagrams sometimes stops on the drive's 10 ms stale-data
+# watchdog - a correct stop, but not what drill 8 is about (docs/measurements.md, "Run endings and faults")
 RUN_RT = RUN[:-1]
 
 
