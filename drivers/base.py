@@ -46,7 +46,7 @@ _ZERO.flags.writeable = False
 @dataclass(slots=True, eq=False)
 class SampleBlock:
     """All samples a backend produced since the previous ``read()`` (a value: nothing changes one after
-    it is made; not frozen only because a frozen dataclass's construction cost twice as much, every
+    it is made; not frozen only because a frozen dataclass's construction costs twice as much, every
     tick, on every axis).
 
     Arrays share one length. ``t`` are hardware timestamps [s] (the device's

@@ -60,9 +60,9 @@ def settle_heap() -> None:
 
     Call it in an emulator's process once its device is up. Importing numba, canopen and the plant
     leaves a few hundred thousand long-lived objects; the collector's first full pass over them
-    stalled the emulated drive for 57-63 ms about a second into a run (measured), while the host
-    sent 110 SYNCs it could not answer - a pause a real drive's firmware never takes. The collector
-    stays on for what the device allocates later: those passes are short.
+    pauses the emulated drive for ~60 ms (docs/measurements.md, "Run endings and faults"): over a
+    hundred SYNCs at 2 kHz it cannot answer, a pause a real drive's firmware never takes. The
+    collector stays on for what the device allocates later: those passes are short.
     """
     gc.collect()
     gc.freeze()

@@ -2,12 +2,11 @@
 by compiled calls.
 
 The semantics are :class:`drivers.base.Backend`'s (a newer plan replaces the rest of an older one,
-samples not covered hold the last value, values for samples already applied count as late) and were
-the sim's numpy code's before: the older plan cut at the newer one's start, the gap between them held
-at the older plan's last value, the newer one appended; the samples stepped take the plan's values and
-drop them. The loop writes a plan and its lease every tick, on each axis: numpy's slicing,
-``np.full`` and ``np.concatenate`` of the two plans cost ~25 us per write on a VM with cold caches,
-one compiled call a few.
+samples not covered hold the last value, values for samples already applied count as late): the older
+plan is cut at the newer one's start, the gap between them held at the older plan's last value, the
+newer one appended; the samples stepped take the plan's values and drop them. The loop writes a plan
+and its lease every tick, on each axis: with numpy's slicing, ``np.full`` and ``np.concatenate`` of the
+two plans that costs ~25 us per write with cold caches, in one compiled call a few.
 
 State: ``buf`` (the values, float64), ``pm`` (int64: the plan's first sequence number, its length, the
 offset of its first value in ``buf``) and ``pf`` (float64: the torque held where there is no plan).

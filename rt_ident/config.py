@@ -62,7 +62,7 @@ class ExcitationConfig(_Section):
 #: Tick rates the loop runs at [Hz]. At least 100: the host writes to the device (torque, heartbeat)
 #: once per tick, and a serial board disables itself after 0.1 s without a host frame; the safety
 #: watchdog counts ticks. At most 3333: the ticker spins the last 150 us before each deadline
-#: (runtime/scheduler.py), which must stay within half a tick.
+#: (rt_ident/loop/scheduler.py), which must stay within half a tick.
 TICK_HZ_RANGE = (100.0, 3333.0)
 
 
@@ -74,10 +74,10 @@ class LoopConfig(_Section):
     max_sleep_us: float | None = Field(100.0, gt=0)  # longest single sleep while waiting for a tick
                                                # (short sleeps keep a VM's vCPU from halting; scheduler.py)
     idle_poll: bool = True                     # real time, loop on its own CPU: a SCHED_IDLE thread keeps that
-                                               # CPU busy while the loop sleeps (runtime/idle_poll.py); the
+                                               # CPU busy while the loop sleeps (rt_ident/loop/idle_poll.py); the
                                                # ticker then sleeps in one piece unless max_sleep_us is set
     compiled_tick: bool = True                 # each axis's tick in one compiled call where its parts allow
-                                               # (runtime/tick_core.py); false: the Python path, step by step
+                                               # (rt_ident/loop/tick_core.py); false: the Python path, step by step
 
     @field_validator("tick_hz")
     @classmethod

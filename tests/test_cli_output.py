@@ -124,8 +124,8 @@ def test_a_frequency_fit_carries_its_frf_view_with_model_and_band():
 
 
 def test_an_frf_view_of_a_fit_with_a_wild_covariance_never_raises():
-    """A fit with absurd intervals (early in a run) once overflowed in the band's parameter draws and
-    took the whole final fit down with it; the band then collapses onto the model instead."""
+    """A fit with absurd intervals (early in a run) can overflow in the band's parameter draws; that must
+    not take the whole final fit down with it: the band collapses onto the model instead."""
     from rt_ident.axis.plant import HoldController, PlantSimulator
     from rt_ident.estimators.frequency import compute_spectra
     from rt_ident.estimators.frf import frf_view

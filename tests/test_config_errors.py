@@ -1,6 +1,6 @@
 """Bad configs and recordings end in one line naming the setting that fixes them (exit 2), found
-before anything starts: what a user's fuzzing of 63 configs turned up as tracebacks, each case
-checked through the loader (or the run's start-up checks) and through the command line."""
+before anything starts: cases that fuzzing the configs turns up, each checked through the loader
+(or the run's start-up checks) and through the command line."""
 
 from __future__ import annotations
 

@@ -123,7 +123,7 @@ def test_fuzzed_configs_pass_the_start_up_checks_or_are_refused_in_one_line_nami
 
 
 def test_the_reported_cases_are_refused_in_one_line_naming_their_field():
-    """The fuzzing that found the tracebacks, as fixed examples."""
+    """Fuzzed cases kept as fixed examples: each is refused in one line naming its field."""
     cases = {("safety", "window"): [0.04, -0.04], ("backend", "sample_period"): 1e-12, ("axis", "I1"): 1e300,
              ("loop", "tick_hz"): math.nan, ("backend", "torque_limit"): 1e9}
     for (section, key), value in cases.items():

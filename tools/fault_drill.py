@@ -2,7 +2,7 @@
 
     python tools/fault_drill.py            # ~1-2 minutes; works in a temporary directory
 
-Drills (issue 13, items 1-4 and 8):
+Drills, numbered as in the printed table:
 
 1. two runs started in the same second (default file names);
 2. Ctrl-C to the process group, and SIGTERM to the process group (systemd's stop);
@@ -11,8 +11,8 @@ Drills (issue 13, items 1-4 and 8):
 8. frames sent to this host's own non-loopback address at the emulated CAN bus's port.
 
 Each row: the exit code, whether the recording holds every sample the loop read, orphans left
-after 5 s, and the verdict. Exit code 0 when every drill passed. Disk full (item 5) is not drilled
-here: filling a disk on a shared machine is not something a drill should do.
+after 5 s, and the verdict. Exit code 0 when every drill passed. Disk full is not drilled here:
+filling a disk on a shared machine is not something a drill should do.
 """
 
 from __future__ import annotations
@@ -29,10 +29,9 @@ import time
 from pathlib import Path
 
 RUN = [sys.executable, "-m", "rt_ident", "run", "--no-realtime"]
-# drill 8 runs the CANopen loop as the bench does, real-time where this host allows it. Without it
-# (on this 2-CPU VM) 3 of 16 runs stopped on the drive's 10 ms stale-data watchdog, a correct stop
-# but not what drill 8 is about (no frame got in; 0 of 12 such stops without the drill's burst of
-# datagrams beside the loop); real-time, 6 of 6 ran through
+# drill 8 runs the CANopen loop as a bench does, real-time where the host allows it: without real time,
+# a run beside the drill's own burst of datagrams sometimes stops on the drive's 10 ms stale-data
+# watchdog - a correct stop, but not what drill 8 is about (docs/measurements.md, "Run endings and faults")
 RUN_RT = RUN[:-1]
 
 

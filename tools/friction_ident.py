@@ -1,4 +1,4 @@
-"""The bias table of issue #14: the axis with friction identified with and without a friction model.
+"""The friction bias table: the axis with friction identified with and without a friction model.
 
     python tools/friction_ident.py [--seconds 4] [--seeds 3]
 

@@ -1,4 +1,4 @@
-"""Reversal spikes with and without friction feedforward (issue #14): one axis, sine reference.
+"""Reversal spikes with and without friction feedforward: one axis, sine reference.
 
     python tools/friction_reversal.py [--duration 4] [--amplitude 0.005] [--hz 1] [--png docs/friction_reversal.png]
 

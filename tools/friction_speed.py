@@ -1,4 +1,4 @@
-"""Steps/s of the sampled plant kernel with and without friction (issue #14).
+"""Steps/s of the sampled plant kernel with and without friction.
 
     python tools/friction_speed.py [--steps 1000000] [--repeats 5]
 

@@ -1,4 +1,4 @@
-"""Peak memory of ``rt-ident identify`` against the recording's length (issue 13, item 7).
+"""Peak memory of ``rt-ident identify`` against the recording's length.
 
     python tools/identify_memory.py                 # 1 and 10 minutes at the sim's 34 k samples/s
     python tools/identify_memory.py --minutes 1 10 60

@@ -66,9 +66,9 @@ class FrameIO:
     ``poll_s``: ``None`` - the thread blocks until a frame arrives (waking every ``_IDLE_S``);
     a number - it never blocks longer: an empty read is followed by ``on_idle()`` (if given:
     periodic work without another thread competing for the GIL) and ``time.sleep(poll_s)``.
-    On this kind of VM a thread that blocks longer than ~200 us lets its vCPU halt, and waking
-    it costs 0.5-50 ms now and then; a drive must answer within one SYNC period, so the
-    emulated drive polls.
+    On a KVM guest a thread that blocks longer than ~200 us (the halt-polling window) lets its
+    vCPU halt, and waking it costs 0.5-50 ms now and then; a drive must answer within one SYNC
+    period, so the emulated drive polls.
 
     ``udp_multicast``: the bus's socket is read and written directly (a duplicate of its
     file descriptor) in python-can's wire format (one msgpack map per frame): reading,

@@ -311,8 +311,8 @@ class SyncSender:
             if k >= next_hb and self.heartbeat is not None:   # (set to None: the heartbeat stops)
                 hb_cob, hb_every = self.heartbeat
                 # The host's heartbeat from this thread (real-time, one step above the loop) while the
-                # SYNC runs: from an ordinary thread it waited behind the real-time threads of a loaded
-                # host for > 250 ms and both drives faulted on heartbeat loss (EMCY 0x8130).
+                # SYNC runs: from an ordinary thread it can wait behind the real-time threads of a loaded
+                # host for longer than the drives' heartbeat timeout, and they fault (EMCY 0x8130).
                 next_hb = k + hb_every
                 try:
                     send(hb_cob, b"\x05")
@@ -340,8 +340,7 @@ def _preempt_creator(creator: tuple[int, int] | None) -> None:
     The policy is set here explicitly, not inherited: the loop thread runs with
     SCHED_RESET_ON_FORK (a helper it restarts must not be real-time), and that flag makes
     every new thread it starts SCHED_OTHER too - a sender on the loop's CPU then runs only
-    while the loop sleeps (measured: half of the SYNCs late by whole periods, 2044 of 4000
-    samples lost on an idle host).
+    while the loop sleeps (about half of the SYNCs late by whole periods, even on an idle host).
     """
     if creator is None or creator[0] != os.SCHED_FIFO:
         return

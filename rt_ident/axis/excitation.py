@@ -3,7 +3,7 @@
 The paper excites the axis with a Schroeder signal (Section 3, Fig. 4; Schroeder
 1970): a periodic sum of harmonics with a flat amplitude spectrum and phases
 chosen for a low peak factor. The paper gives neither the harmonic band nor the
-amplitude; both are arguments here (see design notes, section 2).
+amplitude; both are arguments here (docs/theory/paper.md, "Where the paper is wrong or silent").
 
 Conventions
 -----------

@@ -1,4 +1,4 @@
-"""Friction to ground and backlash for the two-inertia axis (issue #14; beyond the paper).
+"""Friction to ground and backlash for the two-inertia axis (beyond the paper).
 
 The paper's model (Eqs. 1-3) has no friction: ``I1 th1'' + B (th1' - th2') + K (th1 - th2) = T`` and
 ``I2 th2'' - B (th1' - th2') - K (th1 - th2) = 0``. A real ball-screw axis adds, on each body ``i``

@@ -15,10 +15,10 @@ object. Per sample ``k`` (:func:`rt_ident.axis.kernels.plant_block`):
    acceleration step with the held torque (``integrator="newmark"``, see
    :meth:`rt_ident.axis.integrators.Newmark.step_matrices`).
 
-With ``friction`` (:class:`rt_ident.axis.friction.Friction`, issue #14) the physics step is
+With ``friction`` (:class:`rt_ident.axis.friction.Friction`) the physics step is
 :func:`rt_ident.axis.kernels.plant_block_friction` instead: Coulomb/viscous/Stribeck friction to
 ground on each body with Karnopp sticking, and optional backlash (ZOH only). Without friction (the
-default, or all-zero values) nothing changes: the same kernel as before runs.
+default, or all-zero values) the frictionless kernel runs.
 
 Noise comes from ``numpy.random.Generator(seed)``, drawn as one (n, 4) array
 per block in sample order, so the result does not depend on how a run is

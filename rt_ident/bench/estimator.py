@@ -11,7 +11,7 @@ the per-sample estimate (:mod:`rt_ident.estimators.svf`) after every tick.
   step from which the estimate of *the stepped parameter* stays within 2 % of its new value (to the
   end of the 2 s after the step); the errors of all four at 0.2 s after the step are reported too.
 
-Targets (issue 12): bias <= 1 % on I1, I2, B, K in 10 s; settling <= 0.2 s after any +20 % step.
+Targets: bias <= 1 % on I1, I2, B, K in 10 s; settling <= 0.2 s after any +20 % step.
 """
 
 from __future__ import annotations

@@ -198,7 +198,7 @@ def bench_loop(seconds: float = 60.0, rates: tuple[int, ...] = DEFAULT_RATES, si
     Rates are tried upwards until a trial saturates (see :func:`_saturated`). A trial with
     overruns after its first second that still kept pace (a millisecond spike on a shared VM)
     is repeated up to ``retries`` times. Reported per sink: ``max_clean_rate`` (0 overruns, the
-    issue's criterion), ``max_clean_after_startup_rate`` (0 overruns after the first second:
+    target), ``max_clean_after_startup_rate`` (0 overruns after the first second:
     separates a one-time start-up stall from steady-state capacity) and ``max_sustained_rate``
     (kept pace, spikes or not).
     """
@@ -242,7 +242,7 @@ def soak(seconds: float = 600.0, rate: float = 170_000, sink: str = "rrd",
 
     ``rss_growth_pct`` compares the resident set at the first tick with the last sample (every
     1000 ticks); ``rss_growth_after_10pct_pct`` starts after the first tenth of the run, when
-    every buffer has been touched. The issue's criterion is +-5 %.
+    every buffer has been touched. The target is +-5 %.
     """
     res = loop_trial(rate, seconds, sink, method=method, record=record)
     res["record"] = record

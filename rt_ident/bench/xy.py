@@ -1,4 +1,4 @@
-"""The XY table's tick budget (issue #15 item 6): both axes at the sim's 34 k samples/s each, with
+"""The XY table's tick budget: both axes at the sim's 34 k samples/s each, with
 per-sample estimation and control, in one loop - against one axis alone, in the same run.
 
 ``rt-ident bench xy``: the two-axis run is ``configs/xy-sim.toml`` as shipped (its circle, dashboards

@@ -51,9 +51,9 @@ class ControlSettings:
     redesign_interval_s: float = 0.25        # at most this often
     min_change: float = 0.02                 # relative parameter change that asks for a redesign
     # ... and of B alone. B's share of the torque is small, so its estimate scatters most (per-sample
-    # 1.3 %), and the family check already keeps the margins for B x 0.7..1.3: with 2 % for B too,
-    # 9 of X's 10 redesigns in an 11 s configs/xy-sim.toml run were asked for B's scatter, each one a
-    # controller switch and a loop-gain redraw
+    # ~1.3 %), and the family check already keeps the margins for B x 0.7..1.3: at 2 % B's scatter
+    # alone would ask for most redesigns, each one a controller switch and a loop-gain redraw
+    # (docs/measurements.md, "Position control")
     min_change_damping: float = 0.10
     max_error_m: float = 2e-4                # tracking error bound -> fallback
     fallback_timeout_s: float = 0.5          # the fallback must bring the error back within this
@@ -75,14 +75,14 @@ def rigid_controller(nominal: AxisParams, tick: float, s: ControlSettings) -> Co
     highest bandwidth from ``conservative_bandwidth_hz`` down (x 0.8 a step, to a quarter of it) that
     keeps the margins on the nominal axis *and* with a workpiece on its table (I2 x ``conservative_load``).
 
-    It holds the axis until the first trusted estimate and after a fallback, so it must hold the axis
-    the supervisor has not identified yet. At 10 Hz the design for the XY table's Y (I2 = 2.5e-5) was
-    unstable once Y took a workpiece (I2 x 3: the mode at 375 Hz, where one tick of delay turns the
-    collocated velocity feedback round) and, in force when the load came, drove the motor at ~0.8 N m
-    rms for seconds; 4.1 Hz keeps 6 dB / 40 deg there. For the THOMSON X axis 10 Hz passes as it is.
-    The default load factor is 1 (the nominal axis only, 10 Hz): with 3 as default, Y's 4.1 Hz
-    fallback tracked the 1-turn/s circle so loosely that the circular test's G reached 1088 um in a
-    CI run. When no bandwidth passes, the lowest is used (and a warning logged)."""
+    It holds the axis until the first trusted estimate and after a fallback, so it must hold an axis
+    the supervisor has not identified yet. A light axis with a workpiece is the hard case: for the XY
+    table's Y (I2 = 2.5e-5) with I2 x 3 the mode sits at 375 Hz, where one tick of delay turns the
+    collocated velocity feedback round, and the 10 Hz design is unstable; 4.1 Hz keeps 6 dB / 40 deg
+    there. The THOMSON X axis passes at 10 Hz. The default load factor is 1 (the nominal axis only,
+    10 Hz): a 4.1 Hz fallback follows a 1-turn/s circle too loosely for the circular test
+    (docs/measurements.md, "Both axes of the XY table"). When no bandwidth passes, the lowest is used
+    (and a warning logged)."""
     loaded = replace(nominal, I2=nominal.I2 * s.conservative_load)
     bw = s.conservative_bandwidth_hz
     while True:
@@ -138,8 +138,9 @@ def _fallback_for(gains: np.ndarray, p: AxisParams, tick: float, s: ControlSetti
                   ci95) -> tuple[Controller | None, str | None]:
     """A conservative controller that suits the estimate ``p``, when the one in force does not
     (None when it does, or when nothing better passes). The rigid-body controller is designed for
-    the nominal inertia: after Y took a workpiece (I2 x 3) it was unstable on Y, its mode (375 Hz)
-    sitting where one tick of delay turns the collocated velocity feedback round. Tried in turn:
+    the nominal inertia: on a light axis with a workpiece (the XY table's Y with I2 x 3) it can be
+    unstable, the mode (375 Hz) sitting where one tick of delay turns the collocated velocity feedback
+    round. Tried in turn:
     the rigid-body controller for the estimate's I1 + I2, then the model controller at the
     conservative bandwidth; the first that passes the family check is taken."""
     kw = {"gm_db": s.gain_margin_db, "pm_deg": s.phase_margin_deg, "factors": tuple(s.family_factors), "ci95": ci95}
@@ -351,7 +352,7 @@ class Supervisor:
                 self.stats.events.append((t, "recovered", f"error {abs_err * 1e6:.1f} um"))
                 held, self._held = self._held, None
                 if held is not None and self._stale(held.model) is None:
-                    # a design accepted while recovering waited for this: without it the axis stayed
+                    # a design accepted while recovering waited for this: otherwise the axis would stay
                     # on the (slower) fallback until the next design, a second or more
                     self._switch(held)
                     self.stats.events.append((t, "applied", "the model controller held through the fallback"))
@@ -362,9 +363,9 @@ class Supervisor:
 
     def _fall_back(self, t: float, why: str, hold_current: bool = False) -> None:
         """Onto the conservative controller. ``hold_current`` (a tracking-error fallback): the model
-        controller in force goes back in at the recovery if it still fits the estimate then - a
-        switch onto a fresh design while the old one had let the error grow tripped the fallback
-        14 ms later, and the axis then ran the slower fallback for a second, through a circle."""
+        controller in force goes back in at the recovery if it still fits the estimate then: a switch
+        onto a fresh design while the error is still large can trip the fallback again at once, and the
+        axis then runs the slower fallback for a second or more."""
         if hold_current and self.controller.kind == "model" and self._held is None:
             self._held = self.controller
         self.in_fallback = True
@@ -494,9 +495,9 @@ class Supervisor:
             st.cpu_s.append(float(res["cpu_s"]))
         stale = self._stale(res["controller"].model) if res.get("accepted") else None
         if stale is not None:
-            # the design took its time (~1 s on a loaded host): the axis it was made for may be gone. A
-            # design for Y's inertia before a change, applied 0.93 s after it, drove the table 215 um off
-            # and into the fallback (the XY circular test after Y's I2 x 3)
+            # a design can take ~1 s on a loaded host, and the axis it was made for may have changed
+            # since: a design for the inertia before a load change, applied after it, can drive the
+            # table hundreds of um off and into the fallback
             res = {"accepted": False, "reason": stale}
         if res.get("accepted"):
             st.accepted += 1

@@ -194,9 +194,9 @@ def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
     gm, w_pc = np.atleast_1d(np.asarray(gm, dtype=float)), np.atleast_1d(np.asarray(w_pc, dtype=float))
     pm, w_gc = np.atleast_1d(np.asarray(pm, dtype=float)), np.atleast_1d(np.asarray(w_gc, dtype=float))
     # python-control 0.10.2 finds a discrete loop's crossings as polynomial roots on the unit circle,
-    # and near a lightly damped mode it reports crossings that are not there (issues #465, #523): on
-    # the heavier Y axis it gave a "gain crossing" at 362.7 Hz with a phase margin of 2 deg where
-    # |L| = 0.42 - every design for that axis was refused over it. Each crossing is checked on L itself.
+    # and near a lightly damped mode it reports crossings that are not there (python-control issues
+    # #465, #523), e.g. a "gain crossing" with a 2 deg phase margin where |L| = 0.42, which refuses a
+    # sound design. Each crossing is checked on L itself.
     resp = _loop_response(Az, Bz, Gr, tick)
     if pm.size:
         Lg = resp(w_gc)

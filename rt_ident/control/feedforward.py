@@ -1,4 +1,4 @@
-"""Friction feedforward from an identified friction model (issue #14; beyond the paper).
+"""Friction feedforward from an identified friction model (beyond the paper).
 
 The law (:mod:`rt_ident.control.law`) already feeds the inertia forward, (I1 + I2) alpha_ref.
 A ball-screw axis also needs the torque its friction takes: at every reversal of the reference the

@@ -10,7 +10,7 @@
 * feedforward u_ff = (I1 + I2) alpha_ref, taken half a tick after the torque lands (the
   middle of the tick it is held over), since the torque computed now is applied one tick later;
 * optional friction feedforward (``StateFeedback.friction``, a
-  :class:`rt_ident.control.feedforward.FrictionFeedforward`; issue #14) adds Fv w + Fc sat(w / band)
+  :class:`rt_ident.control.feedforward.FrictionFeedforward`) adds Fv w + Fc sat(w / band)
   at the reference velocity of the same instant;
 * the delay states are the feedback torques in flight (the design's ``u_{k-d} .. u_{k-1}``);
 * the integral ``xi`` of the table-angle error stops integrating while the torque saturates

@@ -3,7 +3,7 @@
 Pure numerics: each reference is a frozen dataclass with ``at(t) -> (x, v, a)`` for an array of
 times [s] and ``point(t) -> (x, v, a)`` for one time, in plain floats. The loop evaluates it at the
 sample time of the newest sample (and half a tick after the torque lands, for the feedforward)
-with ``point``: on two times numpy's per-call overhead made ``at`` ~20 us of the tick, ``point``
+with ``point``: on two times numpy's per-call overhead makes ``at`` ~20 us of the tick, ``point``
 costs 1-2 us. Both give the same numbers (a test checks them against each other).
 
 * :class:`Hold` - stay at one position;

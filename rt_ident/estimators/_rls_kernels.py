@@ -71,7 +71,7 @@ def _offsets(n: int, q: int) -> tuple[int, ...]:
     """Start offsets in S of M (U or P), d, theta, f (v), g, k, am, inv, e, W (see :func:`layout`).
 
     The kernels index S directly (``U[i, j]`` is ``S[oM + i*n + j]``) rather than through views:
-    in numba every view is reference counted, which cost ~0.3 us per single-sample call.
+    in numba every view is reference counted, which costs ~0.3 us per single-sample call.
     """
     lay = layout(n, q)
     return tuple(lay[name][0] for name in ("M", "d", "theta", "f", "g", "k", "am", "inv", "e", "W"))
@@ -104,7 +104,7 @@ def _cov_coeffs(r, trace, lam, variant, max_trace):  # noqa: ANN001, ANN202
 # d[j] is S[oD + j], theta[i, c] is S[oT + i*q + c], and f (v in the covariance form), g, k, am
 # (a_{j-1}), inv (1/a_j), e, W likewise (scratch). The loop body is written out in ``core`` on
 # purpose: passing arrays to a helper per sample (even an inlined one) costs NRT reference
-# counting, which doubled the time per sample; reshaping inside ``update`` cost ~0.4 us per call.
+# counting, which doubles the time per sample; reshaping inside ``update`` costs ~0.4 us per call.
 def _make_ud(n: int, q: int) -> Callable:
     nq = n * q
     oM, oD, oT, oF, oG, oK, oA, oI, oE, oW = _offsets(n, q)

@@ -2,7 +2,7 @@
 
 The paper regresses Eq. (9), a forward-Euler discretization, on data made by
 Newmark's method (Eqs. 4-6). The mismatch, not noise, causes its errors
-(design notes, section 2). Here the regression matches the data:
+(docs/theory/paper.md, "Where the paper is wrong or silent"). Here the regression matches the data:
 
 * Newmark, average acceleration (alpha = 1/4, delta = 1/2) *is* the trapezoidal
   rule on Eq. (8): Eq. (4) with Eq. (6) at t_k and t_k+1 gives, per sample pair,

@@ -232,8 +232,8 @@ class SpectraSums:
     Sff (K, K), Sf (K,) over the periods of weight Wf that have features, Smv (2,) the weight of those
     whose angles shifted by more than MOVED_STEPS quantization steps; None: not kept): what the
     loop hands the fit process, which turns them into :class:`Spectra` (:meth:`spectra`). Copying two
-    arrays is all the loop does; the means and covariances (an ``einsum``, divisions: ~150 us of a tick
-    on these VMs) are the job process's. The compiled tick writes this message itself
+    arrays is all the loop does; the means and covariances (an ``einsum``, divisions: ~150 us of a tick,
+    docs/measurements.md) are the job process's. The compiled tick writes this message itself
     (rt_ident.processes.shm_ring.put_sums): ``sums`` is S1, then the flat buffer of :func:`sums_layout`."""
 
     harmonics: np.ndarray
@@ -468,13 +468,12 @@ def _fit_among_aliases(sp: Spectra, hold: str, start: np.ndarray, *, transient: 
 
     Sampled with a hold, a mode at w and one at 2 pi / dt - w alias onto the same line of the sampled
     spectrum; only the hold's own response tells them apart, and Gauss-Newton stays in the basin it
-    starts in. Measured: (1) X's 662 Hz resonance sampled at 1 kHz: the linear start (fitted on the
-    lines well below Nyquist) lay at 338 Hz, K -75 %, cost 33 276 against 18 at the true values: the
-    start's mirror finds it. (2) Y's 463 Hz resonance at 1 kHz, closed loop on two emulated drives: in
-    3 of 8 runs the linear start (347 Hz) led to the mode's mirror at 538 Hz (I1 -25 %, K +24 %, trusted:
-    its intervals are narrow), cost 57-1057 against 6-79 at the true mode, and the start's mirror (653 Hz)
-    ended at 512-538 Hz: the fit's own mirror (462 Hz) finds it. A mirror within 3 % of a start already
-    tried or a fit already found is not fitted again (X: the fit's mirror is the linear start).
+    starts in. Two cases need a mirror: a mode above Nyquist whose linear start (fitted on the lines
+    well below Nyquist) lands on its alias - the start's mirror finds it (the THOMSON X axis, 662 Hz at
+    1 kHz); and a mode below Nyquist whose fit ends on its mirror, trusted because the intervals there
+    are narrow too - the fit's own mirror finds it (the XY table's Y, 463 Hz at 1 kHz). Figures:
+    docs/measurements.md, "Aliasing on the 1 kHz bus". A mirror within 3 % of a start already tried or
+    a fit already found is not fitted again (X: the fit's mirror is the linear start).
     A mirrored fit must converge and halve the cost to win (or beat an unconverged one): early in a run,
     on a few noisy periods, a spurious minimum could otherwise beat the true one by a hair (the aliased
     case differs by a factor of ten or more).

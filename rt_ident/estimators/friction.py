@@ -1,4 +1,4 @@
-"""Batch identification with friction to ground (issue #14; beyond the paper): method ``svf-ls``.
+"""Batch identification with friction to ground (beyond the paper): method ``svf-ls``.
 
 Models (``MODELS``; JSON parameter names exactly these):
 
@@ -590,7 +590,7 @@ _rfs_block = numba.njit(cache=True)(_rfs_block_py)
 
 
 class RecursiveFrictionEstimator:
-    """The friction models per sample (issue #14): the rows of :func:`fit_friction` accumulated sample by
+    """The friction models per sample: the rows of :func:`fit_friction` accumulated sample by
     sample in information form with exponential forgetting, compiled.
 
     Differences from the batch fit: the sign comes from the *causal* filtered velocity (sF th, lag

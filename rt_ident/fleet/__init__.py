@@ -1,4 +1,4 @@
-"""The fleet (issue #16): many axes' recordings identified on Dask, kept as a Parquet history, checked for drift.
+"""The fleet: many axes' recordings identified on Dask, kept as a Parquet history, checked for drift.
 
 * :mod:`~rt_ident.fleet.manifest` - the CSV listing recordings (path, machine, axis, time);
 * :mod:`~rt_ident.fleet.identify` - one Dask task per recording, results appended to the history;

@@ -80,11 +80,10 @@ def read_interrupts(path: str = "/proc/interrupts") -> tuple[list[int], dict[str
 
 class LoopCpuInterrupts:
     """Device interrupts the loop's CPU served during the loop. With the kernel's IRQ time accounting
-    off (as on this product's VM), the time a CPU spends in an interrupt and its softirq is charged to
-    whatever thread it interrupted: on the loop's CPU, to the loop's tick. On this VM the disk's
-    interrupt (virtio-blk, a managed IRQ: its affinity cannot be changed) lands on the CPU the loop
-    takes; the ticks that burned milliseconds of the loop thread's own CPU time may be that (not
-    proven). Reported so that a bench PC's setup can be checked: move movable IRQs off the loop's CPU."""
+    off (common on VMs), the time a CPU spends in an interrupt and its softirq is charged to whatever
+    thread it interrupted: on the loop's CPU, to the loop's tick, as milliseconds of the loop thread's
+    own CPU time. A managed IRQ (a VM's virtio-blk disk, say) cannot be moved; reported so that a bench
+    PC's setup can be checked: move movable IRQs off the loop's CPU."""
 
     def __init__(self, cpu: int | None) -> None:
         self.cpu = cpu
@@ -113,9 +112,9 @@ def threads_of(pid: int) -> list[int]:
 
 #: Nice value of each helper role (any other helper: 10). The control process answers a redesign
 #: request, rare and urgent: its latency is the time from a load change to the controller that fits
-#: it. At the same nice value as the fit processes, which refit without pause, it got a fifth of the
-#: helpers' CPU: a 0.2 s redesign answered 2.2 s after the request, while Y ran the controller that no
-#: longer fit it (measured on configs/xy-sim.toml with Y's I2 x 3). A fit process's fit only waits
+#: it. At the nice value of the fit processes, which refit without pause, it gets a fifth of the
+#: helpers' CPU, and a 0.2 s redesign answers seconds late while the axis runs a controller that no
+#: longer fits it (docs/measurements.md, "After a load change on Y"). A fit process's fit only waits
 #: longer; its next fit starts when it is done anyway.
 HELPER_NICE = {"control": 5, "telemetry": 10, "recorder": 10, "fit": 15}
 
@@ -133,8 +132,8 @@ def keep_off_loop_cpu(pids: list[int], realtime: bool, *, device: int | None = N
     (10 when not given). Applied to every thread each process has started so far (rerun's and
     pyarrow's threads exist by now); threads started later inherit it from the thread that creates
     them. An emulated ``device`` (its pid) only leaves the loop's CPU: it stands for hardware that
-    runs on its own, so it keeps its priority (niced next to the fit process's 90 ms bursts, the
-    serial board missed the host's 20-tick watchdog).
+    runs on its own, so it keeps its priority (niced, beside the fit process's 90 ms bursts, the
+    serial board can miss the host's 20-tick watchdog).
     """
     cpu = loop_cpu() if realtime else None
     roles = roles or {}

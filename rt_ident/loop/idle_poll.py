@@ -1,16 +1,14 @@
 """Keep the loop's CPU busy while the loop sleeps, at the lowest priority there is.
 
-Measured on this product's 2-vCPU KVM guest (``rt-ident bench xy``, configs/xy-sim.toml): every
-tick that follows a sleep runs slow. The loop thread sleeps ~0.8 ms of each 1 ms tick; the tick after
-it spends ~35 % longer in every part (read, filters, estimators, plan) than the same code run back
-to back, and whichever axis goes first pays most of it (X's share p50 111-124 us against Y's 73-77).
-A loop that never sleeps (the ticker spinning the whole period, an experiment) ran the two-axis tick
-at p50 153-170 us instead of 195-218, and one axis at p50 80-84 us instead of 139-152. The likely
-cause is the vCPU going idle (the guest halts it, the host runs something else, the timer's wake-up
-goes through the hypervisor) and the interpreter's caches and branch predictors going cold with it;
-the mechanism is not proven, the effect is. Spinning in the loop thread itself is not an option:
-under SCHED_FIFO a thread that never sleeps is paused for 50 ms of every second by the kernel's RT
-throttle (8-10 overruns in 8 s in that experiment), and a spinning Python thread holds the GIL that
+On a KVM guest every tick that follows a sleep runs slow: the loop thread sleeps ~0.8 ms of each
+1 ms tick, and the tick after it spends ~35 % longer in every part (read, filters, estimators, plan)
+than the same code run back to back, most of it in whichever axis goes first; a loop that never
+sleeps runs the same tick markedly faster (figures: docs/measurements.md, "Host facts behind the
+loop's design"). The likely cause is the vCPU going idle (the guest halts it, the host runs something
+else, the timer's wake-up goes through the hypervisor) and the interpreter's caches and branch
+predictors going cold with it; the mechanism is not proven, the effect is. Spinning in the loop
+thread itself is not an option: under SCHED_FIFO a thread that never sleeps is paused for 50 ms of
+every second by the kernel's RT throttle (overruns), and a spinning Python thread holds the GIL that
 a CANopen backend's SYNC and receive threads need.
 
 :class:`IdlePoller` is a thread pinned to the loop's CPU under ``SCHED_IDLE``: it runs only when
@@ -18,10 +16,10 @@ nothing else on that CPU wants to, so the loop (SCHED_FIFO) and any other thread
 once, and the RT throttle never counts it. It spins inside one compiled call
 (``numba.njit(nogil=True)``) from start to stop, so it never holds the GIL while it spins. With it
 the vCPU does not halt, and rt_ident.compose.run lets the ticker sleep in one piece instead of
-100 us pieces. Measured side by side (``rt-ident bench xy``, 10 runs with pinned peers): the
-two-axis tick's p99 0.63-0.96 x that of the same run without it (one run 1.06). The cost is the loop's
-CPU at 100 % for the length of the run (the loop has that CPU to itself already: rt_ident.compose.run
-keeps every helper off it). ``[loop] idle_poll = false`` turns it off.
+100 us pieces. What it buys depends on the machine: ``rt-ident bench xy`` runs the two-axis tick with
+and without it side by side (docs/measurements.md). The cost is the loop's CPU at 100 % for the
+length of the run (the loop has that CPU to itself already: rt_ident.compose.run keeps every helper
+off it). ``[loop] idle_poll = false`` turns it off.
 
 The thread is at ``SCHED_IDLE`` only inside the compiled call, where it holds no GIL: it enters and
 leaves the call as an ordinary thread. A ``SCHED_IDLE`` thread holding or waiting for the GIL stalls

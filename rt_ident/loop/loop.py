@@ -7,7 +7,7 @@ Each tick (default 1 kHz):
    (for the safety monitor and the Eq. 18 torque reconstruction);
 3. the streaming estimator takes every sample (the default "frequency"
    method updates its per-harmonic DFT sums sample by sample); when a full
-   excitation period completes, a snapshot goes to the fit process process
+   excitation period completes, a snapshot goes to the fit process
    and the newest fit it returned becomes the current estimate;
 4. the position controller (:class:`rt_ident.control.adaptation.Supervisor`, when there is
    one) takes the state estimate at the newest sample and returns the torque for the next
@@ -93,11 +93,11 @@ class LoopStats:
 
 
 #: A simulated device steps ahead to this long after the next deadline (Backend.step_ahead). The
-#: next read comes a few microseconds after the deadline; without a margin, one read in ~6 found a
-#: sample come due in between and stepped it then (a full stepping call for one sample: the read's
-#: p99 stayed at 52-65 us). A drive applies its samples in that stretch with the plan it holds, the
-#: one written a tick earlier: the host's next write lands only after the tick's work (>= 90 us
-#: here), and its first values for those samples count as ``late_plan_samples``. The torque is the
+#: next read comes a few microseconds after the deadline; without a margin, about one read in six
+#: finds a sample come due in between and steps it then (a full stepping call for one sample, tens of
+#: microseconds of the read). A drive applies its samples in that stretch with the plan it holds, the
+#: one written a tick earlier: the host's next write lands only after the tick's work (~90 us or
+#: more), and its first values for those samples count as ``late_plan_samples``. The torque is the
 #: same either way: the controller's torque lands ``delay_ticks`` >= 1 tick later, and the probe's
 #: values are the same in both plans.
 SIM_AHEAD_MARGIN_S = 100e-6
@@ -356,7 +356,7 @@ class IdentificationLoop(TelemetryWindow):
         """The exchange with the fit process, one step per tick of a 10-tick cycle: send the snapshot
         taken at the end of an excitation period; take a result from the job process's ring; unpickle
         it; hand it to the controller; draw its FRF. Each step costs tens of microseconds; done on
-        one tick they and a telemetry hand-off made the tick's p99. ``fit_phase`` shifts the cycle
+        one tick, they and a telemetry hand-off would set the tick's p99. ``fit_phase`` shifts the cycle
         (MultiAxisLoop gives each axis its own ticks)."""
         step = (tick - self.fit_phase) % 10
         stage = self._fit_stage

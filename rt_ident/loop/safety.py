@@ -9,8 +9,9 @@
   for ``watchdog_ticks`` ticks while torque was commanded.
 - Command lease (``torque_hold``, applied by the loop when it writes its plan):
   the torque drops to zero that long after the plan ends, before the
-  watchdog trips. Without it a 100 ms stretch of stale CANopen data once held
-  0.3 N m on the free axis and ran the table 430 mm past its window.
+  watchdog trips. Without it the drive holds the last planned torque while the
+  host is stalled or blind: 0.3 N m held for 100 ms takes the free THOMSON
+  table to ~0.7 m/s, and it coasts on far past its window.
 
 Torque clamping happens in :class:`drivers.base.Backend.write` before a
 command leaves the host. The monitor raises; the loop turns any raise into a

@@ -3,8 +3,8 @@
 The loop (as in ros2_control's controller manager) is read, update, write,
 then sleep until the next *absolute* deadline ``t0 + k * period``. Deadlines
 are computed from the start time and the tick index, never by adding a sleep
-to "now", so errors do not accumulate (relative sleeps were measured at
-893 Hz instead of 1 kHz on this kind of VM).
+to "now", so errors do not accumulate (relative sleeps can tick at 893 Hz
+instead of 1 kHz on a VM: docs/measurements.md).
 
 Waiting is done in two phases: ``time.sleep`` until ``spin_s`` before the
 deadline (on CPython >= 3.11 / Linux ``time.sleep`` is implemented with
@@ -14,15 +14,14 @@ the clock. The spin is capped at half a period: under SCHED_FIFO a thread
 that busy-waits whole periods is paused by the kernel's RT throttle.
 
 The sleep itself is cut into chunks of at most ``max_sleep_s`` (default
-100 us). Measured on this product's 2-vCPU KVM guest (Firecracker kernel, no
-cpuidle driver): a thread that sleeps ~0.85 ms per tick lets the vCPU halt,
-and the host now and then takes 0.5-15 ms to run it again (a bare 1 kHz
-SCHED_FIFO sleeper: 100-130 ticks per 10 s later than 0.5 ms, max 6-15 ms).
-Halts shorter than the host's KVM halt-polling window (``halt_poll_ns``,
-200 us by default) are resumed by polling, without a trip through the host
-scheduler: the same sleeper cut into 100-200 us sleeps had 0 ticks later
-than 0.5 ms and a max of 12-350 us. On bare metal the chunks only cost a few
-extra wake-ups per tick; ``max_sleep_s=None`` sleeps in one piece.
+100 us). On a KVM guest a thread that sleeps most of a tick lets the vCPU
+halt, and the host now and then takes milliseconds to run it again. Halts
+shorter than the host's KVM halt-polling window (``halt_poll_ns``, 200 us by
+default) are resumed by polling, without a trip through the host scheduler,
+so a sleeper cut into 100-200 us sleeps is not late that way (figures:
+docs/measurements.md, "Host facts behind the loop's design"). On bare metal
+the chunks only cost a few extra wake-ups per tick; ``max_sleep_s=None``
+sleeps in one piece.
 
 When a deadline is missed by more than one period, the ticker counts an
 overrun and *skips* whole periods, so the loop resumes on the original grid
@@ -378,8 +377,8 @@ def apply_realtime(
             hi = os.sched_get_priority_max(os.SCHED_FIFO)
             prio = min(max(int(priority), lo), hi)
             # RESET_ON_FORK: a helper restarted from the loop thread (rt_ident.processes.guard) must
-            # not inherit SCHED_FIFO - importing numpy at FIFO 50 on the loop's CPU starved the loop for
-            # seconds and a torque-mode axis ran away (seen under a CPU hog, a fit process killed mid-run)
+            # not inherit SCHED_FIFO - importing numpy at FIFO 50 on the loop's CPU starves the loop for
+            # seconds, and a torque-mode axis runs away
             os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(prio))
             report["sched_fifo"] = True
             if prio != priority:

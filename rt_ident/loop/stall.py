@@ -3,7 +3,7 @@
 A host stalls (a desktop's other work, a USB adapter, a disk flush, a paused VM). While it does, the
 plan the loop wrote runs out and its lease drops the torque to zero (:mod:`drivers.base`): the table
 coasts. The tick after the stall must not act on the error the coasting built up as if it had been
-tracking all along - that drove a frictionless table at the torque limit into its travel limit. So a
+tracking all along: acting on it drives a frictionless table at the torque limit into its travel limit. So a
 stall longer than ``[safety] max_stall_s`` is handled, as ``[safety] on_stall`` says:
 
 * ``resume`` (default): the controller re-plans from where the table is (a jerk-limited rejoin of the

@@ -1,14 +1,14 @@
 """One axis's tick in one compiled call: the estimators, the law, the safety checks, the telemetry
 window and the recording hand-off, between the device's read and its write.
 
-Why: every step of the tick was already compiled, but called from Python, one by one, with a few
-dozen lines of glue around each. On the 2-core VMs this runs on, a tick comes after ~0.8 ms of sleep
-with its caches cold, and its cost grew with how much distinct code and data it touched: a trivial
-compiled call cost 6 us after a sleep against 0.6 us back to back, a call with 48 array arguments
-22 us, the glue of the whole tick 200-250 us per axis. Here the same compiled steps run composed in
-one call (:func:`rt_ident.loop.tick_kernel.axis_tick`) whose state is three buffers (float, int,
-complex: the *arena*) and one table of offsets, so a tick pays one dispatch (the block, the arena, the
-rings it writes and a few scalars) instead of ~40 calls.
+Why: every step of the tick is compiled, but called from Python one by one, with a few dozen lines
+of glue around each, the steps cost the tick 200-250 us per axis. A tick comes after ~0.8 ms of sleep
+with its caches cold, and its cost grows with how much distinct code and data it touches; a compiled
+call costs more the more arguments it takes, and more after a sleep (docs/measurements.md, "Host
+facts behind the loop's design"). Here the same compiled steps run composed in one call
+(:func:`rt_ident.loop.tick_kernel.axis_tick`) whose state is three buffers (float, int, complex: the
+*arena*) and one table of offsets, so a tick pays one dispatch (the block, the arena, the rings it
+writes and a few scalars) instead of ~40 calls.
 
 The state stays where it was: each component (the Kalman filters, the recursive DFT and its gap
 filler, the per-sample SVF estimator, the law, the supervisor's bookkeeping, the safety counters,

@@ -438,7 +438,7 @@ def _hand_over_ticks(bi, tel, tk, win, th, tdi, tdf) -> int:
 # The kernel's argument types, fixed: block arrays of any layout (a serial board's sequence numbers are a
 # strided view), the arena and the ring C-contiguous. A call with other types (read-only arrays, say)
 # raises TypeError and the tick goes to the Python path: nothing is compiled in a tick (a lazily compiled
-# new specialization stalled the loop's first compiled tick for 9 s).
+# new specialization stalls that tick for seconds).
 _BLOCK = "float64[:], int64[:], float64[:], float64[:], float64[:], float64[:]"
 _RING = "int64[::1], int64[::1], float64[::1]"
 KERNEL_SIGNATURE = (f"int64(int64, {_BLOCK}, int64, float64[::1], int64[::1], complex128[::1], int64[::1], "
@@ -449,14 +449,14 @@ KERNEL_SIGNATURE = (f"int64(int64, {_BLOCK}, int64, float64[::1], int64[::1], co
 @functools.cache
 def compiled_kernel():
     """:func:`axis_tick` compiled for :data:`KERNEL_SIGNATURE` (from numba's cache after the first time;
-    ~10 s the first time on these VMs), when the first :class:`AxisCore` is built."""
+    ~10 s the first time: docs/measurements.md), when the first :class:`AxisCore` is built."""
     return numba.njit(KERNEL_SIGNATURE, cache=True)(axis_tick)
 
 
 def warm_up() -> None:
     """Compile (or load from the cache) the steps the Python path calls one by one, with the argument
-    types it calls them with, before a loop's first tick: left to their first call, each cost that
-    tick 0.1-2 s (an emulated drive's heartbeat watchdog tripped on one)."""
+    types it calls them with, before a loop's first tick: left to their first call, each costs that
+    tick 0.1-2 s, long enough to trip a drive's heartbeat watchdog."""
     from rt_ident.control.law import feedback_torque, tracking_errors
 
     bi, bf = new_books()

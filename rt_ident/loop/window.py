@@ -62,7 +62,7 @@ class TelemetryWindow:
         self._tick_n = k + 1
         self._win_ticks += 1
         # the samples go when a window ends, the per-tick signals one tick later: each hand-off costs
-        # tens of microseconds, and both on one tick made it the slowest tick of all but a few
+        # tens of microseconds, and both on one tick would make it the slowest tick of all but a few
         if self._win_ticks >= self._flush_at:
             self._flush_telemetry(ticks=False)
             self._flush_at = self.publish_every
@@ -149,8 +149,8 @@ class TelemetryWindow:
     def publish_final(self) -> None:
         """After the run's final fit: one more telemetry window, at the last sample's time, carrying
         the final estimate, so that the dashboard's estimate lines (and the true values beside them)
-        end on the value the run reports. A short run, or one beside a busy machine, may have had no
-        fit-process result at all: its dashboard had no estimate and no true value then."""
+        end on the value the run reports. A short run, or one beside a busy machine, may have no
+        fit-process result at all, and its dashboard would show no estimate and no true value."""
         if self.on_telemetry is None or self.identification is None:
             return
         t = np.full((1, 1), max(self._next_seq - 1, 0) * self.backend.sample_period)
@@ -159,7 +159,7 @@ class TelemetryWindow:
     def _window_values(self, k: int) -> tuple[tuple[str, ...], np.ndarray]:
         """The signals that hold one value over a telemetry window (the estimate, its intervals, the
         controller's figures, the overruns), as (names, values). They go as one vector (``window``), not
-        as ~30 arrays of k equal values: building and copying those was most of a window's hand-off.
+        as ~30 arrays of k equal values: building and copying those would be most of a window's hand-off.
         They change only with a new estimate, a new controller, a redesign's verdict, a fallback, an
         overrun or a stall: the vector is rebuilt then, and handed over as it is otherwise."""
         ident, ctl, overruns, stalls = self.identification, self.control, self.stats.overruns, self.stats.stalls.count

@@ -2,7 +2,7 @@
 
 Time series (``time`` timeline, duration in seconds). An entity with several series holds one
 row per time with one scalar per series: signals sampled together share their row id and time
-column, which is most of a small row's bytes (a 10-s run's .rrd went from 2.9 to 1.9 MB).
+column, which is most of a small row's bytes (sharing them makes a 10-s run's .rrd 1.9 MB, not 2.9).
 
 ==========================================  ===============================================  ============
 entity                                      block keys (see :mod:`rt_ident.processes.telemetry`)  unit
@@ -210,7 +210,7 @@ def _grid(lo_hz: float, hi_hz: float, y_lo: float, y_hi: float, y_step: float, y
 def _strips(rec: Any, rr: Any, path: str, t: float, strips: list[np.ndarray], color: tuple[int, int, int],
             width: float, labels: list[str] | None = None) -> None:
     """One row of ``LineStrips2D`` at time ``t``, sent columnar like the time series: ``rec.log``
-    of these views made the telemetry process grow with every draw; ``send_columns`` does not."""
+    of these views makes the telemetry process grow with every draw; ``send_columns`` does not."""
     n = len(strips)
     cols = rr.LineStrips2D.columns(strips=strips, colors=[color] * n, radii=[-width] * n,   # < 0: UI points
                                    labels=labels if labels is not None else [""] * n,
@@ -332,7 +332,7 @@ def default_blueprint() -> Any:
                          collapse_panels=True)
 
 
-# ----- the XY circular test (issue #15): one recording for both axes ---------------------------------
+# ----- the XY circular test: one recording for both axes --------------------------------------------
 CONTOUR_XY = "contour/xy"                  # the table's path and the reference circle [mm]
 CONTOUR_BALLBAR = "contour/ballbar"        # each direction's radial deviation, magnified, around the circle
 CONTOUR_RADIAL = "contour/radial_error"    # radial deviation [um] against the angle on the circle

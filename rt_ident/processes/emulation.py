@@ -103,9 +103,9 @@ class EmulatorProcess:
         self.module = module
         self._proc = ctx.Process(target=_serve, args=(module, config, child, placement),
                                  name=f"rt_ident-emulator-{module.rsplit('.', 1)[-1]}", daemon=True)
-        # one BLAS thread: a device thread under SCHED_FIFO that called a multithreaded BLAS (the plant's
-        # matrix exponential at enable) spun on one CPU waiting for a BLAS worker that could not run
-        # there until the RT throttle let it, 1 s later: the board's heartbeat watchdog had tripped
+        # one BLAS thread: a device thread under SCHED_FIFO that calls a multithreaded BLAS (the plant's
+        # matrix exponential at enable) spins on its CPU waiting for a BLAS worker that cannot run there
+        # until the RT throttle lets it, up to 1 s later - long enough to trip the board's heartbeat watchdog
         start_with_helper_env(self._proc)
         child.close()                        # only the child holds its end: EOF reaches it if we die
         self.pid: int | None = self._proc.pid

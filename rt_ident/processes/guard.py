@@ -29,10 +29,10 @@ _log = logging.getLogger("rt_ident.processes.guard")
 
 #: A helper's BLAS runs on one thread unless the user set otherwise. Its matrices are tiny (the control
 #: process's 10-state loops, the fit process's 4-parameter normal equations): extra OpenBLAS threads only
-#: spin between calls. With the default two threads on this 2-CPU host a redesign cost the control
-#: process 0.36-0.65 s of CPU (measured, Y's I2 x 3 on configs/xy-sim.toml), the helpers' CPU was full
-#: and Y's redesign came 2 s after the load change had been identified. ``rt-ident`` sets the same in
-#: its own process (rt_ident.cli); this covers helpers started by any other caller too.
+#: spin between calls: with two threads on a 2-CPU machine a redesign costs the control process several
+#: times the CPU of one thread, the helpers' CPU is full and a redesign answers seconds late
+#: (docs/measurements.md, "After a load change on Y"). ``rt-ident`` sets the same in its own process
+#: (rt_ident.cli); this covers helpers started by any other caller too.
 HELPER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 

@@ -52,7 +52,7 @@ def _job_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing
         except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
             result = exc
         if getattr(result, "frf", None) is not None and dataclasses.is_dataclass(result):
-            # the dashboard's FRF view is 16 of a result's 17 kB: unpickling it cost the loop's tick
+            # the dashboard's FRF view is 16 of a result's 17 kB: unpickling it costs the loop's tick
             # ~100 us, and the dashboard draws one at most every few seconds - send one that often
             if time.monotonic() - last_view < view_interval:
                 result = dataclasses.replace(result, frf=None)
@@ -174,7 +174,7 @@ class JobProcess:
         return True
 
     def _put(self, snap: Any) -> bool:
-        # a snapshot class the job process knows goes as flat arrays: pickling a Spectra cost the loop's
+        # a snapshot class the job process knows goes as flat arrays: pickling a Spectra costs the loop's
         # tick ~100 us (its arrays through pickle's reduce machinery), its fields a few
         name = type(snap).__name__
         if name in _decoders():

@@ -20,7 +20,7 @@ stored as JSON under the schema key ``rt_ident.metadata`` in both files, so it i
 the journal without any Parquet footer.
 
 :class:`RecorderProcess` runs a :class:`Recorder` in a separate (spawned) process fed through a
-``multiprocessing`` queue, so compression and disk I/O never share the real-time loop's GIL.
+shared-memory ring, so compression and disk I/O never share the real-time loop's GIL.
 Reading (Parquet, journal, CSV) lives in :mod:`rt_ident.outputs.recording_reader`; ``Recording`` and
 ``read_recording`` are re-exported here.
 """

@@ -4,10 +4,10 @@ The real-time loop hands samples to the recorder, decimated blocks to the
 telemetry process and snapshots to the fit process. ``multiprocessing.Queue``
 does that with a *feeder thread* in the producer's process: every ``put``
 wakes it, it pickles and writes to a pipe, and it competes with the loop for
-the GIL and (inheriting SCHED_FIFO and the loop's CPU) for the CPU. Measured in
-the loop (1 kHz, 34 samples per tick): the three queues cost 45-250 us per
-tick and single puts up to 5 ms. This ring has no thread, no lock and no system
-call on either side: ``put`` copies the arrays into shared memory and then
+the GIL and (inheriting SCHED_FIFO and the loop's CPU) for the CPU: in the
+loop (1 kHz, 34 samples per tick) the three queues cost 45-250 us per tick and
+single puts up to 5 ms (docs/measurements.md). This ring has no thread, no
+lock and no system call on either side: ``put`` copies the arrays into shared memory and then
 advances a write counter; the consumer polls the counter, copies out, and
 advances a read counter. A full ring makes ``put`` return False at once; the
 caller decides to drop (telemetry) or wait (recording).
@@ -117,9 +117,9 @@ class MessageRing:
         self._data = state["data"]
         self._bind()
         # Map every page of the ring now (a read per page). Otherwise the child process's resident
-        # set grows by a page each time the ring's position first reaches one: a fit process went
-        # from 112 to 125 MB over 3 minutes of a soak as its two 4-MB rings filled, which reads as
-        # a leak although it stops at the rings' size. The pages exist already (RawArray zeroes
+        # set grows by a page each time the ring's position first reaches one (a fit process by 8 MB
+        # as its two 4-MB rings fill), which reads as a leak in a soak although it stops at the rings'
+        # size. The pages exist already (RawArray zeroes
         # them in the parent), so this allocates nothing; it also spares the child those faults.
         int(self._buf[::mmap.PAGESIZE].sum())
 

@@ -23,7 +23,7 @@ child sends the true value at the first and last time of every batch that holds 
 (a horizontal line over the estimate's time span).
 
 Sinks: ``"rrd"`` file (complete after ``close()``, which disconnects the stream; written without
-rerun's footer, whose per-chunk manifest grew the process without bound: see ``_open_sink``); ``"spawn"``
+rerun's footer, whose per-chunk manifest grows the process as long as the run lasts: see ``_open_sink``); ``"spawn"``
 starts ``rerun --bind <bind_ip> --port <port>`` (never 0.0.0.0 unless configured) and connects;
 ``"connect"`` connects to ``connect_url``; ``"serve"`` hosts a gRPC server with
 ``GrpcServerSink(bind_ip=bind_ip)``; ``"off"`` starts nothing. The child sets ``CI=1`` (rerun
@@ -91,8 +91,8 @@ _NRMSE_WINDOW_S = 1.0  # Eq. 18 reconstruction NRMSE over the last second of sam
 # drawn at most this often (the newest one wins; the last one is always drawn at close).
 _EXTEND_S = 5.0
 _VIEW_EVERY_S = 2.0        # ... while the model moves (its resonance by > _VIEW_MOVED since the last draw)
-_VIEW_STEADY_S = 10.0      # ... once it has settled. (A draw is 24 chunks, ~0.05 MB of .rrd; the ~0.05 MB
-_VIEW_MOVED = 0.005        # per draw the process used to keep was the footer's manifest: see _open_sink)
+_VIEW_STEADY_S = 10.0      # ... once it has settled. (A draw is 24 chunks, ~0.05 MB of .rrd.)
+_VIEW_MOVED = 0.005        # a resonance that moved by more than this fraction: the model still moves
 _POLL_S = 0.01       # child: sleep between polls of an empty ring
 
 
@@ -117,7 +117,7 @@ class TelemetryConfig:
     ring_bytes: int = 8 << 20  # and at most this many bytes of them
     flush_timeout: float = 2.0  # child: max wait for rerun to flush at close
     # child: send at most every batch_seconds (one chunk per entity per batch). Rerun stores each
-    # send_columns as its own chunk; one per 20-ms block made ~8000 tiny chunks in 10 s and
+    # send_columns as its own chunk; one per 20-ms block gives ~8000 tiny chunks in 10 s and
     # 2.4 MB/s of .rrd. Half a second keeps the live view fluid and the chunks big enough to compress.
     batch_seconds: float = 1.0
     min_free_bytes: int = 4 << 20  # an .rrd sink stops (and says so) when its filesystem has less left
@@ -227,11 +227,10 @@ def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
         assert cfg.rrd_path is not None
         Path(cfg.rrd_path).parent.mkdir(parents=True, exist_ok=True)
         # No footer: with rerun's default (write_footer=True) the file sink keeps one manifest entry
-        # per chunk in memory until the stream closes, to write them as the footer. That was the
-        # telemetry process's growth, for as long as the run lasted: ~1.6 kB per chunk at ~55
-        # chunks/s (one per entity per batch, 24 per FRF draw), +15 % in 6 minutes of a soak at
-        # 34 k samples/s. A probe driving _Sender at that rate: +19 % over 10 minutes with the
-        # footer; without it 116 -> 119 MB by minute 10, then flat to minute 60. The .rrd is
+        # per chunk in memory until the stream closes, to write them as the footer: the telemetry
+        # process grows for as long as the run lasts, ~1.6 kB per chunk at ~55 chunks/s (one per
+        # entity per batch, 24 per FRF draw); without it, it stays flat (docs/measurements.md,
+        # "Memory soaks"). The .rrd is
         # still a complete stream (the viewer, RrdReader.stream() and `rerun rrd print` read it);
         # the random-access RrdReader.store() and `rerun rrd verify` want the manifest, which
         # `rerun rrd optimize` writes (and compacts the chunks).
@@ -295,8 +294,8 @@ def _thin(t: np.ndarray, v: np.ndarray, every: int, envelope: bool) -> tuple[np.
 
 def _view_moved(marks: np.ndarray | None, last: np.ndarray | None) -> bool:
     """Whether a fit's resonance moved by more than :data:`_VIEW_MOVED` since the FRF last drawn.
-    Any mark (a wild fit's 0 Hz or NaN, an empty array) is an answer, never an exception: one
-    ended the telemetry process with a ZeroDivisionError (a loaded, non-real-time XY run)."""
+    Any mark (a wild fit's 0 Hz or NaN, an empty array) is an answer, never an exception: an
+    exception here would end the telemetry process."""
     if marks is None or last is None or len(marks) == 0 or len(last) == 0:
         return True
     a, b = float(marks[0]), float(last[0])

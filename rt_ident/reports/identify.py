@@ -8,7 +8,7 @@ Anything else (a CSV with ``t,theta1,theta2,torque`` and no metadata, another
 method) goes through the batch estimator registry, which detects the
 excitation period from the data when nobody says it.
 
-``model`` (issue #14): ``two-inertia`` (default: everything above), ``two-inertia-friction`` or
+``model``: ``two-inertia`` (default: everything above), ``two-inertia-friction`` or
 ``rigid-friction`` (:mod:`rt_ident.estimators.friction`, method ``svf-ls``). ``rigid-friction``
 accepts a CSV with one position sensor ``t,theta1,torque`` in the file's own units.
 :func:`validate_file` checks an identified model on another recording.

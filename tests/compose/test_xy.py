@@ -69,7 +69,7 @@ def test_a_trip_on_either_axis_stops_both_at_zero_torque(axis):
 @pytest.mark.parametrize("axis", ["x", "y"])
 def test_a_watchdog_trip_on_either_axis_names_that_axis_when_both_have_the_same_safety_config(axis, monkeypatch):
     # both axes' safety monitors hold the same settings and the same counters: the stop must still name the
-    # axis whose encoder went silent (a monitor compared by value once made the second axis's trip crash
+    # axis whose encoder went silent (monitors compared by value would make the second axis's trip crash
     # the summary); the other axis's feedback never stops
     from drivers.base import SampleBlock
     from drivers.sim import SimBackend
@@ -110,8 +110,8 @@ def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(
     assert c["complete"] == {"ccw": True, "cw": True} and c["radius_mm"] == 5.0
     for d in ("ccw", "cw"):
         f = c[d]
-        # idle VM: G 12-16 um, mostly the 0.1 N m probing multisine. A tick that stalls on a loaded VM (3.6 ms of
-        # the loop thread's CPU once) runs the plan out and gave 75 and 111 um; a controller that does not
+        # an idle machine gives G 12-16 um, mostly the 0.1 N m probing multisine; a tick that stalls for
+        # milliseconds on a loaded machine runs the plan out and can give ~100 um; a controller that does not
         # track gives millimetres. A loop stall in the turn (the host, not the axis) is flagged instead
         assert f["F_min_um"] <= 0.0 <= f["F_max_um"]
         assert 0.0 < f["G_um"] < 300.0 or "disturbed_by_stall_at_s" in f, f
@@ -253,7 +253,7 @@ def _recordings(path):
 def _received(path, wanted, timeout=30.0):
     """What the stand-in viewer has written to ``path`` once every recording in ``wanted`` (application
     id -> entity paths) has its entities, or at ``timeout``. The server writes what it receives as it
-    arrives; stopping it right after the sender returned lost the last chunks once in a CI run."""
+    arrives; stopping it right after the sender returns can lose the last chunks."""
     import time
     import warnings
 

@@ -1,4 +1,4 @@
-"""The XY circular test (issue #15): the circle reference both axes follow, and ISO 230-4's figures
+"""The XY circular test: the circle reference both axes follow, and ISO 230-4's figures
 (circular deviation G, radial deviation F, circular hysteresis H) from the table's path."""
 
 from __future__ import annotations

@@ -131,7 +131,7 @@ def _L(G, p, w, tick=1e-3):
 def test_a_crossing_python_control_reports_where_the_loop_gain_is_not_one_is_not_a_margin():
     # python-control 0.10.2 reports, for the heavier Y's design on its I2 x 1.3 neighbour, a gain
     # crossing at 362.7 Hz with a 2 deg phase margin; there |L| = 0.42 and the Nyquist plot stays
-    # 0.57 from -1. Every design for that axis was refused over it.
+    # 0.57 from -1. Taken as a margin, it would refuse every design for that axis.
     import control as ct
 
     from rt_ident.control.design import delay_of, sampled_model

@@ -1,4 +1,4 @@
-"""One contract suite for every backend (issue #5): the rules of :mod:`drivers.base` checked on real traffic.
+"""One contract suite for every backend: the rules of :mod:`drivers.base` checked on real traffic.
 
 The ``rig`` fixture is parametrized over ``sim``, ``canopen-emulated`` (CiA 402 drive
 emulator on a fresh in-process python-can ``virtual`` channel) and ``serial-emulated``

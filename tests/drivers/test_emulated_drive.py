@@ -105,7 +105,7 @@ def test_start_emulator_for_accepts_a_run_config_and_holds_nothing_in_torque_mod
     drive = start_emulator_for(cfg)
     try:
         assert drive.node_id == 5 and drive.state == p402.SWITCH_ON_DISABLED
-        # a real drive in cyclic torque mode closes no position loop: the host does (issue 12)
+        # a real drive in cyclic torque mode closes no position loop: the host does
         assert drive.plant.dt == pytest.approx(1 / 2000) and drive.plant.controller is None
         assert drive.rated_torque == pytest.approx(0.64)
     finally:

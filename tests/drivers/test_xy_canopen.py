@@ -101,8 +101,8 @@ def test_one_sender_sends_every_drives_rpdo_before_one_sync_and_marks_where_a_jo
     assert a.sink[0] == (SKIP, 5)
     marks_b = [x[1] for x in b.sink if x[0] == MARK]
     assert marks_b == sorted(set(marks_b))                   # one marker per SYNC, in order
-    # a sender that wakes a period late skips the SYNC indices it missed (never a burst): only those
-    # may be missing (a fresh-clone CI run lost index 14 that way, with the sender counting an overrun)
+    # a sender that wakes a period late skips the SYNC indices it missed (never a burst), each skip counted
+    # as an overrun: only those may be missing
     assert marks_b[-1] - marks_b[0] + 1 - len(marks_b) <= sender.overruns
 
 
@@ -166,7 +166,7 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
                         be.write(np.full(8, 0.02 if n == 5 else -0.02), start_seq=nxt)
             assert all(len(v) > 10 for v in got.values())
             # one SYNC producer: both count the same sender's SYNCs (read one after the other while it
-            # runs, so Y's count may be a SYNC or two ahead - under a CPU hog it once was)
+            # runs, so Y's count may be a SYNC or two ahead, under a CPU hog)
             sx = x.counters["sync_sent"]
             sy = y.counters["sync_sent"]
             assert sx > 100 and 0 <= sy - sx <= 2
@@ -184,13 +184,12 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
 
 
 def _xy_canopen(**over):
-    # real time as on the bench; a stale stretch on a loaded machine's udp_multicast exchange must not end
-    # the run, nor a host heartbeat late by more than the shipped 250 ms (seen once in a fresh-clone CI run:
-    # both drives faulted on heartbeat loss at once, cause not found yet), nor 20 ticks without a sample
-    # (seen once in a fresh-clone CI run: X's watchdog tripped in the run that injects Y's fault; 20 runs
-    # here, 8 of them beside a busy loop on each core, did not repeat it). What is tested here is the two
-    # drives on one bus and a drive's own fault, not the watchdogs or the speed limit:
-    # tests/drivers/test_canopen_backend.py and tests/compose/test_xy.py cover those
+    # real time as on the bench. What is tested here is the two drives on one bus and a drive's own fault,
+    # not the watchdogs or the speed limit (tests/drivers/test_canopen_backend.py and
+    # tests/compose/test_xy.py cover those):
+    # on a loaded machine's udp_multicast exchange, a stale stretch, a host heartbeat later than the shipped
+    # 250 ms (both drives can fault on it at once; why is not known) or 20 ticks without a sample must not
+    # end the run
     return load("configs/xy-canopen-virtual.toml", **{"loop.realtime": True, "telemetry.sink": "off",
                                                       "recording.enabled": False, "backend.stale_limit": 200,
                                                       "backend.heartbeat_consumer_ms": 1000,

@@ -1,4 +1,4 @@
-"""Friction and backlash (issue #14): in the plant, in the estimators, in identify, in the controller."""
+"""Friction and backlash: in the plant, in the estimators, in identify, in the controller."""
 
 from __future__ import annotations
 

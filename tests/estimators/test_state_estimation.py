@@ -173,7 +173,7 @@ def test_lost_samples_are_stepped_through_so_the_velocity_does_not_jump_with_eac
         bad.append(without.filter_block(th1[idx], th2[idx]).omega)
     good, bad = np.vstack(good)[500:], np.vstack(bad)[500:]
     assert np.max(np.abs(good - w)) < 0.02 * w, np.max(np.abs(good - w))
-    assert np.max(np.abs(bad - w)) > 0.5 * w               # what the loop used to get: speeds off by half and more
+    assert np.max(np.abs(bad - w)) > 0.5 * w               # without seq: speeds off by half and more
     whole = AxisStateEstimator(dt, q1, q2, **kw).filter_block(th1, th2, seq).omega[keep][500:]
     assert np.max(np.abs(whole - w)) < 0.02 * w
 

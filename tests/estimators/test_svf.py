@@ -166,8 +166,8 @@ def test_a_diverging_frequency_fit_withholds_trust_but_does_not_trigger_a_fallba
 
 
 def test_a_finished_design_for_an_axis_that_has_since_changed_is_not_applied():
-    # the XY circular test after Y's I2 x 3: a design requested before the change came back 0.93 s after
-    # it; applied, it drove the table 215 um off and into the fallback
+    # a design requested before a load change and finished after it is stale: applied, it can drive the
+    # table hundreds of um off and into the fallback (docs/measurements.md, "Position control")
     from rt_ident.control.adaptation import model_controller
 
     est = _fake_svf(P)

@@ -1,8 +1,7 @@
 """The verdict never lies: "trusted: yes" only when every criterion was evaluated and passed.
 
-Each test is a case where a result was once more optimistic than its evidence: a criterion that
-could not be evaluated was left out, an impossible value or a bad fit passed, a failed validation
-did not count.
+Each test is a way a result could be more optimistic than its evidence: a criterion that cannot be
+evaluated left out, an impossible value or a bad fit passing, a failed validation not counting.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The fleet (issue #16): recordings identified on a real dask.distributed cluster on 127.0.0.1, the Parquet
+"""The fleet: recordings identified on a real dask.distributed cluster on 127.0.0.1, the Parquet
 history, re-runs that compute nothing twice, a corrupt recording among good ones, drift alarms on known wear,
 DuckDB queries, and the command line end to end.
 

@@ -213,8 +213,8 @@ def _record_order(monkeypatch) -> list[str]:
 
 def test_a_real_time_run_stops_the_poller_after_the_safe_stop_and_fits_outside_real_time(restore_scheduling,
                                                                                          monkeypatch):
-    # the final fit is CPU-bound work: at SCHED_FIFO it ran into the RT throttle and held the loop's CPU;
-    # the poller is stopped only once the device is stopped (a SYNC sender waited on it for the GIL)
+    # the final fit is CPU-bound work: at SCHED_FIFO it would run into the RT throttle and hold the loop's
+    # CPU; the poller is stopped only once the device is stopped (a SYNC sender may wait on it for the GIL)
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("the loop gets a CPU of its own only with two or more")
     before = os.sched_getscheduler(0), os.sched_getaffinity(0)

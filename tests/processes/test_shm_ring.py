@@ -160,7 +160,7 @@ def _ring_resident_kb(ring: MessageRing, result) -> None:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/smaps")
 def test_a_child_maps_the_whole_ring_when_it_attaches() -> None:
     """A helper's resident set holds the whole ring from the start, not one more page each time the
-    ring's position first reaches it (which grew a fit process's RSS for minutes, like a leak)."""
+    ring's position first reaches it (which would grow a fit process's RSS for minutes, like a leak)."""
     ctx = mp.get_context("spawn")
     ring = MessageRing(4 << 20, ctx=ctx)
     parent, child = ctx.Pipe()

@@ -164,8 +164,8 @@ def _send_loop_messages(tp: TelemetryProcess, ks: range) -> None:
 
 
 def test_a_restarted_telemetry_process_gets_the_names_again(tmp_path: Path) -> None:
-    """A new child knows no names: the window names go to it again (before, a restarted child
-    dropped every window vector, "without their names", and the dashboard lost every estimate)."""
+    """A new child knows no names: the window names go to it again (otherwise a restarted child drops
+    every window vector, "without their names", and the dashboard loses every estimate)."""
     path = tmp_path / "tele.rrd"
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256)).start()
     assert tp.wait_ready(20.0)
@@ -213,7 +213,7 @@ def test_window_values_need_tick_times_and_tick_signal_names() -> None:
 
 def test_blocks_are_batched_into_few_chunks_per_entity(tmp_path: Path) -> None:
     """One chunk per entity per batch, not per block: rerun stores each send as a chunk, and tiny
-    chunks were most of an .rrd's size."""
+    chunks would be most of an .rrd's size."""
     from rerun.chunk import RrdReader
 
     path = tmp_path / "batch.rrd"
@@ -234,7 +234,7 @@ def test_rrd_sink_keeps_no_per_chunk_manifest(tmp_path: Path, monkeypatch: pytes
                                               capfd: pytest.CaptureFixture[str]) -> None:
     """The .rrd is written without rerun's footer: to write one at close, the file sink keeps a
     manifest entry per chunk in memory for the whole run (~1.6 kB a chunk, ~55 chunks/s: the
-    telemetry process grew ~5 MB a minute, +15-19 % in a soak). The stream is complete all the same,
+    telemetry process would grow ~5 MB a minute). The stream is complete all the same,
     and rerun's warning about the missing footer is not printed on every run."""
     from rerun.chunk import RrdReader
 
