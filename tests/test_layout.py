@@ -3,6 +3,7 @@ pyproject.toml."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import tomllib
@@ -62,3 +63,11 @@ def test_tests_live_in_a_folder_per_package():
     top = sorted(p.stem for p in (ROOT / "tests").glob("test_*.py"))
     # at the top: what tests the project as a whole or its top-level modules (cli, config, the layout, the README)
     assert all(name.split("_")[1] in ("cli", "config", "layout", "readme") for name in top), top
+
+
+def test_the_code_tells_what_and_why_not_its_history():
+    # run statistics, CI anecdotes and issue numbers belong in git log and docs/measurements.md
+    pattern = re.compile(r"CI run|of [0-9]+ runs|this VM|issue #?[0-9]+", re.IGNORECASE)
+    found = [f"{p.relative_to(ROOT)}:{i}" for p in [*(ROOT / "rt_ident").rglob("*.py"), *(ROOT / "drivers").rglob("*.py")]
+             for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
+    assert not found, found
