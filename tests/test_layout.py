@@ -68,6 +68,7 @@ def test_tests_live_in_a_folder_per_package():
 def test_the_code_tells_what_and_why_not_its_history():
     # run statistics, CI anecdotes and issue numbers belong in git log and docs/measurements.md
     pattern = re.compile(r"CI run|of [0-9]+ runs|this VM|issue #?[0-9]+", re.IGNORECASE)
-    found = [f"{p.relative_to(ROOT)}:{i}" for p in [*(ROOT / "rt_ident").rglob("*.py"), *(ROOT / "drivers").rglob("*.py")]
+    sources = [*(ROOT / "rt_ident").rglob("*.py"), *(ROOT / "drivers").rglob("*.py")]
+    found = [f"{p.relative_to(ROOT)}:{i}" for p in sources
              for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
     assert not found, found
