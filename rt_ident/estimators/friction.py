@@ -49,6 +49,7 @@ The frequency method stays linear-only (no friction model); this method accepts 
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -648,6 +649,8 @@ class RecursiveFrictionEstimator:
         self._rbuf = np.zeros((L, self._C.shape[0], p))
         self._ybuf = np.zeros(L)
         self._okbuf = np.zeros(L)
+        z = np.zeros(2)                     # compile (or load) the kernel now, on a copy: not in the loop's ticks
+        copy.deepcopy(self).update_block(z, z, z)
 
     def update_block(self, theta1: np.ndarray, theta2: np.ndarray | None, torque: np.ndarray) -> None:
         th1 = np.ascontiguousarray(theta1, dtype=np.float64)

@@ -43,6 +43,7 @@ import numpy as np
 from drivers.base import Backend, SampleBlock
 from rt_ident.errors import RtIdentError
 from rt_ident.loop import tick_kernel as tk
+from rt_ident.loop.compile_watch import CompileWatch
 from rt_ident.loop.safety import SafetyMonitor
 from rt_ident.loop.scheduler import LatenessHistogram, Ticker
 from rt_ident.loop.stall import LoopStall, StallLog, StallPolicy
@@ -75,6 +76,8 @@ class LoopStats:
     # a simulated device's stepping ahead after the tick (Backend.step_ahead), not part of ``work``
     sim_ahead: LatenessHistogram = field(default_factory=LatenessHistogram)
     stalls: StallLog = field(default_factory=StallLog)
+    # compiled code first reached while the loop ran (rt_ident.loop.compile_watch)
+    compiles: CompileWatch = field(default_factory=CompileWatch)
 
     def as_dict(self) -> dict[str, Any]:
         lat = self.lateness.summary()
@@ -87,7 +90,7 @@ class LoopStats:
                 "lateness_us": {"p50": lat["p50"], "p99": lat["p99"], "max": lat["max"]},
                 "work_us": {"p50": work["p50"], "p99": work["p99"], "max": work["max"]},
                 "work_cpu_us": {"p50": cpu["p50"], "p99": cpu["p99"], "max": cpu["max"]},
-                "stalls": self.stalls.as_dict(),
+                "stalls": self.stalls.as_dict(), "late_compiles": self.compiles.as_dict(),
                 **({"sim_ahead_us": {k: ahead[k] for k in ("p50", "p99", "max")}}
                    if (ahead := self.sim_ahead.summary())["count"] else {})}
 
@@ -261,6 +264,7 @@ class IdentificationLoop(TelemetryWindow):
         cpu_clock = time.thread_time
         last_cpu = 0.0
         policy = self.stall_policy
+        stats.compiles.start()
         last_read = self.ticker.start()
         try:
             for _ in range(n_ticks):
@@ -291,6 +295,8 @@ class IdentificationLoop(TelemetryWindow):
         except RtIdentError as exc:
             _note_stall(exc, stats, clock())
             raise
+        finally:
+            stats.compiles.stop()
         self._flush_telemetry()
         return stats
 
@@ -498,6 +504,7 @@ class MultiAxisLoop:
         spent = [0.0] * len(axes)
         any_simulated = any(ax.backend.simulated for ax in axes)
         policy = self.stall_policy
+        stats.compiles.start()
         last_read = self.ticker.start()
         try:
             for _ in range(int(round(self.duration * self.tick_hz))):
@@ -549,6 +556,7 @@ class MultiAxisLoop:
             _note_stall(exc, stats, clock())
             raise
         finally:
+            stats.compiles.stop()
             stats.samples = sum(ax.stats.samples for ax in axes)
             stats.lost_samples = sum(ax.stats.lost_samples for ax in axes)
             stats.estimates = sum(ax.stats.estimates for ax in axes)

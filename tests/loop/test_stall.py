@@ -159,6 +159,7 @@ def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
     assert s["stop"]["cause"] is None
     stalls = s["loop"]["stalls"]
     assert stalls["count"] >= 1 and stalls["longest_ms"] >= 400, stalls
+    assert s["loop"]["late_compiles"]["count"] == 0, s["loop"]["late_compiles"]
     t_resume = max(e["t"] for e in s["control"]["events"] if e["kind"] == "stall")
     # the table's speed over whole probe periods (the probe's own motion averages out exactly)
     per = 512
@@ -189,6 +190,7 @@ def test_a_sigstop_of_an_xy_run_resumes_both_axes(tmp_path):
     rc, s, _, err = _sigstop_run(tmp_path, "configs/xy-sim.toml", journal_of="s-x.parquet")
     assert rc == 0 and s["stop"]["cause"] is None, (s["stop"], err[-2000:])
     assert s["loop"]["stalls"]["longest_ms"] >= 400
+    assert s["loop"]["late_compiles"]["count"] == 0, s["loop"]["late_compiles"]
     for name in ("x", "y"):
         ax = s["axes"][name]
         assert ax["loop"]["stalls"]["count"] >= 1
@@ -244,3 +246,20 @@ def test_a_stall_between_the_ticks_wait_and_its_read_is_caught_by_the_device_tim
     assert jumped and out["stop"] is None
     assert out["loop"]["stalls"]["count"] == 1 and out["loop"]["stalls"]["longest_ms"] >= 490
     assert out["control"]["fallbacks"] == 0 and out["control"]["max_error_m"] < 1e-4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("config", ["configs/sim-load-change.toml", "friction"])
+def test_nothing_compiles_after_the_first_tick_through_the_rare_paths(tmp_path, config):
+    # a fresh process through a stall resume, redesigns, a plant change and its fallback or friction feedforward
+    from rt_ident.axis.params import CONFIG_DIR
+
+    if config == "friction":
+        path = tmp_path / "friction.toml"
+        path.write_text((CONFIG_DIR / "sim.toml").read_text().replace(
+            '[estimator]\nmethod = "frequency"', '[estimator]\nmethod = "frequency"\nmodel = "two-inertia-friction"')
+            + '\n[plant.friction]\npreset = "thomson"\n')
+        config = str(path)
+    rc, s, _, err = _sigstop_run(tmp_path, config)
+    assert s["loop"]["stalls"]["count"] >= 1, err[-2000:]
+    assert s["loop"]["late_compiles"] == {"count": 0, "functions": []}
