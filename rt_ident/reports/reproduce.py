@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,6 +29,9 @@ from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.timestep import table2_cases
 from rt_ident.estimators.excitation_id import nrmse, reconstruct_torque
 from rt_ident.estimators.paper import fit_paper_ls, fit_paper_rls
+
+if TYPE_CHECKING:
+    from rt_ident.estimators.registry import LinearMethod
 from rt_ident.reports import paper_tables
 
 PARAM_KEYS = ("I1", "I2", "B", "K")
@@ -138,7 +142,7 @@ def run_case(p: AxisParams, N: int, k: int, dt: float, w0: float, wn: float, *, 
 
 #: "beyond the paper" rows: label -> (registry method, options). The data are Newmark (trapezoidal),
 #: so "zoh" is shown as the consistent model of the *other* hold, for contrast.
-BEYOND = {
+BEYOND: dict[str, tuple[LinearMethod, dict[str, Any]]] = {
     "tustin (states)": ("tustin", {"use_states": True}),
     "tustin (angles only)": ("tustin", {"use_states": False}),
     "frequency (Newmark model, angles only)": ("frequency", {"hold": "tustin"}),
