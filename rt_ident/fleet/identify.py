@@ -110,10 +110,11 @@ def identify_recording(entry: dict[str, Any], known: frozenset[str] = frozenset(
 def _schema():
     import pyarrow as pa
 
-    fields = [("path", pa.string()), ("machine", pa.string()), ("axis", pa.string()),
-              ("time", pa.timestamp("us", tz="UTC")), ("hash", pa.string()), ("method", pa.string()),
-              ("version", pa.string()), ("samples", pa.int64()), ("trusted", pa.bool_()),
-              ("reasons", pa.list_(pa.string())), ("trust_criteria", pa.string())]
+    fields: list[tuple[str, pa.DataType]] = [
+        ("path", pa.string()), ("machine", pa.string()), ("axis", pa.string()),
+        ("time", pa.timestamp("us", tz="UTC")), ("hash", pa.string()), ("method", pa.string()),
+        ("version", pa.string()), ("samples", pa.int64()), ("trusted", pa.bool_()),
+        ("reasons", pa.list_(pa.string())), ("trust_criteria", pa.string())]
     for k in PARAMS:
         fields += [(k, pa.float64()), (f"{k}_lo", pa.float64()), (f"{k}_hi", pa.float64())]
     fields += [("fit_chi2_dof", pa.float64()), ("snr_median_db", pa.float64())]

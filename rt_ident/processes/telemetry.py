@@ -776,9 +776,11 @@ class TelemetryProcess:
         wid, values, names, new_names = -1, _NO_VALUES, None, False
         if window is not None:
             names, values = window
-            wid = self._schemas.get(names)
-            if wid is None:
+            known = self._schemas.get(names)
+            if known is None:
                 wid, new_names = self._window_id(names, keys), True
+            else:
+                wid = known
         ring = self._ring
         if ring is None or self._closed or self._truth_pending or new_names:
             return self._send(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names), names, wid)
@@ -813,7 +815,7 @@ class TelemetryProcess:
             return False
         if self._truth_pending:
             self._push_truth()
-        if names is not None and names not in self._schemas:
+        if names is not None and wid is not None and names not in self._schemas:   # (both or neither)
             if not self._ring.put_object({_WINDOW_SCHEMA: (wid, names)}):
                 self._dropped += 1
                 return False
@@ -829,7 +831,7 @@ class TelemetryProcess:
         t0 = time.monotonic()
         deadline = t0 + max(0.0, timeout - 0.5)  # keep 0.5 s for terminate/kill
         terminated = False
-        if self._proc is not None and not self._closed:
+        if self._proc is not None and self._ring is not None and not self._closed:   # (started: both)
             self._closed = True
             self._ring.close_writer()
             self._proc.join(max(0.0, deadline - time.monotonic()))
