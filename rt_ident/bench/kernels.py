@@ -77,6 +77,7 @@ def machine_info() -> dict[str, Any]:
                     break
     except OSError:
         pass
+    affinity: int | None
     try:
         affinity = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
@@ -195,7 +196,9 @@ def bench_rls(m_block: int = 1_000_000, m_sample: int = 50_000, m_peer: int = 5_
     else:
         log.warning("padasip is not installed (pip install -e '.[bench]'): that peer is skipped")
     for name, fn in peers:
-        timing = _time(lambda fn=fn, name=name: box.__setitem__(name, fn()), peer_reps)
+        def store(fn: Callable[[], np.ndarray] = fn, name: str = name) -> None:
+            box[name] = fn()
+        timing = _time(store, peer_reps)
         rows.append(_row(name, m_peer, timing, _rel_diff(box[name], ls[m_peer]), kind="peer", block=False))
     timing = _time(lambda: box.__setitem__("lstsq", np.linalg.lstsq(Phi[:m_block], Y[:m_block], rcond=None)[0]),
                    repeats)
