@@ -28,6 +28,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from canopen.emcy import EmcyError
 
 from drivers.base import Backend, SampleBlock
 from drivers.cia402 import profile as p402
@@ -106,7 +107,7 @@ class Cia402Backend(Backend):
     def _on_sync_echo(self, timestamp: float, ordinal: int) -> None:
         self._deque.append((ECHO, timestamp, ordinal))
 
-    def _on_emcy(self, entry) -> None:
+    def _on_emcy(self, entry: EmcyError) -> None:
         if entry.code & 0xFF00 and self._emcy is None:
             self._emcy = (entry.code, entry.register)
 

@@ -20,7 +20,7 @@ import struct
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import canopen
@@ -37,7 +37,7 @@ from rt_ident.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
-def _best_effort(what: str, steps) -> None:
+def _best_effort(what: str, steps: Iterable[Callable[[], object]]) -> None:
     """Run every step of a stop path; a failing one is logged and the next still runs."""
     for step in steps:
         try:

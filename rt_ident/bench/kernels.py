@@ -29,9 +29,12 @@ import platform
 import sys
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -392,7 +395,7 @@ def bench_main(json_out: bool, quick: bool, loop_seconds: float, repeats: int,
     return out
 
 
-def _progress():  # noqa: ANN202
+def _progress() -> Progress:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 

@@ -26,10 +26,13 @@ import tempfile
 import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rt_ident import __version__
 from rt_ident.fleet.manifest import Entry
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +110,7 @@ def identify_recording(entry: dict[str, Any], known: frozenset[str] = frozenset(
     return row
 
 
-def _schema():
+def _schema() -> pa.Schema:
     import pyarrow as pa
 
     fields: list[tuple[str, pa.DataType]] = [

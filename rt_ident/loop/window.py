@@ -20,6 +20,7 @@ from rt_ident.loop import tick_kernel as tk
 if TYPE_CHECKING:
     from rt_ident.control.adaptation import Supervisor
     from rt_ident.estimators.base import Identification
+    from rt_ident.estimators.state_estimation import AxisStates
     from rt_ident.loop.loop import LoopStats
     from rt_ident.loop.tick_core import AxisCore
 
@@ -72,7 +73,7 @@ class TelemetryWindow:
     def _tel_buf(self) -> dict[str, np.ndarray]:
         return dict(zip(tk.SAMPLE_KEYS, self.tel_rows))
 
-    def _collect_telemetry(self, block: SampleBlock, states, lateness_s: float) -> None:
+    def _collect_telemetry(self, block: SampleBlock, states: AxisStates, lateness_s: float) -> None:
         self._collect_samples(block, states)
         k = self._tick_n
         rows = self.tick_rows
@@ -98,7 +99,7 @@ class TelemetryWindow:
 
     _NO_STATES = np.zeros((0, 2))
 
-    def _collect_samples(self, block: SampleBlock, states) -> None:
+    def _collect_samples(self, block: SampleBlock, states: AxisStates) -> None:
         """Every ``stride``-th sample of the block (from its first) into the window buffers, with its
         Eq. (18) torque once there is an estimate (``tick_kernel.collect_samples``, as the compiled tick)."""
         stride = self.stride

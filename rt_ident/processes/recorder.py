@@ -248,7 +248,7 @@ def _block_message(block: Any) -> dict[str, np.ndarray]:
     if isinstance(block, dict) or (not hasattr(block, "seq") and isinstance(block, Mapping)):
         get = block.get
     else:
-        def get(name, _d=None):
+        def get(name: str, _d: Any = None) -> Any:
             return (getattr(block, name, None))
     seq = get("seq", None)
     if seq is None:

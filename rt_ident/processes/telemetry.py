@@ -41,7 +41,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -791,7 +791,8 @@ class TelemetryProcess:
         return True
 
     @staticmethod
-    def _put_rows(ring: MessageRing, words, index, rows, n, wid, values, names) -> bool:
+    def _put_rows(ring: MessageRing, words: np.ndarray, index: np.ndarray | None, rows: np.ndarray, n: int,
+                  wid: int, values: np.ndarray, names: tuple[str, ...] | None) -> bool:
         h, di, df = ring.compiled_views()
         got = put_rows(h, di, df, ring.capacity, ring.max_messages, words, index, rows, n, _WINDOW_WORDS, wid,
                        values, names is not None)
@@ -799,7 +800,7 @@ class TelemetryProcess:
             raise DataError(f"publish_rows(): a {n}-column block does not fit a {ring.capacity}-byte ring")
         return bool(got)
 
-    def _window_id(self, names: tuple[str, ...], fields) -> int:
+    def _window_id(self, names: tuple[str, ...], fields: Collection[str]) -> int:
         """The id of a window's names (a new one is sent to the child before the vector that uses it)."""
         wid = self._schemas.get(names)
         if wid is None:
@@ -809,7 +810,7 @@ class TelemetryProcess:
             wid = len(self._schemas)
         return wid
 
-    def _send(self, put, names: tuple[str, ...] | None, wid: int | None) -> bool:
+    def _send(self, put: Callable[[MessageRing], bool], names: tuple[str, ...] | None, wid: int | None) -> bool:
         if self._ring is None or self._closed:
             self._dropped += 1
             return False

@@ -10,6 +10,7 @@ import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 from rt_ident.reports.reproduce import CaseResult, ReproduceResult  # noqa: E402
 
@@ -100,7 +101,7 @@ def write_figures(result: ReproduceResult, out_dir: str | Path) -> list[Path]:
     return written
 
 
-def _save(fig, path: Path) -> Path:
+def _save(fig: Figure, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

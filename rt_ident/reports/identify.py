@@ -28,6 +28,7 @@ from rt_ident.processes.recorder import read_recording
 
 if TYPE_CHECKING:   # friction (numba, scipy.signal) is imported when a friction model is fitted
     from rt_ident.estimators.friction import FrictionIdentification
+    from rt_ident.estimators.streaming import FrequencyStream, PaperStream
 
 REPLAY_CHUNK = 4096
 
@@ -132,7 +133,7 @@ def _replayable(meta: dict[str, Any], method: str | None, period: int | None, op
                 and not options and m == meta.get("method") and m in STREAMING_METHODS and m != "paper")
 
 
-def _streaming_estimator(meta: dict[str, Any], method: str):
+def _streaming_estimator(meta: dict[str, Any], method: str) -> FrequencyStream | PaperStream:
     from rt_ident.estimators.streaming import make_streaming
 
     ex = meta["excitation"]
@@ -142,7 +143,7 @@ def _streaming_estimator(meta: dict[str, Any], method: str):
                           forgetting=float(meta.get("forgetting", 1.0)), lead=lead)
 
 
-def _stream_replay(path, meta: dict[str, Any], method: str) -> tuple[Identification, int]:
+def _stream_replay(path: str | Path, meta: dict[str, Any], method: str) -> tuple[Identification, int]:
     est = _streaming_estimator(meta, method)
     n = 0
     for th1, th2, tq, seq in iter_parquet_blocks(path, REPLAY_CHUNK * 16):
@@ -166,7 +167,9 @@ def _default_method() -> str:
     return DEFAULT_METHOD
 
 
-def _replay(rec, meta: dict[str, Any], method: str) -> Identification:
+def _replay(rec: Recording, meta: dict[str, Any], method: str) -> Identification:
+    if rec.theta2 is None:     # read with require_theta2: not met here
+        raise DataError("theta2: required")
     est = _streaming_estimator(meta, method)
     seq = rec.seq if rec.seq is not None else np.arange(len(rec))
     for i in range(0, len(rec), REPLAY_CHUNK):
