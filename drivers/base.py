@@ -30,6 +30,7 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass
+from types import TracebackType
 from typing import Any, ClassVar
 
 import numpy as np
@@ -223,7 +224,8 @@ class Backend(ABC):
     def __enter__(self) -> Backend:
         return self.open()
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         cause = None
         if exc is not None:
             cause = getattr(exc, "cause", type(exc).__name__)

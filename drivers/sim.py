@@ -276,9 +276,10 @@ class SimBackend(Backend):
     def _take_ahead(self, n: int) -> tuple[np.ndarray, ...]:
         """Views of the next ``n`` samples stepped ahead: t, seq, theta1, theta2, torque_cmd, torque_applied,
         torque_meas (arrays never written again: step_ahead makes new ones)."""
-        o = self._ahead_off
-        got = tuple(a[o:o + n] for a in self._ahead)
-        if o + n >= self._ahead[0].shape[0]:
+        o, ahead = self._ahead_off, self._ahead
+        assert ahead is not None            # the callers saw samples stepped ahead
+        got = tuple(a[o:o + n] for a in ahead)
+        if o + n >= ahead[0].shape[0]:
             self._ahead, self._ahead_off = None, 0
         else:
             self._ahead_off = o + n

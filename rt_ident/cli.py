@@ -177,7 +177,7 @@ def reproduce(
         from rt_ident.reports.figures import write_figures
 
         written = [str(p) for p in write_figures(result, figures)]
-    if study is not None:
+    if study is not None and noise_study is not None:
         written += _write_study(study, noise_study)
     if json_out:
         doc = result.as_json()
@@ -248,12 +248,12 @@ def _print_reproduce(result, sens) -> None:
               ("Table 5 - RLS, physical parameters", "rls", paper_tables.RLS, PARAM_KEYS),
               ("Table 6 - RLS, modal parameters", "rls", paper_tables.RLS, MODAL_KEYS))
     flagged = False
-    for title, attr, paper, keys in tables:
+    for title, attr, paper_table, keys in tables:
         tab = Table(title=title)
         for col in ("case", "param", "true", "paper", "ours", "paper err %", "our err %", ""):
             tab.add_column(col, justify="left" if col in ("case", "param") else "right")
         for c in result.cases:
-            pc = paper[(c.N, c.k)]
+            pc = paper_table[(c.N, c.k)]
             for i, key in enumerate(keys):
                 ours = getattr(c, attr)[key]
                 e_ours = error_pct(ours, result.truth[key])
@@ -565,9 +565,11 @@ def identify(
     ident, info = identify_file(file, method, period=period, model=model)
     validation = None
     if validate is not None:
+        from rt_ident.estimators.friction import FrictionIdentification
         from rt_ident.reports.identify import validate_file
 
         validation = validate_file(ident, validate)
+        assert isinstance(ident, FrictionIdentification)   # validate_file takes no other
         ident = ident.with_validation(validation)     # the validation is one of the verdict's criteria
     d = ident.as_dict()
     if validation is not None:

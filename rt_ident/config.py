@@ -20,12 +20,17 @@ from __future__ import annotations
 import math
 import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
+
+if TYPE_CHECKING:
+    from pydantic_core import ErrorDetails
+
+    from rt_ident.control.adaptation import ControlSettings
 
 
 class _Section(BaseModel):
@@ -144,7 +149,7 @@ class ControlConfig(_Section):
     drive_holds: bool = False                         # a real drive holds the axis itself (a position mode):
                                                       # the only way mode = "off" runs on a real drive
 
-    def settings(self):
+    def settings(self) -> ControlSettings:
         from rt_ident.control.adaptation import ControlSettings
 
         return ControlSettings(**{k: v for k, v in self.model_dump().items()
@@ -337,7 +342,7 @@ class RunConfig(_Section):
                          "its own (only the sim backend and the emulated devices take it)")
 
 
-def _field_name(err: dict) -> str:
+def _field_name(err: ErrorDetails) -> str:
     return ".".join(str(p) for p in err["loc"] if not isinstance(p, int) or True)
 
 

@@ -187,9 +187,10 @@ def validate(config: Mapping[str, Any] | None) -> Cia402Config:
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
         msg = err["msg"].removeprefix("Value error, ")
         raise ConfigError(f"backend.{loc}" if loc else "backend", msg) from None
-    if cfg.torque_limit > 32.767 * (cfg.rated_torque or math.inf):
+    rated = cfg.rated_torque
+    if rated and cfg.torque_limit > 32.767 * rated:
         raise ConfigError("backend.torque_limit", f"{cfg.torque_limit} N m exceeds the int16 per-mille range "
-                          f"of 0x6071 (32.767 x rated_torque = {32.767 * cfg.rated_torque:g} N m)")
+                          f"of 0x6071 (32.767 x rated_torque = {32.767 * rated:g} N m)")
     check_bus_budget(cfg)
     check_interface(cfg.interface)
     return cfg

@@ -28,6 +28,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from canopen.emcy import EmcyError
 
 from drivers.base import Backend, SampleBlock
 from drivers.cia402 import profile as p402
@@ -106,7 +107,7 @@ class Cia402Backend(Backend):
     def _on_sync_echo(self, timestamp: float, ordinal: int) -> None:
         self._deque.append((ECHO, timestamp, ordinal))
 
-    def _on_emcy(self, entry) -> None:
+    def _on_emcy(self, entry: EmcyError) -> None:
         if entry.code & 0xFF00 and self._emcy is None:
             self._emcy = (entry.code, entry.register)
 
@@ -143,7 +144,7 @@ class Cia402Backend(Backend):
 
     def _activate(self) -> None:
         cfg, setup = self.config, self._setup
-        assert setup is not None and self._asm is not None
+        assert setup is not None and setup.conn is not None and self._asm is not None
         self._plan.hold(0.0)
         channel = RpdoChannel(setup.rpdo_cob, self._plan, self._torque_to_permille, self._deque, p402.CW_SHUTDOWN)
         self._channel = channel
@@ -174,17 +175,18 @@ class Cia402Backend(Backend):
 
     def _enable(self, sender: SyncSender) -> None:
         """Walk the 402 state machine by controlword until the statusword says OPERATION ENABLED."""
-        cfg, asm, ch = self.config, self._asm, self._channel
+        cfg, setup, asm, ch = self.config, self._setup, self._asm, self._channel
+        assert setup is not None and asm is not None and ch is not None     # _activate made them
         deadline = time.monotonic() + cfg.startup_timeout
         resets, toggle_at = 0, 0.0
         hold = max(0.02, 10 * cfg.sample_period)    # each controlword long enough for several SYNCs
         while True:
-            self._setup.pump()
+            setup.pump()
             asm.feed(self._deque, deliver=False)
             self._check_emcy_heartbeat(startup=True)
             sw = asm.statusword
             state = p402.decode_state(sw) if sw is not None else None
-            if state == p402.OPERATION_ENABLED and self._hb_operational:
+            if state == p402.OPERATION_ENABLED and self._hb_operational and sw is not None:
                 self.statusword = sw
                 log.info("canopen: node %d in OPERATION ENABLED (statusword 0x%04X)", cfg.node_id, sw)
                 return
@@ -239,8 +241,9 @@ class Cia402Backend(Backend):
                                 f"{cfg.interface}:{cfg.channel}; samples can no longer be matched to SYNCs")
 
     def _read(self) -> SampleBlock:
-        asm = self._asm
-        self._setup.pump()
+        asm, setup = self._asm, self._setup
+        assert asm is not None and setup is not None      # opened
+        setup.pump()
         self._check_emcy_heartbeat()
         asm.feed(self._deque, deliver=True)
         rows = asm.take_rows()
@@ -273,10 +276,11 @@ class Cia402Backend(Backend):
     def _wait_state(self, accept: tuple[str, ...], timeout: float) -> bool:
         """Poll the TPDO stream (not delivering samples) until the drive reports one of ``accept``."""
         end = time.monotonic() + timeout
-        asm = self._asm
+        asm, setup = self._asm, self._setup
+        assert asm is not None and setup is not None      # opened
         while True:
             try:
-                self._setup.pump()
+                setup.pump()
                 asm.feed(self._deque, deliver=False)
             except DriverError:
                 pass
@@ -299,7 +303,8 @@ class Cia402Backend(Backend):
             return
         try:
             asm = self._asm
-            asm.statusword = None       # only answers to the stop commands count
+            if asm is not None:
+                asm.statusword = None   # only answers to the stop commands count
             ch.controlword = p402.CW_QUICK_STOP
             if not self._wait_state((p402.QUICK_STOP_ACTIVE, p402.SWITCH_ON_DISABLED, p402.FAULT),
                                     cfg.stop_timeout):
@@ -311,7 +316,8 @@ class Cia402Backend(Backend):
                             cfg.node_id, cfg.stop_timeout)
         finally:
             self._leave_sync()
-            self._setup.receive_in_thread()     # SDO (close) needs a receiver again
+            if self._setup is not None:
+                self._setup.receive_in_thread()     # SDO (close) needs a receiver again
             self._deque.clear()
 
     def _leave_sync(self) -> None:

@@ -216,13 +216,15 @@ class EmulatedCia402Drive:
         if self._thread is not None:
             self._thread.join(1.0)
             self._thread = None
-        if self._net is not None:
+        net, node, io = self._net, self._node, self._io
+        if net is not None:
             try:
-                task = getattr(self._node.nmt, "_send_task", None)
-                self._node.nmt.stop_heartbeat()
+                assert node is not None and io is not None    # started with the network
+                task = getattr(node.nmt, "_send_task", None)
+                node.nmt.stop_heartbeat()
                 stop_periodic(task)
-                self._io.close()                          # no more callbacks after this
-                self._net.disconnect()
+                io.close()                                # no more callbacks after this
+                net.disconnect()
             except Exception as exc:  # noqa: BLE001
                 log.warning("emulated drive: disconnect failed: %s", exc)
             self._net = None
@@ -248,6 +250,7 @@ class EmulatedCia402Drive:
 
     def _written(self, index: int, subindex: int, value: int) -> None:
         if 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00:
+            assert self._node is not None            # SDO writes come after start()
             check_mapping_write(self._node, index, subindex, value)
         if 0x1400 <= index < 0x1C00:
             self._pdo_dirty = True
@@ -265,30 +268,35 @@ class EmulatedCia402Drive:
             self._values[(index, subindex)] = value
 
     def _set_consumer(self, master_id: int, ms: int) -> None:
-        old = self._master[0]
+        old, net = self._master[0], self._net
+        assert net is not None                       # an SDO write: on the bus
         if old and old != master_id:
             try:
-                self._net.unsubscribe(0x700 + old, self._on_master_heartbeat)
+                net.unsubscribe(0x700 + old, self._on_master_heartbeat)
             except (KeyError, ValueError):
                 pass
         self._master = (master_id, ms)
         self._master_hb = None
         if master_id and ms:
-            self._net.subscribe(0x700 + master_id, self._on_master_heartbeat)
+            net.subscribe(0x700 + master_id, self._on_master_heartbeat)
 
     def _rebuild_pdos(self) -> None:
-        rpdos, tpdos = pdo_layouts(self._node)
+        node, net = self._node, self._net
+        assert node is not None and net is not None   # on the bus
+        rpdos, tpdos = pdo_layouts(node)
         for lay in self._rpdos:
-            self._net.unsubscribe(lay.cob, self._on_rpdo)
+            net.unsubscribe(lay.cob, self._on_rpdo)
         for lay in rpdos:
-            self._net.subscribe(lay.cob, self._on_rpdo)
+            net.subscribe(lay.cob, self._on_rpdo)
         self._rpdos, self._tpdos = rpdos, tpdos
         self._pdo_dirty = False
 
     # ----- receive-thread callbacks (light) ---------------------------------------------
     def _on_frames(self, frames: list) -> None:
         """Frames read in one go, in bus order; a SYNC followed by another one is answered late."""
-        notify, pending = self._net.notify, self._pending
+        net, pending = self._net, self._pending
+        assert net is not None                       # FrameIO delivers between start() and stop()
+        notify = net.notify
         pending.extend(frames)
         while pending:
             cob, data, t = pending.popleft()
@@ -300,6 +308,7 @@ class EmulatedCia402Drive:
         """Last look before answering a SYNC: has the next one arrived meanwhile? (receive thread only)"""
         if not self._in_window:
             return False
+        assert self._io is not None                  # the receive thread asks: started
         new = self._io.read_now()
         self._pending.extend(new)
         self._in_window = not any(f[0] == 0x80 for f in new)
@@ -370,11 +379,14 @@ class EmulatedCia402Drive:
         self._set_state(p402.FAULT)
         self.emcy_codes.append(code)
         try:
+            assert self._node is not None            # a fault is raised only while on the bus
             self._node.emcy.send(code, register)
         except Exception as exc:  # noqa: BLE001
             log.warning("emulated drive: EMCY send failed: %s", exc)
 
     def _housekeeping(self) -> None:
+        node = self._node
+        assert node is not None                      # the worker runs after start()
         now = time.monotonic()
         while self._delayed and self._delayed[0][0] <= now:
             _, _, cob, data = heapq.heappop(self._delayed)
@@ -390,13 +402,14 @@ class EmulatedCia402Drive:
         if (f.heartbeat_stop_at_s is not None and not self._hb_stopped and self._t_enabled is not None
                 and now - self._t_enabled >= f.heartbeat_stop_at_s):
             self._hb_stopped = True
-            self._node.nmt.stop_heartbeat()
+            node.nmt.stop_heartbeat()
             log.warning("emulated drive %d: heartbeat stopped (fault injection)", self.node_id)
-        if self._node.nmt.state != "OPERATIONAL" and self._state in (
+        if node.nmt.state != "OPERATIONAL" and self._state in (
                 p402.OPERATION_ENABLED, p402.QUICK_STOP_ACTIVE, p402.SWITCHED_ON):
             self._set_state(p402.SWITCH_ON_DISABLED)      # communication ended: power stage off
 
     def _on_sync_work(self) -> None:
+        assert self._node is not None                # SYNCs arrive after start()
         if self._node.nmt.state != "OPERATIONAL":
             return
         if self._pdo_dirty:
@@ -489,6 +502,7 @@ class EmulatedCia402Drive:
 
     def _send(self, cob: int, data: bytes) -> None:
         try:
+            assert self._io is not None              # on the bus
             self._io.send(cob, data)
             self.frames_sent += 1
         except Exception as exc:  # noqa: BLE001 - the bus may be closing

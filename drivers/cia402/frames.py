@@ -178,7 +178,8 @@ class FrameIO:
     def read_now(self, limit: int = 4096) -> list[Frame]:
         """The frames waiting now, not handed over (for a handler that looks ahead; same thread only)."""
         self.open()
-        return self._read_udp(limit) if self._sock is not None else self._read_bus(limit)
+        sock = self._sock
+        return self._read_udp(sock, limit) if sock is not None else self._read_bus(limit)
 
     def _deliver(self, frames: list[Frame]) -> None:
         if not frames:
@@ -190,8 +191,9 @@ class FrameIO:
             self.errors += 1
             log.exception("%s: frame handler failed", self.name)
 
-    def _read_udp(self, limit: int) -> list[Frame]:
-        recvmsg, unpack, offset = self._sock.recvmsg, self._unpack, self._mono_offset
+    def _read_udp(self, sock: socket.socket, limit: int) -> list[Frame]:
+        recvmsg, unpack, offset = sock.recvmsg, self._unpack, self._mono_offset
+        assert unpack is not None               # open() set it with the socket
         frames: list[Frame] = []
         while len(frames) < limit:
             try:
@@ -256,4 +258,5 @@ class FrameIO:
                 except Exception:  # noqa: BLE001
                     self.errors += 1
                     log.exception("%s: idle work failed", self.name)
+            assert poll_s is not None           # else the socket's poller or python-can's recv waited above
             time.sleep(poll_s)

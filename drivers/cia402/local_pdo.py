@@ -19,9 +19,21 @@ from drivers.cia402 import profile as p402
 
 
 def od_value(node: canopen.LocalNode, index: int, subindex: int = 0) -> int:
-    """Current value of an object of the local node (written, read callback, or EDS default)."""
+    """Current value of an integer object of the local node (written, read callback, or EDS default)."""
     var = node.object_dictionary.get_variable(index, subindex)
-    return var.decode_raw(node.get_data(index, subindex))
+    if var is None:                          # as a device answers a read of a missing object
+        raise SdoAbortedError(0x06020000)
+    value = var.decode_raw(node.get_data(index, subindex))
+    if not isinstance(value, int):
+        raise TypeError(f"object 0x{index:04X}:{subindex:02X} holds {type(value).__name__}, not an integer")
+    return value
+
+
+def _data_type(node: canopen.LocalNode, index: int, subindex: int) -> int:
+    var = node.object_dictionary.get_variable(index, subindex)
+    if var is None or var.data_type is None:  # check_mapping_write let no such mapping in
+        raise SdoAbortedError(0x06020000)
+    return var.data_type
 
 
 def check_mapping_write(node: canopen.LocalNode, index: int, subindex: int, value: int) -> None:
@@ -59,8 +71,7 @@ def _layout(node: canopen.LocalNode, comm: int, mapping: int) -> PdoLayout | Non
         return None
     keys = tuple(p402.split_mapping_entry(od_value(node, mapping, s))[:2]
                  for s in range(1, od_value(node, mapping, 0) + 1))
-    od = node.object_dictionary
-    st = p402.pdo_struct([od.get_variable(i, s).data_type for i, s in keys])
+    st = p402.pdo_struct([_data_type(node, i, s) for i, s in keys])
     return PdoLayout(cob & 0x7FF, od_value(node, comm, 2), st, keys)
 
 

@@ -20,7 +20,7 @@ import struct
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import canopen
@@ -37,7 +37,7 @@ from rt_ident.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
-def _best_effort(what: str, steps) -> None:
+def _best_effort(what: str, steps: Iterable[Callable[[], object]]) -> None:
     """Run every step of a stop path; a failing one is logged and the next still runs."""
     for step in steps:
         try:
@@ -133,7 +133,9 @@ class BusConnection:
         self._hb_task = net.send_periodic(0x700 + cfg.master_node_id, bytes([0x05]), cfg.heartbeat_ms / 1000.0)
 
     def _dispatch(self, frames: list) -> None:
-        notify = self.network.notify
+        net = self.network
+        assert net is not None                  # FrameIO runs between _connect and _shutdown
+        notify = net.notify
         for cob, data, t in frames:
             notify(cob, data, t)
 
@@ -146,7 +148,7 @@ class BusConnection:
     def subscribe_echo(self, callback: Callable[[float, int], None]) -> None:
         self._echo_subscribers.append(callback)
 
-    def unsubscribe_echo(self, callback: Callable[[float, int], None]) -> None:
+    def unsubscribe_echo(self, callback: Callable[[float, int], None] | None) -> None:
         if callback in self._echo_subscribers:
             self._echo_subscribers.remove(callback)
 
@@ -162,6 +164,7 @@ class BusConnection:
                 self.syncs_sent += sender.sent
             cfg = self.cfg
             every = max(1, int(round(cfg.heartbeat_ms / 1000.0 / cfg.sample_period)))
+            assert self.io is not None              # connected (acquire)
             sender = SyncSender.for_channel(self.io.send, cfg.sample_period, channel, sent_before=self.syncs_sent,
                                             heartbeat=(0x700 + cfg.master_node_id, every))
             self.sender = sender
@@ -237,12 +240,26 @@ class NodeSetup:
         self._od: canopen.ObjectDictionary | None = None
 
     # ----- objects ----------------------------------------------------------------------
-    def _var(self, index: int, subindex: int = 0):
-        var = self._od.get_variable(index, subindex)
+    @property
+    def od(self) -> canopen.ObjectDictionary:
+        """The EDS's object dictionary (read first thing by :meth:`connect`)."""
+        assert self._od is not None, "NodeSetup.connect() reads the EDS first"
+        return self._od
+
+    def _var(self, index: int, subindex: int = 0) -> canopen.objectdictionary.ODVariable:
+        var = self.od.get_variable(index, subindex)
         if var is None:
             raise ProtocolError(f"EDS {self.cfg.eds_path().name} lacks {p402.object_label(index, subindex or None)}; "
                                 f"the backend needs it for a CiA 402 drive in CST mode")
         return var
+
+    def _data_type(self, index: int, subindex: int = 0) -> int:
+        """The object's CANopen data type code (the EDS states one for every object it defines)."""
+        code = self._var(index, subindex).data_type
+        if code is None:
+            raise ProtocolError(f"EDS {self.cfg.eds_path().name} gives {p402.object_label(index, subindex or None)} "
+                                f"no data type")
+        return code
 
     def _check_od(self) -> None:
         cfg = self.cfg
@@ -256,16 +273,17 @@ class NodeSetup:
                            (p402.PRODUCER_HEARTBEAT, 0), (p402.CONSUMER_HEARTBEAT, 1), (0x1400, 1),
                            (0x1600, 1), (0x1800, 1), (0x1801, 1), (0x1A00, 1), (0x1A01, 1)]:
             self._var(index, sub)
-        scale = self._var(cfg.scale_index, cfg.scale_subindex)
-        if scale.data_type not in (0x04, 0x07):
+        scale_type = self._data_type(cfg.scale_index, cfg.scale_subindex)
+        if scale_type not in (0x04, 0x07):
             raise ProtocolError(f"table scale object {p402.object_label(cfg.scale_index, cfg.scale_subindex)} "
-                                f"has data type 0x{scale.data_type:04X}; a 32-bit integer is required")
+                                f"has data type 0x{scale_type:04X}; a 32-bit integer is required")
 
     # ----- SDO with errors that name the object -----------------------------------------
     def upload(self, index: int, subindex: int, what: str = "") -> int:
-        var = self._var(index, subindex)
+        code, node = self._data_type(index, subindex), self.node
+        assert node is not None                 # connected
         try:
-            data = self.node.sdo.upload(index, subindex)
+            data = node.sdo.upload(index, subindex)
         except SdoAbortedError as exc:
             raise ProtocolError(f"node {self.cfg.node_id} refused reading {p402.object_label(index, subindex)}"
                                 f"{what}: {p402.abort_text(exc.code)}") from exc
@@ -273,12 +291,12 @@ class NodeSetup:
             raise DeviceTimeout(f"node {self.cfg.node_id} did not answer reading "
                                 f"{p402.object_label(index, subindex)} within sdo_timeout "
                                 f"{self.cfg.sdo_timeout:g} s") from exc
-        st = struct.Struct("<" + p402.STRUCT_CODE[var.data_type])
+        st = struct.Struct("<" + p402.STRUCT_CODE[code])
         return st.unpack_from(bytes(data).ljust(st.size, b"\0"))[0]
 
     def download(self, index: int, subindex: int, value: int, what: str = "") -> None:
-        var = self._var(index, subindex)
-        data = struct.pack("<" + p402.STRUCT_CODE[var.data_type], value)
+        data = struct.pack("<" + p402.STRUCT_CODE[self._data_type(index, subindex)], value)
+        assert self.node is not None            # connected
         try:
             self.node.sdo.download(index, subindex, data)
         except SdoAbortedError as exc:
@@ -307,10 +325,12 @@ class NodeSetup:
 
     def send(self, cob_id: int, data: bytes) -> None:
         """Send one frame (thread-safe; a fraction of the cost of ``Network.send_message``, used per SYNC)."""
+        assert self.io is not None              # connected
         self.io.send(cob_id, data)
 
     def receive_in_caller(self) -> None:
         """Stop the receive thread: from now on the caller reads the bus with :meth:`pump` (echo mode)."""
+        assert self.io is not None              # connected
         self.io.stop()
 
     def receive_in_thread(self) -> None:
@@ -347,10 +367,11 @@ class NodeSetup:
         self.conn = conn
         net = self.network = conn.network
         self.io = conn.io
+        assert net is not None                  # acquire() connected it
         if net.nodes.get(cfg.node_id) is not None:
             raise ConfigError("backend.node_id", f"node {cfg.node_id} is configured twice on "
                                                  f"{cfg.interface}:{cfg.channel}")
-        if self.echo:
+        if self.echo and self._on_sync_echo is not None:      # (echo implies the callback)
             conn.subscribe_echo(self._on_sync_echo)
         node = canopen.RemoteNode(cfg.node_id, self._od)
         net.add_node(node)
@@ -388,11 +409,12 @@ class NodeSetup:
         self._disable_unused(0x1400, used=1)
         self._disable_unused(0x1800, used=2)
         self.tpdo_cobs = [cob1, cob2]
-        self.tpdo_layouts = [(cob1, p402.pdo_struct([self._var(i, s).data_type for i, s in tpdo1])),
-                             (cob2, p402.pdo_struct([self._var(i, s).data_type for i, s in tpdo2]))]
+        self.tpdo_layouts = [(cob1, p402.pdo_struct([self._data_type(i, s) for i, s in tpdo1])),
+                             (cob2, p402.pdo_struct([self._data_type(i, s) for i, s in tpdo2]))]
+        assert self.network is not None         # connected
         for cob in self.tpdo_cobs:
             self.network.subscribe(cob, self._on_tpdo)
-        if self._od.get_variable(p402.CYCLE_PERIOD) is not None:
+        if self.od.get_variable(p402.CYCLE_PERIOD) is not None:
             self.download(p402.CYCLE_PERIOD, 0, int(round(1e6 / cfg.sync_rate_hz)), " (SYNC period in us)")
         self._set_mode_cst()
         permille = cfg.max_torque_permille or min(65535, int(round(cfg.torque_limit * 1000.0 / rated)))
@@ -404,7 +426,7 @@ class NodeSetup:
     def _rated_torque(self) -> float:
         cfg = self.cfg
         drive = None
-        if self._od.get_variable(p402.RATED_TORQUE) is not None:
+        if self.od.get_variable(p402.RATED_TORQUE) is not None:
             drive = self.upload(p402.RATED_TORQUE, 0) / 1000.0          # mN m -> N m
         if cfg.rated_torque is None:
             if not drive:
@@ -433,7 +455,7 @@ class NodeSetup:
 
     def _disable_unused(self, comm_base: int, used: int) -> None:
         n = used
-        while n < 512 and self._od.get_variable(comm_base + n, 1) is not None:
+        while n < 512 and self.od.get_variable(comm_base + n, 1) is not None:
             try:
                 cob = self.upload(comm_base + n, 1)
                 if not cob & p402.PDO_INVALID:
@@ -457,6 +479,7 @@ class NodeSetup:
             time.sleep(0.01)
 
     def nmt_operational(self) -> None:
+        assert self.node is not None            # connected
         self.node.nmt.send_command(0x01)
 
     # ----- shutdown ---------------------------------------------------------------------

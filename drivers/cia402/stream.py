@@ -445,7 +445,7 @@ class SampleAssembler:
                     continue
                 self.echoes += 1
                 if self._marker is not None:
-                    self._close(deliver)
+                    self._close(self._marker, deliver)
                 self._marker = self._records.popleft()
                 self._frames = {}
             elif kind == SKIP:
@@ -455,7 +455,7 @@ class SampleAssembler:
                     self._records.pop()        # never on the bus: no echo will come
             elif kind == MARK:
                 if self._marker is not None:
-                    self._close(deliver)
+                    self._close(self._marker, deliver)
                 self._marker = item
                 self._frames = {}
             else:
@@ -466,11 +466,11 @@ class SampleAssembler:
                 self._frames.setdefault(item[0], []).append(item)
         if self._marker is not None and self._prev_complete and all(
                 any(len(f[2]) == st.size for f in self._frames.get(cob, ())) for cob, st in self.layouts):
-            self._close(deliver)
+            self._close(self._marker, deliver)
             self._marker = None
 
-    def _close(self, deliver: bool) -> None:
-        _, k, t, cmd = self._marker
+    def _close(self, marker: tuple, deliver: bool) -> None:
+        _, k, t, cmd = marker
         values: list = []
         bad = None
         lone = True                      # exactly one valid frame of every TPDO
@@ -522,7 +522,7 @@ class SampleAssembler:
         self._bad_corrupt = False
         sw, pos_raw, tq, scale_raw = values
         self.statusword = sw
-        if self._pos is None:
+        if self._pos is None or self._scale is None:     # (both set on the first sample)
             self._pos, self._scale = pos_raw, scale_raw
             moved = True
         else:

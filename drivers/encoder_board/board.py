@@ -147,10 +147,10 @@ class SerialBoardBackend(Backend):
 
     # ----- lifecycle hooks -----------------------------------------------------------------
     def _open(self) -> None:
-        cfg = self.config
-        if cfg.emulate:
+        cfg, ecfg = self.config, self.emulator_config
+        if ecfg is not None:                  # (set exactly when the config says emulate)
             from drivers.encoder_board.emulator import board_for
-            self.emulator = board_for(cfg, self.emulator_config).start()
+            self.emulator = board_for(cfg, ecfg).start()
             self.port = self.emulator.port
         try:
             self._ser = serial.serial_for_url(self.port, baudrate=cfg.baudrate, timeout=cfg.poll_timeout,

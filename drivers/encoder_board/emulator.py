@@ -188,11 +188,10 @@ class EmulatedBoard:
     # ----- the board loop -------------------------------------------------------------------
     def _make_plant(self, controller: HoldController | None, x0: np.ndarray | None) -> PlantSimulator:
         self._rebuilds += 1
-        travel = tuple(self.cfg.travel) if self.cfg.travel is not None else None
         # a disabled power stage applies nothing: no process noise either
         sensors = self.sensors if self.enabled else replace(self.sensors, torque_process_noise=0.0)
         return PlantSimulator(self.params, self.dt, sensors=sensors, controller=controller,
-                              torque_limit=self.torque_limit, travel=travel,
+                              torque_limit=self.torque_limit, travel=self.cfg.travel,
                               seed=self.cfg.seed * 1000 + self._rebuilds, x0=x0, friction=self.friction)
 
     def _set_enabled(self, on: bool) -> None:
@@ -371,7 +370,7 @@ class EmulatedBoard:
             keep[:] = False
         self.frames_dropped += int(n - keep.sum())
         frames = frames[keep]                          # a copy: safe to corrupt
-        m = frames.shape[0]
+        m = int(frames.shape[0])
         bad = np.zeros(m, dtype=bool)
         nc = min(self._corrupt_next, m)
         bad[:nc] = True

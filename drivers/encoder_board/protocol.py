@@ -233,7 +233,7 @@ def encode_data_block(seq: np.ndarray, t_us: np.ndarray, enc: np.ndarray, scale:
     a["cmd"] = cmd
     a["current"] = current
     a["status"] = status
-    raw = memoryview(a.view(np.uint8))
+    raw = a.view(np.uint8).data                 # a memoryview of the frames' bytes
     size = DATA_FRAME_SIZE
     a["crc"] = np.fromiter((crc_hqx(raw[o + 2:o + size - 2], CRC_INIT) for o in range(0, n * size, size)),
                            dtype=np.uint16, count=n)
@@ -452,13 +452,14 @@ class StreamUnwrapper:
             return Unwrapped(e, np.empty(0), e, e, 0, 0)
         words = np.empty((n + 1, 4), dtype=np.uint32)
         words[1:] = samples.view(_COUNTERS_DTYPE)["c"]
-        first_block = self._last_raw is None
-        if first_block:
+        last_raw, last_full = self._last_raw, self._last_full     # both set once a block was seen
+        first_block = last_raw is None or last_full is None
+        if last_raw is None or last_full is None:
             words[0] = words[1]
-            self._last_full = np.array([int(samples["seq"][0]), int(samples["t_us"][0]),
-                                        int(samples["enc"][0]), int(samples["scale"][0])], dtype=np.int64)
+            last_full = np.array([int(samples["seq"][0]), int(samples["t_us"][0]),
+                                  int(samples["enc"][0]), int(samples["scale"][0])], dtype=np.int64)
         else:
-            words[0] = self._last_raw
+            words[0] = last_raw
         du = words[1:] - words[:-1]                        # uint32 arithmetic: steps modulo 2^32
         d = du.view(np.int32).astype(np.int64)             # as int32 (seq, enc, scale)
         d[:, 1] = du[:, 1]                                 # time: unsigned
@@ -467,7 +468,7 @@ class StreamUnwrapper:
             steps = steps.copy()
             steps[0] = 1                                   # nothing precedes the very first sample
         full = np.cumsum(d, axis=0)
-        full += self._last_full
+        full += last_full
         if steps.min() >= 1:
             lost, back = int(steps.sum()) - n, 0
         else:

@@ -66,7 +66,7 @@ class Trajectory:
 
 @runtime_checkable
 class Integrator(Protocol):
-    name: str
+    name: ClassVar[str]
 
     def simulate(self, p: AxisParams, torque: np.ndarray, dt: float,
                  x0: np.ndarray | None = None) -> Trajectory: ...
@@ -266,7 +266,7 @@ class Newmark(_OneStep):
     def _setup(self, p: AxisParams, dt: float) -> _Ctx:
         ctx = super()._setup(p, dt)
         al, de = self.alpha, self.delta
-        c = {  # integration constants (Bathe, Table 9.3)
+        c: dict[str, Any] = {  # integration constants (Bathe, Table 9.3); Keff below is a matrix
             "a0": 1.0 / (al * dt * dt), "a1": de / (al * dt), "a2": 1.0 / (al * dt),
             "a3": 0.5 / al - 1.0, "a4": de / al - 1.0, "a5": 0.5 * dt * (de / al - 2.0),
             "a6": dt * (1.0 - de), "a7": de * dt,
@@ -325,7 +325,7 @@ class WilsonTheta(_OneStep):
         ctx = super()._setup(p, dt)
         th = self.theta
         tau = th * dt
-        c = {"a0": 6.0 / tau**2, "a1": 3.0 / tau, "a2": 6.0 / tau, "a3": 0.5 * tau}
+        c: dict[str, Any] = {"a0": 6.0 / tau**2, "a1": 3.0 / tau, "a2": 6.0 / tau, "a3": 0.5 * tau}
         c.update({"a4": c["a0"] / th, "a5": -c["a2"] / th, "a6": 1.0 - 3.0 / th,
                   "a7": 0.5 * dt, "a8": dt * dt / 6.0})
         c["Keff"] = ctx.K + c["a0"] * ctx.M + c["a1"] * ctx.C

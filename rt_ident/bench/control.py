@@ -31,6 +31,7 @@ from rt_ident.compose.offline import run_offline
 from rt_ident.config import RunConfig, from_mapping, load
 from rt_ident.control.adaptation import model_controller
 from rt_ident.control.design import delay_of, design_lqr, sampled_model
+from rt_ident.loop.loop import IdentificationLoop
 
 #: (name, factors applied at the change)
 SCENARIOS: tuple[tuple[str, dict[str, float]], ...] = (
@@ -64,7 +65,7 @@ def _oracle_hook(cfg: RunConfig) -> Callable[[Any], None]:
     tick = 1.0 / cfg.loop.tick_hz
     done = [0]
 
-    def hook(loop) -> None:
+    def hook(loop: IdentificationLoop) -> None:
         i = done[0]
         if i >= len(changes):
             return

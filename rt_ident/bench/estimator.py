@@ -24,6 +24,7 @@ import numpy as np
 
 from rt_ident.compose.offline import run_offline
 from rt_ident.config import RunConfig, from_mapping, load
+from rt_ident.loop.loop import IdentificationLoop
 
 KEYS = ("I1", "I2", "B", "K")
 
@@ -38,12 +39,11 @@ def _trial(base: RunConfig, change: dict[str, float] | None, duration: float) ->
     ts: list[float] = []
     est: list[list[float]] = []
 
-    def hook(loop) -> None:
+    def hook(loop: IdentificationLoop) -> None:
         ctl = loop.control
-        svf = getattr(ctl, "per_sample", None)
-        if svf is None:
+        if ctl is None or ctl.per_sample is None:
             return
-        v = svf.values()
+        v = ctl.per_sample.values()
         ts.append(ctl.t)
         est.append([v[k] for k in KEYS])
 

@@ -29,9 +29,12 @@ import platform
 import sys
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +80,7 @@ def machine_info() -> dict[str, Any]:
                     break
     except OSError:
         pass
+    affinity: int | None
     try:
         affinity = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
@@ -195,7 +199,9 @@ def bench_rls(m_block: int = 1_000_000, m_sample: int = 50_000, m_peer: int = 5_
     else:
         log.warning("padasip is not installed (pip install -e '.[bench]'): that peer is skipped")
     for name, fn in peers:
-        timing = _time(lambda fn=fn, name=name: box.__setitem__(name, fn()), peer_reps)
+        def store(fn: Callable[[], np.ndarray] = fn, name: str = name) -> None:
+            box[name] = fn()
+        timing = _time(store, peer_reps)
         rows.append(_row(name, m_peer, timing, _rel_diff(box[name], ls[m_peer]), kind="peer", block=False))
     timing = _time(lambda: box.__setitem__("lstsq", np.linalg.lstsq(Phi[:m_block], Y[:m_block], rcond=None)[0]),
                    repeats)
@@ -389,7 +395,7 @@ def bench_main(json_out: bool, quick: bool, loop_seconds: float, repeats: int,
     return out
 
 
-def _progress():  # noqa: ANN202
+def _progress() -> Progress:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 

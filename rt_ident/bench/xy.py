@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import tempfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,7 @@ def _trial(summary: dict[str, Any]) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def _scheduling_restored():
+def _scheduling_restored() -> Iterator[None]:
     """A real-time run leaves the calling thread on one CPU under SCHED_FIFO (the CLI runs once per
     process). Between the bench's runs, put it back: the next run picks its loop CPU from the thread's
     affinity, and without two CPUs to choose from it runs unpinned and without the idle poller."""
@@ -59,7 +60,8 @@ def _scheduling_restored():
         gc.enable()
 
 
-def xy_budget(seconds: float = 10.0, *, realtime: bool = True, progress=None) -> dict[str, Any]:
+def xy_budget(seconds: float = 10.0, *, realtime: bool = True,
+              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     from rt_ident.compose.run import run
     from rt_ident.compose.run import run as run_axes
     from rt_ident.config import from_mapping, load

@@ -11,6 +11,7 @@ import contextlib
 import logging
 import signal
 import threading
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -55,7 +56,7 @@ def per_sample_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float])
     e = cfg.estimator
     if cfg.control.mode != "adaptive" or e.per_sample == "none":
         return None
-    q = tuple(e.svf_quanta) if e.svf_quanta is not None else quanta
+    q = e.svf_quanta if e.svf_quanta is not None else quanta
     est, why = make_svf(dt, cfg.axis_params(), filter_hz=e.svf_hz, memory_s=e.svf_memory_s, quanta=q)
     if est is None:
         log.warning("per-sample estimator off (%s): the adaptive controller follows the frequency fit", why)
@@ -149,12 +150,13 @@ def make_excitation(cfg: RunConfig):
                              phases="schroeder" if ex.kind == "schroeder" else "random", seed=ex.seed)
     return ms.at
 
-def install_stop_signals(stop: threading.Event) -> dict:
-    old = {}
+def install_stop_signals(stop: threading.Event) -> dict[signal.Signals, Any]:
+    """SIGINT and SIGTERM set ``stop`` (in the main thread); returns the handlers they had."""
+    old: dict[signal.Signals, Any] = {}
     if threading.current_thread() is not threading.main_thread():
         return old
 
-    def handler(signum, frame):  # noqa: ARG001
+    def handler(signum: int, frame: FrameType | None) -> None:  # noqa: ARG001
         stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -290,7 +292,7 @@ def max_speed(cfg: RunConfig, sample_period: float) -> float:
 def safety_monitor(cfg: RunConfig, sample_period: float) -> SafetyMonitor:
     """The host-side safety checks of ``cfg`` (:class:`SafetyMonitor`)."""
     s = cfg.safety
-    return SafetyMonitor(lead=cfg.axis_params().lead, window=tuple(s.window), max_decel=s.max_decel,
+    return SafetyMonitor(lead=cfg.axis_params().lead, window=s.window, max_decel=s.max_decel,
                          watchdog_ticks=s.watchdog_ticks, stuck_torque=cfg.stuck_torque(), torque_hold=s.torque_hold,
                          max_speed=max_speed(cfg, sample_period))
 

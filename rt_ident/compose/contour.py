@@ -6,12 +6,15 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rt_ident.errors import MissingExtra, require
 from rt_ident.loop.loop import IdentificationLoop
+
+if TYPE_CHECKING:
+    from rt_ident.control.adaptation import Supervisor
 
 log = logging.getLogger(__name__)
 
@@ -24,13 +27,14 @@ class ContourTrace:
     def __init__(self, loops: dict[str, IdentificationLoop], n_ticks: int) -> None:
         from rt_ident.control.reference import Circle
 
-        self.ctl = {}
-        refs = {}
+        self.ctl: dict[str, Supervisor] = {}
+        refs: dict[str, Circle] = {}
         for name in ("x", "y"):
             lp = loops.get(name)
-            ref = getattr(getattr(lp, "control", None), "reference", None)
-            if isinstance(ref, Circle) and ref.axis == name:
-                self.ctl[name], refs[name] = lp.control, ref
+            ctl = lp.control if lp is not None else None
+            ref = ctl.reference if ctl is not None else None
+            if ctl is not None and isinstance(ref, Circle) and ref.axis == name:
+                self.ctl[name], refs[name] = ctl, ref
         self.active = len(self.ctl) == 2 and refs["x"].radius == refs["y"].radius and \
             refs["x"].windows() == refs["y"].windows()
         self.ref = refs.get("x")
@@ -47,28 +51,29 @@ class ContourTrace:
         self.n += 1
 
     def result(self, png: str | None, rrd: str | None = None, live_url: str | None = None) -> dict[str, Any] | None:
-        if not self.active or self.n < 16:
+        ref = self.ref
+        if not self.active or ref is None or self.n < 16:     # (active: there is a reference)
             return None
         from rt_ident.control.contour import circle_figures, polar_plot
 
         t, x, y, xr, yr = self.buf[:self.n].T
-        R = self.ref.radius
+        R = ref.radius
         paths = {}
-        for d, (t0, t1) in self.ref.measured().items():          # constant feed: overshoot arcs excluded
+        for d, (t0, t1) in ref.measured().items():               # constant feed: overshoot arcs excluded
             sel = (t >= t0) & (t <= t1) & np.isfinite(x) & np.isfinite(y)
             if sel.sum() >= 16:
                 paths[d] = (x[sel], y[sel])
         if not paths:
             return {"note": "the run ended before the circle began"}
         fig = circle_figures(paths, R, (0.0, -R))
-        fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * self.ref.frequency_hz
+        fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * ref.frequency_hz
         stalls = [t for c in self.ctl.values() for t, kind, _ in c.stats.events if kind == "stall"]
-        for d, (t0, t1) in self.ref.measured().items():
+        for d, (t0, t1) in ref.measured().items():
             hit = [t for t in stalls if t0 - 0.5 <= t <= t1]     # the rejoin after a stall lasts up to ~0.5 s
             if d in fig and hit:                                 # the host, not the axis, made that turn
                 fig[d]["disturbed_by_stall_at_s"] = round(hit[0], 3)
-        fig["complete"] = {d: d in paths and float(t[-1]) >= self.ref.measured()[d][1] for d in ("ccw", "cw")}
-        fig["overshoot_deg"] = self.ref.overshoot_deg
+        fig["complete"] = {d: d in paths and float(t[-1]) >= ref.measured()[d][1] for d in ("ccw", "cw")}
+        fig["overshoot_deg"] = ref.overshoot_deg
         if png:
             try:
                 require("matplotlib", "plots", "the circular test's polar plot")

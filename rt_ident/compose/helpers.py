@@ -55,8 +55,7 @@ class Helpers:
     def place(self, realtime: bool, device: int | None) -> dict[str, Any]:
         """Off the loop's CPU and niced by role (:func:`rt_ident.loop.host.keep_off_loop_cpu`); the report
         names each pid's helper."""
-        named = {getattr(p, "pid", None): name for name, p in self.named().items()}
-        named.pop(None, None)
+        named = {pid: name for name, p in self.named().items() if (pid := getattr(p, "pid", None)) is not None}
         report = keep_off_loop_cpu(list(named), realtime, device=device,
                                    roles={pid: helper_role(n) for pid, n in named.items()})
         report["names"] = {str(pid): n for pid, n in named.items()}

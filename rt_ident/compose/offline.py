@@ -136,6 +136,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
 
         recorder = Recorder(record, recording_metadata(cfg, dt), flush_interval=1e9, overwrite=overwrite)
         recorder.open()
+    loop: IdentificationLoop          # the tick hook below reads it
     loop = identification_loop(
         cfg, backend, kf, est, safety_monitor(cfg, dt), ctl, fit_process=fit, clock=clock,
         ticker=Ticker(1.0 / cfg.loop.tick_hz, clock=clock, sleeper=clock.sleep, spin_s=0.0, max_sleep_s=None),
@@ -146,7 +147,8 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     stop = None
     with backend:
         start = backend.read_position()
-        preflight.check_start(cfg, truth.lead * start[1], dt)
+        if start is not None:                           # (the sim always says)
+            preflight.check_start(cfg, truth.lead * start[1], dt)
         backend.activate()
         try:
             loop.run()

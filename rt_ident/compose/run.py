@@ -152,11 +152,11 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 axes[name] = _Axis(name, acfg, backend, _axis_path(rrd_base, name) if several else rrd_base,
                                    _axis_path(rec_base, name) if several else rec_base, AxisHelpers())
                 helpers.axes[name] = axes[name].helpers
-            for ax in axes.values():
-                _build_axis(ax, cfg, sink, live_url, port, several, stop, stack, overwrite)
+            loops: dict[str, IdentificationLoop] = {}
+            for name, ax in axes.items():
+                loops[name] = _build_axis(ax, cfg, sink, live_url, port, several, stop, stack, overwrite)
             watch = helpers.start_watch()
-            trace = ContourTrace({n: ax.loop for n, ax in axes.items()},
-                                 int(round(cfg.loop.duration * cfg.loop.tick_hz))) if several else None
+            trace = ContourTrace(loops, int(round(cfg.loop.duration * cfg.loop.tick_hz))) if several else None
 
             def hooks(n: int) -> None:
                 if trace is not None:
@@ -166,12 +166,12 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                     tick_hook(n)
 
             if several:
-                runner = MultiAxisLoop({n: ax.loop for n, ax in axes.items()}, tick_hz=cfg.loop.tick_hz,
+                runner = MultiAxisLoop(loops, tick_hz=cfg.loop.tick_hz,
                                        duration=cfg.loop.duration, stop_event=stop, tick_hook=hooks,
                                        max_sleep_s=None if cfg.loop.max_sleep_us is None
                                        else cfg.loop.max_sleep_us * 1e-6, stall=stall_policy(cfg))
             else:
-                runner = axes[""].loop
+                runner = loops[""]
                 runner.tick_hook = hooks
             helpers.ready()                              # files exist, rings mapped: before the devices move
             summary["helper_processes"] = helpers.place(cfg.loop.realtime, getattr(emulator, "pid", None))
@@ -207,8 +207,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             for ax in axes.values():
                 ax.backend.safe_stop()                   # every axis at zero torque before the (slower) final fits
             realtime.end()                               # the final fits and the files are no real-time work
-            for ax in axes.values():
-                ax.final_fit_error = final_fit(ax.loop, ax.loop.est)
+            for name, ax in axes.items():
+                ax.final_fit_error = final_fit(loops[name], loops[name].est)
     except RtIdentError as exc:
         if isinstance(exc, ConfigError) and not enabled:
             refused = exc                                # refused before enabling: a one-line error, exit 2
@@ -267,9 +267,9 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
 
 
 def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port: int, several: bool,
-                stop: threading.Event, stack: contextlib.ExitStack, overwrite: bool) -> None:
+                stop: threading.Event, stack: contextlib.ExitStack, overwrite: bool) -> IdentificationLoop:
     """One axis's helpers (telemetry, recorder, fit and redesign processes), estimators, controller,
-    safety monitor and loop, warmed up."""
+    safety monitor and loop (``ax.loop``, returned), warmed up."""
     from rt_ident.processes.recorder import RecorderProcess
     from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
 
@@ -302,6 +302,7 @@ def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port
         on_block=rec.put if rec else None, on_telemetry=tel.publish if tel else None,
         on_fit=tel.publish_fit if tel else None, on_loop_gain=tel.publish_loop_gain if tel else None,
         stop_event=stop, tick_hz=cfg.loop.tick_hz, duration=cfg.loop.duration)
+    return ax.loop
 
 
 def _start_emulator(cfg: RunConfig, axes_cfg: dict[str, RunConfig], several: bool) -> Any:

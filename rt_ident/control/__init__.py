@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from rt_ident.axis.params import AxisParams
 from rt_ident.control.adaptation import ControlFallbackStop, ControlSettings, Supervisor, redesign
 
 
-def make_controller(settings: ControlSettings, nominal, *, tick: float, torque_limit: float, reference,
-                    jobs: Any = None, error_after_s: float | None = None,
+def make_controller(settings: ControlSettings, nominal: AxisParams, *, tick: float, torque_limit: float,
+                    reference: Any, jobs: Any = None, error_after_s: float | None = None,
                     per_sample: Any = None, reference_options: Any = None) -> Supervisor | None:
     """The host's position controller for one axis, or None when ``settings.mode == "off"``.
 

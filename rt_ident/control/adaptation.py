@@ -164,6 +164,10 @@ def _fallback_for(gains: np.ndarray, p: AxisParams, tick: float, s: ControlSetti
     return None, "the conservative controller fails on the estimate and no replacement passed: " + "; ".join(why)
 
 
+# the slots of ControlStats.err (the same three follow for the errors after error_after_s)
+ERR_SQ, ERR_N, ERR_MAX = range(3)
+
+
 @dataclass(eq=False)     # one axis's counters (err is an array): compared by identity
 class ControlStats:
     accepted: int = 0
@@ -195,7 +199,6 @@ class ControlStats:
 # Supervisor.now: the tick's time, reference and error, the state and reference it was computed from
 # (for a bumpless switch) and when the fallback's clock started (nan: not running) - in place only
 NOW_T, NOW_XREF, NOW_ERR, NOW_STATE, NOW_REF, NOW_FALLBACK_SINCE = 0, 1, 2, 3, 7, 10
-ERR_SQ, ERR_N, ERR_MAX = range(3)
 # Supervisor.consts: the lead [m/rad], the error bound [m], error_after_s (inf: none), the tick [s]
 SC_LEAD, SC_MAX_ERROR, SC_ERROR_AFTER, SC_TICK = range(4)
 
@@ -227,6 +230,11 @@ def track_error(now, err, sc, t, th1, w1, th2, w2, xr, vr, ar):
         if a > err[ERR_MAX + 3]:
             err[ERR_MAX + 3] = a
     return e
+
+
+def _now_slot(i: int, doc: str) -> Any:
+    """A property reading and writing ``Supervisor.now[i]``; typed where it is bound."""
+    return property(lambda self: float(self.now[i]), lambda self, v: self.now.__setitem__(i, v), doc=doc)
 
 
 class Supervisor:
@@ -271,13 +279,9 @@ class Supervisor:
     def controller(self) -> Controller:
         return self.law.controller
 
-    def _now_slot(i: int, doc: str):        # noqa: N805 - a property factory
-        return property(lambda self: float(self.now[i]), lambda self, v: self.now.__setitem__(i, v), doc=doc)
-
-    t = _now_slot(NOW_T, "the newest tick's time [s]")
-    x_ref = _now_slot(NOW_XREF, "the table's reference then [m]")
-    error = _now_slot(NOW_ERR, "the table's tracking error then [m]")
-    del _now_slot
+    t: float = _now_slot(NOW_T, "the newest tick's time [s]")
+    x_ref: float = _now_slot(NOW_XREF, "the table's reference then [m]")
+    error: float = _now_slot(NOW_ERR, "the table's tracking error then [m]")
 
     @property
     def _fallback_since(self) -> float | None:
@@ -380,8 +384,9 @@ class Supervisor:
 
     def _switch(self, ctrl: Controller) -> None:
         n = self.now
-        step = self.law.switch(ctrl, *(float(v) for v in n[NOW_STATE:NOW_STATE + 4]),
-                               *(float(v) for v in n[NOW_REF:NOW_REF + 3]), self.lead)
+        th1, w1, th2, w2 = (float(v) for v in n[NOW_STATE:NOW_STATE + 4])
+        xr, vr, ar = (float(v) for v in n[NOW_REF:NOW_REF + 3])
+        step = self.law.switch(ctrl, th1, w1, th2, w2, xr, vr, ar, self.lead)
         self.stats.max_step_nm = max(self.stats.max_step_nm, abs(step))
 
     # ------------------------------------------------------------ adaptation

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import control as ct
@@ -217,7 +218,8 @@ def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
 _CROSSING_TOL = 0.02   # a reported crossing is kept when |L| is within 2 % of 1 (gain) or L within 2 % of real (phase)
 
 
-def _loop_response(Az: np.ndarray, Bz: np.ndarray, Gr: np.ndarray, tick: float):
+def _loop_response(Az: np.ndarray, Bz: np.ndarray, Gr: np.ndarray,
+                   tick: float) -> Callable[[np.ndarray], np.ndarray]:
     """w [rad/s] -> L(e^{j w T}) = G (zI - A)^{-1} B, evaluated directly (no polynomial form)."""
     n = Az.shape[0]
     eye = np.eye(n)

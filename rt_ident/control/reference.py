@@ -101,6 +101,9 @@ class Segments:
     a0: np.ndarray
     v0: np.ndarray
     x0: np.ndarray
+    # the same as floats, for point() (set by __post_init__)
+    _rows: list[tuple[float, ...]] = field(init=False, repr=False, compare=False)
+    _starts: list[float] = field(init=False, repr=False, compare=False)
 
     @classmethod
     def build(cls, x_start: float, segments: list[tuple[float, float]], t_start: float = 0.0,

@@ -128,6 +128,12 @@ class IdentData:
         return int(self.theta1.size)
 
     @property
+    def sample_dt(self) -> float:
+        """``dt``: always set once constructed (from ``t`` when not given)."""
+        assert self.dt is not None
+        return self.dt
+
+    @property
     def has_states(self) -> bool:
         """True when velocities are recorded (full Eq. 8 states)."""
         return self.omega1 is not None

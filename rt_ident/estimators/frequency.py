@@ -36,7 +36,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -583,6 +583,12 @@ def repeating_quantization(sp: Spectra, angle: int) -> np.ndarray:
     return np.full(sp.harmonics.size, (1.0 - share) ** 2 * full)
 
 
+@overload
+def _residual(m: _Model, x: np.ndarray, sp: Spectra, Li: np.ndarray,
+              jac: Literal[True]) -> tuple[np.ndarray, np.ndarray]: ...
+@overload
+def _residual(m: _Model, x: np.ndarray, sp: Spectra, Li: np.ndarray,
+              jac: Literal[False]) -> tuple[np.ndarray, None]: ...
 def _residual(m: _Model, x: np.ndarray, sp: Spectra, Li: np.ndarray, jac: bool
               ) -> tuple[np.ndarray, np.ndarray | None]:
     """Whitened real residual of ``C M^-1 (N T + z c) - Th`` and its Jacobian w.r.t. x."""

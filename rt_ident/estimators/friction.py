@@ -243,11 +243,12 @@ def detect_quantum(x: np.ndarray) -> float:
 def _zero_phase_velocity(x: np.ndarray, dt: float, hz: float) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
     v = np.gradient(x, dt)
     wn = min(0.9, 2.0 * hz * dt)
-    ba = scipy.signal.butter(2, wn)
-    return scipy.signal.filtfilt(*ba, v), ba
+    b, a = scipy.signal.butter(2, wn)
+    return scipy.signal.filtfilt(b, a, v), (b, a)
 
 
-def _velocity_noise_std(q: float, dt: float, ba, n: int = 20000, seed: int = 12345) -> float:
+def _velocity_noise_std(q: float, dt: float, ba: tuple[np.ndarray, np.ndarray], n: int = 20000,
+                        seed: int = 12345) -> float:
     if q <= 0.0:
         return 0.0
     e = np.random.default_rng(seed).uniform(-q / 2, q / 2, n)
@@ -260,7 +261,7 @@ def _velocity_noise_std(q: float, dt: float, ba, n: int = 20000, seed: int = 123
 DEAD_BAND_FLOOR = 0.02
 
 
-def _dead_band(v: np.ndarray, q: float, dt: float, ba) -> float:
+def _dead_band(v: np.ndarray, q: float, dt: float, ba: tuple[np.ndarray, np.ndarray]) -> float:
     return max(5.0 * _velocity_noise_std(q, dt, ba), DEAD_BAND_FLOOR * float(np.sqrt(np.mean(v**2))), 1e-12)
 
 
@@ -302,7 +303,7 @@ def fit_friction(theta1: np.ndarray, torque: np.ndarray, dt: float, *, model: st
                         f"--model rigid-friction")
     th2 = np.asarray(theta2, dtype=float) if two else None
     n = th1.size
-    for name, a in (("theta1", th1), ("torque", tq)) + ((("theta2", th2),) if two else ()):
+    for name, a in (("theta1", th1), ("torque", tq)) + ((("theta2", th2),) if th2 is not None else ()):
         if a.shape != (n,):
             raise DataError(f"{name}: must be 1-D of length {n}, got shape {a.shape}")
         if not np.all(np.isfinite(a)):
@@ -320,14 +321,15 @@ def fit_friction(theta1: np.ndarray, torque: np.ndarray, dt: float, *, model: st
         raise DataError(f"only {n} samples; need more than {4 * n_mem + 50} at filter_hz = {filter_hz:g}")
     # positions start anywhere: only differences and derivatives matter (the offset absorbs the rest)
     th1 = th1 - th1[0]
-    if two:
+    if th2 is not None:
         th2 = th2 - th2[0]
-    q1, q2 = quanta if quanta is not None else (detect_quantum(th1), detect_quantum(th2) if two else 0.0)
+    q1, q2 = quanta if quanta is not None else (detect_quantum(th1),
+                                                detect_quantum(th2) if th2 is not None else 0.0)
     foh, zoh = _svf_filters(lam, dt)
     if torque_hold not in ("zoh", "foh"):
         raise ConfigError("torque_hold", f"must be 'zoh' or 'foh', got {torque_hold!r}")
     base = [_lfilter(f, th1) for f in foh]                 # F th1, sF th1, s^2F th1
-    if two:
+    if th2 is not None:
         base += [_lfilter(f, th2) for f in foh]
     y = _lfilter(zoh if torque_hold == "zoh" else foh[0], tq)
     one = _lfilter(zoh, np.ones(n))
@@ -337,7 +339,7 @@ def fit_friction(theta1: np.ndarray, torque: np.ndarray, dt: float, *, model: st
     s1 = np.where(np.abs(v1) > db1, np.sign(v1), 0.0)
     n_v = int(math.ceil(1.0 / (2 * math.pi * velocity_hz * dt)))   # the zero-phase filter's reach
     ok = _memory_mask(s1 == 0.0, n_mem + n_v, n_v)
-    if two:
+    if th2 is not None:
         v2, _ = _zero_phase_velocity(th2, dt, velocity_hz)
         db2 = dead_band2 if dead_band2 is not None else _dead_band(v2, q2, dt, ba)
         s2 = np.where(np.abs(v2) > db2, np.sign(v2), 0.0)
@@ -417,12 +419,12 @@ def fit_friction(theta1: np.ndarray, torque: np.ndarray, dt: float, *, model: st
     # intervals: residual variance x integrated autocorrelation time of the residual
     tau = _autocorr_time(res[:m])
     dof = max(yy.size - p, 1)
-    s2 = float(res @ res) / dof
+    var_res = float(res @ res) / dof
     try:
         Rinv = np.linalg.inv(R)
     except np.linalg.LinAlgError:
         Rinv = np.full((p, p), np.nan)
-    cov = s2 * tau * Rinv / np.outer(sc, sc)
+    cov = var_res * tau * Rinv / np.outer(sc, sc)
     est = ps / sc
     half = 1.96 * np.sqrt(np.maximum(np.diag(cov), 0.0))
     params = {k: float(v) for k, v in zip(names, est)}
@@ -715,6 +717,7 @@ def predict_torque(ident: FrictionIdentification, theta1: np.ndarray, torque: np
     if key == "rigid-friction":
         pred = P["J"] * f1[2] + P["Fv"] * f1[1] + P["Fc"] * fs1 + P["offset"] * one
     else:
+        assert theta2 is not None    # checked above: the two-inertia models need it
         th2 = np.asarray(theta2, float) - float(theta2[0])
         f2 = [_lfilter(f, th2) for f in foh]
         pred = (P["I1"] * f1[2] + P["B"] * (f1[1] - f2[1]) + P["K"] * (f1[0] - f2[0]) + P["offset"] * one)

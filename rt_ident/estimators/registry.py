@@ -28,7 +28,7 @@ import logging
 import types
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from rt_ident.estimators.base import IdentData, Identification
 from rt_ident.estimators.consistent import fit_tustin_angles, fit_tustin_states, fit_zoh
 from rt_ident.estimators.frequency import fit_frequency
 from rt_ident.estimators.friction import MODELS as FRICTION_MODELS
-from rt_ident.estimators.friction import check_model, fit_friction
+from rt_ident.estimators.friction import FrictionIdentification, check_model, fit_friction
 from rt_ident.estimators.uncertainty import build_identification, excitation_report, excited_band_of, excited_bands
 
 logger = logging.getLogger(__name__)
@@ -45,6 +45,8 @@ logger = logging.getLogger(__name__)
 __all__ = ["DEFAULT_METHOD", "IdentData", "METHODS", "MethodInfo", "identify", "list_methods", "methods_for_model"]
 
 DEFAULT_METHOD = "frequency"
+#: the methods that fit the linear model and return an Identification ("svf-ls" returns a FrictionIdentification)
+LinearMethod = Literal["frequency", "tustin", "zoh", "paper"]
 
 
 @dataclass(frozen=True)
@@ -54,7 +56,7 @@ class MethodInfo:
     name: str
     summary: str
     needs: str                                  # "angles" or "states"
-    fn: Callable[..., Identification]           # fn(data: IdentData, **options)
+    fn: Callable[..., Identification | FrictionIdentification]   # fn(data: IdentData, **options)
     options: tuple[str, ...] = ()               # accepted option names
     models: tuple[str, ...] = ("two-inertia",)  # the models it can fit (rt_ident.estimators.friction.MODELS)
 
@@ -69,49 +71,50 @@ def _kw(*fns: Callable[..., Any]) -> tuple[str, ...]:
     return tuple(names)
 
 
-def _need_states(data: IdentData, method: str) -> None:
-    if not data.has_states:
+def _need_states(data: IdentData, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """The recorded velocities (omega1, omega2)."""
+    if data.omega1 is None or data.omega2 is None:
         raise DataError(f"{method}: needs velocities omega1/omega2 in the record (full Eq. 8 states)")
+    return data.omega1, data.omega2
 
 
 def _frequency(data: IdentData, **options: Any) -> Identification:
     options.setdefault("period", data.period)
-    return fit_frequency(data.theta1, data.theta2, data.torque, data.dt, **options)
+    return fit_frequency(data.theta1, data.theta2, data.torque, data.sample_dt, **options)
 
 
 def _tustin(data: IdentData, *, use_states: bool | None = None, **options: Any) -> Identification:
     states = data.has_states if use_states is None else bool(use_states)
     if states:
-        _need_states(data, "tustin")
-        return fit_tustin_states(data.theta1, data.omega1, data.theta2, data.omega2, data.torque, data.dt,
-                                 **options)
-    return fit_tustin_angles(data.theta1, data.theta2, data.torque, data.dt, **options)
+        w1, w2 = _need_states(data, "tustin")
+        return fit_tustin_states(data.theta1, w1, data.theta2, w2, data.torque, data.sample_dt, **options)
+    return fit_tustin_angles(data.theta1, data.theta2, data.torque, data.sample_dt, **options)
 
 
 def _zoh(data: IdentData, **options: Any) -> Identification:
-    _need_states(data, "zoh")
-    return fit_zoh(data.theta1, data.omega1, data.theta2, data.omega2, data.torque, data.dt, **options)
+    w1, w2 = _need_states(data, "zoh")
+    return fit_zoh(data.theta1, w1, data.theta2, w2, data.torque, data.sample_dt, **options)
 
 
 def _paper(data: IdentData, **options: Any) -> Identification:
     """The paper's Eq. (9)-(10) Euler LS. Never trusted: its model does not match the data."""
     from rt_ident.estimators.paper import fit_paper_ls  # lazy: owned by another module
 
-    _need_states(data, "paper")
-    states = np.column_stack([data.theta1, data.omega1, data.theta2, data.omega2])
-    est = fit_paper_ls(states, data.torque, data.dt, **options)
+    w1, w2 = _need_states(data, "paper")
+    states = np.column_stack([data.theta1, w1, data.theta2, w2])
+    est = fit_paper_ls(states, data.torque, data.sample_dt, **options)
     d = states[:-1, 0] - states[:-1, 2]
     dw = states[:-1, 1] - states[:-1, 3]
     pe = excitation_report([np.column_stack([d, dw, states[:-1, 2], states[:-1, 3], data.torque[:-1]])])
     diag = {"n_samples": float(data.n), "regressor_cond": float(est.cond)}
     return build_identification(est.params, "paper", None, pe, diag, extra_ok=False,
                                 extra_reason="forward-Euler model (Eq. 9): biased by the discretization",
-                                bands=excited_bands(*excited_band_of(data.torque, data.dt)))
+                                bands=excited_bands(*excited_band_of(data.torque, data.sample_dt)))
 
 
-def _svf_ls(data: IdentData, *, model: str = "two-inertia", **options: Any):
+def _svf_ls(data: IdentData, *, model: str = "two-inertia", **options: Any) -> FrictionIdentification:
     """Batch SVF least squares (rt_ident.estimators.friction); returns a FrictionIdentification."""
-    return fit_friction(data.theta1, data.torque, data.dt, model=model, theta2=data.theta2, **options)
+    return fit_friction(data.theta1, data.torque, data.sample_dt, model=model, theta2=data.theta2, **options)
 
 
 METHODS: Mapping[str, MethodInfo] = types.MappingProxyType({
@@ -143,7 +146,12 @@ def list_methods() -> list[MethodInfo]:
     return [METHODS[DEFAULT_METHOD]] + [m for k, m in METHODS.items() if k != DEFAULT_METHOD]
 
 
-def identify(data: IdentData, method: str = DEFAULT_METHOD, **options: Any) -> Identification:
+@overload
+def identify(data: IdentData, method: LinearMethod = ..., **options: Any) -> Identification: ...
+@overload
+def identify(data: IdentData, method: str, **options: Any) -> Identification | FrictionIdentification: ...
+def identify(data: IdentData, method: str = DEFAULT_METHOD,
+             **options: Any) -> Identification | FrictionIdentification:
     """Run the estimator ``method`` on ``data``; options go to the estimator.
 
     Raises ConfigError for an unknown method or option, DataError when the record lacks

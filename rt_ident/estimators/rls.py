@@ -56,6 +56,7 @@ import math
 import numba
 import numpy as np
 import scipy.linalg
+from numpy.typing import ArrayLike
 
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators._rls_kernels import VARIANTS, block_kernel, layout, update_kernel
@@ -255,7 +256,7 @@ class RecursiveLeastSquares:
         """R = P^-1 (the forgetting-weighted sum of phi phi^T plus P0^-1); U^-T D^-1 U^-1 in UD form."""
         if self._ud:
             Ui = scipy.linalg.solve_triangular(self._M, np.eye(self._n), lower=False, unit_diagonal=True)
-            R = (Ui.T / self._d) @ Ui
+            R: np.ndarray = (Ui.T / self._d) @ Ui
         else:
             R = np.linalg.inv(self._M)
         return 0.5 * (R + R.T)
@@ -299,13 +300,13 @@ class RecursiveLeastSquares:
             return ud_step_numpy(self._M, self._d, self._theta, phi, y, self._lam, self._vcode, self._max_trace)
         return cov_step_numpy(self._M, self._theta, phi, y, self._lam, self._vcode, self._max_trace)
 
-    def _coerce_phi(self, phi: object) -> np.ndarray:
+    def _coerce_phi(self, phi: ArrayLike) -> np.ndarray:
         out = np.array(phi, dtype=float)  # a C-contiguous writeable copy
         if out.shape != self._shape_n:
             raise DataError(f"phi: expected shape ({self._n},), got {out.shape}")
         return out
 
-    def _coerce_y(self, y: object) -> np.ndarray:
+    def _coerce_y(self, y: ArrayLike) -> np.ndarray:
         if self._q == 1 and np.ndim(y) <= 1 and np.size(y) == 1:
             self._ybuf[0] = y if np.ndim(y) == 0 else y[0]  # type: ignore[index]
             return self._ybuf
@@ -322,12 +323,12 @@ class RecursiveLeastSquares:
         is converted first.
         """
         try:
-            if phi.shape != self._shape_n or y.shape != self._shape_q:  # type: ignore[union-attr]
+            if not isinstance(y, np.ndarray) or phi.shape != self._shape_n or y.shape != self._shape_q:
                 raise TypeError
             if self._compiled:   # the kernel accepts exactly float64[::1] (else TypeError)
                 ok = self._update_kernel(self._S, phi, y)
             else:
-                ok = self._reference_step(phi, y)  # type: ignore[arg-type]
+                ok = self._reference_step(phi, y)
         except (TypeError, AttributeError):
             phi = self._coerce_phi(phi)
             y = self._coerce_y(y)

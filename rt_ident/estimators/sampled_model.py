@@ -76,7 +76,7 @@ def expm_frechet_small(X: np.ndarray, Es: np.ndarray | None) -> tuple[np.ndarray
         dT = F.copy()
         dP = F.copy()
     for k in range(2, _TAYLOR_TERMS + 1):
-        if dT is not None:
+        if dT is not None and dP is not None:
             dT = (dT @ Y + T @ F) / k
             dP = dP + dT
         T = T @ Y / k

@@ -26,12 +26,16 @@ intervals, show it). Sequence numbers going backwards raise DataError.
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
+
+if TYPE_CHECKING:
+    from rt_ident.estimators.frequency import SpectraSums
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +62,8 @@ class _GapFiller:
     def last_seq(self, value: int | None) -> None:
         self.seq[0] = -1 if value is None else value
 
-    def __call__(self, th1, th2, tq, seq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def __call__(self, th1: np.ndarray, th2: np.ndarray, tq: np.ndarray,
+                 seq: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         seq = np.asarray(seq, dtype=np.int64)
         if seq.size == 0:
             return th1, th2, tq
@@ -108,7 +113,7 @@ class FrequencyStream:
                                                  forgetting, discard_periods=warmup_periods, lead=lead)
         self.gaps = _GapFiller()
 
-    def update_block(self, theta1, theta2, torque, seq) -> bool:
+    def update_block(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, seq: ArrayLike) -> bool:
         a, b, c = self.gaps(theta1, theta2, torque, seq)
         return self.inner.update_block(a, b, c) > 0
 
@@ -116,7 +121,7 @@ class FrequencyStream:
         """Leave the excitation periods the next ``n`` samples touch out of the fit (a loop stall)."""
         self.inner.skip(n)
 
-    def snapshot(self):
+    def snapshot(self) -> SpectraSums | None:
         """The running sums (:class:`~rt_ident.estimators.frequency.SpectraSums`), None before a period."""
         return self.inner.sums() if self.inner.periods >= 1 else None
 
@@ -150,7 +155,7 @@ class PaperStream:
         """The next ``n`` samples are filtered but not regressed (a loop stall)."""
         self._skip = max(self._skip, int(n))
 
-    def update_block(self, theta1, theta2, torque, seq) -> bool:
+    def update_block(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, seq: ArrayLike) -> bool:
         a, b, c = self.gaps(theta1, theta2, torque, seq)
         st = self.kf.filter_block(a, b)
         x = np.column_stack((st.theta[:, 0], st.omega[:, 0], st.theta[:, 1], st.omega[:, 1], c))
@@ -169,7 +174,7 @@ class PaperStream:
             return True
         return False
 
-    def snapshot(self):
+    def snapshot(self) -> dict[str, Any] | None:
         return {"phi": self.rls.theta.copy(), "dt": self.dt, "n": self.rls.n_updates} if self.rls.n_updates else None
 
     def final(self) -> Identification | None:
@@ -180,7 +185,7 @@ class PaperStream:
 def make_streaming(method: str, *, dt: float, period: int, band: tuple[int, int],
                              warmup_periods: int = 2, forgetting: float = 1.0, lead: float = 7.96e-4,
                              quanta: tuple[float, float] = (2 * np.pi / 2**17, 1e-7 / 7.96e-4),
-                             process_noise: float = 1e9):
+                             process_noise: float = 1e9) -> FrequencyStream | PaperStream:
     if method == "frequency":
         return FrequencyStream(dt=dt, period=period, band=band, warmup_periods=warmup_periods,
                                forgetting=forgetting, lead=lead)

@@ -193,12 +193,13 @@ def interval_criterion(values: Mapping[str, float], ci: Mapping[str, tuple[float
     interval fails it (the value reported is then infinite)."""
     name = f"widest 95 % interval of {', '.join(values)} (half-width, relative)"
     limit = f"<= {100 * max_rel_halfwidth:g} %"
+    got: Mapping[str, tuple[float, float]] = {} if ci is None else ci
     for k, v in values.items():
-        bad = interval_problem(v, None if ci is None else ci.get(k))
+        bad = interval_problem(v, got.get(k))
         if bad is not None:
             why = f"95 % interval of {k}: {bad}" + (f" ({why_missing})" if why_missing and ci is None else "")
             return criterion(name, False, math.inf, limit, why)
-    rel = relative_halfwidths({k: ci[k] for k in values}, values)
+    rel = relative_halfwidths({k: got[k] for k in values}, values)
     worst = max(rel, key=lambda k: rel[k])
     return criterion(name, rel[worst] <= max_rel_halfwidth, 100 * rel[worst], limit,
                      f"95 % interval of {worst} is +-{100 * rel[worst]:.3g} % (> {100 * max_rel_halfwidth:g} %)")

@@ -13,9 +13,12 @@ the user's SQL on it.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rt_ident.errors import ConfigError
+
+if TYPE_CHECKING:
+    from duckdb import DuckDBPyConnection
 
 
 def is_url(history: str | Path) -> bool:
@@ -33,7 +36,7 @@ def has_history(history: str | Path) -> bool:
     return root.is_dir() and any(root.glob("**/*.parquet"))
 
 
-def connect(history: str | Path):
+def connect(history: str | Path) -> DuckDBPyConnection:
     import duckdb
 
     if not has_history(history):
@@ -52,7 +55,7 @@ def connect(history: str | Path):
     return con
 
 
-def columns(con) -> set[str]:
+def columns(con: DuckDBPyConnection) -> set[str]:
     """The columns of the ``history`` view (an old history may lack the newer ones)."""
     return {r[0] for r in con.execute("DESCRIBE history").fetchall()}
 

@@ -26,10 +26,13 @@ import tempfile
 import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rt_ident import __version__
 from rt_ident.fleet.manifest import Entry
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 log = logging.getLogger(__name__)
 
@@ -107,13 +110,14 @@ def identify_recording(entry: dict[str, Any], known: frozenset[str] = frozenset(
     return row
 
 
-def _schema():
+def _schema() -> pa.Schema:
     import pyarrow as pa
 
-    fields = [("path", pa.string()), ("machine", pa.string()), ("axis", pa.string()),
-              ("time", pa.timestamp("us", tz="UTC")), ("hash", pa.string()), ("method", pa.string()),
-              ("version", pa.string()), ("samples", pa.int64()), ("trusted", pa.bool_()),
-              ("reasons", pa.list_(pa.string())), ("trust_criteria", pa.string())]
+    fields: list[tuple[str, pa.DataType]] = [
+        ("path", pa.string()), ("machine", pa.string()), ("axis", pa.string()),
+        ("time", pa.timestamp("us", tz="UTC")), ("hash", pa.string()), ("method", pa.string()),
+        ("version", pa.string()), ("samples", pa.int64()), ("trusted", pa.bool_()),
+        ("reasons", pa.list_(pa.string())), ("trust_criteria", pa.string())]
     for k in PARAMS:
         fields += [(k, pa.float64()), (f"{k}_lo", pa.float64()), (f"{k}_hi", pa.float64())]
     fields += [("fit_chi2_dof", pa.float64()), ("snr_median_db", pa.float64())]

@@ -222,6 +222,7 @@ class LoopRealtime:
             self.report = apply_run_realtime(cfg)
             return self.report
         self.prepare()
+        assert self._prepared is not None             # made by prepare() for a real-time run
         poller, failed = self._prepared
         try:
             self._saved = (os.sched_getscheduler(0), os.sched_getparam(0), os.sched_getaffinity(0))

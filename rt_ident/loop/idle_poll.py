@@ -110,7 +110,7 @@ class IdlePoller:
         self._stop = np.zeros(1, dtype=np.int64)
         self._ts = np.zeros(2, dtype=np.int64)
         self._state = np.zeros(4, dtype=np.int32)     # [idle?, exit setscheduler result, sched_param...]
-        self._spin = None
+        self._spin: Any = None                        # the compiled spin (a numba dispatcher), by prepare()
         self._thread: threading.Thread | None = None
         self._placed = threading.Event()
         self._report: dict[str, Any] = {}
@@ -175,7 +175,7 @@ class IdlePoller:
         self.start()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 

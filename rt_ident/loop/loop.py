@@ -36,7 +36,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,6 +49,9 @@ from rt_ident.loop.scheduler import LatenessHistogram, Ticker
 from rt_ident.loop.stall import LoopStall, StallLog, StallPolicy
 from rt_ident.loop.tick_core import AxisCore
 from rt_ident.loop.window import TelemetryWindow
+
+if TYPE_CHECKING:
+    from rt_ident.estimators.base import Identification
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +151,17 @@ def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
     stats.lateness.record(info.lateness_s)
 
 
+def _book_int(i: int, none_below: int | None = None) -> Any:
+    """A property reading and writing ``book_i[i]`` (None below ``none_below``); typed where it is bound."""
+    def get(self: IdentificationLoop) -> int | None:
+        v = int(self.book_i[i])
+        return None if none_below is not None and v < none_below else v
+
+    def put(self: IdentificationLoop, value: int | None) -> None:
+        self.book_i[i] = -1 if value is None else value
+    return property(get, put)
+
+
 class IdentificationLoop(TelemetryWindow):
     """Joins a backend, a state estimator, a streaming estimator and the hand-offs.
 
@@ -193,7 +207,7 @@ class IdentificationLoop(TelemetryWindow):
         self.stats = LoopStats()
         self.stall_policy = stall or StallPolicy()
         self._resume: float | None = None   # a stall's length [s] until the tick that resumes from it
-        self.identification = None          # latest Identification (or None before the first period)
+        self.identification: Identification | None = None   # latest (None before the first period)
         self.control = control              # the host's position controller (None: excitation only)
         self.friction = friction            # per-sample friction-model estimator ([estimator] model), or None
         self.friction_feedforward = friction_feedforward
@@ -220,26 +234,23 @@ class IdentificationLoop(TelemetryWindow):
         self._core = AxisCore.for_loop(self) if compiled_tick else None
 
     # the bookkeeping by name (the Python path's view of book_i / book_f)
-    def _book_int(i: int, none_below: int | None = None):        # noqa: N805 - a property factory
-        def get(self):
-            v = int(self.book_i[i])
-            return None if none_below is not None and v < none_below else v
+    _next_seq: int = _book_int(tk.BI_NEXT_SEQ)
+    _seq0: int | None = _book_int(tk.BI_SEQ0, none_below=0)   # first sequence number: the control clock starts there
+    _tel_n: int = _book_int(tk.BI_TEL_N)
+    _tick_n: int = _book_int(tk.BI_TICK_N)
+    _win_ticks: int = _book_int(tk.BI_WIN_TICKS)       # ticks in the current sample window
+    _flush_at: int = _book_int(tk.BI_FLUSH_AT)         # ticks in the current telemetry window (MultiAxisLoop staggers)
 
-        def put(self, value):
-            self.book_i[i] = -1 if value is None else value
-        return property(get, put)
+    @property
+    def _tel_hat_ok(self) -> bool:
+        return bool(self.book_i[tk.BI_TEL_HAT_OK])
 
-    _next_seq = _book_int(tk.BI_NEXT_SEQ)
-    _seq0 = _book_int(tk.BI_SEQ0, none_below=0)      # first sequence number: the control clock starts there
-    _tel_n = _book_int(tk.BI_TEL_N)
-    _tick_n = _book_int(tk.BI_TICK_N)
-    _win_ticks = _book_int(tk.BI_WIN_TICKS)           # ticks in the current sample window
-    _flush_at = _book_int(tk.BI_FLUSH_AT)             # ticks in the current telemetry window (MultiAxisLoop staggers)
-    _tel_hat_ok = property(lambda self: bool(self.book_i[tk.BI_TEL_HAT_OK]),
-                           lambda self, v: self.book_i.__setitem__(tk.BI_TEL_HAT_OK, int(bool(v))))
+    @_tel_hat_ok.setter
+    def _tel_hat_ok(self, v: bool) -> None:
+        self.book_i[tk.BI_TEL_HAT_OK] = int(bool(v))
+
     _u_base = property(lambda self: float(self.book_f[tk.BF_U_BASE]),
                        doc="the control torque in force at the newest sample")
-    del _book_int
 
     @property
     def _u_sched(self) -> list[tuple[int, float]]:
@@ -416,10 +427,11 @@ class IdentificationLoop(TelemetryWindow):
         after that sample (the delay the controller was designed with)."""
         last = int(block.seq[-1])
         th, om = states.theta[-1], states.omega[-1]
-        first = self._seq0 is None
-        if first:
-            self._seq0 = int(block.seq[0])
-        t = (last - self._seq0) * self.backend.sample_period
+        seq0 = self._seq0
+        first = seq0 is None
+        if seq0 is None:
+            seq0 = self._seq0 = int(block.seq[0])
+        t = (last - seq0) * self.backend.sample_period
         state = (float(th[0]), float(om[0]), float(th[1]), float(om[1]))
         if first:                                       # the reference starts where the table is
             ctl.start(t, *state)
@@ -433,10 +445,10 @@ class IdentificationLoop(TelemetryWindow):
             raise RtIdentError(f"more than {tk.SCHED_CAP} control torques in flight (delay {ctl.law.delay} ticks)")
 
     def _write_plan(self) -> None:
-        start = self._plan_start
-        if start is not None:                   # the compiled tick built it
+        start, core = self._plan_start, self._core
+        if start is not None and core is not None:      # the compiled tick built it
             self._plan_start = None
-            self.backend.write(self._core.plan, start_seq=start, lease=self._lease)
+            self.backend.write(core.plan, start_seq=start, lease=self._lease)
             return
         start = self._next_seq
         torque = self._excitation_window(start)
@@ -450,11 +462,10 @@ class IdentificationLoop(TelemetryWindow):
     def _excitation_window(self, start: int) -> np.ndarray:
         """The probing excitation for seq [start, start + plan length), a new array. A periodic
         excitation (``probe_period`` given) is read from one period tabulated up front, as a slice."""
-        n = self._plan_len
-        table = self._ex_table
-        if table is None:
+        n, table, period = self._plan_len, self._ex_table, self._probe_period
+        if table is None or not period:         # (the table is there exactly when the period is)
             return np.array(self.excitation(np.arange(start, start + n)), dtype=float)
-        i = start % self._probe_period
+        i = start % period
         return table[i:i + n].copy()
 
 

@@ -153,12 +153,11 @@ class Ticker:
         missed periods are skipped (``skipped`` > 0, ``overruns`` incremented)
         and the tick on the grid just before "now" is returned at once.
         """
-        if self._t0 is None:
-            self.start()
+        t0 = self.start() if self._t0 is None else self._t0
         clock = self._clock
         period = self.period_s
         k = self._index + 1
-        deadline = self._t0 + k * period
+        deadline = t0 + k * period
         now = clock()
         skipped = 0
         late = now - deadline
@@ -166,11 +165,11 @@ class Ticker:
             # Overrun: skip whole periods (never burst to catch up), as ros2_control does.
             skipped = int(late // period)
             k += skipped
-            deadline = self._t0 + k * period
+            deadline = t0 + k * period
             if deadline > now:  # floating-point edge: stay on a deadline that has passed
                 k -= 1
                 skipped -= 1
-                deadline = self._t0 + k * period
+                deadline = t0 + k * period
             if skipped > 0:
                 self.overruns += 1
                 self.skipped_total += skipped

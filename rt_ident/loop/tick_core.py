@@ -100,7 +100,7 @@ class _Arena:
                 view = buf[off:off + a.size].reshape(a.shape)
                 view[...] = a
                 lay[2 * (base + slot)], lay[2 * (base + slot) + 1] = off, a.size
-                if owner is not None:
+                if attr is not None:            # adopted: the owner's attribute becomes the view
                     setattr(owner, attr, view)
                 views[(kind, slot)] = view
                 off += a.size
@@ -218,7 +218,7 @@ class AxisCore:
         ar.own(tk.F_FIT, ff)
         self.fb, self.ib, self.cb, self.lay, views = ar.build()
         self._bindings = [(owner, attr, views[(ar._KINDS[a.dtype], slot)])
-                          for kind in ar._items for slot, owner, attr, a in kind if owner is not None]
+                          for kind in ar._items for slot, owner, attr, a in kind if attr is not None]
         self.big = views[(0, tk.F_STATES)]
         self.plan = views[(0, tk.F_PLAN)]
         self.tel, self.win = views[(1, tk.I_TEL)], views[(0, tk.F_WIN)]
@@ -355,7 +355,7 @@ class AxisCore:
         stats.samples += n
         if code & tk.PERIODS:
             loop._snapshot_due()
-        elif code & tk.SNAPSHOT_SKIPPED:        # the job process was busy (JobProcess.submit counts the same)
+        elif fw is not None and code & tk.SNAPSHOT_SKIPPED:  # the job process was busy (as JobProcess.submit counts)
             fw.skipped += 1
         if step < 5:                            # the fit exchange's steps (the other five ticks do nothing)
             loop._fit_exchange(ctl, float(t[-1]), tick)

@@ -9,12 +9,20 @@ hand-offs. A :class:`~rt_ident.processes.telemetry.TelemetryProcess` takes the r
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from drivers.base import SampleBlock
+from drivers.base import Backend, SampleBlock
 from rt_ident.loop import tick_kernel as tk
+
+if TYPE_CHECKING:
+    from rt_ident.control.adaptation import Supervisor
+    from rt_ident.estimators.base import Identification
+    from rt_ident.estimators.state_estimation import AxisStates
+    from rt_ident.loop.loop import LoopStats
+    from rt_ident.loop.tick_core import AxisCore
 
 _WINDOW_CI_KEYS = frozenset(("I1", "I2", "B", "K", "wn", "wd", "zeta"))
 
@@ -22,6 +30,26 @@ _WINDOW_CI_KEYS = frozenset(("I1", "I2", "B", "K", "wn", "wd", "zeta"))
 class TelemetryWindow:
     """The window half of the loop (its state: ``tel_rows``, ``tick_rows`` and the counters in
     ``book_i``, which the compiled tick writes too)."""
+
+    # the loop's, set by IdentificationLoop.__init__
+    backend: Backend
+    tick_hz: float
+    stride: int
+    publish_every: int
+    control: Supervisor | None
+    identification: Identification | None
+    stats: LoopStats
+    on_telemetry: Callable[..., Any] | None
+    on_loop_gain: Callable[[float, Any, Any], Any] | None
+    _shown_controller: Any
+    _core: AxisCore | None
+    # the loop's bookkeeping by name (IdentificationLoop's views of book_i)
+    _next_seq: int
+    _tel_n: int
+    _tick_n: int
+    _win_ticks: int
+    _flush_at: int
+    _tel_hat_ok: bool
 
     def _telemetry_buffers(self) -> None:
         """Preallocated window buffers (rows ``tick_kernel.SAMPLE_KEYS`` and ``TICK_KEYS``): a tick writes
@@ -45,7 +73,7 @@ class TelemetryWindow:
     def _tel_buf(self) -> dict[str, np.ndarray]:
         return dict(zip(tk.SAMPLE_KEYS, self.tel_rows))
 
-    def _collect_telemetry(self, block: SampleBlock, states, lateness_s: float) -> None:
+    def _collect_telemetry(self, block: SampleBlock, states: AxisStates, lateness_s: float) -> None:
         self._collect_samples(block, states)
         k = self._tick_n
         rows = self.tick_rows
@@ -71,7 +99,7 @@ class TelemetryWindow:
 
     _NO_STATES = np.zeros((0, 2))
 
-    def _collect_samples(self, block: SampleBlock, states) -> None:
+    def _collect_samples(self, block: SampleBlock, states: AxisStates) -> None:
         """Every ``stride``-th sample of the block (from its first) into the window buffers, with its
         Eq. (18) torque once there is an estimate (``tick_kernel.collect_samples``, as the compiled tick)."""
         stride = self.stride
@@ -139,12 +167,15 @@ class TelemetryWindow:
         if tp is not None:
             tp.publish_rows(keys, rows, n, index, window)
             return
+        send = self.on_telemetry
+        if send is None:                  # no consumer: the callers do not hand over then
+            return
         idx = range(len(keys)) if index is None else index
         block = {key: rows[i, :n] for key, i in zip(keys, idx)}
         if window is None:
-            self.on_telemetry(block)
+            send(block)
         else:
-            self.on_telemetry(block, dict(zip(*window)))
+            send(block, dict(zip(*window)))
 
     def publish_final(self) -> None:
         """After the run's final fit: one more telemetry window, at the last sample's time, carrying
@@ -183,7 +214,7 @@ class TelemetryWindow:
                 if name in _WINDOW_CI_KEYS:
                     part[f"lo_{name}"] = lo
                     part[f"hi_{name}"] = hi if math.isfinite(hi) else math.nan
-        if c is not None:
+        if c is not None and st is not None:
             pm = (c.margins or {}).get("pm_deg")
             part["n_accepted"], part["n_rejected"], part["fallbacks"] = \
                 float(st.accepted), float(st.rejected), float(st.fallbacks)

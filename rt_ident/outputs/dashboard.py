@@ -366,8 +366,12 @@ def write_contour_rrd(path: str | None, reference: tuple[np.ndarray, np.ndarray]
         rrb.TimePanel(timeline="angle", state="collapsed"))
     if connect_url is not None:
         rec.connect_grpc(connect_url, default_blueprint=bp)
-    else:
+        where = connect_url
+    elif path is not None:
         rec.save(path, default_blueprint=bp)
+        where = path
+    else:
+        raise ValueError("the contour dashboard needs a path or a connect_url")
     try:
         cx, cy = centre
         xr, yr = reference
@@ -404,4 +408,4 @@ def write_contour_rrd(path: str | None, reference: tuple[np.ndarray, np.ndarray]
     finally:
         rec.flush()
         rec.disconnect()
-    return connect_url if connect_url is not None else path
+    return where

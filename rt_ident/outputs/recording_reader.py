@@ -23,6 +23,7 @@ import logging
 import math
 import os
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -126,9 +127,8 @@ def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, w
         torque = cmd = get["torque"]
         meas = None
     else:
-        cmd = get.get("torque_cmd", meas)
-        finite = np.isfinite(meas) if meas is not None else None
-        if meas is None or not finite.any():
+        cmd = get["torque_cmd"] if "torque_cmd" in get else get["torque_meas"]   # one of them, or has_torque failed
+        if meas is None or not (finite := np.isfinite(meas)).any():
             torque, meas = cmd, None
         else:
             if not finite.all():
@@ -192,7 +192,7 @@ def _read_journal(path: Path) -> tuple[Any, dict[str, Any]]:
 
     batches = []
     try:
-        with pa.OSFile(str(path)) as f:
+        with pa.OSFile(str(path), mode="r") as f:
             reader = ipc.open_stream(f)
             schema = reader.schema
             while True:
@@ -324,7 +324,8 @@ def parquet_metadata(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     return _decode_metadata(schema.metadata, p)
 
 
-def iter_parquet_blocks(path: str | os.PathLike[str], rows: int = 1 << 16):
+def iter_parquet_blocks(path: str | os.PathLike[str], rows: int = 1 << 16
+                        ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]]:
     """Yield ``(theta1, theta2, torque, seq)`` blocks of a finished recording, ``rows`` at a time
     (Parquet record batches): memory does not grow with the recording's length. Every block is
     checked as :func:`read_recording` checks the whole (finite, plausible, t strictly increasing,
@@ -365,7 +366,7 @@ def iter_parquet_blocks(path: str | os.PathLike[str], rows: int = 1 << 16):
         row0 += t.shape[0]
 
 
-def _row_group_slices(f: Any, names: list[str], rows: int):
+def _row_group_slices(f: Any, names: list[str], rows: int) -> Iterator[Any]:
     for i in range(f.num_row_groups):
         table = f.read_row_group(i, columns=names)
         for k in range(0, table.num_rows, rows):

@@ -27,18 +27,22 @@ import logging
 import multiprocessing as mp
 import os
 import socket
-from typing import Any
+from multiprocessing.connection import Connection
+from typing import TYPE_CHECKING, Any
 
 from drivers.placement import device_placement, place, settle_heap
 from rt_ident.errors import RtIdentError
 from rt_ident.processes.guard import start_with_helper_env
+
+if TYPE_CHECKING:
+    from rt_ident.config import RunConfig
 
 log = logging.getLogger(__name__)
 
 EMULATORS = {"canopen": "drivers.cia402.emulator", "serial": "drivers.encoder_board.emulator"}
 
 
-def _serve(module: str, config: dict[str, Any], conn, placement: dict[str, Any] | None) -> None:
+def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dict[str, Any] | None) -> None:
     """Child process: leave the loop's CPU, import the device's code, turn real-time, start the device,
     report, wait for "stop" (or the parent's end), stop.
 
@@ -161,7 +165,7 @@ class EmulatorProcess:
         self.close()
 
 
-def start_emulator(cfg) -> Any:
+def start_emulator(cfg: RunConfig) -> Any:
     """The emulated device for ``cfg.backend.name``; call ``.close()`` (or ``.stop()``) when done."""
     name = cfg.backend.name
     module = EMULATORS.get(name)

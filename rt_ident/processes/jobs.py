@@ -51,7 +51,8 @@ def _job_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing
             result: Any = job(snap)
         except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
             result = exc
-        if getattr(result, "frf", None) is not None and dataclasses.is_dataclass(result):
+        if getattr(result, "frf", None) is not None and dataclasses.is_dataclass(result) \
+                and not isinstance(result, type):
             # the dashboard's FRF view is 16 of a result's 17 kB: unpickling it costs the loop's tick
             # ~100 us, and the dashboard draws one at most every few seconds - send one that often
             if time.monotonic() - last_view < view_interval:

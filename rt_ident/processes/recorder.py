@@ -84,7 +84,7 @@ def encode_metadata(metadata: Mapping[str, Any]) -> bytes:
 def _schema(metadata_json: bytes) -> Any:
     import pyarrow as pa
 
-    fields = [("t", pa.float64()), ("seq", pa.int64())]
+    fields: list[tuple[str, pa.DataType]] = [("t", pa.float64()), ("seq", pa.int64())]
     fields += [(name, pa.float64()) for name in COLUMNS[2:]]
     return pa.schema(fields, metadata={METADATA_KEY: metadata_json, FORMAT_KEY: FORMAT_VERSION})
 
@@ -248,7 +248,7 @@ def _block_message(block: Any) -> dict[str, np.ndarray]:
     if isinstance(block, dict) or (not hasattr(block, "seq") and isinstance(block, Mapping)):
         get = block.get
     else:
-        def get(name, _d=None):
+        def get(name: str, _d: Any = None) -> Any:
             return (getattr(block, name, None))
     seq = get("seq", None)
     if seq is None:
@@ -271,7 +271,8 @@ def _block_message(block: Any) -> dict[str, np.ndarray]:
 _FLOAT_COLUMNS = tuple(c for c in COLUMNS if c != "seq")
 
 
-def _message_columns(m: Mapping[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+def _message_columns(m: Mapping[str, np.ndarray]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """(t, seq, theta1, theta2, torque_cmd, torque_meas or None) of a :func:`_block_message`."""
     seq = m["seq"]
     f = m["floats"].reshape(-1, seq.shape[0]) if seq.shape[0] else np.empty((len(_FLOAT_COLUMNS) - 1, 0))
@@ -502,7 +503,7 @@ class RecorderProcess:
         summary: dict[str, Any] = {"path": str(self.path), "blocks_put": self.blocks_put,
                                    "samples_put": self.samples_put, "full_waits": self.full_waits,
                                    "terminated": False}
-        if self._proc is None or self._closed:
+        if self._proc is None or self._ring is None or self._closed:     # (started: both)
             self._closed = True
             summary.update(rows_written=self.rows_written, exitcode=getattr(self._proc, "exitcode", None))
             summary["complete"] = self._complete(summary)

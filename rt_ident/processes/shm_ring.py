@@ -324,7 +324,7 @@ def _reserve(h, di, cap, max_messages, size):
 @numba.njit(cache=True)
 def _commit(h, w, size):
     """Publish the frame written at ``w``: its data first (a release fence), then the counters."""
-    _release_fence()
+    _release_fence()  # type: ignore[call-arg]  # an intrinsic: numba passes typingctx itself
     h[_W_POS] = w + size
     h[_W_MSGS] = h[_W_MSGS] + 1
 

@@ -41,7 +41,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -775,9 +775,11 @@ class TelemetryProcess:
         wid, values, names, new_names = -1, _NO_VALUES, None, False
         if window is not None:
             names, values = window
-            wid = self._schemas.get(names)
-            if wid is None:
+            known = self._schemas.get(names)
+            if known is None:
                 wid, new_names = self._window_id(names, keys), True
+            else:
+                wid = known
         ring = self._ring
         if ring is None or self._closed or self._truth_pending or new_names:
             return self._send(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names), names, wid)
@@ -788,7 +790,8 @@ class TelemetryProcess:
         return True
 
     @staticmethod
-    def _put_rows(ring: MessageRing, words, index, rows, n, wid, values, names) -> bool:
+    def _put_rows(ring: MessageRing, words: np.ndarray, index: np.ndarray | None, rows: np.ndarray, n: int,
+                  wid: int, values: np.ndarray, names: tuple[str, ...] | None) -> bool:
         h, di, df = ring.compiled_views()
         got = put_rows(h, di, df, ring.capacity, ring.max_messages, words, index, rows, n, _WINDOW_WORDS, wid,
                        values, names is not None)
@@ -796,7 +799,7 @@ class TelemetryProcess:
             raise DataError(f"publish_rows(): a {n}-column block does not fit a {ring.capacity}-byte ring")
         return bool(got)
 
-    def _window_id(self, names: tuple[str, ...], fields) -> int:
+    def _window_id(self, names: tuple[str, ...], fields: Collection[str]) -> int:
         """The id of a window's names (a new one is sent to the child before the vector that uses it)."""
         wid = self._schemas.get(names)
         if wid is None:
@@ -806,13 +809,13 @@ class TelemetryProcess:
             wid = len(self._schemas)
         return wid
 
-    def _send(self, put, names: tuple[str, ...] | None, wid: int | None) -> bool:
+    def _send(self, put: Callable[[MessageRing], bool], names: tuple[str, ...] | None, wid: int | None) -> bool:
         if self._ring is None or self._closed:
             self._dropped += 1
             return False
         if self._truth_pending:
             self._push_truth()
-        if names is not None and names not in self._schemas:
+        if names is not None and wid is not None and names not in self._schemas:   # (both or neither)
             if not self._ring.put_object({_WINDOW_SCHEMA: (wid, names)}):
                 self._dropped += 1
                 return False
@@ -828,7 +831,7 @@ class TelemetryProcess:
         t0 = time.monotonic()
         deadline = t0 + max(0.0, timeout - 0.5)  # keep 0.5 s for terminate/kill
         terminated = False
-        if self._proc is not None and not self._closed:
+        if self._proc is not None and self._ring is not None and not self._closed:   # (started: both)
             self._closed = True
             self._ring.close_writer()
             self._proc.join(max(0.0, deadline - time.monotonic()))

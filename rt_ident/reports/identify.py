@@ -17,20 +17,24 @@ accepts a CSV with one position sensor ``t,theta1,torque`` in the file's own uni
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rt_ident.errors import EstimationError
+from rt_ident.errors import DataError, EstimationError
 from rt_ident.estimators.base import IdentData, Identification
-from rt_ident.outputs.recording_reader import iter_parquet_blocks, parquet_metadata
+from rt_ident.outputs.recording_reader import Recording, iter_parquet_blocks, parquet_metadata
 from rt_ident.processes.recorder import read_recording
+
+if TYPE_CHECKING:   # friction (numba, scipy.signal) is imported when a friction model is fitted
+    from rt_ident.estimators.friction import FrictionIdentification
+    from rt_ident.estimators.streaming import FrequencyStream, PaperStream
 
 REPLAY_CHUNK = 4096
 
 
-def identify_file(path: str | Path, method: str | None = None, *, period: int | None = None,
-                  model: str | None = None, **options: Any) -> tuple[Identification, dict[str, Any]]:
+def identify_file(path: str | Path, method: str | None = None, *, period: int | None = None, model: str | None = None,
+                  **options: Any) -> tuple[Identification | FrictionIdentification, dict[str, Any]]:
     """Identify the axis from a recording; returns (identification, info about how).
 
     A finished ``.parquet`` recording replayed through the loop's streaming estimator is read in
@@ -41,14 +45,13 @@ def identify_file(path: str | Path, method: str | None = None, *, period: int | 
     meta = parquet_metadata(path)
     if meta is not None and _replayable(meta, method, period, options):
         est, n = _stream_replay(path, meta, method or meta["method"])
-        info = {"file": str(path), "source": "parquet", "samples": n, "metadata": True,
+        info: dict[str, Any] = {"file": str(path), "source": "parquet", "samples": n, "metadata": True,
                 "how": "replay of the loop's streaming estimator (streamed in record batches)"}
         return est, info
     rec = read_recording(path)
     meta = rec.metadata or {}
     method = method or meta.get("method") or _default_method()
-    info: dict[str, Any] = {"file": str(path), "source": rec.source, "samples": len(rec),
-                            "metadata": bool(meta)}
+    info = {"file": str(path), "source": rec.source, "samples": len(rec), "metadata": bool(meta)}
     ex = meta.get("excitation") or {}
     if (meta.get("sample_period") and ex.get("period_samples") and ex.get("band") and period is None
             and not options and method == meta.get("method")):
@@ -60,14 +63,12 @@ def identify_file(path: str | Path, method: str | None = None, *, period: int | 
     info["how"] = "batch"
     from rt_ident.estimators.registry import identify
 
-    data = IdentData(t=rec.t, theta1=rec.theta1, theta2=rec.theta2, torque=rec.torque, omega1=rec.omega1,
-                     omega2=rec.omega2, dt=meta.get("sample_period"),
-                     period=period or ex.get("period_samples"))
+    data = _ident_data(rec, meta.get("sample_period"), period or ex.get("period_samples"))
     return identify(data, method, **options), info
 
 
 def identify_model(path: str | Path, model: str, method: str | None = None,
-                   **options: Any) -> tuple[Any, dict[str, Any]]:
+                   **options: Any) -> tuple[Identification | FrictionIdentification, dict[str, Any]]:
     """Fit ``model`` (:data:`rt_ident.estimators.friction.MODELS`) to a recording by the batch
     method (default ``svf-ls``, the only one that accepts the friction models)."""
     from rt_ident.errors import ConfigError
@@ -89,11 +90,17 @@ def identify_model(path: str | Path, model: str, method: str | None = None,
     if m != "svf-ls":     # a linear-only method on the two-inertia model
         from rt_ident.estimators.registry import identify
 
-        data = IdentData(t=rec.t, theta1=rec.theta1, theta2=rec.theta2, torque=rec.torque, omega1=rec.omega1,
-                         omega2=rec.omega2, dt=(rec.metadata or {}).get("sample_period"))
+        data = _ident_data(rec, (rec.metadata or {}).get("sample_period"))
         return identify(data, m, **options), info
     ident = fit_friction(rec.theta1, rec.torque, dt, model=key, theta2=rec.theta2, **options)
     return ident, info
+
+
+def _ident_data(rec: Recording, dt: float | None, period: int | None = None) -> IdentData:
+    if rec.theta2 is None:     # read with require_theta2: not met here
+        raise DataError("theta2: required")
+    return IdentData(t=rec.t, theta1=rec.theta1, theta2=rec.theta2, torque=rec.torque, omega1=rec.omega1,
+                     omega2=rec.omega2, dt=dt, period=period)
 
 
 def validate_file(ident: Any, path: str | Path) -> dict[str, Any]:
@@ -126,7 +133,7 @@ def _replayable(meta: dict[str, Any], method: str | None, period: int | None, op
                 and not options and m == meta.get("method") and m in STREAMING_METHODS and m != "paper")
 
 
-def _streaming_estimator(meta: dict[str, Any], method: str):
+def _streaming_estimator(meta: dict[str, Any], method: str) -> FrequencyStream | PaperStream:
     from rt_ident.estimators.streaming import make_streaming
 
     ex = meta["excitation"]
@@ -136,7 +143,7 @@ def _streaming_estimator(meta: dict[str, Any], method: str):
                           forgetting=float(meta.get("forgetting", 1.0)), lead=lead)
 
 
-def _stream_replay(path, meta: dict[str, Any], method: str) -> tuple[Identification, int]:
+def _stream_replay(path: str | Path, meta: dict[str, Any], method: str) -> tuple[Identification, int]:
     est = _streaming_estimator(meta, method)
     n = 0
     for th1, th2, tq, seq in iter_parquet_blocks(path, REPLAY_CHUNK * 16):
@@ -160,7 +167,9 @@ def _default_method() -> str:
     return DEFAULT_METHOD
 
 
-def _replay(rec, meta: dict[str, Any], method: str) -> Identification:
+def _replay(rec: Recording, meta: dict[str, Any], method: str) -> Identification:
+    if rec.theta2 is None:     # read with require_theta2: not met here
+        raise DataError("theta2: required")
     est = _streaming_estimator(meta, method)
     seq = rec.seq if rec.seq is not None else np.arange(len(rec))
     for i in range(0, len(rec), REPLAY_CHUNK):

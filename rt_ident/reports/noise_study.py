@@ -18,21 +18,25 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rt_ident.axis.excitation import schroeder_multisine
-from rt_ident.axis.params import thomson_x
-from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.axis.params import AxisParams, thomson_x
+from rt_ident.axis.plant import HoldController, PlantBlock, PlantSimulator, SensorConfig
 from rt_ident.errors import RtIdentError
+
+if TYPE_CHECKING:
+    from rt_ident.estimators.registry import LinearMethod
 
 QUANTIZATION = ((0, 0.0), (2**20, 1.25e-8), (2**17, 1e-7), (2**14, 8e-7))   # (counts/rev, scale m); 0 = ideal
 TORQUE_NOISE_PCT = (0.0, 0.5, 2.0)
-METHODS = ("frequency", "tustin", "paper")
+METHODS: tuple[LinearMethod, ...] = ("frequency", "tustin", "paper")
 DT, N, PERIODS = 2.9481e-5, 512, 20
 
 
-def _data(cpr: int, res: float, noise_pct: float, seed: int = 5):
+def _data(cpr: int, res: float, noise_pct: float, seed: int = 5) -> tuple[AxisParams, PlantBlock]:
     p = thomson_x()
     ms = schroeder_multisine(N, (1, 20), peak=0.3)
     u = ms.periodic(PERIODS)
@@ -43,7 +47,7 @@ def _data(cpr: int, res: float, noise_pct: float, seed: int = 5):
     return p, blk
 
 
-def _fit(method: str, blk, cpr: int, res: float) -> dict[str, float]:
+def _fit(method: LinearMethod, blk: PlantBlock, cpr: int, res: float) -> dict[str, float]:
     from rt_ident.estimators.registry import IdentData, identify
 
     if method == "paper":

@@ -18,16 +18,20 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rt_ident.axis.excitation import schroeder_multisine
-from rt_ident.axis.integrators import get_integrator
+from rt_ident.axis.integrators import Trajectory, get_integrator
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.timestep import table2_cases
 from rt_ident.estimators.excitation_id import nrmse, reconstruct_torque
 from rt_ident.estimators.paper import fit_paper_ls, fit_paper_rls
+
+if TYPE_CHECKING:
+    from rt_ident.estimators.registry import LinearMethod
 from rt_ident.reports import paper_tables
 
 PARAM_KEYS = ("I1", "I2", "B", "K")
@@ -97,7 +101,7 @@ class ReproduceResult:
 
 
 def simulate_case(p: AxisParams, N: int, k: int, dt: float, *, band_factor: float, periods: int,
-                  peak_torque: float):
+                  peak_torque: float) -> tuple[tuple[int, int], Trajectory]:
     """Schroeder excitation (harmonics 1..band_factor*k) and the Newmark response from rest."""
     hi = int(min(max(1, round(band_factor * k)), N // 2 - 1))
     ms = schroeder_multisine(N, (1, hi), peak=peak_torque)
@@ -138,7 +142,7 @@ def run_case(p: AxisParams, N: int, k: int, dt: float, w0: float, wn: float, *, 
 
 #: "beyond the paper" rows: label -> (registry method, options). The data are Newmark (trapezoidal),
 #: so "zoh" is shown as the consistent model of the *other* hold, for contrast.
-BEYOND = {
+BEYOND: dict[str, tuple[LinearMethod, dict[str, Any]]] = {
     "tustin (states)": ("tustin", {"use_states": True}),
     "tustin (angles only)": ("tustin", {"use_states": False}),
     "frequency (Newmark model, angles only)": ("frequency", {"hold": "tustin"}),
@@ -146,7 +150,7 @@ BEYOND = {
 }
 
 
-def _beyond(label: str, traj, dt: float, N: int) -> dict[str, float]:
+def _beyond(label: str, traj: Trajectory, dt: float, N: int) -> dict[str, float]:
     from rt_ident.estimators.registry import IdentData, identify
 
     method, options = BEYOND[label]
@@ -164,7 +168,7 @@ def run_reproduce(*, band_factor: float = 2.0, periods: int = 4, peak_torque: fl
     cases = table2_cases(truth["wn"])
     out = []
     for i, c in enumerate(cases):
-        def sub(desc: str, frac: float, i=i) -> None:
+        def sub(desc: str, frac: float, i: int = i) -> None:
             if progress:
                 progress(desc, (i + frac) / len(cases))
         out.append(run_case(p, c.N, int(c.k), c.dt, c.w0, c.wn, band_factor=band_factor, periods=periods,
@@ -180,7 +184,7 @@ def error_pct(estimate: float, truth: float) -> float:
     return 100.0 * abs(estimate - truth) / abs(truth)
 
 
-def _raw_ls_summary(traj, dt: float) -> dict[str, float]:
+def _raw_ls_summary(traj: Trajectory, dt: float) -> dict[str, float]:
     """Euler LS values even when they come out non-physical (then modal values are NaN)."""
     from rt_ident.errors import RtIdentError
     from rt_ident.estimators.ls import lstsq
