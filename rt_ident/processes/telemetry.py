@@ -22,8 +22,9 @@ with :meth:`TelemetryProcess.set_truth`, are drawn as a second series beside eac
 child sends the true value at the first and last time of every batch that holds that estimate
 (a horizontal line over the estimate's time span).
 
-Sinks: ``"rrd"`` file (complete after ``close()``, which disconnects the stream; written without
-rerun's footer, whose per-chunk manifest grows the process as long as the run lasts: see ``_open_sink``); ``"spawn"``
+Sinks: ``"rrd"`` file (complete after ``close()``: the child writes it without rerun's footer, whose
+per-chunk manifest would grow the child for as long as the run lasts, and ``close()`` then adds the
+footer in a process of its own: see :func:`finish_rrd`); ``"spawn"``
 starts ``rerun --bind <bind_ip> --port <port>`` (never 0.0.0.0 unless configured) and connects;
 ``"connect"`` connects to ``connect_url``; ``"serve"`` hosts a gRPC server with
 ``GrpcServerSink(bind_ip=bind_ip)``; ``"off"`` starts nothing. The child sets ``CI=1`` (rerun
@@ -121,6 +122,7 @@ class TelemetryConfig:
     # 2.4 MB/s of .rrd. Half a second keeps the live view fluid and the chunks big enough to compress.
     batch_seconds: float = 1.0
     min_free_bytes: int = 4 << 20  # an .rrd sink stops (and says so) when its filesystem has less left
+    finish_timeout: float = 60.0   # close(): max wait for the .rrd's footer (finish_rrd); else left without one
 
     def __post_init__(self) -> None:
         if self.sink not in SINKS:
@@ -147,6 +149,8 @@ class TelemetryConfig:
             raise ConfigError("application_id", "must not be empty")
         if not (math.isfinite(self.flush_timeout) and self.flush_timeout > 0):
             raise ConfigError("flush_timeout", f"must be > 0 s, got {self.flush_timeout!r}")
+        if not (math.isfinite(self.finish_timeout) and self.finish_timeout > 0):
+            raise ConfigError("finish_timeout", f"must be > 0 s, got {self.finish_timeout!r}")
         if not (math.isfinite(self.batch_seconds) and 0 <= self.batch_seconds <= 10):
             raise ConfigError("batch_seconds", f"must be in 0..10 s, got {self.batch_seconds!r}")
 
@@ -226,14 +230,8 @@ def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
     if cfg.sink == "rrd":
         assert cfg.rrd_path is not None
         Path(cfg.rrd_path).parent.mkdir(parents=True, exist_ok=True)
-        # No footer: with rerun's default (write_footer=True) the file sink keeps one manifest entry
-        # per chunk in memory until the stream closes, to write them as the footer: the telemetry
-        # process grows for as long as the run lasts, ~1.6 kB per chunk at ~55 chunks/s (one per
-        # entity per batch, 24 per FRF draw); without it, it stays flat (docs/measurements.md,
-        # "Memory soaks"). The .rrd is
-        # still a complete stream (the viewer, RrdReader.stream() and `rerun rrd print` read it);
-        # the random-access RrdReader.store() and `rerun rrd verify` want the manifest, which
-        # `rerun rrd optimize` writes (and compacts the chunks).
+        # No footer: to write one, the file sink keeps a manifest entry per chunk until the stream
+        # closes, and the child would grow for the whole run. close() adds it (finish_rrd).
         rec.save(cfg.rrd_path, default_blueprint=bp, write_footer=False)
     elif cfg.sink == "connect":
         rec.connect_grpc(cfg.connect_url, default_blueprint=bp)
@@ -464,6 +462,59 @@ def _disk_full(path: str | None, min_free: int) -> str | None:
     return None
 
 
+def _rerun_cli() -> str | None:
+    """The rerun binary itself, not the ``rerun`` script (whose child would outlive a kill at a timeout)."""
+    try:
+        import rerun_cli
+    except ImportError:
+        return None
+    exe = Path(rerun_cli.__file__).with_name("rerun")
+    return str(exe) if exe.is_file() else None
+
+
+def finish_rrd(path: str, timeout: float, min_free: int = 0) -> str | None:
+    """Add rerun's footer (the chunk manifest ``RrdReader.store()`` and ``rerun rrd verify`` need) to
+    the footerless .rrd at ``path``. None when done, else why not; the file is then left as it was
+    (complete, without a footer), never half rewritten.
+
+    ``rerun rrd filter`` with no filter copies every message as it is and ends the copy with the
+    footer; the copy then replaces the file. It runs as a process of its own: the manifest it builds
+    is freed when it exits, and it is killed at ``timeout`` (its copy removed)."""
+    p = Path(path).resolve()
+    tmp = p.with_name(p.name + ".part")
+    exe = _rerun_cli()
+    if exe is None:
+        return "the rerun CLI was not found"
+    try:
+        size = p.stat().st_size
+        st = os.statvfs(p.parent)
+    except OSError as e:
+        return f"{p}: {e.strerror or e}"
+    if st.f_bavail * st.f_frsize < size + min_free:
+        return f"no room for a {size / 1e6:.0f} MB copy beside {p}"
+    env = dict(os.environ, CI=os.environ.get("CI", "1"), RUST_LOG="warn")   # no analytics config, no INFO lines
+    proc = subprocess.Popen([exe, "rrd", "filter", str(p), "-o", str(tmp)], env=env, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    done = False
+    try:
+        try:
+            _, err = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return f"not done within {timeout:g} s ({size / 1e6:.0f} MB)"
+        if proc.returncode != 0 or not tmp.is_file():
+            last = err.decode(errors="replace").strip().splitlines()[-1:] or [f"exit code {proc.returncode}"]
+            return f"rerun rrd filter failed: {last[0][-300:]}"
+        os.replace(tmp, p)
+        done = True
+        return None
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if not done:
+            tmp.unlink(missing_ok=True)
+
+
 def _expand_window(m: dict[str, np.ndarray], schemas: Mapping[int, tuple[str, ...]]) -> None:
     """A tick block's window vector back into one array per name, its value at every tick."""
     values = m.pop(_WINDOW)
@@ -583,6 +634,7 @@ class TelemetryProcess:
         self._schemas: dict[tuple[str, ...], int] = {}   # window names sent to the child -> their id
         self._row_keys: dict[tuple[str, ...], np.ndarray] = {}   # publish_rows: checked keys -> their words
         self._closed = False
+        self._footer: dict[str, Any] = {}   # close(): whether the .rrd got its footer (_finish)
         self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
         self._sent_before = 0
 
@@ -827,7 +879,8 @@ class TelemetryProcess:
         return True
 
     def close(self, timeout: float = 5.0) -> dict[str, Any]:
-        """Flush and stop the child; returns within ~``timeout`` s whatever the sink does."""
+        """Flush and stop the child within ~``timeout`` s whatever the sink does; an .rrd then gets
+        its footer (:func:`finish_rrd`) within ``config.finish_timeout`` s more."""
         t0 = time.monotonic()
         deadline = t0 + max(0.0, timeout - 0.5)  # keep 0.5 s for terminate/kill
         terminated = False
@@ -839,9 +892,11 @@ class TelemetryProcess:
                 log.warning("telemetry process did not finish within %.1f s; terminating", timeout)
                 terminated = True
                 end_helper(self._proc, 0.4, 0.1)
+            self._footer = self._finish()
         self._closed = True
         return {
             **self._written(),
+            **self._footer,
             **self._delivered(terminated),
             "sink": self.config.sink,
             "rrd_path": self.config.rrd_path if self.config.sink == "rrd" else None,
@@ -869,6 +924,19 @@ class TelemetryProcess:
         elif terminated:
             why = f"the telemetry process did not finish sending to {host}:{port}: delivery not confirmed"
         return {"delivered": why is None, "write_error": why}
+
+    def _finish(self) -> dict[str, Any]:
+        """Add the .rrd's footer: ``{"footer": True}``, or False and ``footer_error`` (why not; the
+        file is complete all the same, so this is no write error)."""
+        if self.config.sink != "rrd" or not self.config.rrd_path:
+            return {"footer": None, "footer_error": None}
+        if not self._written()["written"]:
+            return {"footer": False, "footer_error": "not added: the file was not fully written"}
+        why = finish_rrd(self.config.rrd_path, self.config.finish_timeout, self.config.min_free_bytes)
+        if why is not None:
+            log.warning("telemetry: %s has no rerun footer (RrdReader.store(), `rerun rrd verify` refuse it; "
+                        "`rerun rrd filter IN -o OUT` adds one): %s", self.config.rrd_path, why)
+        return {"footer": why is None, "footer_error": why}
 
     def _written(self) -> dict[str, Any]:
         """Whether the .rrd holds what was sent: ``{"written": bool, "write_error": str | None}``.

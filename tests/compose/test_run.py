@@ -84,6 +84,22 @@ def test_rrd_holds_the_dashboard_entities_with_values(recorded):
     assert s["telemetry"]["dropped"] == 0
 
 
+def test_a_runs_rrd_has_rerun_footer_opens_as_a_store_and_verifies(recorded):
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    s, _, rrd = recorded
+    assert s["telemetry"]["footer"] is True and s["telemetry"]["footer_error"] is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                   # no "RRD file has no footer" (legacy format)
+        store = RrdReader(str(rrd)).store()
+        assert "/params/K/estimate" in {chunk.entity_path for chunk in store.stream()}
+    r = subprocess.run([sys.executable, "-m", "rerun_cli", "rrd", "verify", str(rrd)], capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, CI="1"))
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
 def test_rrd_true_value_series_holds_the_plant_stiffness(recorded):
     from rerun.chunk import RrdReader
 

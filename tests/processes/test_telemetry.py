@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -230,27 +232,102 @@ def test_blocks_are_batched_into_few_chunks_per_entity(tmp_path: Path) -> None:
     assert chunks[dashboard.ANGLES] <= 2 and chunks[dashboard.estimate_path("K")] <= 3, chunks
 
 
-def test_rrd_sink_keeps_no_per_chunk_manifest(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                              capfd: pytest.CaptureFixture[str]) -> None:
-    """The .rrd is written without rerun's footer: to write one at close, the file sink keeps a
-    manifest entry per chunk in memory for the whole run (~1.6 kB a chunk, ~55 chunks/s: the
-    telemetry process would grow ~5 MB a minute). The stream is complete all the same,
-    and rerun's warning about the missing footer is not printed on every run."""
+def _verify(path: Path) -> subprocess.CompletedProcess:
+    """`rerun rrd verify` (it checks the footer too), as the rerun CLI runs it."""
+    return subprocess.run([sys.executable, "-m", "rerun_cli", "rrd", "verify", str(path)], capture_output=True,
+                          text=True, timeout=60, env=dict(os.environ, CI="1"))
+
+
+def test_rrd_gets_rerun_footer_at_close_and_opens_as_a_store(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                             capfd: pytest.CaptureFixture[str]) -> None:
+    """The child writes no footer (see the next test); close() adds it: the file opens with the
+    random-access store API and passes `rerun rrd verify`, with the same content."""
+    import warnings
+
     from rerun.chunk import RrdReader
 
     monkeypatch.delenv("RUST_LOG", raising=False)    # the child's default filter, not the caller's
-    path = tmp_path / "nofooter.rrd"
+    path = tmp_path / "footer.rrd"
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256)).start()
+    assert tp.set_truth({"K": 2.5e5})
     assert tp.wait_ready(20.0)
     for k in range(20):
         assert tp.publish(_block(k))
     summary = tp.close(timeout=10.0)
     assert summary["exitcode"] == 0 and summary["sent"] == 20 and summary["written"]
-    reader = RrdReader(str(path))
-    assert "/" + dashboard.ANGLES in {chunk.entity_path for chunk in reader.stream()}
-    with pytest.raises(RuntimeError, match="footer"):   # no manifest: nothing was kept for one
-        reader.store()
+    assert summary["footer"] is True and summary["footer_error"] is None and summary["write_error"] is None
+    assert summary["seconds"] < 10.0
+    assert os.listdir(tmp_path) == ["footer.rrd"]                 # the copy replaced it, nothing left beside
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                          # no "RRD file has no footer" (legacy format)
+        reader = RrdReader(str(path))
+        store = reader.store()
+        assert len(store) > 0
+        assert "/" + dashboard.ANGLES in {chunk.entity_path for chunk in store.stream()}
+        assert [b.application_id for b in reader.blueprints()] == ["rt_ident"]   # the dashboard layout kept
+    got = _read_rrd(path)
+    t, v = got[dashboard.ANGLES]
+    assert t.size == 140 and np.allclose(v[:, 0], 0.001 * np.arange(140))
+    assert np.all(got[dashboard.truth_path("K")][1] == 2.5e5)
+    r = _verify(path)
+    assert r.returncode == 0, r.stdout + r.stderr
     assert "write_footer" not in capfd.readouterr().err
+
+
+def test_the_child_writes_the_rrd_without_a_footer(tmp_path: Path) -> None:
+    """While the run lasts, rerun's file sink keeps a manifest entry per chunk to write a footer at
+    the end, growing the telemetry process for the whole run: the child asks for none."""
+    from rt_ident.processes import telemetry as tel
+
+    class Rec:
+        def save(self, path, **kwargs):
+            self.saved = (path, kwargs)
+
+    rec = Rec()
+    tel._open_sink(rec, TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "x.rrd")), None)
+    assert rec.saved[0] == str(tmp_path / "x.rrd") and rec.saved[1]["write_footer"] is False
+
+
+def _fake_cli(tmp_path: Path, body: str) -> str:
+    exe = tmp_path / "rerun"
+    exe.write_text("#!/bin/sh\n" + body + "\n")
+    exe.chmod(0o755)
+    return str(exe)
+
+
+@pytest.mark.parametrize(("body", "why"), [("exec sleep 30", "not done within 0.5 s"),
+                                           ("echo 'Error: bad chunk' >&2; exit 3", "failed: Error: bad chunk")])
+def test_a_footer_that_cannot_be_added_is_reported_and_the_file_left_whole(tmp_path, monkeypatch, body, why):
+    """A finishing step that hangs is stopped at finish_timeout, one that fails is named; either
+    way the file is the complete stream it was (no data lost: no write error), with no copy beside."""
+    from rt_ident.processes import telemetry as tel
+
+    monkeypatch.setattr(tel, "_rerun_cli", lambda: _fake_cli(tmp_path / "bin", body))
+    (tmp_path / "bin").mkdir()
+    path = tmp_path / "d" / "nofooter.rrd"
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256,
+                                          finish_timeout=0.5)).start()
+    assert tp.wait_ready(20.0)
+    for k in range(20):
+        assert tp.publish(_block(k))
+    summary = tp.close(timeout=10.0)
+    assert summary["footer"] is False and why in summary["footer_error"], summary
+    assert summary["written"] is True and summary["write_error"] is None
+    assert summary["seconds"] < 5.0
+    assert os.listdir(path.parent) == ["nofooter.rrd"]
+    with pytest.warns(Warning, match="no footer"):                # RerunWarning
+        t, _ = _read_rrd(path)[dashboard.ANGLES]
+    assert t.size == 140
+    assert tp.close()["footer_error"] == summary["footer_error"]      # a second close does not try again
+
+
+def test_no_room_for_the_copy_leaves_the_file_without_a_footer_and_says_so(tmp_path: Path) -> None:
+    from rt_ident.processes.telemetry import finish_rrd
+
+    path = tmp_path / "x.rrd"
+    path.write_bytes(b"x" * 1000)
+    why = finish_rrd(str(path), 5.0, min_free=1 << 62)
+    assert why is not None and "no room" in why and path.read_bytes() == b"x" * 1000
 
 
 def test_fit_and_loop_gain_views_are_drawn_under_frf(tmp_path: Path) -> None:
