@@ -21,7 +21,7 @@ def test_quick_start_is_two_commands_that_make_their_own_venv():
     run, tests = cmds
     for c in cmds:
         assert c.startswith("python3 -m venv .venv && .venv/bin/pip install -e ")
-    assert run.endswith(".venv/bin/rt-ident run") and tests.endswith(".venv/bin/python -m pytest -q")
+    assert run.endswith(".venv/bin/rt-ident run") and tests.endswith(".venv/bin/python -m pytest -q -n auto")
 
 
 def test_ci_runs_the_readme_test_command_as_written():
