@@ -171,7 +171,7 @@ class EmulatedCia402Drive:
     def start(self) -> EmulatedCia402Drive:
         if self._net is not None:
             return self
-        self.plant.step_block(np.empty(0))            # compile the plant kernel before going on the bus
+        self._warm_plant()
         od = canopen.import_od(str(self.eds_path), self.node_id)
         bus = open_bus(self.bus_kwargs)
         net = canopen.Network(bus)
@@ -474,10 +474,20 @@ class EmulatedCia402Drive:
         """The drive's own position loop (if the plant has one) runs only when enabled."""
         want = self._controller if enabled else None
         if self.plant.controller is not want:
-            p = self.plant
-            self.plant = PlantSimulator(p.params, p.dt, sensors=p.sensors, controller=want,
-                                        torque_limit=p.torque_limit, travel=p.travel, integrator=p.integrator,
-                                        seed=p.seed + p.sample_index, x0=p.state, friction=p.friction)
+            self.plant = self._plant_with(want)
+
+    def _plant_with(self, controller: Any) -> PlantSimulator:
+        """The plant as it is now (state, parameters, sensors), with ``controller`` as its hold loop."""
+        p = self.plant
+        return PlantSimulator(p.params, p.dt, sensors=p.sensors, controller=controller,
+                              torque_limit=p.torque_limit, travel=p.travel, integrator=p.integrator,
+                              seed=p.seed + p.sample_index, x0=p.state, friction=p.friction)
+
+    def _warm_plant(self) -> None:
+        """Step a copy of the plant one sample before going on the bus: the first call of each compiled
+        kernel a SYNC runs loads or compiles it (milliseconds), and that SYNC would go unanswered.
+        The axis itself does not move."""
+        self._plant_with(self.plant.controller).step_block(np.zeros(1))
 
     def _send_tpdos(self, enabled: bool, n: int) -> None:
         f, v = self.faults, self._values

@@ -151,6 +151,48 @@ def test_drive_does_not_answer_a_sync_once_the_next_one_has_arrived():
         drive.stop()
 
 
+_SYNC_PATH_COMPILES = r"""
+import threading, time, uuid
+from numba.core.dispatcher import Dispatcher
+from drivers.cia402.drive import Cia402Backend
+from drivers.cia402.emulator import start_emulator_for
+
+backend = {"interface": "virtual", "channel": f"n-{uuid.uuid4().hex[:8]}", "node_id": 5, "sync_rate_hz": 1000,
+           "torque_limit": 1.0, "rated_torque": 0.64, "counts_per_rev": 131072, "scale_resolution": 1e-7,
+           "heartbeat_ms": 50, "stale_limit": 50, "startup_timeout": 3.0}
+drive = start_emulator_for({"backend": backend, "emulator": {"position_hold": True, "torque_meas_noise": 1e-4}})
+calls = []
+load = Dispatcher._compile_for_args              # a call with types not loaded yet: from the cache or compiled
+def counted(self, *args, **kw):
+    calls.append(f"{threading.current_thread().name}: {getattr(self, '__name__', self)}")
+    return load(self, *args, **kw)
+Dispatcher._compile_for_args = counted
+try:
+    with Cia402Backend(backend) as be:
+        be.activate()
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:
+            be.read()
+            be.write(0.05)
+            time.sleep(0.002)
+    print(drive.samples, [c for c in calls if c.startswith("emulated-drive")])
+finally:
+    drive.stop()
+"""
+
+
+def test_sync_path_loads_no_compiled_code_after_start():
+    """Every compiled kernel a SYNC runs (enabled, with torque, hold loop on) is loaded before the drive goes
+    on the bus: a first call loads or compiles it for milliseconds, and that SYNC goes unanswered.
+    In a fresh interpreter, so that no earlier test has loaded them."""
+    out = subprocess.run([sys.executable, "-c", _SYNC_PATH_COMPILES], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    samples, loaded = out.stdout.strip().splitlines()[-1].split(" ", 1)
+    assert int(samples) > 50                          # it ran enabled, SYNC after SYNC
+    assert loaded == "[]"
+
+
 # ----- across processes on udp_multicast ---------------------------------------------------
 def test_cli_drive_over_udp_multicast_serves_a_backend_in_another_process(tmp_path):
     port = 41000 + os.getpid() % 20000
