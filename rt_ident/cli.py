@@ -325,8 +325,6 @@ def run(
 ) -> None:
     """Run the real-time identification loop (sim by default) with a live dashboard and a recording."""
     from rt_ident import config as cfgmod
-    from rt_ident.compose.run import exit_code
-    from rt_ident.compose.run import run as run_loop
 
     sink = "off" if no_telemetry else "spawn" if spawn else "connect" if connect else "serve" if serve else None
     if control is not None and control not in ("adaptive", "fixed", "off"):
@@ -337,7 +335,10 @@ def run(
     cfg = cfgmod.load(config, **overrides)
     _check_rrd_sink(rrd or (cfg.telemetry.rrd if sink is None else None), sink or cfg.telemetry.sink, sink is not None,
                     "--rrd" if rrd else "telemetry.rrd")
+    # the loop's modules (numba, scipy, python-control: seconds) only once the config is known to be good
     from rt_ident.compose.preflight import preflight
+    from rt_ident.compose.run import exit_code
+    from rt_ident.compose.run import run as run_loop
 
     preflight(cfg, sink=sink, connect_url=connect)   # a setting the start would refuse: one line, nothing started
     if cfg.defaulted:
