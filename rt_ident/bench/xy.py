@@ -63,7 +63,6 @@ def _scheduling_restored() -> Iterator[None]:
 def xy_budget(seconds: float = 10.0, *, realtime: bool = True,
               progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     from rt_ident.compose.run import run
-    from rt_ident.compose.run import run as run_axes
     from rt_ident.config import from_mapping, load
 
     say = progress or (lambda _s: None)
@@ -73,7 +72,7 @@ def xy_budget(seconds: float = 10.0, *, realtime: bool = True,
                                                          "recording.path": str(Path(tmp) / "xy.parquet")})
         say(f"two axes, {seconds:g} s")
         with _scheduling_restored():
-            xy = _trial(run_axes(cfg))
+            xy = _trial(run(cfg))
         data = cfg.axis_configs()["x"].model_dump(exclude={"source"})
         data["telemetry"]["rrd"] = str(Path(tmp) / "x.rrd")
         data["recording"]["path"] = str(Path(tmp) / "x.parquet")
@@ -86,13 +85,13 @@ def xy_budget(seconds: float = 10.0, *, realtime: bool = True,
                                                          "recording.path": str(Path(tmp) / "xy-off.parquet")})
         say(f"two axes without the idle poller, {seconds:g} s")
         with _scheduling_restored():
-            no_poll = _trial(run_axes(off))
+            no_poll = _trial(run(off))
         py = load(CONFIG_DIR / "xy-sim.toml", **over, **{"loop.compiled_tick": False,
                                                         "telemetry.rrd": str(Path(tmp) / "xy-py.rrd"),
                                                         "recording.path": str(Path(tmp) / "xy-py.parquet")})
         say(f"two axes, each tick on the Python path, {seconds:g} s")
         with _scheduling_restored():
-            python_path = _trial(run_axes(py))
+            python_path = _trial(run(py))
     p99 = (xy.get("work_us") or {}).get("p99")
     one99 = (one.get("work_us") or {}).get("p99")
     py99 = (python_path.get("work_us") or {}).get("p99")

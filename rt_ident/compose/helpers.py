@@ -73,6 +73,10 @@ class Helpers:
         axis's report (``recording``, ``telemetry``) and what was lost, in words (None: nothing)."""
         reports: dict[str, dict[str, Any]] = {}
         lost: list[str] = []
+        for h in self.axes.values():                    # the job processes end while the files are finished
+            for job in (h.fit, h.control):
+                if job is not None and hasattr(job, "begin_close"):
+                    job.begin_close()
         for axis, h in self.axes.items():
             rep: dict[str, Any] = {}
             where = f"{axis}: " if axis else ""

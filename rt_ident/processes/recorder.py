@@ -51,7 +51,7 @@ from rt_ident.outputs.recording_reader import (
     part_path,
     read_recording,
 )
-from rt_ident.processes.guard import become_helper, start_ignoring_signals
+from rt_ident.processes.guard import become_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing
 
 log = logging.getLogger(__name__)
@@ -350,6 +350,13 @@ def _recorder_main(
         raise
 
 
+def _recorder_process(*args: Any) -> None:
+    """The recorder process: :func:`_recorder_main`, then out at once once the file is closed (a
+    failure takes the usual way out, with its exit code)."""
+    _recorder_main(*args)
+    quick_exit()
+
+
 class RecorderProcess:
     """A :class:`Recorder` in its own process, fed by ``put(block)`` from the real-time loop.
 
@@ -412,7 +419,7 @@ class RecorderProcess:
         self._ready = self._ctx.Value("b", 0, lock=False)
         self._reason = self._ctx.Array("c", 512, lock=False)
         self._proc = self._ctx.Process(
-            target=_recorder_main,
+            target=_recorder_process,
             args=(str(self.path), self._metadata_json, self.flush_interval, self.overwrite,
                   self._ring, self._rows_written, self._failed, self._ready, self._reason),
             name="rt_ident-recorder",

@@ -61,7 +61,7 @@ from rt_ident.outputs.dashboard import (
     draw_loop_gain,
     truth_path,
 )
-from rt_ident.processes.guard import become_helper, end_helper, start_ignoring_signals
+from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, key_words, put_rows
 
 log = logging.getLogger(__name__)
@@ -607,6 +607,8 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
         # nothing more can reach the viewer; rerun would spend 5 s at exit on a last connection attempt
         os._exit(0)
     rec.disconnect()  # finalizes the .rrd (footer) / closes connections and servers
+    if cfg.sink == "rrd":
+        quick_exit()  # the file is closed: nothing is left to hand over
 
 
 class TelemetryProcess:

@@ -138,7 +138,7 @@ def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(
 def test_the_xy_budget_bench_times_both_axes_against_one_and_each_axis_share():
     from rt_ident.bench.xy import TARGET_P99_US, xy_budget
 
-    res = xy_budget(1.5, realtime=False)
+    res = xy_budget(0.6, realtime=False)
     two, one = res["two_axes"], res["one_axis"]
     assert two["stop"] is None and one["stop"] is None
     assert two["samples"] > 1.5 * one["samples"] > 0                   # both axes read, one axis alone
