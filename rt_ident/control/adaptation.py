@@ -268,6 +268,8 @@ class Supervisor:
         self._held: Controller | None = None     # the model controller to go back to at the recovery
         self._last_request_t = -math.inf
         self._pending = False
+        self._due: tuple[AxisParams, Any, str] | None = None   # a request offer() decided on
+        self._taken: list | None = None                     # a result taken, unpickled on the next poll
         self._req = 0
         self.now = np.zeros(NOW_FALLBACK_SINCE + 1)     # NOW_*: t, x_ref, error, state, reference, fallback clock
         self.now[NOW_FALLBACK_SINCE] = math.nan
@@ -467,6 +469,17 @@ class Supervisor:
             return
         if not self.jobs.ready:
             return
+        # asked on the next tick (poll): the cross-check above and the request are each a few hundred
+        # microseconds of Python, too much for one tick beside its own work
+        self._pending = True
+        self._due = (params, ci95, moved)
+
+    def _request(self, params: AxisParams, ci95: Any, moved: str) -> None:
+        """Ask the control process for a design for ``params`` (decided by :meth:`offer`)."""
+        assert self.jobs is not None                  # offer() decides only with a control process
+        if not self.jobs.ready:
+            self._pending = False
+            return
         self._req += 1
         if callable(ci95):
             ci95 = ci95()
@@ -474,13 +487,14 @@ class Supervisor:
                "params": {**{k: float(getattr(params, k)) for k in KEYS}, "lead": float(params.lead)},
                "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}
-        if self.jobs.submit(req):
-            self._pending = True
-            self._last_request_t = self.t
-            st = self.stats
-            st.requests += 1
-            why = moved if self.controller.kind == "model" else self.controller.kind
-            st.why_requested[why] = st.why_requested.get(why, 0) + 1
+        if not self.jobs.submit(req):
+            self._pending = False
+            return
+        self._last_request_t = self.t
+        st = self.stats
+        st.requests += 1
+        why = moved if self.controller.kind == "model" else self.controller.kind
+        st.why_requested[why] = st.why_requested.get(why, 0) + 1
 
     def _threshold(self, key: str) -> float:
         """The relative change of ``key`` that asks for a redesign (never 0: a division above)."""
@@ -488,9 +502,19 @@ class Supervisor:
         return max(t, 1e-12)
 
     def poll(self) -> None:
+        """One step per tick while a redesign is under way: send the request :meth:`offer` decided on;
+        take a finished design; on the next tick unpickle it and adopt or reject it."""
         if self.jobs is None or not self._pending:
             return
-        res = self.jobs.poll()
+        if self._due is not None:
+            due, self._due = self._due, None
+            self._request(*due)
+            return
+        if self._taken is None:
+            self._taken = self.jobs.take() or None
+            return
+        taken, self._taken = self._taken, None
+        res = self.jobs.unpack(taken)
         if res is None:
             return
         self._pending = False

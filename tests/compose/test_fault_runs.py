@@ -43,9 +43,10 @@ CANOPEN = [
     ("emcy", {"emcy_at_sample": 300, "emcy_code": 0x2310}, {"device-fault"}),
     ("heartbeat-loss", {"heartbeat_stop_at_s": 0.3}, {"device-fault"}),
     # a stuck motor encoder takes the host's omega1 damping away: on a starved host (the suite runs the
-    # loop without real-time scheduling, watchdog at 200 ticks for that) the travel limit's stopping
-    # distance check can stop the axis first. Either is a safe stop; the checks below hold for both.
-    ("stuck-encoder", {"stuck_encoder_at_sample": 300}, {"watchdog", "travel-limit"}),
+    # loop without real-time scheduling, watchdog at 200 ticks for that) the table can speed up past
+    # safety.max_speed_m_s, or reach the travel limit's stopping distance, before the watchdog sees the
+    # encoder stuck. Each is a safe stop; the checks below hold for all three.
+    ("stuck-encoder", {"stuck_encoder_at_sample": 300}, {"watchdog", "speed-limit", "travel-limit"}),
     ("tpdos-dropped", {"drop_tpdo_every": 1, "tpdo_faults_from_sample": 300}, {"watchdog"}),
     ("tpdos-corrupted", {"corrupt_tpdo_every": 1, "tpdo_faults_from_sample": 300}, {"watchdog", "protocol"}),
 ]

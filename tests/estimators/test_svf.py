@@ -121,17 +121,36 @@ def test_svf_tracks_a_20_percent_inertia_step_in_closed_loop():
 
 
 class _Worker:
+    """The control process as the supervisor sees it: requests in, ``result`` out when set."""
     ready = True
 
     def __init__(self):
         self.requests = []
+        self.result = None
 
     def submit(self, req):
         self.requests.append(req)
         return True
 
-    def poll(self):
-        return None
+    def take(self):
+        out, self.result = ([self.result] if self.result is not None else []), None
+        return out
+
+    def unpack(self, msgs):
+        return msgs[-1] if msgs else None
+
+
+def _offer(sup, ident, trusted=False):
+    """A fit result offered on one tick; the redesign it decides on is asked for on the next (poll)."""
+    sup.offer(ident, trusted)
+    sup.poll()
+
+
+def _answer(sup, w, result):
+    """The control process answers: taken on one tick, unpickled and applied on the next."""
+    w.result = result
+    sup.poll()
+    sup.poll()
 
 
 def _supervisor(per_sample):
@@ -152,16 +171,16 @@ def _fake_svf(p: AxisParams):
 def test_redesign_follows_the_per_sample_estimate_only_when_the_frequency_fit_agrees():
     moved = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
     sup, w = _supervisor(_fake_svf(moved))
-    sup.offer(_ident(AxisParams(I1=P.I1, I2=2.4 * P.I2, B=P.B, K=P.K), trusted=True), True)   # 25 % apart
+    _offer(sup, _ident(AxisParams(I1=P.I1, I2=2.4 * P.I2, B=P.B, K=P.K), trusted=True), True)   # 25 % apart
     assert w.requests == [] and sup.stats.checks_disagreed == 1
-    sup.offer(_ident(AxisParams(I1=P.I1, I2=2.95 * P.I2, B=P.B, K=P.K)), False)   # within 5 %
+    _offer(sup, _ident(AxisParams(I1=P.I1, I2=2.95 * P.I2, B=P.B, K=P.K)))   # within 5 %
     assert len(w.requests) == 1 and sup.stats.checks_agreed == 1
     assert w.requests[0]["params"]["I2"] == pytest.approx(3 * P.I2)      # the per-sample estimate
 
 
 def test_a_diverging_frequency_fit_withholds_trust_but_does_not_trigger_a_fallback():
     sup, w = _supervisor(_fake_svf(P))
-    sup.offer(_ident(AxisParams(I1=P.I1, I2=1e-12, B=1e-9, K=1e-5)), False)
+    _offer(sup, _ident(AxisParams(I1=P.I1, I2=1e-12, B=1e-9, K=1e-5)))
     assert w.requests == [] and sup.stats.fallbacks == 0
 
 
@@ -175,14 +194,13 @@ def test_a_finished_design_for_an_axis_that_has_since_changed_is_not_applied():
     before = sup.controller
     design = model_controller(P, 1e-3, ControlSettings())
     sup._pending = True
-    w.poll = lambda: {"accepted": True, "controller": design, "seq": 1}
     est.params = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)          # the axis changed meanwhile
-    sup.poll()
+    _answer(sup, w, {"accepted": True, "controller": design, "seq": 1})
     assert sup.controller is before and sup.stats.accepted == 0 and sup.stats.rejected == 1
     assert "stale" in sup.stats.reasons[0] and "I2" in sup.stats.reasons[0]
     sup._pending = True
     est.params = AxisParams(I1=P.I1, I2=1.01 * P.I2, B=P.B, K=P.K)       # unchanged (within 5 %): applied
-    sup.poll()
+    _answer(sup, w, {"accepted": True, "controller": design, "seq": 1})
     assert sup.controller.gains is design.gains and sup.stats.accepted == 1
 
 
@@ -197,8 +215,7 @@ def test_a_fallback_that_no_longer_suits_the_axis_is_replaced_and_the_held_desig
     s = ControlSettings()
     design, fallback = model_controller(heavy, 1e-3, s), rigid_controller(heavy, 1e-3, s)
     sup._pending = True
-    w.poll = lambda: {"accepted": True, "controller": design, "fallback": fallback, "fallback_reason": "why", "seq": 1}
-    sup.poll()
+    _answer(sup, w, {"accepted": True, "controller": design, "fallback": fallback, "fallback_reason": "why", "seq": 1})
     assert sup.conservative is fallback and sup.controller.gains is fallback.gains      # not the model design yet
     assert [e[1] for e in sup.stats.events[-2:]] == ["accepted", "fallback redesigned"]
     sup._watch(0.1, 0.1 * s.max_error_m)                 # back within the bound: the held design goes in
@@ -232,12 +249,11 @@ def test_the_summary_reports_each_redesign_request_its_cause_and_its_latency():
     sup, w = _supervisor(_fake_svf(moved))
     sup.adopt(model_controller(P, 1e-3, ControlSettings()))
     sup.t = 2.0
-    sup.offer(_ident(AxisParams(I1=P.I1, I2=2.95 * P.I2, B=P.B, K=P.K)), False)
+    _offer(sup, _ident(AxisParams(I1=P.I1, I2=2.95 * P.I2, B=P.B, K=P.K)))
     assert len(w.requests) == 1
     design = model_controller(moved, 1e-3, ControlSettings())
-    w.poll = lambda: {"accepted": True, "controller": design, "cpu_s": 0.07}
     sup.t = 2.3
-    sup.poll()
+    _answer(sup, w, {"accepted": True, "controller": design, "cpu_s": 0.07})
     r = sup.summary()["redesigns"]
     assert r["requested"] == 1 and r["requested_for"] == {"I2": 1} and r["accepted"] == 1
     assert r["latency_s"]["max"] == pytest.approx(0.3) and r["worker_cpu_s"]["last"] == pytest.approx(0.07)
@@ -251,5 +267,24 @@ def test_a_small_move_of_b_alone_asks_for_no_redesign_but_the_same_move_of_i2_do
                          (AxisParams(I1=P.I1, I2=P.I2, B=1.2 * P.B, K=P.K), True)):
         sup, w = _supervisor(_fake_svf(moved))
         sup.adopt(model_controller(P, 1e-3, ControlSettings()))
-        sup.offer(_ident(moved), False)
+        _offer(sup, _ident(moved))
         assert (len(w.requests) == 1) is asked, moved
+
+
+def test_a_redesign_is_asked_for_taken_and_adopted_on_three_ticks_not_one():
+    # each step is a few hundred microseconds of Python: one tick holding them all passed its period
+    from rt_ident.control.adaptation import model_controller
+
+    moved = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
+    sup, w = _supervisor(_fake_svf(moved))
+    sup.adopt(model_controller(P, 1e-3, ControlSettings()))
+    before = sup.controller
+    sup.offer(_ident(AxisParams(I1=P.I1, I2=2.95 * P.I2, B=P.B, K=P.K)), False)
+    assert w.requests == [] and sup._pending                          # decided, not yet asked
+    sup.poll()
+    assert len(w.requests) == 1                                       # asked on the next tick
+    w.result = {"accepted": True, "controller": model_controller(moved, 1e-3, ControlSettings()), "seq": 1}
+    sup.poll()
+    assert sup.controller is before and w.result is None              # taken, not yet applied
+    sup.poll()
+    assert sup.controller is not before and sup.stats.accepted == 1 and not sup._pending
