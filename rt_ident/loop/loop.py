@@ -198,6 +198,7 @@ class IdentificationLoop(TelemetryWindow):
         self._shown_controller: Any = None
         self.publish_every = max(1, publish_every)
         self.fit_phase = 3                       # the fit exchange's 10-tick cycle starts here (_fit_exchange)
+        self.control_phase = 0                   # the supervisor's redesign steps run on ticks of this parity
         # snapshot to send, results taken, result to offer, FRF to draw (_fit_exchange)
         self._fit_stage: list[Any] = [None, None, None, None]
         self.stride = max(1, telemetry_stride)
@@ -440,9 +441,15 @@ class IdentificationLoop(TelemetryWindow):
             tk.clear_schedule(self.book_i, self.book_f)
         self._resume = None
         u = ctl.tick(t, *state)
-        ctl.poll()
+        if self.control_turn(self.stats.ticks):
+            ctl.poll()
         if not tk.schedule_torque(self.book_i, self.book_f, last, ctl.law.delay * self._per_tick, u):
             raise RtIdentError(f"more than {tk.SCHED_CAP} control torques in flight (delay {ctl.law.delay} ticks)")
+
+    def control_turn(self, tick: int) -> bool:
+        """Whether the supervisor takes its next redesign step on ``tick`` (every other tick, the axes
+        of a multi-axis loop on alternate ones)."""
+        return (tick - self.control_phase) % 2 == 0
 
     def _write_plan(self) -> None:
         start, core = self._plan_start, self._core
@@ -511,6 +518,8 @@ class MultiAxisLoop:
             # ... and their fit exchanges (five steps in a 10-tick cycle; a step's last one, drawing an
             # FRF, is rare: a view comes every few seconds) on other ticks still
             ax.fit_phase = 2 + (4 * i) % 10
+            # ... and their supervisors' redesign steps (a few hundred microseconds each) on alternate ticks
+            ax.control_phase = i % 2
         last_cpu = 0.0
         spent = [0.0] * len(axes)
         any_simulated = any(ax.backend.simulated for ax in axes)

@@ -369,7 +369,7 @@ class AxisCore:
         if code & (tk.PY_CONTROL | tk.PY_SAFETY | tk.PY_TELEMETRY | tk.SCHED_FULL):
             self._finish_in_python(loop, block, code, lateness_s)
             return True
-        if ctl is not None and ctl._pending:
+        if ctl is not None and ctl._pending and loop.control_turn(tick):
             ctl.poll()
         if code & (tk.TEL_SENT | tk.TEL_DROPPED | tk.WINDOW_DUE):
             self._telemetry_sent(loop, code)
@@ -444,7 +444,7 @@ class AxisCore:
             raise RtIdentError(f"more than {tk.SCHED_CAP} control torques in flight (delay {ctl.law.delay} ticks)")
         if code & tk.PY_CONTROL:
             loop._control(ctl, block, states)
-        elif ctl is not None:
+        elif ctl is not None and loop.control_turn(loop.stats.ticks):
             ctl.poll()
         if code & (tk.PY_CONTROL | tk.PY_SAFETY):
             loop._check_safety(block, states)

@@ -301,3 +301,31 @@ def test_an_xy_run_refuses_serve_and_a_connect_without_url():
         run_axes(_xy(), sink="serve")
     with pytest.raises(ConfigError, match="connect_url"):
         run_axes(_xy(), sink="connect")
+
+
+def test_the_axes_supervisors_take_their_redesign_steps_on_alternate_ticks(monkeypatch):
+    # each step (a request, taking a design, adopting it) is a few hundred microseconds of Python:
+    # both axes' on one tick passed the period
+    from rt_ident.control.adaptation import Supervisor
+    from rt_ident.loop.loop import MultiAxisLoop
+
+    loops: list = []
+    init, poll = MultiAxisLoop.__init__, Supervisor.poll
+    steps: dict[int, set[int]] = {}
+
+    def keep(self, *a, **k):
+        init(self, *a, **k)
+        loops.append(self)
+
+    def counted(self):
+        if self._pending and loops:
+            steps.setdefault(loops[0].stats.ticks, set()).add(id(self))
+        poll(self)
+
+    monkeypatch.setattr(MultiAxisLoop, "__init__", keep)
+    monkeypatch.setattr(Supervisor, "poll", counted)
+    s = run_axes(_xy(**{"loop.duration": 1.0, "loop.realtime": False, "telemetry.sink": "off",
+                        "recording.enabled": False}))
+    assert s["stop"]["cause"] is None
+    assert len({sup for both in steps.values() for sup in both}) == 2          # both axes asked for a redesign
+    assert all(len(both) == 1 for both in steps.values()), sorted(t for t, b in steps.items() if len(b) > 1)
