@@ -75,7 +75,7 @@ class Helpers:
         lost: list[str] = []
         for h in self.axes.values():                    # the job processes end while the files are finished
             for job in (h.fit, h.control):
-                if job is not None and hasattr(job, "begin_close"):
+                if job is not None:
                     job.begin_close()
         for axis, h in self.axes.items():
             rep: dict[str, Any] = {}
