@@ -20,6 +20,11 @@ plan. A host that stops planning (stalled, or without fresh feedback) then
 leaves the axis coasting instead of accelerating it under a held torque: a
 drive in torque mode applies whatever it was last sent, for as long as it is
 enabled.
+
+Polarity: ``torque_sign``, ``motor_encoder_sign`` and ``scale_sign`` (each +1 or -1, from the backend's
+config) are applied here, so that everything above the backend sees one convention: positive torque
+accelerates theta1 positive, and theta2 = x / lead follows theta1. The hooks below work in the device's
+own convention (what it is sent, what it reports).
 """
 
 from __future__ import annotations
@@ -80,6 +85,13 @@ class SampleBlock:
         return SampleBlock(z, np.empty(0, dtype=np.int64), z, z, z, z if with_measured else None)
 
 
+def _sign(cfg: Mapping[str, Any], key: str) -> int:
+    v = cfg.get(key, 1)
+    if isinstance(v, bool) or v not in (1, -1):
+        raise ConfigError(f"backend.{key}", f"must be 1 or -1, got {v!r}")
+    return int(v)
+
+
 class State(enum.Enum):
     CREATED = "created"
     OPEN = "open"
@@ -104,6 +116,9 @@ class Backend(ABC):
         if not limit > 0:
             raise ConfigError("backend.torque_limit", f"must be > 0, got {limit!r}")
         self.torque_limit: float = limit
+        self.torque_sign = _sign(cfg, "torque_sign")
+        self.motor_encoder_sign = _sign(cfg, "motor_encoder_sign")
+        self.scale_sign = _sign(cfg, "scale_sign")
         self.state = State.CREATED
         self.clamped = 0            # commands clamped to the torque limit
         self.last_torque = 0.0      # last value that left the host
@@ -136,7 +151,34 @@ class Backend(ABC):
     def read(self) -> SampleBlock:
         if self.state is not State.ACTIVE:
             raise BackendStateError(f"read() in state {self.state.value}")
-        return self._read()
+        block = self._read()
+        if self.torque_sign == self.motor_encoder_sign == self.scale_sign == 1:
+            return block
+        return self._to_host(block)
+
+    def _to_host(self, b: SampleBlock) -> SampleBlock:
+        """A device block in the host's convention (the signs; see the module docstring)."""
+        st, s1, s2 = self.torque_sign, self.motor_encoder_sign, self.scale_sign
+        return SampleBlock(b.t, b.seq, b.theta1 if s1 == 1 else -b.theta1, b.theta2 if s2 == 1 else -b.theta2,
+                           b.torque_cmd if st == 1 else -b.torque_cmd,
+                           None if b.torque_meas is None else b.torque_meas if st == 1 else -b.torque_meas,
+                           b.lost)
+
+    @property
+    def signs(self) -> dict[str, int]:
+        """The polarity settings in force (host side)."""
+        return {"torque_sign": self.torque_sign, "motor_encoder_sign": self.motor_encoder_sign,
+                "scale_sign": self.scale_sign}
+
+    def identity(self) -> dict[str, Any]:
+        """What the device says it is, while open (before or after activation): identity objects,
+        limits, polarity. Empty when the device has nothing to say."""
+        if self.state not in (State.OPEN, State.ACTIVE):
+            raise BackendStateError(f"identity() in state {self.state.value}")
+        return self._identity()
+
+    def _identity(self) -> dict[str, Any]:
+        return {}
 
     def read_position(self) -> tuple[float, float] | None:
         """(theta1, theta2) [rad] while open and not yet active: where the axis is before anything is
@@ -144,7 +186,10 @@ class Backend(ABC):
         say before it streams."""
         if self.state is not State.OPEN:
             raise BackendStateError(f"read_position() in state {self.state.value}")
-        return self._read_position()
+        pos = self._read_position()
+        if pos is None:
+            return None
+        return self.motor_encoder_sign * pos[0], self.scale_sign * pos[1]
 
     def _read_position(self) -> tuple[float, float] | None:
         return None
@@ -178,16 +223,17 @@ class Backend(ABC):
             if hi > lim or lo < -lim:
                 self.clamped += int(np.count_nonzero(np.abs(values) > lim))
                 values = np.clip(values, -lim, lim)
+        sent = values if self.torque_sign == 1 else -values
         if values.ndim == 0:
-            self._write_hold(float(values))
+            self._write_hold(float(sent))
             self.last_torque = float(values)
         else:
             if start_seq is None:
                 raise DriverError("a torque plan (array) needs start_seq")
             if lease is not None and values.size and lease >= 0:
-                self._write_leased_plan(values, int(start_seq), int(lease))
+                self._write_leased_plan(sent, int(start_seq), int(lease))
             else:
-                self._write_plan(values, int(start_seq))
+                self._write_plan(sent, int(start_seq))
             if values.size:
                 self.last_torque = float(values[-1])
                 if lease is not None and lease < 0:

@@ -156,10 +156,31 @@ class ControlConfig(_Section):
                                   if k in ControlSettings.__dataclass_fields__})
 
 
+Sign = Literal[1, -1]
+
+
 class ActualPlant(_Section):
-    """``[plant.actual]``: the simulated device's own truth where it differs from the host's config."""
+    """``[plant.actual]``: the simulated or emulated device's own truth where it differs from what the
+    host is told (``[backend]``, ``[axis]``). Each key left out: the device is what the host is told."""
 
     x0: float = Field(0.0, allow_inf_nan=False, ge=-10.0, le=10.0)   # m: the table's start on the scale
+    torque_sign: Sign | None = None        # -1: the motor is wired the other way (torque acts reversed)
+    motor_encoder_sign: Sign | None = None  # -1: the motor encoder counts the other way
+    scale_sign: Sign | None = None         # -1: the linear scale counts the other way
+    counts_per_rev: int | None = Field(None, ge=1)           # the motor encoder's true counts per revolution
+    scale_resolution: float | None = Field(None, gt=0, le=1e-3)  # m per scale count, truly
+    lead: float | None = Field(None, gt=0, le=0.1)           # m/rad the screw truly moves the table
+    rated_torque: float | None = Field(None, gt=0)           # N m: the drive's true 0x6076 (CiA 402 only)
+    torque_scale: float | None = Field(None, gt=0, le=100)   # actual torque per commanded N m (a wrong torque
+    #                                                          constant; the device reports what it believes)
+
+    def device_truth(self) -> dict[str, Any]:
+        """The keys given, other than ``x0``: what the device truly is (``actual`` of a device's options)."""
+        return {k: v for k, v in self.model_dump(exclude={"x0"}).items() if v is not None}
+
+
+#: the ``[plant.actual]`` keys each simulated device takes (the sim has no CiA 402 rated torque)
+ACTUAL_KEYS = tuple(k for k in ActualPlant.model_fields if k != "x0")
 
 
 class PlantConfig(_Section):
@@ -170,7 +191,8 @@ class PlantConfig(_Section):
     change: list[dict[str, float]] = Field(default_factory=list)  # {at = s, I1/I2/B/K = factor}
     friction: dict[str, Any] | None = None
     # the simulated device as it truly is where it differs from what the host is told: x0 = where the
-    # table starts [m on the scale] (handed to the sim backend or the emulator as its x0)
+    # table starts [m on the scale] (handed to the sim backend or the emulator as its x0), the rest as
+    # its ``actual`` table (ActualPlant)
     actual: ActualPlant | None = None
 
     @model_validator(mode="after")
@@ -326,8 +348,12 @@ class RunConfig(_Section):
         if plant.get("friction") is not None:
             moved["friction"] = dict(plant["friction"]) if isinstance(plant["friction"], dict) else plant["friction"]
         actual = plant.get("actual")
-        if isinstance(actual, dict) and "x0" in actual:
-            moved["x0"] = actual["x0"]
+        if isinstance(actual, dict):
+            if "x0" in actual:
+                moved["x0"] = actual["x0"]
+            truth = {k: v for k, v in actual.items() if k != "x0"}
+            if truth:
+                moved["actual"] = truth
         if not moved:
             return data
         if not isinstance(data.get("backend") or {}, dict) or not isinstance(data.get("emulator") or {}, dict):
