@@ -59,6 +59,30 @@ MAX_PLAN_LEAD = 1 << 22
 MIN_SAMPLE_PERIOD = 1e-6
 
 
+class SimActual(BaseModel):
+    """What the simulated device truly is where it differs from what the host is told
+    (``[plant.actual]``; :class:`rt_ident.config.ActualPlant`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    torque_sign: Literal[1, -1] = 1         # -1: the motor turns against the torque the drive applies
+    motor_encoder_sign: Literal[1, -1] = 1
+    scale_sign: Literal[1, -1] = 1
+    counts_per_rev: int | None = Field(None, ge=1)
+    scale_resolution: float | None = Field(None, gt=0, le=1e-3)
+    lead: float | None = Field(None, gt=0, le=0.1)
+    torque_scale: float = Field(1.0, gt=0, le=100)  # physical torque per N m the drive believes it applies
+    rated_torque: float | None = None
+
+    @field_validator("rated_torque")
+    @classmethod
+    def _no_rated_torque(cls, v: float | None) -> float | None:
+        if v is not None:
+            raise ValueError("the sim has no drive rating object (0x6076 is CiA 402); give torque_scale = "
+                             "actual torque per commanded N m instead")
+        return v
+
+
 class SimConfig(BaseModel):
     """Options of the ``sim`` backend (the ``[backend]`` table minus ``name``)."""
 
@@ -88,6 +112,12 @@ class SimConfig(BaseModel):
     # None / all zero: the frictionless plant. [plant.friction] of a run config lands here.
     friction: dict[str, Any] | None = None
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: the table's start on the scale (at rest)
+    # host-side polarity (drivers.base)
+    torque_sign: Literal[1, -1] = 1
+    motor_encoder_sign: Literal[1, -1] = 1
+    scale_sign: Literal[1, -1] = 1
+    # the simulated device's own truth where it differs from the keys above ([plant.actual] of a run config)
+    actual: SimActual | None = None
 
     @field_validator("travel")
     @classmethod
@@ -128,6 +158,8 @@ def _validate(config: Mapping[str, Any] | None) -> SimConfig:
         msg = str(err["msg"]).removeprefix("Value error, ")
         if not loc and ": " in msg:                  # a model check that names its field itself
             loc, msg = msg.split(": ", 1)
+        if loc.startswith("actual."):
+            raise ConfigError(f"plant.{loc}", msg) from None
         raise ConfigError(f"backend.{loc}" if loc else "backend", msg) from None
 
 
@@ -143,13 +175,24 @@ class SimBackend(Backend):
     def __init__(self, config: Mapping[str, Any] | None = None, *,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         cfg = _validate(config)
-        super().__init__({"torque_limit": cfg.torque_limit})
+        super().__init__({"torque_limit": cfg.torque_limit, "torque_sign": cfg.torque_sign,
+                          "motor_encoder_sign": cfg.motor_encoder_sign, "scale_sign": cfg.scale_sign})
         self.config = cfg
-        self.true_params: AxisParams = (AxisParams.from_mapping(cfg.axis, where="backend.axis")
-                                        if cfg.axis is not None else thomson_x())
+        told: AxisParams = (AxisParams.from_mapping(cfg.axis, where="backend.axis")
+                            if cfg.axis is not None else thomson_x())
+        act = cfg.actual or SimActual()
+        #: the plant as it truly is (the host's axis, with the true lead)
+        self.true_params = dataclasses.replace(told, lead=act.lead or told.lead)
+        # the device's true sensors and torque against what the host converts with (1.0: they agree)
+        cpr, res = act.counts_per_rev or cfg.counts_per_rev, act.scale_resolution or cfg.scale_resolution
+        self._k_torque = act.torque_sign * act.torque_scale
+        self._k_theta1 = act.motor_encoder_sign * (cpr / cfg.counts_per_rev if cfg.counts_per_rev and cpr else 1.0)
+        self._k_theta2 = (act.scale_sign * self.true_params.lead / told.lead
+                          * (cfg.scale_resolution / res if cfg.scale_resolution and res else 1.0))
+        self._k_identity = self._k_torque == self._k_theta1 == self._k_theta2 == 1.0
         self._dt = cfg.sample_period
         self.samples_per_read = cfg.samples_per_read or max(1, round(1e-3 / self._dt))
-        self.sensors = SensorConfig(counts_per_rev=cfg.counts_per_rev, scale_resolution=cfg.scale_resolution,
+        self.sensors = SensorConfig(counts_per_rev=cpr, scale_resolution=res,
                                     angle_noise=cfg.angle_noise, torque_meas_noise=cfg.torque_meas_noise,
                                     torque_process_noise=cfg.torque_process_noise)
         self.controller = (HoldController(kp=DEFAULT_KP if cfg.kp is None else cfg.kp,
@@ -182,7 +225,7 @@ class SimBackend(Backend):
         cfg = self.config
         params = self.plant.params if hasattr(self, "plant") else self.true_params
         return PlantSimulator(params, self._dt, sensors=self.sensors, controller=controller,
-                              torque_limit=cfg.torque_limit, travel=cfg.travel,
+                              torque_limit=cfg.torque_limit * abs(self._k_torque), travel=cfg.travel,
                               integrator=cfg.integrator, seed=cfg.seed, x0=x0, friction=self.friction)
 
     @property
@@ -211,7 +254,7 @@ class SimBackend(Backend):
 
     def _read_position(self) -> tuple[float, float]:
         st = self.plant.state
-        return float(st[0]), float(st[2])
+        return self._k_theta1 * float(st[0]), self._k_theta2 * float(st[2])
 
     def _activate(self) -> None:
         self._produced = 0
@@ -234,7 +277,7 @@ class SimBackend(Backend):
         where it covers them, the held torque before it, its last value after it; they leave the plan."""
         cmd = np.empty(n)
         plan_take(self._plan_buf, self._plan_meta, self._plan_hold, cmd, self._stepped)
-        return cmd
+        return cmd if self._k_identity else cmd * self._k_torque
 
     @property
     def _hold(self) -> float:
@@ -258,7 +301,7 @@ class SimBackend(Backend):
         p = self._stepped
         blk = self._step(self._commands(n), p)
         self._stepped = p + n
-        new = _delivered(blk, p, self._dt)
+        new = self._delivered(blk, p)
         if self._ahead is None:
             self._ahead = new
         else:                               # what the last read left (the copying is done here, not in read)
@@ -298,7 +341,7 @@ class SimBackend(Backend):
             t, seq, th1, th2, cmd, applied, meas = self._take_ahead(n)
         elif ahead == 0:
             b = self._step(self._commands(n), p)
-            t, seq, th1, th2, cmd, applied, meas = _delivered(b, p, self._dt)
+            t, seq, th1, th2, cmd, applied, meas = self._delivered(b, p)
             self._stepped = p + n
         elif ahead >= n or self._ahead_trip is not None:
             n = min(n, ahead)               # after a trip the drive is off: nothing after its samples
@@ -307,7 +350,7 @@ class SimBackend(Backend):
             first = self._take_ahead(ahead)
             b = self._step(self._commands(n - ahead), self._stepped)
             t, seq, th1, th2, cmd, applied, meas = (np.concatenate(pair) for pair in
-                                                    zip(first, _delivered(b, self._stepped, self._dt)))
+                                                    zip(first, self._delivered(b, self._stepped)))
             self._stepped = p + n
         self._produced = p + n
         self.applied_torque = float(applied[-1])
@@ -323,6 +366,18 @@ class SimBackend(Backend):
             self._disable()
             raise TravelLimitTrip(f"sim: {self.tripped}; torque stopped")
         return out
+
+    def _delivered(self, blk: PlantBlock, first: int) -> tuple[np.ndarray, ...]:
+        """What read() hands out of a block stepped from sample ``first`` on (and step_ahead keeps): t, seq,
+        theta1, theta2, torque_cmd, torque_applied, torque_meas. The device clock: sample seq is at seq * dt.
+        Angles as the device's sensors count them, torques as the device believes it applies them (the
+        physical torque is torque_applied)."""
+        seq = np.arange(first, first + blk.theta1.shape[0], dtype=np.int64)
+        if self._k_identity:
+            return seq * self._dt, seq, blk.theta1, blk.theta2, blk.torque_cmd, blk.torque_applied, blk.torque_meas
+        k = 1.0 / self._k_torque
+        return (seq * self._dt, seq, blk.theta1 * self._k_theta1, blk.theta2 * self._k_theta2, blk.torque_cmd * k,
+                blk.torque_applied, blk.torque_meas * k)
 
     def _step(self, cmd: np.ndarray, p: int) -> PlantBlock:
         """Step the plant over seq [p, p + len(cmd)), applying each due change at its exact sample."""
@@ -394,11 +449,6 @@ class SimBackend(Backend):
         self._disable()
 
 
-def _delivered(blk: PlantBlock, first: int, dt: float) -> tuple[np.ndarray, ...]:
-    """What read() hands out of a block stepped from sample ``first`` on (and step_ahead keeps): t, seq,
-    theta1, theta2, torque_cmd, torque_applied, torque_meas. The device clock: sample seq is at seq * dt."""
-    seq = np.arange(first, first + blk.theta1.shape[0], dtype=np.int64)
-    return seq * dt, seq, blk.theta1, blk.theta2, blk.torque_cmd, blk.torque_applied, blk.torque_meas
 
 
 def _changes(entries: list[dict[str, float]], base: AxisParams, dt: float) -> list[tuple[int, AxisParams]]:

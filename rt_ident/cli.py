@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from rt_ident.errors import RtIdentError, require
+from rt_ident.errors import ConfigError, RtIdentError, require
 from rt_ident.outputs.text import fmt, json_default, um
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -317,8 +317,8 @@ def run(
     no_telemetry: bool = typer.Option(False, "--no-telemetry", help="No rerun streaming."),
     method: str | None = typer.Option(None, "--method", help="Streaming estimator (frequency, paper)."),
     control: str | None = typer.Option(None, "--control",
-                                          help="Host position loop: adaptive, fixed (nominal design) or off "
-                                               "(excitation only; needs a drive-side hold)."),
+                                       help="Host position loop: adaptive, fixed (nominal design), conservative "
+                                            "(rigid-body) or off (excitation only; needs a drive-side hold)."),
     no_realtime: bool = typer.Option(False, "--no-realtime", help="Do not ask for SCHED_FIFO/mlockall."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --rrd / --record file."),
@@ -327,8 +327,8 @@ def run(
     from rt_ident import config as cfgmod
 
     sink = "off" if no_telemetry else "spawn" if spawn else "connect" if connect else "serve" if serve else None
-    if control is not None and control not in ("adaptive", "fixed", "off"):
-        raise typer.BadParameter(f"--control must be adaptive, fixed or off, got {control!r}")
+    if control is not None and control not in ("adaptive", "fixed", "conservative", "off"):
+        raise typer.BadParameter(f"--control must be adaptive, fixed, conservative or off, got {control!r}")
     overrides = {"loop.duration": duration, "estimator.method": method, "control.mode": control}
     if no_realtime:
         overrides["loop.realtime"] = False
@@ -589,6 +589,54 @@ def identify(
         out.print(f"validation on {v['file']}: torque prediction error {v['torque_error_percent']:.2f} % "
                   f"(correlation {v['correlation']:.4f}, {v['samples_used']} samples in motion)")
     _print_trust(d.get("trust"), d["trusted"])
+
+
+# --------------------------------------------------------------------------- commission
+@app.command()
+def commission(
+    config: Path = typer.Argument(..., help="The axis's run config (TOML)."),
+    out_dir: Path | None = typer.Option(None, "--out", help="Folder for the report and the [axis] snippet "
+                                             "(default runs/commission-DATE-TIME)."),
+    json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
+) -> None:
+    """Check a real axis before closing the loop on it: signs, scales, torque, then identify, design and
+    verify with a small move; write an HTML report and an [axis] snippet. Exit 0 pass, 3 a failed check."""
+    import datetime as _dt
+
+    from rt_ident import config as cfgmod
+
+    cfg = cfgmod.load(config)
+    if cfg.axes:
+        raise ConfigError("axes", "commission one axis at a time: give a config per axis (copy the axis's "
+                                  "[axes.NAME] sections to the top level)")
+    folder = out_dir or Path("runs") / f"commission-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    if folder.exists() and any(folder.iterdir()):
+        raise ConfigError("--out", f"{folder} exists and is not empty; choose another folder")
+    from rt_ident.commission.stages import commission as run_commission
+
+    def progress(msg: str) -> None:
+        if not json_out:
+            err.print(msg, highlight=False)
+
+    result = run_commission(cfg, folder, progress)
+    if json_out:
+        typer.echo(json.dumps(result, indent=2, default=json_default))
+    else:
+        for c in result["checks"]:
+            mark = "[green]pass[/green]" if c["ok"] else "[red]FAIL[/red]"
+            out.print(f"{mark} {escape(c['name'])}: {escape(_commission_value(c['measured']))}"
+                      + (f" - fix: {escape(str(c['fix']))}" if not c["ok"] else ""), highlight=False)
+        out.print(f"verdict: {result['verdict']} (stage {result['stage_reached']}); report {result['report']}"
+                  + (f"; \\[axis] for run: {result['axis_toml']}" if result.get("axis_toml") else ""), highlight=False)
+    raise typer.Exit(0 if result["verdict"] == "pass" else 3)
+
+
+def _commission_value(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_commission_value(x)}" for k, x in v.items())
+    return str(v)
 
 
 def _command():

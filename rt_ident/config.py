@@ -126,7 +126,8 @@ class EstimatorConfig(_Section):
 class ControlConfig(_Section):
     """The host's position loop (:mod:`rt_ident.control`)."""
 
-    mode: Literal["adaptive", "fixed", "off"] = "adaptive"  # off: excitation only (needs a drive-side hold)
+    # off: excitation only (needs a drive-side hold); conservative: the rigid-body controller throughout
+    mode: Literal["adaptive", "fixed", "conservative", "off"] = "adaptive"
     # a position loop below 1 Hz holds nothing, and its LQR design fails; effort beyond 1e-6..1e6 too
     bandwidth_hz: float = Field(20.0, ge=1)           # model controller (LQR on the identified model)
     effort: float = Field(1.0, ge=1e-6, le=1e6)       # torque weight multiplier: larger is gentler
@@ -249,6 +250,16 @@ class SafetyConfig(_Section):
         return v
 
 
+class CommissionConfig(_Section):
+    """``[commission]``: the bounds of ``rt-ident commission``'s open-loop probing and its stages."""
+
+    travel_m: float = Field(2e-3, gt=0, le=0.05)        # the table stays this close to where it stood
+    max_speed_m_s: float = Field(5e-3, gt=0, le=0.5)    # the probing's speed limit
+    torque_share: float = Field(0.5, gt=0, le=1)        # the pulses' torque at most this x the torque limit
+    identify_s: float = Field(5.0, ge=1, le=120)        # stage c: identification while holding
+    move_m: float = Field(5e-4, gt=0, le=0.01)          # stage d: the verification move
+
+
 class TelemetryConfig(_Section):
     sink: Literal["rrd", "spawn", "connect", "serve", "off"] = "rrd"
     rrd: str | None = None
@@ -277,6 +288,7 @@ class RunConfig(_Section):
     plant: PlantConfig = PlantConfig()
     telemetry: TelemetryConfig = TelemetryConfig()
     recording: RecordingConfig = RecordingConfig()
+    commission: CommissionConfig = CommissionConfig()
     # several axes in one run (an XY table): [axes.x], [axes.y], each overlaying the sections above
     # (axis, backend, estimator, control, safety, reference, plant, excitation) on this config
     axes: dict[str, dict[str, Any]] = Field(default_factory=dict)

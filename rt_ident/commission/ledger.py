@@ -1,0 +1,66 @@
+"""The record of commissioning ``run`` consults: one JSON file per device configuration, named by the
+hash of what commissioning checks (the backend's options and ``[plant.actual]``), in the user's state
+directory (``$RT_IDENT_STATE_DIR``, else ``$XDG_STATE_HOME/rt_ident``, else ``~/.local/state/rt_ident``).
+The file names are hashes: nothing the user types becomes a path."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from rt_ident.config import RunConfig
+
+
+def state_dir() -> Path:
+    env = os.environ.get("RT_IDENT_STATE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "rt_ident"
+
+
+def device_key(cfg: RunConfig) -> str:
+    """The hash of what commissioning checks: the backend's options (but where an emulator listens) and
+    the simulated device's truth."""
+    opts = {k: v for k, v in cfg.backend.options().items() if k not in ("port",)}
+    actual = cfg.plant.actual.model_dump() if cfg.plant.actual is not None else None
+    blob = json.dumps({"backend": cfg.backend.name, "emulate": cfg.backend.emulate, "options": opts,
+                       "actual": actual, "axis_lead": cfg.axis_params().lead}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:32]
+
+
+def record(cfg: RunConfig, result: dict[str, Any]) -> Path | None:
+    """Keep the verdict for ``cfg``'s device (atomically: a reader never sees half a file)."""
+    d = state_dir()
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        entry = {"verdict": result.get("verdict"), "failed": result.get("failed"), "config": cfg.source,
+                 "report": result.get("report"), "stage_reached": result.get("stage_reached")}
+        fd, tmp = tempfile.mkstemp(dir=d, suffix=".tmp")
+        with os.fdopen(fd, "w") as f:
+            json.dump(entry, f)
+        path = d / f"{device_key(cfg)}.json"
+        os.replace(tmp, path)
+        return path
+    except OSError:
+        return None
+
+
+def lookup(cfg: RunConfig) -> dict[str, Any] | None:
+    """The last commissioning verdict for ``cfg``'s device, or None when it was never commissioned."""
+    try:
+        return json.loads((state_dir() / f"{device_key(cfg)}.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def needs_commissioning(cfg: RunConfig) -> bool:
+    """A closed-loop run on a device whose picture the host may have wrong: any device but the plain sim
+    (whose plant is the config itself)."""
+    if cfg.control.mode == "off" or cfg.axes:
+        return False
+    return cfg.backend.name != "sim" or bool(cfg.plant.actual is not None and cfg.plant.actual.device_truth())

@@ -1,0 +1,278 @@
+"""Open-loop probing of an axis with small torque pulses, the host's position controller off.
+
+Each pulse, in one direction: the torque ramps up until the axis moves (the breakaway torque), on to that
+torque plus a push sized to reach a quarter of the speed limit in about 40 ms at the nominal inertia, then the same torque reversed
+until the commanded impulse is back to zero (the momentum the pulse gave, taken back: exact without
+friction), the speed has fallen to a twentieth of its peak (friction stopped it first), or twice the push
+has passed. This open-loop brake acts whatever the wiring's sign: the reversal is relative to the command
+and the speed a magnitude. Then zero torque. Every change of torque is a ramp. A pulse ends early once the
+table's speed would pass 0.4 x its limit within four ticks, or its distance from where the pulse
+started passes a quarter of the travel budget; if either limit is passed all the same, the pulse brakes
+and ends, and the check fails. Distance and speed are taken from both sensors, the scale
+(x) and the motor encoder (lead x theta1), and the larger is used: one wrong scaling cannot hide
+motion. Torque leaves the host as a short plan with a lease, so a stalled host leaves the axis
+coasting, not pushed.
+
+From the samples of a pulse: the direction theta1 and x moved in, the ratio dx/dtheta1 (a slope fit),
+and 1/J and the friction torque F from theta1(t) = c0 + c1 t + S(t)/J - F t^2 / (2 J), S the double
+integral of the commanded torque (a linear least-squares fit over the motion before it reverses).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.base import Backend
+from rt_ident.errors import RtIdentError
+
+#: target time to reach the pushing speed (a quarter of the speed limit) at the nominal inertia [s]
+PUSH_TIME_S = 0.04
+
+
+@dataclass(frozen=True)
+class ProbeLimits:
+    travel_m: float            # distance from where the table stood
+    max_speed_m_s: float
+    torque_cap: float          # N m no pulse exceeds
+    lead: float                # m/rad as configured
+    inertia: float             # nominal I1 + I2 [kg m^2]
+    motion_theta1: float       # rad: theta1 beyond this counts as motion
+    motion_x: float            # m: x beyond this counts as motion
+    tick_s: float = 1e-3
+
+
+@dataclass
+class Pulse:
+    direction: int
+    t: np.ndarray
+    theta1: np.ndarray
+    x: np.ndarray
+    torque: np.ndarray
+    breakaway_nm: float | None = None     # |torque| when the axis first moved
+    push_nm: float = 0.0
+    aborted: str | None = None            # a limit was passed: why
+    max_travel_m: float = 0.0
+    max_speed_m_s: float = 0.0
+    truth: dict[str, float] = field(default_factory=dict)   # a simulated device's own motion
+    drift: tuple[float, float] = (0.0, 0.0)   # (dtheta1/dt, dx/dt) at rest before the pulse
+    brake_at: int | None = None               # samples before the brake began (None: it never pushed)
+
+    def _own(self) -> tuple[np.ndarray, np.ndarray]:
+        """theta1 and x from the pulse's start, the drift at rest taken out (a table without static
+        friction still coasts from the pulse before)."""
+        t = self.t - self.t[0]
+        return (self.theta1 - self.theta1[0] - self.drift[0] * t, self.x - self.x[0] - self.drift[1] * t)
+
+    def moved(self) -> tuple[float, float]:
+        """(theta1, x) when the brake began, from the pulse's start: the motion the command's own
+        direction gave (the brake may overshoot it)."""
+        th, x = self._own()
+        k = (self.brake_at or th.size) - 1
+        return float(th[k]), float(x[k])
+
+    def ratio(self) -> float:
+        """dx/dtheta1 over the pulse (a slope fit of x on theta1)."""
+        th = self.theta1 - self.theta1.mean()
+        den = float(th @ th)
+        return float(th @ (self.x - self.x.mean()) / den) if den > 0 else math.nan
+
+    def dynamics(self, sample_period: float) -> tuple[float, float]:
+        """(1/J [rad/s^2 per N m], F [N m]) from theta1 over the motion before it first reverses."""
+        th, tq = self._own()[0], self.torque
+        if self.brake_at is None or self.brake_at < 2:
+            return math.nan, math.nan
+        d = int(np.sign(th[self.brake_at - 1])) or 1       # the way the push moved it
+        peak = int(np.argmax(d * th))                       # where the brake stopped it (not its overshoot)
+        moving = np.flatnonzero(d * th[:peak + 1] > 0)
+        if moving.size < 8:
+            return math.nan, math.nan
+        i0, i1 = int(moving[0]), peak + 1
+        t = np.arange(i1 - i0) * sample_period
+        s = np.cumsum(np.cumsum(tq[i0:i1])) * sample_period ** 2
+        a = np.column_stack([np.ones_like(t), t, s, -0.5 * d * t ** 2])
+        scale = np.linalg.norm(a, axis=0)
+        scale[scale == 0] = 1.0
+        coef, *_ = np.linalg.lstsq(a / scale, th[i0:i1], rcond=None)   # columns of like size: none cut off
+        coef = coef / scale
+        inv_j = float(coef[2])
+        return inv_j, float(coef[3] / inv_j) if inv_j else math.nan
+
+
+def _slope(t: np.ndarray, y: np.ndarray) -> float:
+    if t.size < 3:
+        return 0.0
+    tc = t - t.mean()
+    den = float(tc @ tc)
+    return float(tc @ (y - y.mean()) / den) if den > 0 else 0.0
+
+
+class Prober:
+    """Runs pulses on an active backend (see the module docstring)."""
+
+    def __init__(self, backend: Backend, limits: ProbeLimits) -> None:
+        self.b = backend
+        self.lim = limits
+        dt = backend.sample_period
+        self.plan_len = int(math.ceil(2 * limits.tick_s / dt)) + 2
+        self.lease = int(math.ceil(0.005 / dt))
+        self.next_seq = 0
+        self.start: tuple[float, float] | None = None     # (theta1, x) where the table stood
+        self.max_travel = 0.0
+        self.max_speed = 0.0
+        self._clock = time.perf_counter
+        self._tx0: float | None = None      # a simulated device's true table position at the start
+        self.drift = (0.0, 0.0, 0.0, 0.0, 0.0)   # (t, theta1, x, dtheta1/dt, dx/dt) at the end of the last rest
+
+    def _read(self) -> Any:
+        blk = self.b.read()
+        if len(blk):
+            self.next_seq = int(blk.seq[-1]) + 1
+        return blk
+
+    def _write(self, torque: float) -> None:
+        self.b.write(np.full(self.plan_len, torque), start_seq=self.next_seq, lease=self.lease)
+
+    def settle(self, seconds: float) -> None:
+        """Zero torque for ``seconds``, measuring the drift; the first call fixes where the table stands."""
+        end = self._clock() + seconds
+        stale = 0
+        got: list[Any] = []
+        while self._clock() < end:
+            blk = self._read()
+            if len(blk):
+                got.append(blk)
+            stale = 0 if len(blk) else stale + 1
+            if stale > 200:
+                raise ProbeError("no samples from the device for 0.2 s", "backend")
+            if len(blk) and self.start is None:
+                self.start = (float(blk.theta1[0]), self.lim.lead * float(blk.theta2[0]))
+                plant, true = getattr(self.b, "plant", None), getattr(self.b, "true_params", None)
+                if plant is not None and true is not None:     # a simulated device: its own truth
+                    self._tx0 = true.lead * float(plant.state[2])
+            self._write(0.0)
+            time.sleep(self.lim.tick_s)
+        if got:      # the drift at rest (a table without static friction coasts on): motion is measured from it
+            t = np.concatenate([g.seq for g in got]) * self.b.sample_period
+            half = t.size // 2
+            th, x = np.concatenate([g.theta1 for g in got]), self.lim.lead * np.concatenate([g.theta2 for g in got])
+            self.drift = (float(t[-1]), float(th[-1]), float(x[-1]), _slope(t[half:], th[half:]),
+                          _slope(t[half:], x[half:]))
+
+    def pulse(self, direction: int) -> Pulse:
+        lim, b = self.lim, self.b
+        self.settle(0.1)
+        assert self.start is not None
+        th0, x0 = self.start
+        ts, th1s, xs, tqs = [], [], [], []
+        ramp = lim.torque_cap / 400.0                    # the cap in 0.4 s: slow enough to find the breakaway
+        slew = ramp * 5.0
+        push_target = min(lim.torque_cap, lim.inertia * 0.25 * lim.max_speed_m_s / lim.lead / PUSH_TIME_S)
+        phase, torque, target = "ramp", 0.0, 0.0
+        out = Pulse(direction, *(np.empty(0),) * 4, drift=(self.drift[3], self.drift[4]))
+        t_push = t_brake = push_dur = peak = impulse = 0.0
+        t_written = self._clock()
+        rest = 0
+        stale = 0
+        p_th0: float | None = None
+        p_x0 = 0.0
+        deadline = self._clock() + 5.0
+        while True:
+            now = self._clock()
+            if now > deadline:
+                out.aborted = "the pulse did not end within 5 s"
+                break
+            blk = self._read()
+            if not len(blk):
+                stale += 1
+                if stale > 200:
+                    self._write(0.0)
+                    raise ProbeError("no samples from the device for 0.2 s", "backend")
+            else:
+                stale = 0
+                th1, x = blk.theta1, lim.lead * blk.theta2
+                if p_th0 is None:
+                    p_th0, p_x0 = float(th1[0]), float(x[0])
+                dt_d = float(blk.seq[-1]) * b.sample_period - self.drift[0]
+                drift_th, drift_x = self.drift[1] + self.drift[3] * dt_d, self.drift[2] + self.drift[4] * dt_d
+                ts.append(blk.seq * b.sample_period)
+                th1s.append(th1)
+                xs.append(x)
+                tqs.append(blk.torque_cmd)
+                travel = max(abs(float(x[-1]) - x0), abs(lim.lead * (float(th1[-1]) - th0)))
+                tw = ts[-1] if ts[-1].size >= 4 or len(ts) < 2 else np.concatenate(ts[-3:])
+                xw = xs[-1] if xs[-1].size >= 4 or len(xs) < 2 else np.concatenate(xs[-3:])
+                thw = th1s[-1] if th1s[-1].size >= 4 or len(th1s) < 2 else np.concatenate(th1s[-3:])
+                speed = max(abs(_slope(tw, xw)), abs(lim.lead * _slope(tw, thw)))
+                self.max_travel = max(self.max_travel, travel)
+                self.max_speed = max(self.max_speed, speed)
+                if self._tx0 is not None:
+                    st = b.plant.state      # type: ignore[attr-defined]
+                    lead = getattr(b, "true_params").lead      # noqa: B009 - a simulated device only
+                    out.truth["max_travel_m"] = max(out.truth.get("max_travel_m", 0.0),
+                                                    abs(lead * float(st[2]) - self._tx0))
+                    out.truth["max_speed_m_s"] = max(out.truth.get("max_speed_m_s", 0.0),
+                                                     abs(lead * float(st[3])))
+                if (travel > lim.travel_m or speed > lim.max_speed_m_s) and out.aborted is None:
+                    out.aborted = (f"{'travel' if travel > lim.travel_m else 'speed'} limit passed "
+                                   f"({travel * 1e3:.3f} mm, {speed * 1e3:.2f} mm/s)")
+                    if phase == "push":                 # brake what the push gave, as a pulse ends
+                        push_dur = now - t_push
+                        phase, target, t_brake = "brake", -direction * out.push_nm, now
+                        peak = speed
+                        out.brake_at = sum(a.size for a in ts)
+                    elif phase == "ramp":
+                        phase, target = "rest", 0.0
+                moved = (abs(float(th1[-1]) - drift_th) > lim.motion_theta1
+                         or abs(float(x[-1]) - drift_x) > lim.motion_x)
+                pulse_travel = max(abs(float(x[-1]) - p_x0), abs(lim.lead * (float(th1[-1]) - p_th0)))
+                if phase == "ramp":
+                    if moved:
+                        out.breakaway_nm = abs(torque)
+                        out.push_nm = min(lim.torque_cap, abs(torque) + push_target)   # friction + the push
+                        phase, target, t_push = "push", direction * out.push_nm, now
+                    elif abs(torque) >= lim.torque_cap:
+                        phase, target = "rest", 0.0
+                elif phase == "push":
+                    accel = abs(_slope(tw, np.gradient(xw, tw))) if tw.size >= 4 else 0.0
+                    if (speed + 4 * lim.tick_s * accel >= 0.4 * lim.max_speed_m_s
+                            or pulse_travel >= 0.25 * lim.travel_m or now - t_push > 0.3):
+                        push_dur = now - t_push
+                        phase, target, t_brake = "brake", -direction * out.push_nm, now
+                        peak = speed
+                        out.brake_at = sum(a.size for a in ts)
+                elif phase == "brake":
+                    peak = max(peak, speed)
+                    # the commanded impulse back to zero: the momentum the pulse gave, taken back
+                    if direction * impulse <= 0.0 or now - t_brake >= 2.0 * push_dur or speed < 0.05 * peak:
+                        phase, target = "rest", 0.0
+            if phase == "ramp":
+                target = direction * min(lim.torque_cap, abs(target) + ramp)
+            step = slew if phase != "ramp" else ramp
+            if phase == "brake":                     # no overshoot of the impulse on the way back
+                step = min(step, max(abs(impulse) / lim.tick_s, 0.0) + abs(torque))
+            torque = torque + max(-step, min(step, target - torque))
+            self._write(torque)
+            t_now = self._clock()
+            impulse += torque * (t_now - t_written)
+            t_written = t_now
+            if phase == "rest" and torque == 0.0:
+                rest += 1
+                if rest >= 50:
+                    break
+            time.sleep(lim.tick_s)
+        if ts:
+            out.t, out.theta1, out.x, out.torque = (np.concatenate(a) for a in (ts, th1s, xs, tqs))
+        out.max_travel_m, out.max_speed_m_s = self.max_travel, self.max_speed
+        return out
+
+class ProbeError(RtIdentError):
+    """The probe could not go on (no samples): the message, and the config key that may fix it."""
+
+    def __init__(self, message: str, key: str) -> None:
+        super().__init__(message)
+        self.key = key

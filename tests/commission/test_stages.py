@@ -1,0 +1,104 @@
+"""``rt-ident commission`` on the sim: every miswiring and misscaling of the host's picture is found by the
+check that names its key, inside the travel budget and under the speed limit; a right picture passes
+through identification and the verification move, off centre too, and its [axis] snippet runs trusted."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from rt_ident import config
+from rt_ident.commission import ledger
+from rt_ident.commission.stages import commission
+
+ROOT = Path(__file__).resolve().parents[2]
+LEAD = 7.96e-4
+
+
+def sim_data(actual: dict | None = None) -> dict:
+    data = tomllib.loads((ROOT / "configs" / "sim.toml").read_text())
+    data["loop"]["realtime"] = False
+    data["telemetry"] = {"sink": "off"}
+    if actual:
+        data["plant"] = {"actual": actual}
+    return data
+
+
+@pytest.fixture(autouse=True)
+def state_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("RT_IDENT_STATE_DIR", str(tmp_path / "state"))
+    return tmp_path / "state"
+
+
+MISWIRED = [
+    ({"torque_sign": -1}, "torque moves theta1 positive", "backend.torque_sign"),
+    ({"motor_encoder_sign": -1}, "torque moves theta1 positive", "backend.motor_encoder_sign"),
+    ({"scale_sign": -1}, "scale follows the motor", "backend.scale_sign"),
+    ({"counts_per_rev": 2**16}, "scale ratio x/theta1", "backend.counts_per_rev"),
+    ({"lead": 2 * LEAD}, "scale ratio x/theta1", "backend.lead"),
+    ({"torque_scale": 10.0}, "acceleration per N m", "axis.I1"),
+]
+
+
+@pytest.mark.parametrize("x0", [0.0, 0.015])
+@pytest.mark.parametrize(("actual", "check", "key"), MISWIRED, ids=[k for _, _, k in MISWIRED])
+def test_a_miswired_sim_fails_the_check_that_names_its_key_within_budget_and_speed(tmp_path, actual, check, key, x0):
+    cfg = config.from_mapping(sim_data({**actual, "x0": x0}))
+    r = commission(cfg, tmp_path / "out")
+    assert r["verdict"] == "fail" and r["stage_reached"] == "b"
+    assert r["failed"]["check"] == check, r["checks"]
+    assert r["failed"]["fix"].startswith(key), r["failed"]
+    truth = r["device_truth"]
+    assert truth["max_travel_m"] <= cfg.commission.travel_m
+    assert truth["max_speed_m_s"] <= cfg.commission.max_speed_m_s
+    assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
+    assert (tmp_path / "out" / "report.html").is_file() and (tmp_path / "out" / "commission.json").is_file()
+    assert ledger.lookup(cfg)["verdict"] == "fail"
+
+
+def test_the_hosts_matching_sign_settings_pass_the_probe_checks(tmp_path):
+    data = sim_data({"torque_sign": -1, "scale_sign": -1})
+    data["backend"] |= {"torque_sign": -1, "scale_sign": -1}
+    data["commission"] = {"identify_s": 1.0}
+    r = commission(config.from_mapping(data), tmp_path / "out")
+    probe = [c for c in r["checks"] if c["name"] in ("torque moves theta1 positive", "scale follows the motor",
+                                                   "scale ratio x/theta1", "acceleration per N m")]
+    assert len(probe) == 4 and all(c["ok"] for c in probe), r["checks"]
+
+
+def test_a_table_that_starts_where_the_budget_leaves_the_window_is_refused_before_enabling(tmp_path):
+    cfg = config.from_mapping(sim_data({"x0": 0.0395}))
+    r = commission(cfg, tmp_path / "out")
+    assert r["stage_reached"] == "a" and r["failed"]["check"] == "start position"
+    assert r["failed"]["fix"].startswith("safety.window") and r["max_travel_m"] is None
+
+
+def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path, state_dir):
+    text = (ROOT / "configs" / "sim.toml").read_text().replace("realtime = true", "realtime = false")
+    cfg_path = tmp_path / "axis.toml"
+    cfg_path.write_text(text.replace('sink = "rrd"', 'sink = "off"') + "\n[plant.actual]\nx0 = -0.012\n")
+    env = {**os.environ, "RT_IDENT_STATE_DIR": str(state_dir)}
+    p = subprocess.run([sys.executable, "-m", "rt_ident", "commission", str(cfg_path), "--out", str(tmp_path / "c"),
+                        "--json"], capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    r = json.loads(p.stdout)
+    assert r["verdict"] == "pass" and r["stage_reached"] == "e"
+    assert set(r) >= {"verdict", "stage_reached", "checks", "max_travel_m", "max_speed_m_s", "parameters", "report",
+                      "axis_toml"}
+    assert all(set(c) >= {"name", "ok", "measured", "expected", "fix"} for c in r["checks"])
+    assert r["device_truth"]["max_travel_m"] <= 2e-3 and r["device_truth"]["max_speed_m_s"] <= 5e-3
+    assert r["parameters"]["I2"] == pytest.approx(8.3e-6, rel=0.05)
+    html = Path(r["report"]).read_text()
+    assert "<svg" in html and "PASS" in html and "verification move" in html
+    snippet = tomllib.loads(Path(r["axis_toml"]).read_text())["axis"]
+    run_data = sim_data({"x0": -0.012}) | {"axis": snippet, "loop": {"realtime": False, "duration": 5.0}}
+    from rt_ident.compose.run import run
+
+    s = run(config.from_mapping(run_data), sink="off", record=str(tmp_path / "after.parquet"))
+    assert s["stop"]["cause"] is None and s["trusted"] is True, s.get("trust")
