@@ -67,3 +67,10 @@ class SpeedTrip(SafetyTrip):
     """The table moves faster than ``[safety] max_speed_m_s``."""
 
     cause = "speed-limit"
+
+
+class SignTrip(SafetyTrip):
+    """The axis accelerates against the torque commanded to it: a wrong torque or encoder sign makes the
+    host's position loop positive feedback."""
+
+    cause = "sign"

@@ -65,9 +65,10 @@ class SimActual(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    torque_sign: Literal[1, -1] = 1         # -1: the motor turns against the torque the drive applies
-    motor_encoder_sign: Literal[1, -1] = 1
-    scale_sign: Literal[1, -1] = 1
+    # None: as the host is told (a host set to -1 describes a device that is so)
+    torque_sign: Literal[1, -1] | None = None     # -1: the motor turns against the torque the drive applies
+    motor_encoder_sign: Literal[1, -1] | None = None
+    scale_sign: Literal[1, -1] | None = None
     counts_per_rev: int | None = Field(None, ge=1)
     scale_resolution: float | None = Field(None, gt=0, le=1e-3)
     lead: float | None = Field(None, gt=0, le=0.1)
@@ -185,9 +186,12 @@ class SimBackend(Backend):
         self.true_params = dataclasses.replace(told, lead=act.lead or told.lead)
         # the device's true sensors and torque against what the host converts with (1.0: they agree)
         cpr, res = act.counts_per_rev or cfg.counts_per_rev, act.scale_resolution or cfg.scale_resolution
-        self._k_torque = act.torque_sign * act.torque_scale
-        self._k_theta1 = act.motor_encoder_sign * (cpr / cfg.counts_per_rev if cfg.counts_per_rev and cpr else 1.0)
-        self._k_theta2 = (act.scale_sign * self.true_params.lead / told.lead
+        s_t, s_e, s_s = (cfg.torque_sign if act.torque_sign is None else act.torque_sign,
+                         cfg.motor_encoder_sign if act.motor_encoder_sign is None else act.motor_encoder_sign,
+                         cfg.scale_sign if act.scale_sign is None else act.scale_sign)
+        self._k_torque = s_t * act.torque_scale
+        self._k_theta1 = s_e * (cpr / cfg.counts_per_rev if cfg.counts_per_rev and cpr else 1.0)
+        self._k_theta2 = (s_s * self.true_params.lead / told.lead
                           * (cfg.scale_resolution / res if cfg.scale_resolution and res else 1.0))
         self._k_identity = self._k_torque == self._k_theta1 == self._k_theta2 == 1.0
         self._dt = cfg.sample_period

@@ -322,6 +322,9 @@ def run(
     no_realtime: bool = typer.Option(False, "--no-realtime", help="Do not ask for SCHED_FIFO/mlockall."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --rrd / --record file."),
+    require_commissioned: bool = typer.Option(False, "--require-commissioned",
+                                              help="Refuse a closed-loop run on a device that has not passed "
+                                                   "`rt-ident commission` with this config."),
 ) -> None:
     """Run the real-time identification loop (sim by default) with a live dashboard and a recording."""
     from rt_ident import config as cfgmod
@@ -341,6 +344,7 @@ def run(
     from rt_ident.compose.run import run as run_loop
 
     preflight(cfg, sink=sink, connect_url=connect)   # a setting the start would refuse: one line, nothing started
+    commissioned = _commissioning(cfg, config, require_commissioned)
     if cfg.defaulted:
         what = {"axis": "the THOMSON X axis's values", "backend": "the sim backend",
                 "safety": f"the travel window {list(cfg.safety.window)} m"}
@@ -352,6 +356,8 @@ def run(
         err.print(f"running {cfg.backend.name} for {cfg.loop.duration:g} s "
                   f"(method {cfg.estimator.method}, tick {cfg.loop.tick_hz:g} Hz); Ctrl-C stops safely")
     summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
+    if commissioned is not None:
+        summary["commissioning"] = commissioned
     if cfg.defaulted:
         summary["config_defaulted"] = list(cfg.defaulted)
     if json_out:
@@ -361,6 +367,27 @@ def run(
     else:
         _print_run(summary)
     raise typer.Exit(exit_code(summary))
+
+
+def _commissioning(cfg, config: Path | None, required: bool) -> dict | None:
+    """The device's last commissioning verdict, said before anything is enabled: a warning when it never
+    passed (an error with ``--require-commissioned``). None for a run that needs none (the plain sim)."""
+    from rt_ident.commission import ledger
+
+    if not ledger.needs_commissioning(cfg):
+        return None
+    entry = ledger.lookup(cfg)
+    if entry is not None and entry.get("verdict") == "pass":
+        return {"verdict": "pass", "report": entry.get("report")}
+    why = ("has never been commissioned" if entry is None else
+           f"failed commissioning ({(entry.get('failed') or {}).get('check')}: "
+           f"{(entry.get('failed') or {}).get('fix')})")
+    msg = (f"this device configuration {why}; a wrong sign or scale makes the host's position loop run away: "
+           f"run `rt-ident commission {config or 'CONFIG'}` first")
+    if required:
+        raise ConfigError("--require-commissioned", msg)
+    err.print(f"[yellow]warning:[/yellow] {escape(msg)}", highlight=False)
+    return {"verdict": None if entry is None else entry.get("verdict"), "warning": msg}
 
 
 def _check_rrd_sink(rrd: str | None, sink: str, from_flag: bool, field: str = "--rrd") -> None:

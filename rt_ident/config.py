@@ -347,6 +347,35 @@ class RunConfig(_Section):
     def axis_params(self) -> AxisParams:
         return AxisParams.from_mapping(self.axis, where="axis") if self.axis else thomson_x()
 
+    @model_validator(mode="after")
+    def _host_picture_consistent(self) -> RunConfig:
+        """What cannot all be true of one axis, refused before anything starts: the model's lead and the
+        lead the backend converts the scale with; positions in the window beyond the 32-bit counts of
+        the position objects (CiA 402 0x6064 / 0x60E4, the board's frames); a scale that cannot resolve
+        the window."""
+        opts = self.backend.options()
+        a_lead, b_lead = (self.axis or {}).get("lead"), opts.get("lead")
+        if isinstance(a_lead, (int, float)) and isinstance(b_lead, (int, float)) and not isinstance(b_lead, bool) \
+                and abs(a_lead - b_lead) > 1e-9 * max(abs(a_lead), abs(b_lead)):
+            raise ValueError(f"axis.lead: {a_lead:g} m/rad differs from backend.lead {b_lead:g}: the model and the "
+                             "scale's conversion would disagree; set both to the screw's lead (rt-ident commission "
+                             "measures it)")
+        edge = max(abs(w) for w in self.safety.window)
+        res, cpr = opts.get("scale_resolution"), opts.get("counts_per_rev")
+        lead = b_lead if isinstance(b_lead, (int, float)) else (self.axis or {}).get("lead", 7.96e-4)
+        if isinstance(res, (int, float)) and res > 0:
+            if edge / res > 2**31 - 1:
+                raise ValueError(f"backend.scale_resolution: {res:g} m per count puts the window's edge at "
+                                 f"{edge / res:.3g} counts, beyond the 32-bit position values; check it")
+            if res > (self.safety.window[1] - self.safety.window[0]) / 100:
+                raise ValueError(f"backend.scale_resolution: {res:g} m per count resolves fewer than 100 steps of "
+                                 f"safety.window; check it (m per count, e.g. 1e-7 for 0.1 um)")
+        if isinstance(cpr, int) and cpr > 0 and isinstance(lead, (int, float)) and lead > 0 \
+                and edge / lead * cpr / (2 * math.pi) > 2**31 - 1:
+            raise ValueError(f"backend.counts_per_rev: {cpr} counts/rev with lead {lead:g} m/rad puts the window's "
+                             "edge beyond the 32-bit motor position (0x6064); check counts_per_rev and lead")
+        return self
+
     @model_validator(mode="before")
     @classmethod
     def _plant_to_device(cls, data: Any) -> Any:

@@ -292,9 +292,10 @@ def max_speed(cfg: RunConfig, sample_period: float) -> float:
 def safety_monitor(cfg: RunConfig, sample_period: float) -> SafetyMonitor:
     """The host-side safety checks of ``cfg`` (:class:`SafetyMonitor`)."""
     s = cfg.safety
-    return SafetyMonitor(lead=cfg.axis_params().lead, window=s.window, max_decel=s.max_decel,
+    p = cfg.axis_params()
+    return SafetyMonitor(lead=p.lead, window=s.window, max_decel=s.max_decel,
                          watchdog_ticks=s.watchdog_ticks, stuck_torque=cfg.stuck_torque(), torque_hold=s.torque_hold,
-                         max_speed=max_speed(cfg, sample_period))
+                         max_speed=max_speed(cfg, sample_period), inertia=p.I1 + p.I2)
 
 def stall_policy(cfg: RunConfig) -> StallPolicy:
     s = cfg.safety

@@ -34,6 +34,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -41,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from drivers.base import Backend, SampleBlock
+from drivers.errors import SpeedTrip, TravelLimitTrip
 from rt_ident.errors import RtIdentError
 from rt_ident.loop import tick_kernel as tk
 from rt_ident.loop.compile_watch import CompileWatch
@@ -226,6 +228,8 @@ class IdentificationLoop(TelemetryWindow):
         hold = getattr(safety, "torque_hold", None)      # the plan's lease (see drivers.base.Backend.write)
         self._lease = None if hold is None else int(math.ceil(hold / backend.sample_period))
         self._core: AxisCore | None = None    # the compiled tick (built last, below)
+        # the last ~20 ms of blocks (references, nothing copied): a speed or travel trip looks back at them
+        self._recent: deque[SampleBlock] = deque(maxlen=max(2, int(math.ceil(0.02 * tick_hz))))
         self._publisher = None               # a TelemetryProcess taking the window's rows (_telemetry_buffers)
         if on_telemetry is not None:
             self._telemetry_buffers()
@@ -314,13 +318,33 @@ class IdentificationLoop(TelemetryWindow):
 
     # --------------------------------------------------------------- pieces
     def _process(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
-        core = self._core
-        if core is not None:
-            if self._resume is None and core.tick(self, block, lateness_s):
-                return
-            if self._resume is not None:            # a resume is the Python path's (the controller re-plans)
-                core.python_ticks += 1
-        self._process_py(block, lateness_s)
+        if len(block):
+            self._recent.append(block)
+        try:
+            core = self._core
+            if core is not None:
+                if self._resume is None and core.tick(self, block, lateness_s):
+                    return
+                if self._resume is not None:        # a resume is the Python path's (the controller re-plans)
+                    core.python_ticks += 1
+            self._process_py(block, lateness_s)
+        except (SpeedTrip, TravelLimitTrip) as exc:
+            self._sign_fault(exc)
+            raise
+
+    def _sign_fault(self, trip: Exception) -> None:
+        """A speed or travel trip: raise it as a sign fault when the last samples show the axis
+        accelerating against the torque (SafetyMonitor.sign_check)."""
+        blocks = list(self._recent)
+        if not blocks:
+            return
+        th1, th2, tq = (np.concatenate([getattr(b, f) for b in blocks]) for f in ("theta1", "theta2", "torque_cmd"))
+        seq = np.concatenate([b.seq for b in blocks])
+        if seq.size and int(seq[-1] - seq[0]) + 1 != seq.size:    # a gap: the samples are not one stretch
+            return
+        fault = self.safety.sign_check(trip, th1, th2, tq, self.backend.sample_period)
+        if fault is not None:
+            raise fault from trip
 
     def _process_py(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
         """The tick's processing step by step (the compiled tick's reference, and its fallback)."""

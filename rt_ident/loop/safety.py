@@ -7,6 +7,10 @@
 - Watchdog: no fresh feedback (no new samples) for ``watchdog_ticks`` ticks.
 - Stuck encoder: samples keep arriving but the motor angle has not changed
   for ``watchdog_ticks`` ticks while torque was commanded.
+- Sign: when the speed or the travel limit trips, the last ~20 ms of samples tell whether the motor or
+  the table accelerated *against* the commanded torque (:func:`against_torque`). Friction and the
+  resonance cannot do that; a wrong torque or encoder sign (a position loop with positive feedback)
+  does, and the trip is then reported as what it is: a sign fault naming the settings.
 - Command lease (``torque_hold``, applied by the loop when it writes its plan):
   the torque drops to zero that long after the plan ends, before the
   watchdog trips. Without it the drive holds the last planned torque while the
@@ -25,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import SpeedTrip, TravelLimitTrip, WatchdogTrip
+from drivers.errors import SignTrip, SpeedTrip, TravelLimitTrip, WatchdogTrip
 
 SAFE_STALE, SAFE_STUCK, SAFE_LAST_THETA1 = range(3)
 
@@ -46,6 +50,7 @@ class SafetyMonitor:
     # the counters (SAFE_*: ticks without samples, ticks with the motor encoder stuck, the last motor
     # angle seen), one array changed in place: the compiled tick (rt_ident.loop.tick_core) holds a view
     counters: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, math.nan]), repr=False)
+    inertia: float = 0.0               # nominal I1 + I2 [kg m^2] for the sign check; 0: no sign check
 
     def __post_init__(self) -> None:
         lo, hi = self.window
@@ -75,6 +80,21 @@ class SafetyMonitor:
     @_last_theta1.setter
     def _last_theta1(self, value: float) -> None:
         self.counters[SAFE_LAST_THETA1] = value
+
+    def sign_check(self, trip: Exception, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray,
+                   dt: float) -> SignTrip | None:
+        """After a speed or travel trip, the last ~20 ms of samples: when the motor or the table accelerated
+        against the commanded torque (see the module docstring), the trip is a sign fault."""
+        if not self.inertia > 0:
+            return None
+        for th, name in ((theta1, "motor"), (theta2, "table")):
+            g = against_torque(th, torque, dt, self.inertia)
+            if g is not None and g < -0.3:
+                return SignTrip(f"the {name} accelerated against the commanded torque ({g:+.2f} x the nominal "
+                                f"acceleration per N m) until {trip}: a wrong torque or encoder sign made the position "
+                                "loop positive feedback; check backend.torque_sign / motor_encoder_sign / scale_sign "
+                                "with rt-ident commission")
+        return None
 
     def stopping_position(self, theta2: float, omega2: float) -> float:
         """x_stop = x + v|v| / (2 a): where the table ends if braking starts now [m]."""
@@ -110,3 +130,29 @@ class SafetyMonitor:
         if not (lo <= x <= hi) or not (lo <= x_stop <= hi):
             raise TravelLimitTrip(f"table at x={x * 1e3:.3f} mm would stop at {x_stop * 1e3:.3f} mm, outside the "
                                   f"window [{lo * 1e3:.3f}, {hi * 1e3:.3f}] mm")
+
+
+
+def against_torque(theta: np.ndarray, torque: np.ndarray, dt: float, inertia: float) -> float | None:
+    """The acceleration per N m of ``theta`` under ``torque`` (samples ``dt`` apart), relative to the
+    nominal 1 / ``inertia``: g of the least-squares fit theta(t) = c0 + c1 t + g S(t) / inertia, S the
+    double integral of the torque. About 1 on a right axis; negative when the axis accelerates against
+    the torque. None when the torque's term explains too little of the motion (coasting, noise)."""
+    n = theta.shape[0]
+    if n < 8:
+        return None
+    t = np.arange(n) * dt
+    s = np.cumsum(np.cumsum(torque)) * dt * dt / inertia
+    a = np.column_stack([np.ones(n), t, s])
+    scale = np.linalg.norm(a, axis=0)
+    if not np.all(scale > 0):
+        return None
+    coef, *_ = np.linalg.lstsq(a / scale, theta, rcond=None)
+    coef = coef / scale
+    full = theta - a @ coef
+    c_lin, *_ = np.linalg.lstsq(a[:, :2], theta, rcond=None)
+    lin = theta - a[:, :2] @ c_lin
+    # the torque's term must carry the motion: it removes at least 3/4 of what a straight line leaves
+    if not float(full @ full) <= 0.25 * float(lin @ lin):
+        return None
+    return float(coef[2])

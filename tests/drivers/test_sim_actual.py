@@ -63,3 +63,18 @@ def test_a_drive_rating_for_the_sim_is_refused_naming_torque_scale() -> None:
 def test_a_sign_other_than_plus_or_minus_one_is_refused() -> None:
     with pytest.raises(ConfigError, match=r"backend\.torque_sign"):
         SimBackend({**BASE, "torque_sign": 0})
+
+
+@pytest.mark.parametrize("key", ["torque_sign", "motor_encoder_sign", "scale_sign"])
+def test_a_hosts_sign_describes_the_device_when_plant_actual_leaves_it_out(key: str) -> None:
+    th1, th2, _, _ = _pulse()
+    assert _pulse(**{key: -1})[:2] == pytest.approx((th1, th2), rel=1e-9)
+
+
+@pytest.mark.parametrize("key", ["torque_sign", "motor_encoder_sign", "scale_sign"])
+def test_a_host_sign_the_device_does_not_have_reverses_what_the_host_sees(key: str) -> None:
+    th1, th2, _, _ = _pulse()
+    a1, a2, _, _ = _pulse(actual={key: 1}, **{key: -1})
+    f1 = -1.0 if key in ("torque_sign", "motor_encoder_sign") else 1.0
+    f2 = -1.0 if key in ("torque_sign", "scale_sign") else 1.0
+    assert (a1, a2) == pytest.approx((f1 * th1, f2 * th2), rel=0.02)
