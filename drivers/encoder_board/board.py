@@ -10,6 +10,9 @@ plan frames; a heartbeat is sent whenever nothing else was sent for
 encoder mismatch) first sends quick-stop / zero-torque / disable frames, then
 raises the matching :class:`~drivers.errors.DriverError`.
 
+Polarity (``torque_sign``, ``motor_encoder_sign``, ``scale_sign``) is applied by
+:class:`~drivers.base.Backend`.
+
 With ``emulate = true`` the backend starts its own
 :class:`drivers.encoder_board.emulator.EmulatedBoard` on a pty in ``open()`` and stops
 it in ``close()``.
@@ -44,7 +47,8 @@ class SerialBoardBackend(Backend):
     def __init__(self, config: Mapping[str, Any] | None = None, *,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.config = cfg = parse_serial(config or {})
-        super().__init__({"torque_limit": cfg.torque_limit})
+        super().__init__({"torque_limit": cfg.torque_limit, "torque_sign": cfg.torque_sign,
+                          "motor_encoder_sign": cfg.motor_encoder_sign, "scale_sign": cfg.scale_sign})
         self.emulator_config: EmulatorConfig | None = None
         if cfg.emulate:
             self.emulator_config = parse_emulator(cfg.emulator, where="backend.emulator")
@@ -250,7 +254,9 @@ class SerialBoardBackend(Backend):
     def _check_encoders(self, theta1: np.ndarray, theta2: np.ndarray, seq: np.ndarray) -> None:
         """The shaft twist theta1 - theta2 is physically small (|T|/K): a drift means a bad sensor."""
         limit = self.config.encoder_mismatch_limit
-        twist = theta1 - theta2
+        # in the host's convention (the device's may count one of them the other way)
+        twist = ((theta1 if self.motor_encoder_sign == 1 else -theta1)
+                 - (theta2 if self.scale_sign == 1 else -theta2))
         if self._twist0 is None:
             self._twist0 = float(twist[0])
         if twist.max() - self._twist0 > limit or self._twist0 - twist.min() > limit:
