@@ -43,6 +43,7 @@ class SerialBoardConfig(BaseModel):
     scale_sign: Sign = 1
     read_timeout: float = Field(0.05, gt=0)     # [s] without a valid frame -> DeviceTimeout
     startup_timeout: float = Field(1.0, gt=0)   # [s] for the first frame (open) / enable ack
+    info_timeout: float = Field(0.1, gt=0)      # [s] for the INFO answer at open (none: identity not available)
     poll_timeout: float = Field(0.0002, ge=0)   # [s] a read() waits at most this for a first byte
     write_timeout: float = Field(0.05, gt=0)    # [s] per write before DeviceTimeout
     heartbeat_period: float = Field(0.02, gt=0)  # [s] heartbeat if nothing else was sent
@@ -128,6 +129,7 @@ class EmulatorConfig(BaseModel):
     friction: dict[str, Any] | None = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # [m] where the table truly starts (at rest)
     actual: BoardTruth = Field(default_factory=BoardTruth)   # the true device (BoardTruth)
+    answer_info: bool = True                   # false: INFO_REQUEST ignored (as by a version 1 board)
 
     @field_validator("actual", mode="before")
     @classmethod

@@ -16,7 +16,7 @@ The device may differ from what the host is told (``[emulator] actual``,
 :class:`~drivers.encoder_board.config.BoardTruth`): a motor wired the other way, encoders counting the
 other way or at another resolution, another screw lead, another torque per commanded N m. The board
 reports what it believes it drives (the command, the current); the plant, its travel and ``x0`` are the
-true ones.
+true ones. The board answers INFO_REQUEST with :meth:`EmulatedBoard.info`.
 
 ``python -m drivers.encoder_board.emulator`` prints the pty path and runs until Ctrl-C.
 """
@@ -37,12 +37,21 @@ from typing import Any
 import numpy as np
 
 from drivers.encoder_board import protocol as sp
-from drivers.encoder_board.config import EmulatorConfig, SerialBoardConfig, parse_emulator, parse_serial
+from drivers.encoder_board.config import (
+    MAX_CURRENT_A,
+    EmulatorConfig,
+    SerialBoardConfig,
+    parse_emulator,
+    parse_serial,
+)
 from rt_ident.axis.friction import Friction
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig, rest_at
 
 log = logging.getLogger(__name__)
+
+MODEL = "emulated-board"       # what the emulated board's INFO frame says it is
+FIRMWARE = (1, 0, 0)
 
 
 @dataclass
@@ -283,6 +292,9 @@ class EmulatedBoard:
             if self.enabled:
                 self._set_enabled(False)
             self._latched |= sp.ST_QUICK_STOPPED
+        elif isinstance(frame, sp.InfoRequest):
+            if self.cfg.answer_info and not self.faults.silent:
+                self._out += self.info().encode()      # ahead of this burst's data frames
         elif isinstance(frame, (sp.TorqueHold, sp.TorquePlan)):
             if not self.enabled:
                 self.ignored_commands += 1
@@ -313,6 +325,12 @@ class EmulatedBoard:
                 return
             vals, start = vals[nxt - start:], nxt
         self._plan, self._plan_start = vals[:self.plan_capacity], start
+
+    def info(self) -> sp.Info:
+        """The INFO frame: what the board is configured for (its encoders as they truly are)."""
+        return sp.Info(sp.PROTOCOL_VERSION, FIRMWARE, 0, MODEL, self.sample_rate_hz,
+                       min(self.torque_limit / self.torque_constant, MAX_CURRENT_A), self.torque_constant,
+                       self.counts_per_rev, self.scale_resolution)
 
     def _commands(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Torque in force for the next n samples and a per-sample plan-active mask."""

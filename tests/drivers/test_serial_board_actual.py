@@ -1,7 +1,9 @@
-"""The emulated board as a device that differs from what the host is told ([emulator] actual)."""
+"""The emulated board as a device that differs from what the host is told ([emulator] actual), and the
+board's INFO answer (identity())."""
 
 from __future__ import annotations
 
+import logging
 import time
 import tomllib
 from pathlib import Path
@@ -151,3 +153,27 @@ def test_plant_actual_of_a_run_config_reaches_the_emulated_board():
     with start_emulator_for(from_mapping(data)) as board:
         assert (board.torque_sign, board.counts_per_rev, board.params.lead, board.torque_scale) == (-1, 4096, 1e-3, 2.0)
         assert board.scale_sign == 1 and board.scale_resolution == 1e-7 and board.cfg.x0 == 0.001
+
+
+# ----- identity (the INFO answer) -------------------------------------------------------------
+def test_identity_returns_the_boards_info_while_open_and_active(rig, caplog):
+    with caplog.at_level(logging.WARNING, logger="drivers.encoder_board.board"):
+        board, be = rig({"torque_limit": 0.5}, actual={"counts_per_rev": 4096})
+    want = {"model": "emulated-board", "firmware": "1.0.0", "serial_number": 0, "protocol_version": 2,
+            "sample_rate_hz": 20000.0, "current_limit_a": 5.0, "torque_constant": 0.1,
+            "counts_per_rev": 4096, "scale_resolution": 1e-7}
+    assert be.identity() == want
+    # the board is configured for other counts than the host is told: one warning at open
+    assert [r.getMessage() for r in caplog.records if "configured for" in r.getMessage()] == [
+        f"serial board on {board.port} is configured for counts_per_rev = 4096 ([backend]: 131072)"]
+    be.activate()
+    assert be.identity() == want
+
+
+def test_a_board_that_never_answers_the_info_request_still_opens(rig):
+    t0 = time.monotonic()
+    board, be = rig({"info_timeout": 0.05}, answer_info=False)
+    assert time.monotonic() - t0 < 2.0
+    assert be.identity() == {"info": "not available"}
+    be.activate()
+    assert board.enabled and be.identity() == {"info": "not available"}
