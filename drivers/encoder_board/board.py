@@ -10,6 +10,11 @@ plan frames; a heartbeat is sent whenever nothing else was sent for
 encoder mismatch) first sends quick-stop / zero-torque / disable frames, then
 raises the matching :class:`~drivers.errors.DriverError`.
 
+At open the host asks the board what it is (INFO_REQUEST); :meth:`~drivers.base.Backend.identity`
+returns the answer, or ``{"info": "not available"}`` when the board did not answer within
+``info_timeout`` (a version 1 board). Polarity (``torque_sign``, ``motor_encoder_sign``,
+``scale_sign``) is applied by :class:`~drivers.base.Backend`.
+
 With ``emulate = true`` the backend starts its own
 :class:`drivers.encoder_board.emulator.EmulatedBoard` on a pty in ``open()`` and stops
 it in ``close()``.
@@ -44,7 +49,8 @@ class SerialBoardBackend(Backend):
     def __init__(self, config: Mapping[str, Any] | None = None, *,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.config = cfg = parse_serial(config or {})
-        super().__init__({"torque_limit": cfg.torque_limit})
+        super().__init__({"torque_limit": cfg.torque_limit, "torque_sign": cfg.torque_sign,
+                          "motor_encoder_sign": cfg.motor_encoder_sign, "scale_sign": cfg.scale_sign})
         self.emulator_config: EmulatorConfig | None = None
         if cfg.emulate:
             self.emulator_config = parse_emulator(cfg.emulator, where="backend.emulator")
@@ -63,6 +69,7 @@ class SerialBoardBackend(Backend):
         self._heartbeats = 0
         self._twist0: float | None = None
         self._last_seq: int | None = None
+        self._info: dict[str, Any] | None = None    # the board's INFO answer (cached at open)
         self.bytes_read = 0
         self.plan_late = 0
         self.torque_limited = 0
@@ -136,7 +143,9 @@ class SerialBoardBackend(Backend):
         """Read until ``predicate(samples)`` gives an index >= 0; return the samples from there."""
         deadline = self.clock() + timeout
         while True:
-            samples, _ = self._decoder.feed_samples(self._recv())
+            samples, others = self._decoder.feed_samples(self._recv())
+            if others:
+                self._note(others)
             if samples.shape[0]:
                 self._last_frame = self.clock()
                 i = predicate(samples)
@@ -144,6 +153,43 @@ class SerialBoardBackend(Backend):
                     return samples[i:]
             if self.clock() >= deadline:
                 return None
+
+    def _note(self, frames: list[sp.Frame]) -> None:
+        """Keep an INFO answer (one may also arrive after open gave up on it)."""
+        for f in frames:
+            if isinstance(f, sp.Info):
+                self._info = f.as_dict()
+
+    def _request_info(self) -> None:
+        """Ask the board what it is; wait at most ``info_timeout`` for the answer (a board that does not
+        know the request never answers: open goes on without it)."""
+        self._send(sp.encode_info_request())
+        deadline = self.clock() + self.config.info_timeout
+        while self._info is None and self.clock() < deadline:
+            samples, others = self._decoder.feed_samples(self._recv())
+            if others:
+                self._note(others)
+            if samples.shape[0]:
+                self._last_frame = self.clock()
+                self._opened_at = self._position(samples[-1])
+        info = self._info
+        if info is None:
+            log.info("serial board on %s: no answer to INFO_REQUEST within %g s: identity not available",
+                     self.port, self.config.info_timeout)
+            return
+        cfg = self.config
+        told = {"sample_rate_hz": cfg.sample_rate_hz, "counts_per_rev": cfg.counts_per_rev,
+                "scale_resolution": cfg.scale_resolution}
+        differ = [f"{k} = {info[k]:g} ([backend]: {v:g})" for k, v in told.items()
+                  if info[k] and not math.isclose(info[k], v, rel_tol=1e-6)]
+        if differ:
+            log.warning("serial board on %s is configured for %s", self.port, ", ".join(differ))
+
+    def _position(self, sample: np.ndarray) -> tuple[float, float]:
+        return float(sample["enc"]) * self._rad_per_count, float(sample["scale"]) * self._rad_per_scale
+
+    def _identity(self) -> dict[str, Any]:
+        return dict(self._info) if self._info is not None else {"info": "not available"}
 
     # ----- lifecycle hooks -----------------------------------------------------------------
     def _open(self) -> None:
@@ -174,7 +220,12 @@ class SerialBoardBackend(Backend):
                                 f"{cfg.startup_timeout} s ({self.bytes_read} bytes, {d.crc_errors} CRC errors, "
                                 f"{d.garbage_bytes} garbage bytes)")
         log.info("serial board on %s: streaming (seq %d)", self.port, int(got["seq"][0]))
-        self._opened_at = (float(got["enc"][-1]) * self._rad_per_count, float(got["scale"][-1]) * self._rad_per_scale)
+        self._opened_at = self._position(got[-1])
+        try:
+            self._request_info()
+        except DriverError:
+            self._close()
+            raise
 
     def _read_position(self) -> tuple[float, float]:
         return self._opened_at
@@ -199,7 +250,9 @@ class SerialBoardBackend(Backend):
             self._heartbeats += 1
         d = self._decoder
         crc0, hdr0, garbage0 = d.crc_errors, d.header_errors, d.garbage_bytes
-        samples, _ = d.feed_samples(self._recv())
+        samples, others = d.feed_samples(self._recv())
+        if others:
+            self._note(others)
         if self._pending.shape[0]:
             samples = np.concatenate([self._pending, samples]) if samples.shape[0] else self._pending
             self._pending = np.empty(0, dtype=sp.DATA_DTYPE)
@@ -250,7 +303,9 @@ class SerialBoardBackend(Backend):
     def _check_encoders(self, theta1: np.ndarray, theta2: np.ndarray, seq: np.ndarray) -> None:
         """The shaft twist theta1 - theta2 is physically small (|T|/K): a drift means a bad sensor."""
         limit = self.config.encoder_mismatch_limit
-        twist = theta1 - theta2
+        # in the host's convention (the device's may count one of them the other way)
+        twist = ((theta1 if self.motor_encoder_sign == 1 else -theta1)
+                 - (theta2 if self.scale_sign == 1 else -theta2))
         if self._twist0 is None:
             self._twist0 = float(twist[0])
         if twist.max() - self._twist0 > limit or self._twist0 - twist.min() > limit:

@@ -7,7 +7,7 @@ Shared by the backend (:mod:`drivers.encoder_board.board`) and the emulated boar
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -18,6 +18,8 @@ _LINK_MARGIN = 1.1   # the link must carry 10 % more than the frame stream
 #: The board's current range [A]: it reports the motor current as an int16 in mA (docs/serial-protocol.md),
 #: so a torque beyond this x torque_constant can be neither measured nor, by the board, driven.
 MAX_CURRENT_A = 32.767
+
+Sign = Literal[1, -1]
 
 
 class SerialBoardConfig(BaseModel):
@@ -34,8 +36,14 @@ class SerialBoardConfig(BaseModel):
     lead: float = Field(7.96e-4, gt=0)          # spindle lead [m/rad]: theta2 = x / lead
     torque_constant: float = Field(0.1, gt=0)   # [N m/A]: measured torque = kt * current
     torque_limit: float = Field(1.0, gt=0)      # [N m] clamp on the host; at most MAX_CURRENT_A x torque_constant
+    # polarity, applied by drivers.base.Backend: -1 = the motor is wired / the motor encoder / the scale
+    # counts the other way (the host negates torque / theta1 / theta2)
+    torque_sign: Sign = 1
+    motor_encoder_sign: Sign = 1
+    scale_sign: Sign = 1
     read_timeout: float = Field(0.05, gt=0)     # [s] without a valid frame -> DeviceTimeout
     startup_timeout: float = Field(1.0, gt=0)   # [s] for the first frame (open) / enable ack
+    info_timeout: float = Field(0.1, gt=0)      # [s] for the INFO answer at open (none: identity not available)
     poll_timeout: float = Field(0.0002, ge=0)   # [s] a read() waits at most this for a first byte
     write_timeout: float = Field(0.05, gt=0)    # [s] per write before DeviceTimeout
     heartbeat_period: float = Field(0.02, gt=0)  # [s] heartbeat if nothing else was sent
@@ -72,14 +80,29 @@ def _validate(model: type[BaseModel], data: Mapping[str, Any], where: str) -> An
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"])
         msg = str(err["msg"]).removeprefix("Value error, ")
-        if not loc and ": " in msg:
-            loc, msg = msg.split(": ", 1)
+        head, sep, rest = msg.partition(": ")
+        if sep and head.isidentifier():        # a check that names its field (or a key below it) itself
+            loc, msg = (f"{loc}.{head}" if loc else head), rest
         raise ConfigError(f"{where}.{loc}" if loc else where, msg) from None
 
 
 def parse_serial(data: Mapping[str, Any], where: str = "backend") -> SerialBoardConfig:
     """Validate a ``[backend]`` mapping; errors are ConfigError naming ``backend.<field>``."""
     return _validate(SerialBoardConfig, data, where)
+
+
+class BoardTruth(BaseModel):
+    """``[emulator] actual``: the emulated device as it truly is where it differs from what the host is
+    told (``[backend]``); a key left out is what the host is told. From ``[plant.actual]`` of a run."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    torque_sign: Sign | None = None           # -1: the motor is wired the other way
+    motor_encoder_sign: Sign | None = None    # -1: the motor encoder counts the other way
+    scale_sign: Sign | None = None            # -1: the linear scale counts the other way
+    counts_per_rev: int | None = Field(None, ge=1)                   # the encoder's true counts per rev
+    scale_resolution: float | None = Field(None, ge=1e-12, le=1e-3)  # [m] per scale count, truly
+    lead: float | None = Field(None, gt=0, le=0.1)                   # [m/rad] the screw truly moves the table
+    torque_scale: float | None = Field(None, gt=0, le=100)           # physical torque per N m the board drives
 
 
 class EmulatorConfig(BaseModel):
@@ -104,7 +127,21 @@ class EmulatorConfig(BaseModel):
     silent: bool = False
     deaf: bool = False
     friction: dict[str, Any] | None = None  # rt_ident.axis.friction.Friction keys or preset = "thomson"
-    x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # [m] where the table starts (at rest)
+    x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # [m] where the table truly starts (at rest)
+    actual: BoardTruth = Field(default_factory=BoardTruth)   # the true device (BoardTruth)
+    answer_info: bool = True                   # false: INFO_REQUEST ignored (as by a version 1 board)
+
+    @field_validator("actual", mode="before")
+    @classmethod
+    def _actual_keys(cls, v: Any) -> Any:
+        if isinstance(v, Mapping):
+            if "rated_torque" in v:
+                raise ValueError("rated_torque: the serial board has no rated torque (a CiA 402 drive's 0x6076); "
+                                 "use torque_scale for a torque that differs from what the board believes")
+            for k in v:
+                if k not in BoardTruth.model_fields:
+                    raise ValueError(f"{k}: unknown key; valid: {', '.join(BoardTruth.model_fields)}")
+        return v
 
     @field_validator("travel")
     @classmethod

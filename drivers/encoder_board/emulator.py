@@ -12,6 +12,12 @@ dropped frames, corrupted bytes (CRC errors), garbage bytes, delayed frames
 (``deaf``: host frames are ignored, so the board's watchdog disables it and
 zeroes the torque).
 
+The device may differ from what the host is told (``[emulator] actual``,
+:class:`~drivers.encoder_board.config.BoardTruth`): a motor wired the other way, encoders counting the
+other way or at another resolution, another screw lead, another torque per commanded N m. The board
+reports what it believes it drives (the command, the current); the plant, its travel and ``x0`` are the
+true ones. The board answers INFO_REQUEST with :meth:`EmulatedBoard.info`.
+
 ``python -m drivers.encoder_board.emulator`` prints the pty path and runs until Ctrl-C.
 """
 
@@ -31,12 +37,21 @@ from typing import Any
 import numpy as np
 
 from drivers.encoder_board import protocol as sp
-from drivers.encoder_board.config import EmulatorConfig, SerialBoardConfig, parse_emulator, parse_serial
+from drivers.encoder_board.config import (
+    MAX_CURRENT_A,
+    EmulatorConfig,
+    SerialBoardConfig,
+    parse_emulator,
+    parse_serial,
+)
 from rt_ident.axis.friction import Friction
 from rt_ident.axis.params import AxisParams, thomson_x
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig, rest_at
 
 log = logging.getLogger(__name__)
+
+MODEL = "emulated-board"       # what the emulated board's INFO frame says it is
+FIRMWARE = (1, 0, 0)
 
 
 @dataclass
@@ -60,19 +75,32 @@ class EmulatedBoard:
     :attr:`status`, and counters (``frames_sent``, ``frames_dropped``,
     ``frames_corrupted``, ``garbage_sent``, ``tx_overflow_frames``,
     ``host_frames``, ``plan_late_samples``, ``ignored_commands``).
+
+    The keyword arguments are the device as the host is told (its ``[backend]``: resolutions, polarity;
+    ``params``: the plant and its lead); ``emulator.actual`` overrides them with the truth.
     """
 
     def __init__(self, params: AxisParams | None = None, *, sample_rate_hz: float = 20000.0,
                  counts_per_rev: int = 2**17, scale_resolution: float = 1e-7,
                  torque_constant: float = 0.1, torque_limit: float = 1.0,
+                 torque_sign: int = 1, motor_encoder_sign: int = 1, scale_sign: int = 1,
                  emulator: EmulatorConfig | None = None, plan_capacity: int = 4096,
                  clock: Callable[[], float] = time.monotonic, friction: Friction | None = None) -> None:
-        self.params = params if params is not None else thomson_x()
-        self.friction = friction          # friction to ground / backlash of the plant (rt_ident.axis.friction)
         self.cfg = emulator if emulator is not None else EmulatorConfig()
+        a = self.cfg.actual
+        params = params if params is not None else thomson_x()
+        self.params = params if a.lead is None else replace(params, lead=a.lead)   # the true plant
+        self.friction = friction          # friction to ground / backlash of the plant (rt_ident.axis.friction)
         self.sample_rate_hz = float(sample_rate_hz)
         self.dt = 1.0 / self.sample_rate_hz
-        self.sensors = SensorConfig(counts_per_rev=counts_per_rev, scale_resolution=scale_resolution,
+        # the truth: what the encoders count, which way the motor turns, its torque per N m the board drives
+        self.counts_per_rev = int(a.counts_per_rev or counts_per_rev)
+        self.scale_resolution = float(a.scale_resolution or scale_resolution)
+        self.torque_sign = a.torque_sign or torque_sign
+        self.motor_encoder_sign = a.motor_encoder_sign or motor_encoder_sign
+        self.scale_sign = a.scale_sign or scale_sign
+        self.torque_scale = float(a.torque_scale or 1.0)
+        self.sensors = SensorConfig(counts_per_rev=self.counts_per_rev, scale_resolution=self.scale_resolution,
                                     angle_noise=self.cfg.angle_noise,
                                     torque_meas_noise=self.cfg.torque_meas_noise,
                                     torque_process_noise=self.cfg.torque_process_noise)
@@ -190,8 +218,9 @@ class EmulatedBoard:
         self._rebuilds += 1
         # a disabled power stage applies nothing: no process noise either
         sensors = self.sensors if self.enabled else replace(self.sensors, torque_process_noise=0.0)
+        # the plant saturates the physical torque: the board's limit as the motor truly delivers it
         return PlantSimulator(self.params, self.dt, sensors=sensors, controller=controller,
-                              torque_limit=self.torque_limit, travel=self.cfg.travel,
+                              torque_limit=self.torque_limit * self.torque_scale, travel=self.cfg.travel,
                               seed=self.cfg.seed * 1000 + self._rebuilds, x0=x0, friction=self.friction)
 
     def _set_enabled(self, on: bool) -> None:
@@ -263,6 +292,9 @@ class EmulatedBoard:
             if self.enabled:
                 self._set_enabled(False)
             self._latched |= sp.ST_QUICK_STOPPED
+        elif isinstance(frame, sp.InfoRequest):
+            if self.cfg.answer_info and not self.faults.silent:
+                self._out += self.info().encode()      # ahead of this burst's data frames
         elif isinstance(frame, (sp.TorqueHold, sp.TorquePlan)):
             if not self.enabled:
                 self.ignored_commands += 1
@@ -294,6 +326,12 @@ class EmulatedBoard:
             vals, start = vals[nxt - start:], nxt
         self._plan, self._plan_start = vals[:self.plan_capacity], start
 
+    def info(self) -> sp.Info:
+        """The INFO frame: what the board is configured for (its encoders as they truly are)."""
+        return sp.Info(sp.PROTOCOL_VERSION, FIRMWARE, 0, MODEL, self.sample_rate_hz,
+                       min(self.torque_limit / self.torque_constant, MAX_CURRENT_A), self.torque_constant,
+                       self.counts_per_rev, self.scale_resolution)
+
     def _commands(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Torque in force for the next n samples and a per-sample plan-active mask."""
         cmd = np.full(n, self._hold)
@@ -322,10 +360,15 @@ class EmulatedBoard:
         lim = self.torque_limit
         limited = np.abs(cmd) > lim
         cmd = np.clip(cmd, -lim, lim)
-        blk = self._plant.step_block(cmd)
+        gain = self.torque_sign * self.torque_scale      # physical torque per N m the board believes it drives
+        blk = self._plant.step_block(cmd if gain == 1.0 else gain * cmd)
         q1 = self.sensors.theta1_quantum
         enc = np.rint(blk.theta1 / q1).astype(np.int64)
         scale = np.rint(blk.theta2 * self.params.lead / self.sensors.scale_resolution).astype(np.int64)
+        if self.motor_encoder_sign != 1:
+            enc = -enc
+        if self.scale_sign != 1:
+            scale = -scale
         self._last_theta1 = float(blk.theta1[-1])
         if self.faults.stuck_encoder:
             if self._stuck_counts is None:
@@ -333,7 +376,10 @@ class EmulatedBoard:
             enc[:] = self._stuck_counts
         else:
             self._stuck_counts = None
-        current = np.clip(np.rint(blk.torque_meas / self.torque_constant * 1000.0), -32768, 32767)
+        meas = blk.torque_meas        # the current the board believes it drives (+ its measurement noise)
+        if gain != 1.0:
+            meas = blk.torque_applied / gain + (blk.torque_meas - blk.torque_applied)
+        current = np.clip(np.rint(meas / self.torque_constant * 1000.0), -32768, 32767)
         status = np.full(n, self._latched | (sp.ST_ENABLED if self.enabled else 0), dtype=np.uint16)
         status[limited] |= sp.ST_TORQUE_LIMITED
         status[plan_active] |= sp.ST_PLAN_ACTIVE
@@ -464,8 +510,9 @@ def board_for(bcfg: SerialBoardConfig, ecfg: EmulatorConfig, params: AxisParams 
         kwargs["friction"] = Friction.from_mapping(ecfg.friction, where="emulator.friction")
     return EmulatedBoard(params, sample_rate_hz=bcfg.sample_rate_hz, counts_per_rev=bcfg.counts_per_rev,
                          scale_resolution=bcfg.scale_resolution, torque_constant=bcfg.torque_constant,
-                         torque_limit=bcfg.torque_limit, emulator=ecfg, plan_capacity=bcfg.plan_capacity,
-                         **kwargs)
+                         torque_limit=bcfg.torque_limit, torque_sign=bcfg.torque_sign,
+                         motor_encoder_sign=bcfg.motor_encoder_sign, scale_sign=bcfg.scale_sign,
+                         emulator=ecfg, plan_capacity=bcfg.plan_capacity, **kwargs)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,7 +6,8 @@ Specified in ``docs/serial-protocol.md``. Every frame, in both directions::
 
 little-endian; ``crc = binascii.crc_hqx(type..payload, 0xFFFF)`` (CRC-16/CCITT,
 polynomial 0x1021, init 0xFFFF). The board streams one :class:`DataFrame` per
-sample; the host sends enable/disable/quick-stop/heartbeat/torque frames.
+sample and answers an :class:`InfoRequest` with one :class:`Info` frame; the host
+sends enable/disable/quick-stop/heartbeat/torque frames.
 
 :class:`FrameDecoder` resynchronizes on garbage, partial frames and CRC errors
 (on a bad CRC or an impossible header it drops one byte and hunts for the next
@@ -33,14 +34,18 @@ HEADER_SIZE = 4                # sync (2) + type + len
 OVERHEAD = HEADER_SIZE + 2     # + crc
 MAX_PAYLOAD = 252
 
+PROTOCOL_VERSION = 2           # 2: INFO_REQUEST / INFO added (a version 1 board ignores the request)
+
 # frame types
 T_DATA = 0x01
+T_INFO = 0x02
 T_ENABLE = 0x10
 T_DISABLE = 0x11
 T_QUICK_STOP = 0x12
 T_HEARTBEAT = 0x13
 T_TORQUE_HOLD = 0x14
 T_TORQUE_PLAN = 0x15
+T_INFO_REQUEST = 0x16
 
 PLAN_MAX_VALUES = (MAX_PAYLOAD - 4) // 4   # 62 float32 values per plan frame
 
@@ -80,8 +85,13 @@ _HDR_DTYPE = np.dtype({"names": ["hdr", "crc"], "formats": ["<u4", "<u2"],
                        "offsets": [0, DATA_FRAME_SIZE - 2], "itemsize": DATA_FRAME_SIZE})
 _DATA_HDR_U32 = SYNC_U16 | (T_DATA << 16) | (DATA_LEN << 24)
 
-_FIXED_LEN = {T_DATA: DATA_LEN, T_ENABLE: 0, T_DISABLE: 0, T_QUICK_STOP: 0, T_HEARTBEAT: 4,
-              T_TORQUE_HOLD: 4}
+# INFO: protocol version, firmware major/minor/patch, serial number, model (ASCII, NUL-padded),
+# sample rate [Hz], current limit [A], torque constant [N m/A], counts per rev, scale resolution [m]
+_INFO_PAYLOAD = struct.Struct("<4BI16sfffId")
+INFO_LEN = _INFO_PAYLOAD.size                 # 48 payload bytes
+
+_FIXED_LEN = {T_DATA: DATA_LEN, T_INFO: INFO_LEN, T_ENABLE: 0, T_DISABLE: 0, T_QUICK_STOP: 0, T_HEARTBEAT: 4,
+              T_TORQUE_HOLD: 4, T_INFO_REQUEST: 0}
 
 
 def status_text(status: int) -> str:
@@ -172,7 +182,46 @@ class TorquePlan:
                                                        *self.torques))
 
 
-Frame = DataFrame | Enable | Disable | QuickStop | Heartbeat | TorqueHold | TorquePlan
+@dataclass(frozen=True)
+class InfoRequest:
+    """Host -> board: send one INFO frame (no effect on the power stage)."""
+
+    def encode(self) -> bytes:
+        return encode_frame(T_INFO_REQUEST, b"")
+
+
+@dataclass(frozen=True)
+class Info:
+    """Board -> host: what the board is and what it is configured for (the answer to INFO_REQUEST)."""
+
+    protocol_version: int            # uint8
+    firmware: tuple[int, int, int]   # uint8 major, minor, patch
+    serial_number: int               # uint32
+    model: str                       # ASCII, at most 16 bytes
+    sample_rate_hz: float            # float32
+    current_limit_a: float           # float32: the board clamps the motor current to this
+    torque_constant: float           # float32 [N m/A] the board converts torque commands with
+    counts_per_rev: int              # uint32 motor encoder counts per revolution (0: not configured)
+    scale_resolution: float          # float64 [m per scale count] (0: not configured)
+
+    def encode(self) -> bytes:
+        model = self.model.encode("ascii")
+        if len(model) > 16:
+            raise ValueError(f"model: at most 16 ASCII bytes, got {self.model!r}")
+        return encode_frame(T_INFO, _INFO_PAYLOAD.pack(
+            self.protocol_version, *self.firmware, self.serial_number & 0xFFFFFFFF, model,
+            self.sample_rate_hz, self.current_limit_a, self.torque_constant, self.counts_per_rev,
+            self.scale_resolution))
+
+    def as_dict(self) -> dict[str, object]:
+        return {"model": self.model, "firmware": ".".join(map(str, self.firmware)),
+                "serial_number": self.serial_number, "protocol_version": self.protocol_version,
+                "sample_rate_hz": self.sample_rate_hz, "current_limit_a": self.current_limit_a,
+                "torque_constant": self.torque_constant, "counts_per_rev": self.counts_per_rev,
+                "scale_resolution": self.scale_resolution}
+
+
+Frame = DataFrame | Info | Enable | Disable | QuickStop | Heartbeat | TorqueHold | TorquePlan | InfoRequest
 
 
 # ----- encoders (pure) ----------------------------------------------------------------
@@ -194,6 +243,10 @@ def encode_disable() -> bytes:
 
 def encode_quick_stop() -> bytes:
     return QuickStop().encode()
+
+
+def encode_info_request() -> bytes:
+    return InfoRequest().encode()
 
 
 def encode_heartbeat(counter: int) -> bytes:
@@ -250,7 +303,18 @@ def _length_ok(ftype: int, length: int) -> bool:
     return False
 
 
+def _parse_info(payload: bytes) -> Info:
+    ver, major, minor, patch, serial_no, model, rate, ilim, kt, cpr, res = _INFO_PAYLOAD.unpack(payload)
+    rate, ilim, kt = (float(f"{v:.7g}") for v in (rate, ilim, kt))   # float32: the decimal value it was sent as
+    return Info(ver, (major, minor, patch), serial_no, model.rstrip(b"\0").decode("ascii", "replace"),
+                rate, ilim, kt, cpr, res)
+
+
 def _parse_other(ftype: int, payload: bytes) -> Frame:
+    if ftype == T_INFO:
+        return _parse_info(payload)
+    if ftype == T_INFO_REQUEST:
+        return InfoRequest()
     if ftype == T_ENABLE:
         return Enable()
     if ftype == T_DISABLE:

@@ -54,9 +54,23 @@ def test_data_block_round_trip_preserves_every_field():
 
 def test_host_frames_round_trip():
     sent = [sp.Enable(), sp.Disable(), sp.QuickStop(), sp.Heartbeat(2**32 - 1), sp.TorqueHold(-0.125),
-            sp.TorquePlan(7, (0.5, -0.25, 1.0))]
+            sp.TorquePlan(7, (0.5, -0.25, 1.0)), sp.InfoRequest()]
     got = sp.FrameDecoder().feed(b"".join(f.encode() for f in sent))
     assert got == sent
+    assert sp.encode_info_request() == b"\xa5\x5a\x16\x00" + crc_hqx(b"\x16\x00", 0xFFFF).to_bytes(2, "little")
+
+
+def test_info_frame_layout_matches_the_spec_and_round_trips_between_data_frames():
+    info = sp.Info(2, (1, 4, 9), 0xDEADBEEF, "XB-20", 20000.0, 10.0, 0.125, 131072, 1e-7)
+    raw = info.encode()
+    # oracle: the INFO table of section 2, written out by hand
+    payload = (bytes([2, 1, 4, 9]) + (0xDEADBEEF).to_bytes(4, "little") + b"XB-20" + bytes(11)
+               + struct.pack("<fff", 20000.0, 10.0, 0.125) + (131072).to_bytes(4, "little") + struct.pack("<d", 1e-7))
+    body = bytes([0x02, 48]) + payload
+    assert raw == b"\xa5\x5a" + body + crc_hqx(body, 0xFFFF).to_bytes(2, "little")
+    samples, others = sp.FrameDecoder().feed_samples(_data_block(5) + raw + _data_block(5, seq0=5))
+    assert samples.shape[0] == 10 and others == [info]
+    assert info.as_dict()["firmware"] == "1.4.9"
 
 
 def test_long_plan_is_split_into_62_value_frames_with_consecutive_start_seq():
