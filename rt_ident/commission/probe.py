@@ -1,17 +1,16 @@
 """Open-loop probing of an axis with small torque pulses, the host's position controller off.
 
 Each pulse, in one direction: the torque ramps up until the axis moves (the breakaway torque), on to that
-torque plus a push sized to reach a quarter of the speed limit in about 40 ms at the nominal inertia, then the same torque reversed
-until the commanded impulse is back to zero (the momentum the pulse gave, taken back: exact without
-friction), the speed has fallen to a twentieth of its peak (friction stopped it first), or twice the push
-has passed. This open-loop brake acts whatever the wiring's sign: the reversal is relative to the command
-and the speed a magnitude. Then zero torque. Every change of torque is a ramp. A pulse ends early once the
-table's speed would pass 0.4 x its limit within four ticks, or its distance from where the pulse
-started passes a quarter of the travel budget; if either limit is passed all the same, the pulse brakes
-and ends, and the check fails. Distance and speed are taken from both sensors, the scale
-(x) and the motor encoder (lead x theta1), and the larger is used: one wrong scaling cannot hide
-motion. Torque leaves the host as a short plan with a lease, so a stalled host leaves the axis
-coasting, not pushed.
+torque plus a push sized to reach a quarter of the speed limit in about 40 ms at the nominal inertia, then
+the same torque reversed until the commanded impulse is back to zero (the momentum the pulse gave, taken
+back: exact without friction), the speed has fallen to a twentieth of its peak (friction stopped it first),
+or twice the push has passed. This open-loop brake acts whatever the wiring's sign: the reversal is relative
+to the command and the speed a magnitude. Then zero torque. Every change of torque is a ramp. A pulse ends
+early once the table's speed would pass 0.4 x its limit within four ticks, or its distance from where the
+pulse started passes a quarter of the travel budget; if either limit is passed all the same, the pulse
+brakes and ends, and the check fails. Distance and speed are taken from both sensors, the scale (x) and the
+motor encoder (lead x theta1), and the larger is used: one wrong scaling cannot hide motion. Torque leaves
+the host as a short plan with a lease, so a stalled host leaves the axis coasting, not pushed.
 
 From the samples of a pulse: the direction theta1 and x moved in, the ratio dx/dtheta1 (a slope fit),
 and 1/J and the friction torque F from theta1(t) = c0 + c1 t + S(t)/J - F t^2 / (2 J), S the double
