@@ -253,3 +253,17 @@ def test_malformed_sections_and_values_are_config_errors_naming_the_field(tmp_pa
     with pytest.raises(RtIdentError) as e:
         preflight(load(_write(tmp_path, text)))
     assert str(e.value).startswith(f"{field}") and "\n" not in str(e.value)
+
+
+def test_an_axis_lead_that_differs_from_the_backends_is_refused_naming_axis_lead():
+    with pytest.raises(ConfigError, match=r"axis\.lead: .* differs from backend\.lead"):
+        from_mapping({"axis": {"I1": 2.7e-5, "I2": 8.3e-6, "B": 2.1e-3, "K": 110.0, "lead": 7.96e-4},
+                             "backend": {"name": "serial", "lead": 1.592e-3}})
+
+
+@pytest.mark.parametrize(("backend", "key"), [({"name": "sim", "scale_resolution": 1e-3}, "scale_resolution"),
+                                               ({"name": "serial", "scale_resolution": 1e-12}, "scale_resolution"),
+                                               ({"name": "serial", "counts_per_rev": 2**30}, "counts_per_rev")])
+def test_scale_and_encoder_counts_that_cannot_be_true_of_the_window_are_refused(backend, key):
+    with pytest.raises(ConfigError, match=rf"backend\.{key}"):
+        from_mapping({"backend": backend})
