@@ -60,6 +60,8 @@ class Pulse:
     truth: dict[str, float] = field(default_factory=dict)   # a simulated device's own motion
     drift: tuple[float, float] = (0.0, 0.0)   # (dtheta1/dt, dx/dt) at rest before the pulse
     brake_at: int | None = None               # samples before the brake began (None: it never pushed)
+    fault: str | None = None                  # the device stopped during the pulse: why
+    fault_cause: str | None = None
 
     def _own(self) -> tuple[np.ndarray, np.ndarray]:
         """theta1 and x from the pulse's start, the drift at rest taken out (a table without static
@@ -117,8 +119,10 @@ class Prober:
         self.b = backend
         self.lim = limits
         dt = backend.sample_period
-        self.plan_len = int(math.ceil(2 * limits.tick_s / dt)) + 2
-        self.lease = int(math.ceil(0.005 / dt))
+        # a torque outlives the host's last write by ~1.5 ticks at most: a stalled host cannot push the axis
+        # past the speed limit (at 10 x the nominal acceleration the push gains < 0.3 x the limit in that time)
+        self.plan_len = int(math.ceil(limits.tick_s / dt)) + 2
+        self.lease = max(1, int(math.ceil(0.5 * limits.tick_s / dt)))
         self.next_seq = 0
         self.start: tuple[float, float] | None = None     # (theta1, x) where the table stood
         self.max_travel = 0.0
@@ -163,23 +167,43 @@ class Prober:
                           _slope(t[half:], x[half:]))
 
     def pulse(self, direction: int) -> Pulse:
-        lim, b = self.lim, self.b
-        self.settle(0.1)
+        lim = self.lim
+        out = Pulse(direction, *(np.empty(0),) * 4)
+        try:
+            self.settle(0.1)
+        except RtIdentError as exc:
+            out.fault, out.fault_cause = str(exc), getattr(exc, "cause", "device")
+            return out
         assert self.start is not None
         th0, x0 = self.start
-        ts, th1s, xs, tqs = [], [], [], []
+        ts: list[np.ndarray] = []
+        th1s: list[np.ndarray] = []
+        xs: list[np.ndarray] = []
+        tqs: list[np.ndarray] = []
         ramp = lim.torque_cap / 400.0                    # the cap in 0.4 s: slow enough to find the breakaway
         slew = ramp * 5.0
         push_target = min(lim.torque_cap, lim.inertia * 0.25 * lim.max_speed_m_s / lim.lead / PUSH_TIME_S)
+        out.drift = (self.drift[3], self.drift[4])
+        deadline = self._clock() + 5.0
+        try:
+            self._pulse_loop(direction, out, ts, th1s, xs, tqs, th0, x0, push_target, ramp, slew, deadline)
+        except RtIdentError as exc:            # the device stopped itself: what it did until then still counts
+            out.fault, out.fault_cause = str(exc), getattr(exc, "cause", "device")
+        if ts:
+            out.t, out.theta1, out.x, out.torque = (np.concatenate(a) for a in (ts, th1s, xs, tqs))
+        out.max_travel_m, out.max_speed_m_s = self.max_travel, self.max_speed
+        return out
+
+    def _pulse_loop(self, direction: int, out: Pulse, ts: list, th1s: list, xs: list, tqs: list, th0: float,
+                    x0: float, push_target: float, ramp: float, slew: float, deadline: float) -> None:
+        lim, b = self.lim, self.b
         phase, torque, target = "ramp", 0.0, 0.0
-        out = Pulse(direction, *(np.empty(0),) * 4, drift=(self.drift[3], self.drift[4]))
         t_push = t_brake = push_dur = peak = impulse = 0.0
         t_written = self._clock()
         rest = 0
         stale = 0
         p_th0: float | None = None
         p_x0 = 0.0
-        deadline = self._clock() + 5.0
         while True:
             now = self._clock()
             if now > deadline:
@@ -264,10 +288,6 @@ class Prober:
                 if rest >= 50:
                     break
             time.sleep(lim.tick_s)
-        if ts:
-            out.t, out.theta1, out.x, out.torque = (np.concatenate(a) for a in (ts, th1s, xs, tqs))
-        out.max_travel_m, out.max_speed_m_s = self.max_travel, self.max_speed
-        return out
 
 class ProbeError(RtIdentError):
     """The probe could not go on (no samples): the message, and the config key that may fix it."""

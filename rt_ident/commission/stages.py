@@ -24,6 +24,7 @@ import logging
 import math
 import os
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,23 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
                      f"motion below {cap:.4g} N m",
                      "backend.torque_limit (or commission.torque_share): the axis did not move; check the brake, "
                      "the drive's enable and the motor's power"))
+    faulted = [q for q in pulses if q.fault]
+    if faulted:
+        moved = [q for q in pulses if q.breakaway_nm is not None and q.t.size]
+        if moved:                                       # it moved before the device stopped: its signs
+            q = moved[0]
+            th, x = q.moved()
+            sth, sx = int(np.sign(th * q.direction)), int(np.sign(x * q.direction))
+            if sth < 0 or sx < 0:
+                key = "backend.scale_sign" if sth > 0 else "backend.torque_sign" if sx < 0 \
+                    else "backend.motor_encoder_sign"
+                out.append(check("signs before the device stopped", False,
+                                 f"theta1 {'+' if sth > 0 else '-'}, x {'+' if sx > 0 else '-'} for + torque, then "
+                                 f"{faulted[0].fault}", "theta1 +, x +", f"{key}: set it to -1 x its value"))
+                return out
+        out.append(check("device", False, faulted[0].fault, "no fault while probing",
+                         f"backend ({faulted[0].fault_cause})"))
+        return out
     aborted = [q.aborted for q in pulses if q.aborted]
     out.append(check("limits", not aborted, aborted[0] if aborted else
                      f"{max(q.max_travel_m for q in pulses) * 1e3:.3f} mm, "
@@ -146,6 +164,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
     """Stages a and b. True when every check passed."""
     from drivers import make_backend
     from rt_ident.compose.build import backend_options
+    from rt_ident.loop.host import LoopRealtime
     checks = result["checks"]
     with contextlib.ExitStack() as stack:
         progress("a: connect")
@@ -168,6 +187,17 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             return False
         result["identity"] = {**backend.identity(), **backend.signs}
         checks.append(check("connect", True, backend.name, "the device answers"))
+        opts_told = cfg.backend.options()
+        differ = {k: (v, opts_told[k]) for k, v in result["identity"].items()
+                  if k in ("counts_per_rev", "scale_resolution", "sample_rate_hz") and k in opts_told
+                  and isinstance(v, (int, float)) and abs(float(v) - float(opts_told[k])) > 1e-9 * abs(float(v))}
+        checks.append(check("device settings", not differ,
+                            {k: v[0] for k, v in differ.items()} or "as configured",
+                            "what [backend] says, where the device reports it",
+                            ", ".join(f"backend.{k}: the device reports {v[0]:g}, the config says {v[1]:g}"
+                                      for k, v in differ.items())))
+        if differ:
+            return False
         pos = backend.read_position()
         x = None if pos is None else cfg.axis_params().lead * pos[1]
         lo, hi = cfg.safety.window
@@ -183,6 +213,10 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         progress("b: probe with torque pulses, the position controller off")
         result["stage_reached"] = "b"
         result["sample_period"] = backend.sample_period
+        realtime = LoopRealtime(cfg.model_copy(update={"loop": cfg.loop.model_copy(update={"idle_poll": False})}))
+        stack.callback(realtime.end)                 # after the backend's stop (registered before it)
+        realtime.prepare()
+        realtime.begin([])
         backend.activate()
         prober = Prober(backend, _probe_limits(cfg, backend.torque_limit))
         try:
@@ -190,7 +224,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             pulses = []
             for d in (1, -1):
                 pulses.append(prober.pulse(d))
-                if pulses[-1].aborted or pulses[-1].breakaway_nm is None:
+                if pulses[-1].aborted or pulses[-1].breakaway_nm is None or pulses[-1].fault:
                     break
         except ProbeError as exc:
             checks.append(check("probe", False, str(exc), "samples every tick", exc.key))
@@ -285,15 +319,26 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
     prm = ident["parameters"]
     axis = {k: float(prm[k]) for k in ("I1", "I2", "B", "K")} | {"lead": cfg.axis_params().lead}
     settings = cfg.control.settings()
-    ctl = model_controller(AxisParams(**axis), 1.0 / cfg.loop.tick_hz, settings)
+    bw, ctl, ok = settings.bandwidth_hz, None, False
+    while bw >= 0.25 * settings.bandwidth_hz:      # as the conservative design: x 0.8 a step, to a quarter
+        ctl = model_controller(AxisParams(**axis), 1.0 / cfg.loop.tick_hz, replace(settings, bandwidth_hz=bw))
+        m = ctl.margins or {}
+        pm, gm = m.get("pm_deg"), m.get("gm_down_db")
+        ok = pm is not None and pm >= settings.phase_margin_deg and (gm is None or -gm >= settings.gain_margin_db)
+        if ok:
+            break
+        bw *= 0.8
+    assert ctl is not None
     m = ctl.margins or {}
-    pm, gm = m.get("pm_deg"), m.get("gm_down_db")
-    ok = pm is not None and pm >= settings.phase_margin_deg
     result["design"] = {"bandwidth_hz": ctl.bandwidth_hz, "margins": m}
-    result["checks"].append(check("design margins", ok, {"pm_deg": pm, "gm_down_db": gm},
-                                  f"phase margin >= {settings.phase_margin_deg:g} deg", "control.bandwidth_hz (lower)"))
+    result["checks"].append(check("design margins", ok, {"bandwidth_hz": ctl.bandwidth_hz, "pm_deg": m.get("pm_deg"),
+                                                         "gm_down_db": m.get("gm_down_db")},
+                                  f"phase margin >= {settings.phase_margin_deg:g} deg, gain margin >= "
+                                  f"{settings.gain_margin_db:g} dB at {settings.bandwidth_hz:g} Hz or down to a "
+                                  "quarter of it", "control.bandwidth_hz (lower), control.delay_ticks"))
     if not ok:
         return False
+    control = {"mode": "fixed", "bandwidth_hz": ctl.bandwidth_hz}
     move = cfg.commission.move_m
     v = 0.5 * cfg.commission.max_speed_m_s
     ref = {"kind": "moves", "positions": [0.0, move, 0.0], "v_max": v, "a_max": 20 * v, "j_max": 400 * v,
@@ -304,7 +349,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
     # no probing: the move alone. Holding still, the motor encoder may not change for many ticks under
     # the small torques of the hold: the stuck-encoder check counts only above 5 % of the torque limit
     stuck = max(cfg.stuck_torque(), 0.05 * float(cfg.backend.options().get("torque_limit", 1.0)))
-    common: dict[str, Any] = {"control": {"mode": "fixed"}, "reference": ref, "axis": axis,
+    common: dict[str, Any] = {"control": control, "reference": ref, "axis": axis,
                               "excitation": {"kind": "none"}, "loop": {"duration": duration},
                               "telemetry": {"sink": "off"}, "safety": {"stuck_torque": stuck}}
     meas = _derived(cfg, **common, recording={"enabled": True, "path": str(out / "move.parquet")})
