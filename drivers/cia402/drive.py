@@ -49,7 +49,8 @@ class Cia402Backend(Backend):
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         cfg: Cia402Config = validate(config)
-        super().__init__({"torque_limit": cfg.torque_limit})
+        super().__init__({"torque_limit": cfg.torque_limit, "torque_sign": cfg.torque_sign,
+                          "motor_encoder_sign": cfg.motor_encoder_sign, "scale_sign": cfg.scale_sign})
         self.config = cfg
         self._setup: NodeSetup | None = None
         self._deque: collections.deque = collections.deque(maxlen=max(8192, int(8 * cfg.sync_rate_hz)))
