@@ -31,12 +31,13 @@ from tests.drivers.test_canopen_backend import RATED, backend_cfg
 
 EDS = CONFIG_DIR / "cia402_generic.eds"
 T = 0.016                       # N m: 25 per mille of RATED (50 of RATED / 2), exact in 0x6071 and 0x6077
+ONSET = 10                      # SYNCs (4 ms) of torque before samples count: angles well above a count
 NOMINAL = {"counts_per_rev": 131072, "scale_resolution": 1e-7, "lead": thomson_x().lead}
 
 
 @dataclass
 class Pair:
-    """Samples of both drives at the SYNCs both delivered (by the bus's SYNC index), from 30 SYNCs after
+    """Samples of both drives at the SYNCs both delivered (by the bus's SYNC index), from ONSET SYNCs after
     the torque began."""
 
     ref: dict[str, np.ndarray]      # node 5, nominal: theta1, theta2, torque (the host's torque_meas)
@@ -53,16 +54,17 @@ class Pair:
 
 def _rig_cfg(actual: dict | None, emulator: dict | None, over: dict, channel: str | None = None,
              node_id: int = 5) -> dict:
-    # no travel window: a starved drive may take many SYNC periods to deliver the samples a test needs;
-    # heartbeats may be late by as much (the watchdogs are not what these tests are about)
-    over = {"heartbeat_consumer_ms": 2000, **over}
+    # 250 Hz: two drives, two hosts and the SYNC producer share this process's CPU time. No travel window:
+    # a starved drive may take many SYNC periods to deliver the samples a test needs; heartbeats may be
+    # late by as much (the watchdogs are not what these tests are about)
+    over = {"sync_rate_hz": 250, "heartbeat_consumer_ms": 2000, **over}
     return {"backend": backend_cfg(channel or f"a-{uuid.uuid4().hex[:10]}", node_id=node_id, **over),
             "emulator": {"travel": None, "actual": actual or {}, **(emulator or {})}}
 
 
 def compare(actual: dict | None = None, emulator: dict | None = None, **over) -> Pair:
     """Node 5 nominal, node 6 with ``actual`` / ``emulator`` and its host's [backend] keys ``over``; torque T
-    on both from one SYNC on, until 30 SYNCs with both samples are read (at most 1000 SYNC periods)."""
+    on both from one SYNC on, until 30 SYNCs with both samples are read (at most 500 SYNC periods)."""
     channel = f"a-{uuid.uuid4().hex[:10]}"
     cfgs = [_rig_cfg(None, None, {}, channel, 5), _rig_cfg(actual, emulator, over, channel, 6)]
     drives = start_emulator_for({"drives": cfgs})
@@ -74,7 +76,7 @@ def compare(actual: dict | None = None, emulator: dict | None = None, **over) ->
             ref.activate()
             alt.activate()
             assert ref._sender is alt._sender                    # one SYNC producer steps both plants
-            onset = ref._sender.next_index + 100                # SYNC index (seq + _k0 of each backend)
+            onset = ref._sender.next_index + 25                # SYNC index (seq + _k0 of each backend)
             for be in (ref, alt):
                 be.write(np.array([T]), start_seq=onset - be._k0)
             end = time.monotonic() + 20.0
@@ -84,15 +86,15 @@ def compare(actual: dict | None = None, emulator: dict | None = None, **over) ->
                     blk = be.read()
                     for i, k in enumerate(blk.seq + be._k0):
                         rows[int(k)] = (blk.theta1[i], blk.theta2[i], blk.torque_meas[i])
-                common = [k for k in got[0].keys() & got[1].keys() if k >= onset + 30]
-                if len(common) >= 30 or max(got[0], default=0) > onset + 1000:
+                common = [k for k in got[0].keys() & got[1].keys() if k >= onset + ONSET]
+                if len(common) >= 30 or max(got[0], default=0) > onset + 500:
                     break
             assert ref.counters["late_plan_samples"] == alt.counters["late_plan_samples"] == 0
             sign = alt.scale_sign
         true_theta1 = (float(drives[5].plant.state[0]), float(drives[6].plant.state[0]))
     finally:
         drives.stop()
-    ks = sorted(k for k in got[0].keys() & got[1].keys() if k >= onset + 30)
+    ks = sorted(k for k in got[0].keys() & got[1].keys() if k >= onset + ONSET)
     assert len(ks) >= 10, f"only {len(ks)} SYNCs with samples of both drives"
     cols = [{name: np.array([rows[k][i] for k in ks]) for i, name in enumerate(("theta1", "theta2", "torque"))}
             for rows in got]
