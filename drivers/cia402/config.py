@@ -11,9 +11,9 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from drivers.cia402.bus import check_interface
 from drivers.cia402.profile import frame_bits
@@ -58,6 +58,10 @@ class Cia402Config(BaseModel):
     scale_subindex: int = Field(1, ge=0, le=255)
     scale_resolution: float = Field(..., ge=1e-12, le=1e-3)  # m per scale count
     lead: float = Field(7.96e-4, gt=0)              # m/rad: theta2 = x / lead
+    # polarity, applied by drivers.base in the host's convention (see Cia402Backend for 0x607E)
+    torque_sign: Literal[1, -1] = 1                 # -1: a positive 0x6071 turns the motor backwards
+    motor_encoder_sign: Literal[1, -1] = 1          # -1: 0x6064 counts backwards
+    scale_sign: Literal[1, -1] = 1                  # -1: the table scale counts backwards
     # supervision
     heartbeat_ms: int = Field(100, ge=1, le=65535)  # producer time of the drive (0x1017) and of this host
     heartbeat_consumer_ms: int | None = Field(None, ge=1, le=65535)  # None: 3 x heartbeat_ms
@@ -70,6 +74,13 @@ class Cia402Config(BaseModel):
     # the SYNC sender thread waits for the GIL at each deadline for up to the interpreter's switch
     # interval; while active the backend lowers it to this (restored when the SYNCs stop); None: untouched
     gil_switch_interval_us: float | None = Field(50.0, ge=5, le=5000)
+
+    @field_validator("torque_sign", "motor_encoder_sign", "scale_sign", mode="before")
+    @classmethod
+    def _not_bool(cls, v: Any) -> Any:
+        if isinstance(v, bool):                       # true == 1 for the Literal check
+            raise ValueError(f"must be 1 or -1, got {v!r}")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> Cia402Config:

@@ -5,7 +5,8 @@ EDS, NMT PRE-OPERATIONAL, probe 0x1000 (no answer -> :class:`DeviceConnectionErr
 PDO mapping by SDO (RPDO1 = controlword 0x6040 + target torque 0x6071; TPDO1 =
 statusword 0x6041 + position actual 0x6064 + torque actual 0x6077; TPDO2 = the table
 scale object, default 0x60E4:01; transmission type 1 = every SYNC), modes of operation
-0x6060 = 10 verified on 0x6061, drive torque limit 0x6072, heartbeats 0x1017/0x1016.
+0x6060 = 10 verified on 0x6061, drive torque limit 0x6072, heartbeats 0x1017/0x1016, and the
+identity objects 0x1000, 0x6502, 0x6076, 0x6072, 0x607E read once (:meth:`Cia402Backend.identity`).
 ``activate()``: NMT OPERATIONAL, SYNC sender running, controlword walks the 402 state
 machine to OPERATION ENABLED, confirmed by the statusword within ``startup_timeout``.
 
@@ -15,6 +16,11 @@ Units: theta1 = counts 2 pi / counts_per_rev; theta2 = (scale counts * scale_res
 / lead; torques per mille of the rated torque. ``t`` is the host's monotonic time of the
 SYNC that sampled the data, relative to the first delivered sample (the drive has no
 clock in its PDOs); ``seq`` counts SYNC periods from 0 at activation.
+
+Polarity: ``torque_sign``, ``motor_encoder_sign`` and ``scale_sign`` are applied by
+:mod:`drivers.base`. A drive with position polarity set (0x607E bit 7) reverses motor torque and
+motor position together, so it stays consistent in its own frame while the external scale now runs
+against the motor: the host then reverses the scale (see :class:`Cia402Backend`).
 """
 
 from __future__ import annotations
@@ -43,13 +49,19 @@ _TWO_PI = 2.0 * math.pi
 
 
 class Cia402Backend(Backend):
-    """A CiA 402 drive streaming motor encoder, table scale and torque at the SYNC rate."""
+    """A CiA 402 drive streaming motor encoder, table scale and torque at the SYNC rate.
+
+    The effective scale sign (``self.scale_sign`` once open) = configured ``scale_sign`` x (-1 if the
+    drive's 0x607E bit 7 is set): the drive reverses motor torque and 0x6064 but not the table scale.
+    ``torque_sign`` and ``motor_encoder_sign`` describe the wiring in the drive's own frame.
+    """
 
     name = "canopen"
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         cfg: Cia402Config = validate(config)
-        super().__init__({"torque_limit": cfg.torque_limit})
+        super().__init__({"torque_limit": cfg.torque_limit, "torque_sign": cfg.torque_sign,
+                          "motor_encoder_sign": cfg.motor_encoder_sign, "scale_sign": cfg.scale_sign})
         self.config = cfg
         self._setup: NodeSetup | None = None
         self._deque: collections.deque = collections.deque(maxlen=max(8192, int(8 * cfg.sync_rate_hz)))
@@ -67,6 +79,7 @@ class Cia402Backend(Backend):
         self._hb_operational = False  # a heartbeat reported OPERATIONAL since NMT start was sent
         self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
         self.statusword = 0
+        self._ident: dict[str, Any] = {}
 
     # ----- properties -------------------------------------------------------------------
     @property
@@ -130,9 +143,24 @@ class Cia402Backend(Backend):
             setup.teardown(drive_consumer_off=False)
             self._setup = None
             raise
+        self._ident = dict(setup.identity)
+        polarity = self._ident.get("polarity") or 0         # absent (SDO abort): as 0
+        self.scale_sign = cfg.scale_sign * (-1 if polarity & p402.POLARITY_POSITION else 1)
+        if polarity & p402.POLARITY_POSITION:
+            log.info("canopen: node %d has 0x607E = 0x%02X (position polarity: the drive reverses motor torque "
+                     "and position); the table scale is reversed on the host (effective scale_sign %d)",
+                     cfg.node_id, polarity, self.scale_sign)
         self._asm = SampleAssembler(setup.tpdo_layouts, cfg.stale_limit,
                                     cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo)
         self._hb_time = time.monotonic()
+
+    def _identity(self) -> dict[str, Any]:
+        """0x1000 device type, 0x6502 supported drive modes, 0x6076 rated torque [N m], 0x6072 max torque
+        [per mille], 0x607E polarity, node id; read by SDO during open (None: the drive lacks it, named
+        in ``notes``)."""
+        ident = dict(self._ident)
+        ident["notes"] = list(ident.get("notes", []))
+        return ident
 
     def _read_position(self) -> tuple[float, float]:
         """0x6064 and the table scale object, by SDO (the drive reports them whatever its state)."""

@@ -21,6 +21,14 @@ was read with it - a late answer would land in the next SYNC's window and be tak
 for that sample. The plant still advances; the master sees a stale sample
 (:attr:`late_syncs` counts them).
 
+The device as it truly is: the plant carries the true lead and the true encoder resolutions
+(``counts_per_rev``, ``scale_resolution`` here); ``torque_sign`` (motor wired the other way),
+``torque_scale`` (a wrong torque constant: physical torque per torque the drive believes it applies),
+``motor_encoder_sign`` (0x6064 counts the other way) and ``scale_sign`` (the scale object counts the
+other way) act between the drive and the plant. 0x6077 reports the torque the drive believes it
+applies. Position polarity (0x607E bit 7) reverses the applied torque, 0x6064 and 0x6077 inside the
+drive, not the scale. The travel window (fault 0x8612), the hold loop and ``x0`` act on the true axis.
+
 Works on the ``virtual`` bus (in-process) and ``udp_multicast`` (across processes;
 needs msgpack). CLI: ``python -m drivers.cia402.emulator --config configs/canopen-virtual.toml``;
 :class:`rt_ident.processes.emulation.EmulatorProcess` runs it in a child process.
@@ -42,6 +50,7 @@ from typing import Any, Literal
 
 import canopen
 import numpy as np
+from canopen.sdo import SdoAbortedError
 
 from drivers.cia402 import profile as p402
 from drivers.cia402.bus import open_bus
@@ -49,13 +58,15 @@ from drivers.cia402.faults import FaultConfig
 from drivers.cia402.frames import FrameIO, stop_periodic
 from drivers.cia402.local_pdo import PdoLayout, check_mapping_write, od_value, pdo_layouts
 from rt_ident.axis.plant import PlantSimulator
+from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
 _QUICK_STOP_OPTION = 0x605A
 _ANSWER_BINS_US = (100, 200, 300, 500, 1000, 2000, float("inf"))   # upper edges of the answer-time bins
 _PROCESS = (p402.CONTROLWORD, p402.TARGET_TORQUE, p402.MAX_TORQUE, p402.MODES_OF_OPERATION, 0x60B2,
-            _QUICK_STOP_OPTION)
+            _QUICK_STOP_OPTION, p402.POLARITY)
+_POWERED = (p402.OPERATION_ENABLED, p402.QUICK_STOP_ACTIVE)
 
 
 def _count(hist: list[int], seconds: float) -> None:
@@ -81,12 +92,18 @@ class EmulatedCia402Drive:
     (also a context manager). For tests: :attr:`state` (402 state name),
     :attr:`applied_torque` [N m], :attr:`enabled`, :attr:`samples` (SYNCs in OPERATION ENABLED),
     :attr:`emcy_codes` (EMCYs sent).
+
+    ``counts_per_rev``, ``scale_resolution``, ``rated_torque`` (0x6076): the drive's true values;
+    ``torque_sign``, ``motor_encoder_sign``, ``scale_sign`` (+-1), ``torque_scale`` (> 0): how the
+    motor and the encoders are truly wired (see the module docstring); ``polarity``: 0x607E at power-up.
     """
 
     def __init__(self, node_id: int, eds_path: str | Path, bus: Mapping[str, Any], plant: PlantSimulator,
                  faults: FaultConfig | None = None, *, counts_per_rev: int = 2**17,
                  scale_resolution: float = 1e-7, scale_index: int = 0x60E4, scale_subindex: int = 1,
-                 rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto") -> None:
+                 rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto",
+                 torque_sign: int = 1, motor_encoder_sign: int = 1, scale_sign: int = 1, torque_scale: float = 1.0,
+                 polarity: int = 0) -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node_id must be 1..127, got {node_id!r}")
         self.node_id = int(node_id)
@@ -97,6 +114,18 @@ class EmulatedCia402Drive:
         self.counts_per_rev = int(counts_per_rev)
         self.scale_resolution = float(scale_resolution)
         self.scale_key = (int(scale_index), int(scale_subindex))
+        for name, sign in (("torque_sign", torque_sign), ("motor_encoder_sign", motor_encoder_sign),
+                           ("scale_sign", scale_sign)):
+            if isinstance(sign, bool) or sign not in (1, -1):
+                raise ValueError(f"{name} must be 1 or -1, got {sign!r}")
+        if not (isinstance(torque_scale, (int, float)) and math.isfinite(torque_scale) and torque_scale > 0):
+            raise ValueError(f"torque_scale must be > 0, got {torque_scale!r}")
+        if not 0 <= int(polarity) <= 255:
+            raise ValueError(f"polarity (0x607E, UNSIGNED8) must be 0..255, got {polarity!r}")
+        self.torque_sign, self.motor_encoder_sign, self.scale_sign = int(torque_sign), int(motor_encoder_sign), \
+            int(scale_sign)
+        self.torque_scale = float(torque_scale)
+        self._polarity0 = int(polarity)
         self._rated_override = rated_torque
         self.rated_torque = rated_torque or 0.0
         self._controller = plant.controller
@@ -183,6 +212,11 @@ class EmulatedCia402Drive:
         self._supported = od_value(node, p402.SUPPORTED_MODES)
         for key in ((p402.MAX_TORQUE, 0), (p402.MODES_OF_OPERATION, 0), (_QUICK_STOP_OPTION, 0)):
             self._values[key] = od_value(node, *key)
+        if od.get_variable(p402.POLARITY) is not None:
+            self._values[(p402.POLARITY, 0)] = self._polarity0
+        elif self._polarity0:
+            raise ConfigError("emulator.polarity", f"0x{self._polarity0:02X} set, but the drive's EDS "
+                              f"{self.eds_path.name} has no 0x607E")
         counts, scale = self._encoders(float(self.plant.state[0]), float(self.plant.state[2]))
         self._values.update({(p402.CONTROLWORD, 0): 0, (p402.TARGET_TORQUE, 0): 0, (0x60B2, 0): 0,
                              (p402.MODES_DISPLAY, 0): 0, (p402.ERROR_CODE, 0): 0, (p402.ERROR_REGISTER, 0): 0,
@@ -249,6 +283,8 @@ class EmulatedCia402Drive:
             self._written(index, subindex, od.decode_raw(data))
 
     def _written(self, index: int, subindex: int, value: int) -> None:
+        if index == p402.POLARITY and self._state in _POWERED:
+            raise SdoAbortedError(0x08000022)       # as drives do: polarity only with the power stage off
         if 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00:
             assert self._node is not None            # SDO writes come after start()
             check_mapping_write(self._node, index, subindex, value)
@@ -427,14 +463,15 @@ class EmulatedCia402Drive:
                 v[key] = value
         self._step_state_machine(v[(p402.CONTROLWORD, 0)])
         enabled = self._state == p402.OPERATION_ENABLED
-        torque = 0.0
+        torque = 0.0                                      # what the drive believes it applies, its frame
         if enabled:
             limit = v[(p402.MAX_TORQUE, 0)]
             permille = max(-limit, min(limit, v[(p402.TARGET_TORQUE, 0)] + v[(0x60B2, 0)]))
             torque = permille * self.rated_torque / 1000.0
             self.samples += 1
+        gain = self._torque_gain()
         self._use_controller(enabled)
-        blk = self.plant.step_block(np.array([torque]))
+        blk = self.plant.step_block(np.array([gain * torque]))
         self.applied_torque = float(blk.torque_applied[0]) if enabled else 0.0
         counts, scale = self._encoders(float(blk.theta1[0]), float(blk.theta2[0]))
         f, n = self.faults, self.samples
@@ -444,7 +481,7 @@ class EmulatedCia402Drive:
             counts = self._stuck_counts
         v[(p402.POSITION_ACTUAL, 0)] = counts
         v[self.scale_key] = scale
-        meas = float(blk.torque_meas[0]) if enabled else 0.0
+        meas = float(blk.torque_meas[0]) / gain if enabled else 0.0      # 0x6077: the believed torque
         v[(p402.TORQUE_ACTUAL, 0)] = _int16(meas * 1000.0 / self.rated_torque)
         if enabled and f.emcy_at_sample is not None and n == f.emcy_at_sample:
             self._fault(f.emcy_code, f"injected at sample {n}")
@@ -453,12 +490,25 @@ class EmulatedCia402Drive:
         self._set_state(self._state)                      # refresh the statusword
         self._send_tpdos(enabled, n)
 
+    def _position_polarity(self) -> int:
+        """-1 while 0x607E bit 7 (position polarity) is set. Bit 6 (velocity polarity) is stored only:
+        it reverses velocity values, and cyclic synchronous torque has none."""
+        return -1 if self._values.get((p402.POLARITY, 0), 0) & p402.POLARITY_POSITION else 1
+
+    def _torque_gain(self) -> float:
+        """Physical motor torque per N m the drive believes it applies (in its own frame): position
+        polarity, the motor's wiring and the torque constant's error."""
+        return self._position_polarity() * self.torque_sign * self.torque_scale
+
     def _encoders(self, theta1: float, theta2: float) -> tuple[int, int]:
         """The motor encoder's counts and the table scale's steps (0x6064 and the scale object) at the
-        quantized angles the plant's sensors report."""
+        quantized true angles the plant's sensors report: 0x6064 with the encoder's wiring and the
+        drive's position polarity, the scale with its own wiring only (0x607E does not act on it)."""
         counts = int(math.floor(theta1 * self.counts_per_rev / (2.0 * math.pi) + 0.5))
+        counts *= self._position_polarity() * self.motor_encoder_sign
         x = theta2 * self.plant.params.lead
-        return _int32(counts), _int32(int(math.floor(x / self.scale_resolution + 0.5)))
+        steps = self.scale_sign * int(math.floor(x / self.scale_resolution + 0.5))
+        return _int32(counts), _int32(steps)
 
     def _step_state_machine(self, controlword: int) -> None:
         state = self._state

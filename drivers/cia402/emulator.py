@@ -32,6 +32,24 @@ from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
+
+class DriveTruth(BaseModel):
+    """``actual`` of the ``[emulator]`` table (``[plant.actual]`` lands here): the drive and axis as they
+    truly are where they differ from the ``[backend]`` the host is given. A key left out: as the host
+    is told (the plant's lead: the ``[axis]`` lead)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    torque_sign: Literal[1, -1] = 1             # -1: the motor is wired the other way
+    motor_encoder_sign: Literal[1, -1] = 1      # -1: 0x6064 counts the other way
+    scale_sign: Literal[1, -1] = 1              # -1: the scale object counts the other way
+    counts_per_rev: int | None = Field(None, ge=1)              # the motor encoder's true counts per rev
+    scale_resolution: float | None = Field(None, gt=0, le=1e-3)  # m per scale count, truly
+    lead: float | None = Field(None, gt=0, le=0.1)              # m/rad the screw truly moves the table
+    rated_torque: float | None = Field(None, gt=0)              # N m: the drive's true 0x6076
+    torque_scale: float = Field(1.0, gt=0, le=100)  # physical torque per torque the drive believes it applies
+
+
 class EmulatorConfig(BaseModel):
     """The ``[emulator]`` table (plant and drive options not shared with the backend)."""
 
@@ -55,6 +73,8 @@ class EmulatorConfig(BaseModel):
     faults: dict[str, Any] = Field(default_factory=dict)
     friction: dict[str, Any] | None = None       # rt_ident.axis.friction.Friction keys or preset = "thomson"
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: where the table starts (at rest)
+    actual: DriveTruth = Field(default_factory=DriveTruth)   # the true device ([plant.actual])
+    polarity: int = Field(0, ge=0, le=255)      # 0x607E at power-up: bit 7 position, bit 6 velocity polarity
 
     @field_validator("travel")
     @classmethod
@@ -96,9 +116,14 @@ def build_emulator_for(config: Any) -> EmulatedCia402Drive:
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
         msg = str(err["msg"]).removeprefix("Value error, ")
         raise ConfigError(f"emulator.{loc}" if loc else "emulator", msg) from None
-    if abs(axis.lead - cfg.lead) > 1e-12 * axis.lead:
+    truth = emu.actual
+    if truth.lead is not None:
+        axis = axis.with_(lead=truth.lead)
+    elif abs(axis.lead - cfg.lead) > 1e-12 * axis.lead:
         log.warning("emulator: axis lead %g differs from backend.lead %g", axis.lead, cfg.lead)
-    sensors = SensorConfig(counts_per_rev=cfg.counts_per_rev, scale_resolution=cfg.scale_resolution,
+    counts_per_rev = truth.counts_per_rev or cfg.counts_per_rev
+    scale_resolution = truth.scale_resolution or cfg.scale_resolution
+    sensors = SensorConfig(counts_per_rev=counts_per_rev, scale_resolution=scale_resolution,
                            angle_noise=emu.angle_noise, torque_meas_noise=emu.torque_meas_noise,
                            torque_process_noise=emu.torque_process_noise)
     controller = (HoldController(kp=DEFAULT_KP if emu.kp is None else emu.kp,
@@ -106,17 +131,22 @@ def build_emulator_for(config: Any) -> EmulatedCia402Drive:
     from rt_ident.axis.friction import Friction
 
     friction = Friction.from_mapping(emu.friction, where="emulator.friction") if emu.friction else None
+    # the power stage's peak in the drive's belief; physically torque_scale times it
+    peak = (emu.torque_limit or cfg.torque_limit) * truth.torque_scale
     plant = PlantSimulator(axis, cfg.sample_period, sensors=sensors, controller=controller,
-                           torque_limit=emu.torque_limit or cfg.torque_limit, travel=emu.travel,
+                           torque_limit=peak, travel=emu.travel,
                            integrator=emu.integrator, seed=emu.seed, friction=friction,
                            x0=rest_at(emu.x0, axis.lead))
     bus = cfg.bus_kwargs()
     return EmulatedCia402Drive(emu.node_id or cfg.node_id, _eds_path(emu.eds or cfg.eds), bus, plant,
-                               FaultConfig.from_mapping(emu.faults), counts_per_rev=cfg.counts_per_rev,
-                               scale_resolution=cfg.scale_resolution, scale_index=cfg.scale_index,
+                               FaultConfig.from_mapping(emu.faults), counts_per_rev=counts_per_rev,
+                               scale_resolution=scale_resolution, scale_index=cfg.scale_index,
                                scale_subindex=cfg.scale_subindex,
-                               rated_torque=emu.rated_torque or cfg.rated_torque,
-                               poll_s="auto" if emu.poll_us is None else 1e-6 * emu.poll_us)
+                               rated_torque=truth.rated_torque or emu.rated_torque or cfg.rated_torque,
+                               poll_s="auto" if emu.poll_us is None else 1e-6 * emu.poll_us,
+                               torque_sign=truth.torque_sign, motor_encoder_sign=truth.motor_encoder_sign,
+                               scale_sign=truth.scale_sign, torque_scale=truth.torque_scale,
+                               polarity=emu.polarity)
 
 
 class EmulatedDrives:
@@ -227,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["EmulatorConfig", "EmulatedDrives", "build_emulator_for", "start_emulator_for", "main"]
+__all__ = ["DriveTruth", "EmulatorConfig", "EmulatedDrives", "build_emulator_for", "start_emulator_for", "main"]
 
 if __name__ == "__main__":
     raise SystemExit(main())

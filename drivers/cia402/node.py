@@ -238,6 +238,9 @@ class NodeSetup:
         self.tpdo_cobs: list[int] = []
         self.tpdo_layouts: list[tuple[int, struct.Struct]] = []
         self._od: canopen.ObjectDictionary | None = None
+        self.device_type = 0                    # 0x1000, read by connect()
+        self.drive_rated_torque: float | None = None    # 0x6076 [N m]; None: the drive has none
+        self.identity: dict[str, Any] = {}      # read by configure(); see identity_objects()
 
     # ----- objects ----------------------------------------------------------------------
     @property
@@ -391,7 +394,8 @@ class NodeSetup:
         except SdoAbortedError as exc:
             raise ProtocolError(f"node {cfg.node_id} refused reading 0x1000 device type: "
                                 f"{p402.abort_text(exc.code)}") from exc
-        profile = struct.unpack_from("<I", bytes(device_type).ljust(4, b"\0"))[0] & 0xFFFF
+        self.device_type = struct.unpack_from("<I", bytes(device_type).ljust(4, b"\0"))[0]
+        profile = self.device_type & 0xFFFF
         if profile != 402:
             raise ProtocolError(f"node {cfg.node_id} reports device profile {profile} in 0x1000, not 402 (drive)")
 
@@ -421,13 +425,44 @@ class NodeSetup:
         self.download(p402.MAX_TORQUE, 0, permille, " (drive-side torque limit, per mille of rated torque)")
         self.download(p402.PRODUCER_HEARTBEAT, 0, cfg.heartbeat_ms)
         self.download(p402.CONSUMER_HEARTBEAT, 1, (cfg.master_node_id << 16) | cfg.consumer_ms)
+        self.identity = self.identity_objects()
         return rated
+
+    def optional_upload(self, index: int, subindex: int = 0, code: int = 0x07) -> int | None:
+        """An object the drive may lack, read by SDO whether or not the EDS lists it (its data type from
+        the EDS if listed, else ``code``): None when the drive aborts the read (no such object)."""
+        var = self.od.get_variable(index, subindex)
+        if var is not None and var.data_type in p402.STRUCT_CODE:
+            code = var.data_type
+        assert self.node is not None            # connected
+        try:
+            data = self.node.sdo.upload(index, subindex)
+        except SdoAbortedError:
+            return None
+        except SdoCommunicationError as exc:
+            raise DeviceTimeout(f"node {self.cfg.node_id} did not answer reading "
+                                f"{p402.object_label(index, subindex)} within sdo_timeout "
+                                f"{self.cfg.sdo_timeout:g} s") from exc
+        st = struct.Struct("<" + p402.STRUCT_CODE[code])
+        return st.unpack_from(bytes(data).ljust(st.size, b"\0"))[0]
+
+    def identity_objects(self) -> dict[str, Any]:
+        """What the drive says it is, by SDO (start-up only): 0x1000, 0x6502, 0x6076, 0x6072, 0x607E and
+        the node id. An object the drive lacks is None and named in ``notes``."""
+        modes = self.optional_upload(p402.SUPPORTED_MODES, 0, 0x07)
+        polarity = self.optional_upload(p402.POLARITY, 0, 0x05)
+        notes = [f"0x{index:04X}: not present" for index, v in ((p402.SUPPORTED_MODES, modes),
+                                                                (p402.RATED_TORQUE, self.drive_rated_torque),
+                                                                (p402.POLARITY, polarity)) if v is None]
+        return {"node_id": self.cfg.node_id, "device_type": self.device_type, "supported_drive_modes": modes,
+                "rated_torque_nm": self.drive_rated_torque, "max_torque_permille": self.upload(p402.MAX_TORQUE, 0),
+                "polarity": polarity, "notes": notes}
 
     def _rated_torque(self) -> float:
         cfg = self.cfg
-        drive = None
-        if self.od.get_variable(p402.RATED_TORQUE) is not None:
-            drive = self.upload(p402.RATED_TORQUE, 0) / 1000.0          # mN m -> N m
+        milli = self.optional_upload(p402.RATED_TORQUE, 0, 0x07)       # mN m
+        drive = milli / 1000.0 if milli else None
+        self.drive_rated_torque = drive
         if cfg.rated_torque is None:
             if not drive:
                 raise ConfigError("backend.rated_torque", f"not given and node {cfg.node_id} reports no "
@@ -435,7 +470,8 @@ class NodeSetup:
             return drive
         if drive and abs(drive - cfg.rated_torque) > 0.01 * drive:
             raise ConfigError("backend.rated_torque", f"{cfg.rated_torque:g} N m in the config but node "
-                              f"{cfg.node_id} reports {drive:g} N m in 0x6076; torques would be scaled wrongly")
+                              f"{cfg.node_id} reports {drive:g} N m in 0x6076 (motor rated torque); torques would "
+                              f"be scaled wrongly (leave backend.rated_torque unset to use the drive's)")
         return cfg.rated_torque
 
     def _map_pdo(self, comm: int, mapping: int, entries: list[tuple[int, int]], default_cob: int,

@@ -24,6 +24,7 @@ TARGET_TORQUE = 0x6071
 MAX_TORQUE = 0x6072
 RATED_TORQUE = 0x6076
 TORQUE_ACTUAL = 0x6077
+POLARITY = 0x607E          # UNSIGNED8; bit 7 position polarity, bit 6 velocity polarity
 ERROR_CODE = 0x603F
 SUPPORTED_MODES = 0x6502
 DEVICE_TYPE = 0x1000
@@ -42,8 +43,13 @@ OBJECT_NAMES = {
     TARGET_TORQUE: "target torque", MAX_TORQUE: "max torque", RATED_TORQUE: "motor rated torque",
     TORQUE_ACTUAL: "torque actual value", 0x60E4: "additional position actual value",
     CONSUMER_HEARTBEAT: "consumer heartbeat time", PRODUCER_HEARTBEAT: "producer heartbeat time",
-    DEVICE_TYPE: "device type",
+    DEVICE_TYPE: "device type", POLARITY: "polarity", SUPPORTED_MODES: "supported drive modes",
 }
+
+#: 0x607E bits (CiA 402-2): position polarity reverses position actual, target torque and torque actual
+#: together; velocity polarity reverses velocity values (nothing in cyclic synchronous torque).
+POLARITY_POSITION = 0x80
+POLARITY_VELOCITY = 0x40
 
 
 def object_label(index: int, subindex: int | None = None) -> str:
