@@ -72,20 +72,26 @@ class Pulse:
     def moved(self) -> tuple[float, float]:
         """(theta1, x) when the brake began, from the pulse's start: the motion the command's own
         direction gave (the brake may overshoot it)."""
+        if not self.t.size:
+            return 0.0, 0.0
         th, x = self._own()
         k = (self.brake_at or th.size) - 1
         return float(th[k]), float(x[k])
 
     def ratio(self) -> float:
         """dx/dtheta1 over the pulse (a slope fit of x on theta1)."""
+        if not self.t.size:
+            return math.nan
         th = self.theta1 - self.theta1.mean()
         den = float(th @ th)
         return float(th @ (self.x - self.x.mean()) / den) if den > 0 else math.nan
 
     def dynamics(self, sample_period: float) -> tuple[float, float]:
         """(1/J [rad/s^2 per N m], F [N m]) from theta1 over the motion before it first reverses."""
+        if self.brake_at is None or self.brake_at < 2 or not self.t.size:
+            return math.nan, math.nan
         th, tq = self._own()[0], self.torque
-        if self.brake_at is None or self.brake_at < 2:
+        if self.brake_at < 2:
             return math.nan, math.nan
         d = int(np.sign(th[self.brake_at - 1])) or 1       # the way the push moved it
         peak = int(np.argmax(d * th))                       # where the brake stopped it (not its overshoot)

@@ -60,16 +60,11 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
     p = cfg.axis_params()
     out: list[dict[str, Any]] = []
     cap = cfg.commission.torque_share * float(cfg.backend.options().get("torque_limit", 1.0))
-    still = [q for q in pulses if q.breakaway_nm is None]
-    brk = [q.breakaway_nm for q in pulses if q.breakaway_nm is not None]
-    out.append(check("motion", not still, f"moved at {max(brk, default=0):.4g} N m" if not still
-                     else f"no motion up to {cap:.4g} N m ({'+' if still[0].direction > 0 else '-'})",
-                     f"motion below {cap:.4g} N m",
-                     "backend.torque_limit (or commission.torque_share): the axis did not move; check the brake, "
-                     "the drive's enable and the motor's power"))
     faulted = [q for q in pulses if q.fault]
     if faulted:
-        moved = [q for q in pulses if q.breakaway_nm is not None and q.t.size]
+        lim = _probe_limits(cfg, 2 * cap)
+        moved = [q for q in pulses if q.t.size and abs(q.moved()[0]) > lim.motion_theta1
+                 and abs(q.moved()[1]) > lim.motion_x]
         if moved:                                       # it moved before the device stopped: its signs
             q = moved[0]
             th, x = q.moved()
@@ -81,9 +76,20 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
                                  f"theta1 {'+' if sth > 0 else '-'}, x {'+' if sx > 0 else '-'} for + torque, then "
                                  f"{faulted[0].fault}", "theta1 +, x +", f"{key}: set it to -1 x its value"))
                 return out
-        out.append(check("device", False, faulted[0].fault, "no fault while probing",
-                         f"backend ({faulted[0].fault_cause})"))
+        fault = faulted[0].fault or ""
+        fix = ("backend.scale_sign, motor_encoder_sign, lead, counts_per_rev or scale_resolution: the device saw "
+               "its motor encoder and scale move apart under the pulse before the host could measure them (one "
+               "counts the other way or at another scale, or slips)" if "disagree" in fault
+               else f"backend ({faulted[0].fault_cause})")
+        out.append(check("device", False, fault, "no fault while probing", fix))
         return out
+    still = [q for q in pulses if q.breakaway_nm is None]
+    brk = [q.breakaway_nm for q in pulses if q.breakaway_nm is not None]
+    out.append(check("motion", not still, f"moved at {max(brk, default=0):.4g} N m" if not still
+                     else f"no motion up to {cap:.4g} N m ({'+' if still[0].direction > 0 else '-'})",
+                     f"motion below {cap:.4g} N m",
+                     "backend.torque_limit (or commission.torque_share): the axis did not move; check the brake, "
+                     "the drive's enable and the motor's power"))
     aborted = [q.aborted for q in pulses if q.aborted]
     out.append(check("limits", not aborted, aborted[0] if aborted else
                      f"{max(q.max_travel_m for q in pulses) * 1e3:.3f} mm, "
@@ -164,7 +170,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
     """Stages a and b. True when every check passed."""
     from drivers import make_backend
     from rt_ident.compose.build import backend_options
-    from rt_ident.loop.host import LoopRealtime
+    from rt_ident.loop.host import LoopRealtime, keep_off_loop_cpu
     checks = result["checks"]
     with contextlib.ExitStack() as stack:
         progress("a: connect")
@@ -175,6 +181,8 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
 
             emulator = start_emulator(cfg)
             stack.callback(getattr(emulator, "close", None) or emulator.stop)
+            if getattr(emulator, "pid", None):         # off the loop's CPU, as a run places it
+                keep_off_loop_cpu([], cfg.loop.realtime, device=emulator.pid)
         opts = backend_options(cfg)
         if getattr(emulator, "port", None):
             opts["port"] = emulator.port
@@ -240,8 +248,9 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         truth = [q.truth for q in pulses if q.truth]
         if truth:
             result["device_truth"] = {k: max(t[k] for t in truth) for k in truth[0]}
-        result["pulses"] = [{"direction": q.direction, "breakaway_nm": q.breakaway_nm, "push_nm": q.push_nm,
-                             "theta1_rad": q.moved()[0], "x_m": q.moved()[1], "ratio_m_per_rad": q.ratio(),
+        result["pulses"] = [{"direction": q.direction, "fault": q.fault, "breakaway_nm": q.breakaway_nm,
+                             "push_nm": q.push_nm, "theta1_rad": q.moved()[0], "x_m": q.moved()[1],
+                             "ratio_m_per_rad": q.ratio(),
                              "accel_per_nm": q.dynamics(backend.sample_period)[0]} for q in pulses]
         checks.extend(probe_checks(cfg, pulses, backend.sample_period))
         return all(c["ok"] for c in checks)

@@ -16,8 +16,19 @@ ROOT = Path(__file__).resolve().parents[2]
 LEAD = 7.96e-4
 
 
+#: the emulated links' timeouts widened, as in test_adaptation's emulated runs: next to pytest's other
+#: workers a device process is held off for tens of milliseconds (the shipped limits are tested in the
+#: drivers' own tests)
+WIDE = {"serial-virtual.toml": {"backend": {"read_timeout": 0.3}, "emulator": {"heartbeat_timeout": 0.5},
+                                "safety": {"watchdog_ticks": 300}},
+        "canopen-virtual.toml": {"backend": {"stale_limit": 200, "heartbeat_consumer_ms": 1000},
+                                 "safety": {"watchdog_ticks": 100}}}
+
+
 def device_cfg(name: str, actual: dict | None = None, **sections: dict) -> config.RunConfig:
     data = tomllib.loads((ROOT / "configs" / name).read_text())
+    for k, v in WIDE[name].items():
+        data[k] = {**data.get(k, {}), **v}
     data["loop"]["realtime"] = False          # the test's process stays an ordinary one unless a test asks
     data["telemetry"] = {"sink": "off"}
     if actual:
@@ -42,24 +53,30 @@ BOARD = [
 ]
 
 
-@pytest.mark.parametrize(("actual", "key"), BOARD, ids=[k for _, k in BOARD])
-def test_the_emulated_board_miswired_fails_the_check_naming_its_key_within_limits(tmp_path, actual, key,
+DRIVE = [*BOARD[:5], ({"torque_scale": 10.0}, "backend.rated_torque"), ({"rated_torque": 6.4}, "backend.rated_torque")]
+CASES = [("serial-virtual.toml", a, k) for a, k in BOARD] + [("canopen-virtual.toml", a, k) for a, k in DRIVE]
+
+
+@pytest.mark.parametrize(("name", "actual", "key"), CASES,
+                         ids=[f"{n.split('-')[0]}-{k}-{next(iter(a))}" for n, a, k in CASES])
+def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limits(tmp_path, name, actual, key,
                                                                                  restore_scheduling):
-    # real time, as on a bench: the board's link (a frame every 50 us, 0.05 s timeouts) next to pytest's
-    # other workers needs it
-    cfg = device_cfg("serial-virtual.toml", {**actual, "x0": 0.01}, loop={"realtime": True})
+    # real time, as on a bench: the board's link (a frame every 50 us, 0.05 s timeouts) and the drive's
+    # 2 kHz SYNC next to pytest's other workers need it
+    cfg = device_cfg(name, {**actual, "x0": 0.01}, loop={"realtime": True})
     r = commission(cfg, tmp_path / "out")
     assert r["verdict"] == "fail", r["checks"]
-    assert r["failed"]["fix"].startswith(key), r["failed"]
+    # the key first, or (the board's encoder check stopped it before the host saw the motion) among those named
+    named = r["failed"]["fix"].split(":")[0]
+    assert named.startswith(key) or key.removeprefix("backend.") in named, (r["failed"], r.get("pulses"))
     if r["max_travel_m"] is not None:
         assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
 
 
-def test_the_emulated_board_told_the_truth_passes_connect_and_probe_off_centre(tmp_path, restore_scheduling):
-    cfg = device_cfg("serial-virtual.toml", {"x0": -0.01}, commission={"identify_s": 1.0}, loop={"realtime": True})
+def test_the_emulated_drive_told_the_truth_passes_every_stage_off_centre(tmp_path, restore_scheduling):
+    cfg = device_cfg("canopen-virtual.toml", {"x0": -0.01}, loop={"realtime": True})
     r = commission(cfg, tmp_path / "out")
-    probe = r["checks"][:r["checks"].index(next(c for c in r["checks"] if c["name"] == "breakaway torque")) + 1]
-    assert [c["name"] for c in probe if not c["ok"]] == [], probe
-    assert r["stage_reached"] in ("c", "d", "e")
+    assert r["verdict"] == "pass" and r["stage_reached"] == "e", (r["failed"], r["checks"])
     assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
-    assert r["identity"].get("counts_per_rev") == 2**17
+    assert r["identity"]["polarity"] == 0 and r["identity"]["rated_torque_nm"] == pytest.approx(0.64)
+    assert Path(r["axis_toml"]).is_file() and "<svg" in Path(r["report"]).read_text()
