@@ -138,9 +138,12 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet"):
     try:
         journal = rec.with_name(journal_of + ".arrows")
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 2_000_000):
+        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 2_000_000) \
+                and proc.poll() is None:
             time.sleep(0.05)                        # ~1.5 s of samples recorded: the loop is well under way
-        assert journal.exists(), "the run never started recording"
+        if not journal.exists() or proc.poll() is not None:
+            out, err = proc.communicate(timeout=60)
+            raise AssertionError(f"the run never started recording (rc {proc.returncode}): {err[-3000:]}")
         os.kill(proc.pid, signal.SIGSTOP)
         time.sleep(0.5)
         os.kill(proc.pid, signal.SIGCONT)
