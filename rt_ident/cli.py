@@ -627,7 +627,8 @@ def commission(
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
     """Check a real axis before closing the loop on it: signs, scales, torque, then identify, design and
-    verify with a small move; write an HTML report and an [axis] snippet. Exit 0 pass, 3 a failed check."""
+    verify with a small move; write an HTML report and an [axis] snippet. Exit 0 pass, 3 a failed check,
+    130 interrupted (Ctrl-C, SIGTERM: the device stopped, the report and commission.json written)."""
     import datetime as _dt
 
     from rt_ident import config as cfgmod

@@ -102,3 +102,27 @@ def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path
 
     s = run(config.from_mapping(run_data), sink="off", record=str(tmp_path / "after.parquet"))
     assert s["stop"]["cause"] is None and s["trusted"] is True, s.get("trust")
+
+
+def test_sigterm_mid_commissioning_stops_the_device_writes_the_files_and_exits_130(tmp_path, state_dir):
+    import signal
+    import time
+
+    env = {**os.environ, "RT_IDENT_STATE_DIR": str(state_dir)}
+    text = (ROOT / "configs" / "sim.toml").read_text().replace("realtime = true", "realtime = false")
+    (tmp_path / "c.toml").write_text(text)
+    out = tmp_path / "c"
+    p = subprocess.Popen([sys.executable, "-m", "rt_ident", "commission", str(tmp_path / "c.toml"), "--out", str(out)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+                         start_new_session=True)
+    deadline = time.monotonic() + 120
+    journal = out / "identify.parquet.arrows"
+    while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 500_000) \
+            and p.poll() is None:
+        time.sleep(0.05)                             # stage c under way: the run has recorded a while
+    os.kill(p.pid, signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err[-2000:]
+    r = json.loads((out / "commission.json").read_text())
+    assert r["interrupted"] is True and r["verdict"] == "fail" and r["failed"]["check"] == "interrupted"
+    assert (out / "report.html").is_file() and (out / "identify.parquet").is_file()
