@@ -119,7 +119,7 @@ def test_the_frequency_estimator_leaves_out_the_periods_a_stall_touched():
     assert fed(3 * N + 48).periods == 7
 
 
-def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet"):
+def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok: bool = False):
     """``rt-ident run`` (the quick start's command, real time) stopped for 0.5 s mid-run with SIGSTOP, then
     SIGCONT: the summary and the recording (``journal_of``: the recording that shows the loop is running)."""
     import json
@@ -141,6 +141,9 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet"):
         while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 2_000_000) \
                 and proc.poll() is None:
             time.sleep(0.05)                        # ~1.5 s of samples recorded: the loop is well under way
+        if proc.poll() is not None and early_ok:     # a stall of its own (a busy machine) came first
+            out, err = proc.communicate(timeout=60)
+            return proc.returncode, json.loads(out), read_recording(rec.with_name(journal_of)), err
         if not journal.exists() or proc.poll() is not None:
             out, err = proc.communicate(timeout=60)
             raise AssertionError(f"the run never started recording (rc {proc.returncode}): {err[-3000:]}")
@@ -182,7 +185,8 @@ def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     from rt_ident.axis.params import CONFIG_DIR
 
     cfg_path.write_text((CONFIG_DIR / "sim.toml").read_text().replace("[safety]", "[safety]\non_stall = \"stop\""))
-    rc, s, r, err = _sigstop_run(tmp_path, str(cfg_path))
+    # on a busy machine the run may stall by itself before the SIGSTOP: it must end the same way
+    rc, s, r, err = _sigstop_run(tmp_path, str(cfg_path), early_ok=True)
     assert rc == 3 and s["stop"]["cause"] == "loop-stall", (s["stop"], err[-2000:])
     assert re.match(r"loop stalled for \d+ ms", s["stop"]["message"])
     assert len(r) == s["loop"]["samples"]                 # the stalled tick's samples are in the recording
