@@ -25,10 +25,11 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    # tests that make their process real-time run on one xdist worker, one after another: two SCHED_FIFO
-    # loops (and their emulated devices) on a 2-CPU machine starve each other ("--dist loadgroup")
+    # the commissioning tests that make their process real-time run on one xdist worker, one after another:
+    # two of their SCHED_FIFO loops and emulated devices on a 2-CPU machine starved each other's devices
+    # ("--dist loadgroup")
     for item in items:
-        if "restore_scheduling" in getattr(item, "fixturenames", ()):
+        if "restore_scheduling" in getattr(item, "fixturenames", ()) and item.nodeid.startswith("tests/commission/"):
             item.add_marker(pytest.mark.xdist_group("realtime"))
     if config.getoption("--hardware"):
         return

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import gc
 import json
 import logging
 import os
@@ -100,6 +101,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         result["stage_reached"] = "b"
         result["sample_period"] = backend.sample_period
         realtime = LoopRealtime(cfg.model_copy(update={"loop": cfg.loop.model_copy(update={"idle_poll": False})}))
+        stack.callback(gc.enable)                    # real time froze and disabled the collector, as in a run
         stack.callback(realtime.end)                 # after the backend's stop (registered before it)
         realtime.prepare()
         realtime.begin([])

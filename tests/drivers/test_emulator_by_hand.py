@@ -16,9 +16,6 @@ import pytest
 
 from rt_ident.processes.emulation import free_udp_port
 
-#: its `rt-ident run` child is real time: on the real-time tests' worker (tests/conftest.py)
-pytestmark = pytest.mark.xdist_group("realtime")
-
 ROOT = Path(__file__).resolve().parents[2]
 RT_IDENT = [sys.executable, "-c", "from rt_ident.cli import main; main()"]
 

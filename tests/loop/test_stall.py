@@ -119,11 +119,6 @@ def test_the_frequency_estimator_leaves_out_the_periods_a_stall_touched():
     assert fed(3 * N + 48).periods == 7
 
 
-#: a real-time `rt-ident run` in a child process: on the real-time tests' worker (tests/conftest.py), not
-#: beside them, where its SCHED_FIFO loop would starve their emulated devices
-REALTIME_RUN = pytest.mark.xdist_group("realtime")
-
-
 def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok: bool = False):
     """``rt-ident run`` (the quick start's command, real time) stopped for 0.5 s mid-run with SIGSTOP, then
     SIGCONT: the summary and the recording (``journal_of``: the recording that shows the loop is running)."""
@@ -163,7 +158,6 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
     return proc.returncode, json.loads(out), read_recording(rec.with_name(journal_of)), err
 
 
-@REALTIME_RUN
 @pytest.mark.slow
 def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
     rc, s, r, err = _sigstop_run(tmp_path)
@@ -185,7 +179,6 @@ def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
     assert s["control"]["max_error_m"] < 2e-3
 
 
-@REALTIME_RUN
 @pytest.mark.slow
 def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     cfg_path = tmp_path / "stop.toml"
@@ -199,7 +192,6 @@ def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     assert len(r) == s["loop"]["samples"]                 # the stalled tick's samples are in the recording
 
 
-@REALTIME_RUN
 @pytest.mark.slow
 def test_a_sigstop_of_an_xy_run_resumes_both_axes(tmp_path):
     rc, s, _, err = _sigstop_run(tmp_path, "configs/xy-sim.toml", journal_of="s-x.parquet")
@@ -263,7 +255,6 @@ def test_a_stall_between_the_ticks_wait_and_its_read_is_caught_by_the_device_tim
     assert out["control"]["fallbacks"] == 0 and out["control"]["max_error_m"] < 1e-4
 
 
-@REALTIME_RUN
 @pytest.mark.slow
 @pytest.mark.parametrize("config", ["configs/sim-load-change.toml", "friction"])
 def test_nothing_compiles_after_the_first_tick_through_the_rare_paths(tmp_path, config):
