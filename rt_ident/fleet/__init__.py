@@ -5,5 +5,6 @@
 * :mod:`~rt_ident.fleet.history` - DuckDB over the history's Parquet files;
 * :mod:`~rt_ident.fleet.drift` - CUSUM alarms per machine, axis and parameter;
 * :mod:`~rt_ident.fleet.report` - trend plots and the summary table;
-* :mod:`~rt_ident.fleet.paths` - file names from machine and axis names, kept inside the output folder.
+* :mod:`~rt_ident.fleet.paths` - file names from machine and axis names, kept inside the output folder;
+* :mod:`~rt_ident.fleet.make` - a generated fleet to try it on.
 """

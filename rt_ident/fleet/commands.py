@@ -1,4 +1,4 @@
-"""``rt-ident fleet identify | drift | report | query`` (mounted by :mod:`rt_ident.cli`)."""
+"""``rt-ident fleet identify | drift | report | query | make`` (mounted by :mod:`rt_ident.cli`)."""
 
 from __future__ import annotations
 
@@ -17,21 +17,25 @@ err = Console(stderr=True, soft_wrap=True)
 out = Console(soft_wrap=True)
 
 @fleet_app.callback()
-def _needs_the_fleet_extra() -> None:
+def _needs_the_fleet_extra(ctx: typer.Context) -> None:
     from rt_ident.errors import require
 
+    if ctx.invoked_subcommand == "make":          # simulation and Parquet only: the core install
+        return
     for module in ("dask", "distributed", "duckdb", "matplotlib"):
         require(module, "fleet", "rt-ident fleet")
 
 
-HISTORY = typer.Option(..., "--history", help="The fleet's Parquet history: a folder (created if missing) or an "
-                       "fsspec URL such as s3://bucket/fleet.")
+HISTORY = typer.Option(..., "--history", help="The fleet's Parquet history to read (only read, never written): a "
+                       "folder or an fsspec URL such as s3://bucket/fleet.")
+HISTORY_WRITTEN = typer.Option(..., "--history", help="The fleet's Parquet history new results are added to: a "
+                               "folder (created if missing) or an fsspec URL such as s3://bucket/fleet.")
 
 
 @fleet_app.command("identify")
 def identify_cmd(
     manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601)."),
-    history: str = HISTORY,
+    history: str = HISTORY_WRITTEN,
     scheduler: str | None = typer.Option(None, "--scheduler", help="A running Dask scheduler, e.g. "
                                             "tcp://10.0.0.5:8786 (workers need rt-ident installed). Default: a "
                                             "LocalCluster on 127.0.0.1."),
@@ -147,6 +151,15 @@ def query_cmd(
     for r in rows:
         tab.add_row(*(_cell(v) for v in r))
     out.print(tab)
+
+
+def _mount_make() -> None:
+    from rt_ident.fleet.make import make_cmd
+
+    fleet_app.command("make")(make_cmd)
+
+
+_mount_make()
 
 
 __all__ = ["fleet_app"]
