@@ -133,12 +133,13 @@ def _cell(v: Any) -> str:
 
 @fleet_app.command("query")
 def query_cmd(
-    sql: str = typer.Argument(..., help='SQL on the view "history", e.g. "SELECT machine, axis, avg(K) FROM history '
-                                        'GROUP BY ALL".'),
+    sql: str = typer.Argument(..., help='One SELECT on the view "history", e.g. "SELECT machine, axis, avg(K) FROM '
+                                        'history GROUP BY ALL".'),
     history: str = HISTORY,
     json_out: bool = typer.Option(False, "--json", help="Rows as JSON objects on stdout."),
 ) -> None:
-    """Run SQL (DuckDB) over the fleet history."""
+    """Run one SELECT (DuckDB) over the fleet history. Read-only: another statement, a second statement or
+    any file, network or extension access outside the history is refused (exit 2)."""
     from rt_ident.fleet.history import query
 
     cols, rows = query(history, sql)

@@ -1,0 +1,142 @@
+"""A history nothing can escape or break: `fleet query` runs one SELECT over the history only, and a damaged
+batch file is skipped and named.
+
+One small fleet is generated per module (2 machines x 1 axis x 3 days of closed-loop runs on the simulated axis).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rt_ident.errors import ConfigError
+from rt_ident.fleet.history import query
+from rt_ident.fleet.identify import append_history, identify_recording
+from rt_ident.fleet.make import make_fleet
+from rt_ident.fleet.manifest import Entry, read_manifest
+from rt_ident.fleet.store import parquet_files
+
+ROOT = Path(__file__).resolve().parents[2]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+CLI = [sys.executable, "-m", "rt_ident"]
+
+
+@pytest.fixture(scope="module")
+def small_fleet(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("small-fleet")
+    make_fleet(out, machines=2, axes=("x",), days=3, worn=0.0, duration=0.3, seed=5)
+    return out
+
+
+@pytest.fixture(scope="module")
+def entries(small_fleet) -> list[Entry]:
+    return read_manifest(small_fleet / "manifest.csv")
+
+
+@pytest.fixture(scope="module")
+def rows(entries) -> list[dict]:
+    out = [identify_recording({"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time})
+           for e in entries]
+    assert all(r["status"] == "ok" for r in out), [r["error"] for r in out]
+    return out
+
+
+@pytest.fixture
+def history(rows, tmp_path) -> Path:
+    h = tmp_path / "history"
+    assert append_history(h, rows) == len(rows)
+    return h
+
+
+def _cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, env=ENV, timeout=timeout)
+
+
+# --------------------------------------------------------------------------- fleet query: one SELECT, history only
+def test_query_refuses_copy_to_and_writes_no_file(history, tmp_path):
+    for target in (tmp_path / "x.csv", history / "x.csv"):     # outside the history, and inside it
+        with pytest.raises(ConfigError, match="SQL: refused: statement type COPY"):
+            query(history, f"COPY (SELECT * FROM history) TO '{target}'")
+        assert not target.exists()
+
+
+def test_query_refuses_reading_etc_passwd(history):
+    with pytest.raises(ConfigError, match='SQL: refused: Permission Error: Cannot access file "/etc/passwd"'):
+        query(history, "SELECT * FROM read_csv('/etc/passwd', header = false, sep = ':')")
+
+
+def test_query_refuses_reading_other_parquet_files_than_the_history(history, small_fleet):
+    with pytest.raises(ConfigError, match="SQL: refused: Permission Error"):
+        query(history, f"SELECT count(*) FROM read_parquet('{small_fleet}/recordings/*.parquet')")
+
+
+def test_query_refuses_attach_and_creates_no_database(history, tmp_path):
+    with pytest.raises(ConfigError, match="SQL: refused: statement type ATTACH"):
+        query(history, f"ATTACH '{tmp_path}/e.db' AS e")
+    with pytest.raises(ConfigError, match="SQL: refused: 2 statements"):
+        query(history, f"ATTACH '{tmp_path}/e.db' AS e; CREATE TABLE e.t AS SELECT 42 x")
+    assert not (tmp_path / "e.db").exists()
+
+
+def test_query_refuses_install_of_an_extension(history):
+    with pytest.raises(ConfigError, match="SQL: refused: statement type LOAD"):
+        query(history, "INSTALL httpfs")
+
+
+def test_query_refuses_two_statements(history):
+    with pytest.raises(ConfigError, match="SQL: refused: 2 statements; fleet query runs exactly one SELECT"):
+        query(history, "SELECT 1; SELECT 2")
+
+
+def test_query_refuses_switching_external_access_back_on(history):
+    with pytest.raises(ConfigError, match="SQL: refused: statement type SET"):
+        query(history, "SET enable_external_access = true")
+
+
+def test_query_still_runs_a_select_over_the_history(history, entries):
+    cols, got = query(history, "WITH h AS (SELECT * FROM history) SELECT machine, count(*) AS n FROM h "
+                               "GROUP BY machine ORDER BY machine")
+    assert cols == ["machine", "n"]
+    assert got == [("m01", 3), ("m02", 3)]
+
+
+def test_query_refusal_on_the_command_line_is_one_line_on_stderr_and_exit_2(history, tmp_path):
+    r = _cli("fleet", "query", f"COPY (SELECT * FROM history) TO '{tmp_path}/x.csv'", "--history", str(history))
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        "error: SQL: refused: statement type COPY; fleet query runs one SELECT and nothing else (it only reads the "
+        "history)"]
+    assert not (tmp_path / "x.csv").exists()
+
+
+def test_a_url_history_is_queried_with_external_access_off(rows):
+    url = "memory://rt-ident-fleet-safety/history"
+    assert append_history(url, rows) == len(rows)
+    _, [(n,)] = query(url, "SELECT count(*) FROM history")
+    assert n == len(rows)
+    with pytest.raises(ConfigError, match="refused: Permission Error"):
+        query(url, "SELECT * FROM read_csv('/etc/passwd')")
+
+
+# --------------------------------------------------------------------------- a damaged batch file
+def test_a_truncated_batch_file_is_skipped_with_one_line_naming_it_by_query_drift_and_identify(history, small_fleet):
+    (bad,) = (f for f in parquet_files(history) if "machine=m02" in f)
+    data = Path(bad).read_bytes()
+    Path(bad).write_bytes(data[: len(data) // 2])
+    r = _cli("fleet", "query", "SELECT count(*) AS n FROM history", "--history", str(history), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout) == [{"n": 3}]
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and f"skipped damaged history file {bad}" in r.stderr
+    r = _cli("fleet", "drift", "--history", str(history), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["series"] == 1
+    assert r.stderr.count(bad) == 1 and "Traceback" not in r.stderr
+    r = _cli("fleet", "identify", str(small_fleet / "manifest.csv"), "--history", str(history), "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    assert "3 identified" in r.stdout and "3 already in the history" in r.stdout   # m02's rows were unreadable
+    assert bad in r.stderr and "Traceback" not in r.stderr
