@@ -34,13 +34,18 @@ HISTORY_WRITTEN = typer.Option(..., "--history", help="The fleet's Parquet histo
 
 @fleet_app.command("identify")
 def identify_cmd(
-    manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601)."),
+    manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601). Recording "
+                                              "paths must be regular files under the manifest's folder (or remote "
+                                              "URLs such as s3://...)."),
     history: str = HISTORY_WRITTEN,
     scheduler: str | None = typer.Option(None, "--scheduler", help="A running Dask scheduler, e.g. "
                                             "tcp://10.0.0.5:8786 (workers need rt-ident installed). Default: a "
                                             "LocalCluster on 127.0.0.1."),
     workers: int = typer.Option(2, "--workers", min=1, help="LocalCluster worker processes."),
     method: str | None = typer.Option(None, "--method", help="Estimator (default: the recording's own)."),
+    allow_outside: bool = typer.Option(False, "--allow-outside", help="Also read recordings outside the "
+                                       "manifest's folder and URLs of any fsspec filesystem (a recording must "
+                                       "still be a regular file)."),
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
     """Identify every recording of MANIFEST (one Dask task each); append new results to the history."""
@@ -49,7 +54,7 @@ def identify_cmd(
     from rt_ident.fleet.identify import identify_fleet
     from rt_ident.fleet.manifest import read_manifest
 
-    entries = read_manifest(manifest)
+    entries = read_manifest(manifest, allow_outside=allow_outside)
     bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                    TextColumn("failed {task.fields[failed]}"), TimeElapsedColumn(), console=err, transient=True)
     state: dict[str, Any] = {"failed": 0}

@@ -7,7 +7,8 @@ to a Parquet history partitioned by machine.
   replayed through the loop's streaming estimator in record batches: memory does not grow with length).
   A remote recording (an fsspec URL) is copied to the worker's temporary folder first.
 * A task never raises: a bad recording comes back as a row with ``status = "failed"`` and its error, and the
-  others go on. Failed rows are reported, not stored (a fixed file is identified on the next run).
+  others go on. Failed rows are reported, not stored (a fixed file is identified on the next run). A local
+  recording must be a regular file (a device such as ``/dev/zero`` or a pipe would be read forever).
 * Every stored row carries its verdict: ``trusted``, ``reasons`` (why not, in words) and ``trust_criteria``
   (JSON: each criterion with its value, limit and result). Drift uses trusted rows only.
 * The cluster: the scheduler the user names (``--scheduler tcp://host:8786``), else a ``LocalCluster`` of
@@ -22,6 +23,7 @@ import json
 import logging
 import os
 import shutil
+import stat
 import tempfile
 import uuid
 from collections.abc import Callable, Iterable
@@ -41,6 +43,8 @@ _CHUNK = 1 << 20
 
 
 def _hash_local(path: str) -> str:
+    if not stat.S_ISREG(os.stat(path).st_mode):       # a device or pipe would be read forever
+        raise ValueError(f"{path} is not a regular file")
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for piece in iter(lambda: fh.read(_CHUNK), b""):

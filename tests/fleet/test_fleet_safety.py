@@ -1,5 +1,5 @@
-"""A history nothing can escape or break: `fleet query` runs one SELECT over the history only, and a damaged
-batch file is skipped and named.
+"""A history nothing can escape or break: `fleet query` runs one SELECT over the history only, a damaged batch
+file is skipped and named, and manifest paths stay under the manifest's folder.
 
 One small fleet is generated per module (2 machines x 1 axis x 3 days of closed-loop runs on the simulated axis).
 """
@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -140,3 +142,72 @@ def test_a_truncated_batch_file_is_skipped_with_one_line_naming_it_by_query_drif
     assert r.returncode == 0, r.stderr
     assert "3 identified" in r.stdout and "3 already in the history" in r.stdout   # m02's rows were unreadable
     assert bad in r.stderr and "Traceback" not in r.stderr
+
+
+# --------------------------------------------------------------------------- manifest paths
+def _manifest(folder: Path, good: str, bad: str, name: str = "m.csv") -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    m = folder / name
+    m.write_text(f"path,machine,axis,time\n{good},m01,x,2026-11-01\n{bad},m01,x,2026-11-02\n")
+    return m
+
+
+@pytest.mark.parametrize("bad", ["/dev/zero", "../../outside.parquet", "/etc/passwd", "file:///etc/passwd",
+                                 "OUTSIDE", "LINK", "http://127.0.0.1:9/x.parquet", "simplecache::s3://b/x.parquet"])
+def test_a_manifest_path_outside_its_folder_is_refused_naming_the_line(tmp_path, small_fleet, bad):
+    folder = tmp_path / "a" / "b"
+    folder.mkdir(parents=True)
+    good = folder / "good.parquet"
+    shutil.copy(small_fleet / "recordings" / "m01-x-day000.parquet", good)
+    outside = tmp_path / "outside.parquet"
+    shutil.copy(good, outside)
+    if bad == "OUTSIDE":
+        bad = str(outside)
+    elif bad == "LINK":                          # a link inside the folder to a file outside it
+        os.symlink(outside, folder / "link.parquet")
+        bad = "link.parquet"
+    with pytest.raises(ConfigError, match=r"MANIFEST: .*m\.csv line 3: .*(outside the manifest's folder|not one of "
+                                          r"the remote filesystems)"):
+        read_manifest(_manifest(folder, "good.parquet", bad))
+
+
+def test_allow_outside_reads_a_file_elsewhere_but_never_a_device_a_folder_or_a_pipe(tmp_path, small_fleet):
+    outside = tmp_path / "outside.parquet"
+    shutil.copy(small_fleet / "recordings" / "m01-x-day000.parquet", outside)
+    folder = tmp_path / "m"
+    m = _manifest(folder, str(outside), str(outside))
+    assert [e.path for e in read_manifest(m, allow_outside=True)] == [str(outside.resolve())] * 2
+    os.mkfifo(folder / "pipe")
+    (folder / "sub").mkdir()
+    for bad in ("/dev/zero", "pipe", "sub"):
+        with pytest.raises(ConfigError, match=r"line 3: .* is not a regular file"):
+            read_manifest(_manifest(folder, str(outside), bad), allow_outside=True)
+    for bad in ("pipe", "sub"):                 # inside the folder, without the flag
+        with pytest.raises(ConfigError, match=r"line 3: .* is not a regular file"):
+            read_manifest(_manifest(folder, "missing-yet.parquet", bad))
+
+
+def test_a_remote_url_in_a_manifest_is_kept_as_written(tmp_path):
+    m = _manifest(tmp_path, "s3://plant/rec/a.parquet", "gs://plant/rec/b.parquet")
+    assert [e.path for e in read_manifest(m)] == ["s3://plant/rec/a.parquet", "gs://plant/rec/b.parquet"]
+
+
+def test_identify_refuses_dev_zero_up_front_in_one_line(tmp_path, small_fleet):
+    m = _manifest(small_fleet, "recordings/m01-x-day000.parquet", "/dev/zero", name="dev-zero.csv")
+    r = _cli("fleet", "identify", str(m), "--history", str(tmp_path / "h"), timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"error: MANIFEST: {m} line 3: /dev/zero is outside the manifest's folder {m.parent} (--allow-outside "
+        "reads it)"]
+    r = _cli("fleet", "identify", str(m), "--history", str(tmp_path / "h"), "--allow-outside", timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"error: MANIFEST: {m} line 3: /dev/zero is not a regular file (a device, folder or pipe is never read)"]
+    assert not (tmp_path / "h").exists()
+
+
+def test_a_task_given_a_device_fails_at_once_instead_of_reading_it_forever():
+    t0 = time.monotonic()
+    row = identify_recording({"path": "/dev/zero", "machine": "m01", "axis": "x", "time": None})
+    assert row["status"] == "failed" and "/dev/zero is not a regular file" in row["error"]
+    assert time.monotonic() - t0 < 5
