@@ -75,10 +75,11 @@ def identify_cmd(
     if json_out:
         typer.echo(json.dumps(res, indent=2))
     else:
+        twice = f", {res['duplicates']} listed more than once" if res["duplicates"] else ""
         out.print(f"{res['identified']} identified ({res['untrusted']} not trusted), {res['skipped']} already in the "
-                  f"history, {res['failed']} failed -> {res['history']}")
+                  f"history, {res['failed']} failed{twice} -> {res['history']}", highlight=False)
         for f in res["failures"]:
-            out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}")
+            out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}", highlight=False)
     if res["failed"]:
         raise typer.Exit(1)
 

@@ -9,6 +9,9 @@ to a Parquet history partitioned by machine.
 * A task never raises: a bad recording comes back as a row with ``status = "failed"`` and its error, and the
   others go on. Failed rows are reported, not stored (a fixed file is identified on the next run). A local
   recording must be a regular file (a device such as ``/dev/zero`` or a pipe would be read forever).
+* Each write takes the history's lock and drops the rows whose recording (content hash) the history
+  already holds, so concurrent runs and a recording listed twice give one row each
+  (:mod:`rt_ident.fleet.store`: the lock, the atomic writes).
 * Every stored row carries its verdict: ``trusted``, ``reasons`` (why not, in words) and ``trust_criteria``
   (JSON: each criterion with its value, limit and result). Drift uses trusted rows only.
 * The cluster: the scheduler the user names (``--scheduler tcp://host:8786``), else a ``LocalCluster`` of
@@ -25,13 +28,13 @@ import os
 import shutil
 import stat
 import tempfile
-import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rt_ident import __version__
 from rt_ident.fleet.manifest import Entry
+from rt_ident.fleet.store import HashIndex, history_lock, write_rows
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -128,42 +131,42 @@ def _schema() -> pa.Schema:
     return pa.schema(fields)
 
 
-def append_history(history: str | Path, rows: list[dict[str, Any]]) -> int:
-    """Append identified rows to the Parquet dataset under ``history`` (hive-partitioned by machine).
-    Each call writes new files (a unique name per call): nothing written before is rewritten."""
+def append_history(history: str | Path, rows: list[dict[str, Any]], index: HashIndex | None = None) -> int:
+    """Write the ``ok`` rows of ``rows`` to the Parquet dataset under ``history`` (hive-partitioned by
+    machine); returns how many were written. Under the history's lock, rows whose recording (hash) the
+    history already holds with a verdict are dropped, and so are repeats within ``rows``: one row per
+    recording, whoever writes at the same time. Each file appears whole (temporary name, renamed); nothing
+    written before is rewritten. ``index``: the caller's :class:`~rt_ident.fleet.store.HashIndex` of
+    this history (kept up to date), to read each file once over many calls."""
+    return len(_append(history, rows, index or HashIndex(history)))
+
+
+def _append(history: str | Path, rows: list[dict[str, Any]], index: HashIndex) -> list[dict[str, Any]]:
+    """:func:`append_history`; returns the rows written."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
-        return 0
-    from rt_ident.fleet.history import is_url
-
-    schema = _schema()
-    table = pa.Table.from_pylist([{f.name: r.get(f.name) for f in schema} for r in ok], schema=schema)
-    fs = None
-    root = str(history)
-    if is_url(history):                       # object storage through fsspec (s3://, gs://, memory:// ...)
-        import fsspec
-
-        fs, root = fsspec.core.url_to_fs(root)
-    else:
-        Path(history).mkdir(parents=True, exist_ok=True)
-    pq.write_to_dataset(table, root_path=root, partition_cols=["machine"], filesystem=fs,
-                        basename_template=f"batch-{uuid.uuid4().hex}-{{i}}.parquet")
-    return len(ok)
+        return []
+    with history_lock(history):
+        stored = set(index.refresh())
+        fresh = []
+        for r in ok:
+            if r["hash"] not in stored:
+                stored.add(r["hash"])
+                fresh.append(r)
+        if not fresh:
+            return []
+        schema = _schema()
+        table = pa.Table.from_pylist([{f.name: r.get(f.name) for f in schema} for r in fresh], schema=schema)
+        index.add(write_rows(history, table), [r["hash"] for r in fresh])
+    return fresh
 
 
 def known_hashes(history: str | Path) -> frozenset[str]:
     """Hashes already identified *with a recorded verdict*: a row from before verdicts were recorded is
     identified again (a new row; :func:`rt_ident.fleet.drift.series` prefers it)."""
-    from rt_ident.fleet.history import columns, connect, has_history, verdict_sql
-
-    if not has_history(history):
-        return frozenset()
-    con = connect(history)
-    sql = f"SELECT DISTINCT hash FROM (SELECT hash, {verdict_sql(columns(con))} FROM history) WHERE has_verdict"
-    return frozenset(h for (h,) in con.execute(sql).fetchall())
+    return HashIndex(history).refresh()
 
 
 class _Cluster:
@@ -207,13 +210,34 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
 
     ``on_start(n_tasks, dashboard_url)`` once the cluster is up; ``on_result(row)`` per finished task
     (progress). Results are appended as they arrive, in batches, so an interrupted run keeps what it did.
+    An entry listed twice (same path) is run once (``duplicates``); a row another run wrote meanwhile
+    counts as ``skipped``.
     """
     from distributed import as_completed
 
-    items = [{"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time} for e in entries]
-    known = known_hashes(history)
-    counts = {"tasks": len(items), "identified": 0, "untrusted": 0, "skipped": 0, "failed": 0}
+    items: list[dict[str, Any]] = []
+    paths: set[str] = set()
+    duplicates = 0
+    for e in entries:
+        if e.path in paths:
+            duplicates += 1
+            continue
+        paths.add(e.path)
+        items.append({"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time})
+    index = HashIndex(history)
+    known = index.refresh()
+    counts = {"tasks": len(items), "identified": 0, "untrusted": 0, "skipped": 0, "failed": 0,
+              "duplicates": duplicates}
     failures: list[dict[str, Any]] = []
+    batch: list[dict[str, Any]] = []
+
+    def flush() -> None:
+        written = _append(history, batch, index)
+        counts["identified"] += len(written)
+        counts["untrusted"] += sum(not r["trusted"] for r in written)
+        counts["skipped"] += len(batch) - len(written)      # another run (or another path) had it
+        batch.clear()
+
     cluster = _Cluster(scheduler, workers)
     try:
         if on_start is not None:
@@ -222,24 +246,23 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
         # one copy per worker of the known hashes (a list of one: scatter splits a collection into elements)
         seen = client.scatter([known], broadcast=True)[0] if known else known
         futures = [client.submit(identify_recording, it, seen, method, pure=False) for it in items]
-        batch: list[dict[str, Any]] = []
         for fut in as_completed(futures):
             row = fut.result()
             fut.release()
             status = row["status"]
-            counts[{"ok": "identified", "skipped": "skipped", "failed": "failed"}[status]] += 1
             if status == "failed":
+                counts["failed"] += 1
                 failures.append({"path": row["path"], "machine": row["machine"], "axis": row["axis"],
                                  "error": row["error"]})
-            elif status == "ok":
-                counts["untrusted"] += not row["trusted"]
+            elif status == "skipped":
+                counts["skipped"] += 1
+            else:
                 batch.append(row)
                 if len(batch) >= 64:
-                    append_history(history, batch)
-                    batch = []
+                    flush()
             if on_result is not None:
                 on_result(row)
-        append_history(history, batch)
+        flush()
     finally:
         cluster.close()
     return {**counts, "failures": failures, "history": str(history), "dashboard": cluster.dashboard,

@@ -1,5 +1,6 @@
 """A history nothing can escape or break: `fleet query` runs one SELECT over the history only, a damaged batch
-file is skipped and named, and manifest paths stay under the manifest's folder.
+file is skipped and named, manifest paths stay under the manifest's folder, batch files appear whole, and
+concurrent or repeated runs keep one row per recording.
 
 One small fleet is generated per module (2 machines x 1 axis x 3 days of closed-loop runs on the simulated axis).
 """
@@ -57,6 +58,11 @@ def history(rows, tmp_path) -> Path:
 
 def _cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
     return subprocess.run([*CLI, *args], capture_output=True, text=True, env=ENV, timeout=timeout)
+
+
+def _count(h: Path) -> tuple[int, int]:
+    _, [(n, distinct)] = query(h, "SELECT count(*), count(DISTINCT hash) FROM history")
+    return n, distinct
 
 
 # --------------------------------------------------------------------------- fleet query: one SELECT, history only
@@ -211,3 +217,70 @@ def test_a_task_given_a_device_fails_at_once_instead_of_reading_it_forever():
     row = identify_recording({"path": "/dev/zero", "machine": "m01", "axis": "x", "time": None})
     assert row["status"] == "failed" and "/dev/zero is not a regular file" in row["error"]
     assert time.monotonic() - t0 < 5
+
+
+# --------------------------------------------------------------------------- whole files, one row per recording
+def test_a_batch_file_is_written_under_a_hidden_name_and_renamed_into_place(rows, tmp_path, monkeypatch):
+    import pyarrow.parquet as pq
+
+    import rt_ident.fleet.store as store
+
+    seen = []
+    real = os.replace
+
+    def replace(src, dst):
+        pq.read_metadata(src)                   # complete before it gets its name
+        seen.append((Path(src), Path(dst), Path(dst).exists()))
+        real(src, dst)
+
+    monkeypatch.setattr(store.os, "replace", replace)
+    append_history(tmp_path / "h", rows)
+    assert len(seen) == 2                       # one file per machine
+    for src, dst, existed in seen:
+        assert src.parent == dst.parent and src.name.startswith(".") and src.name.endswith(".tmp")
+        assert dst.suffix == ".parquet" and not existed
+    assert sorted(str(d) for _, d, _ in seen) == parquet_files(tmp_path / "h")
+    assert not list((tmp_path / "h").rglob("*.tmp"))
+
+
+def test_a_write_that_fails_midway_leaves_no_file_a_reader_sees(rows, tmp_path, monkeypatch):
+    import pyarrow.parquet as pq
+
+    def half_then_fail(table, where, **kw):
+        where.write(b"PAR1 half a file")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(pq, "write_table", half_then_fail)
+    with pytest.raises(OSError, match="disk full"):
+        append_history(tmp_path / "h", rows)
+    assert parquet_files(tmp_path / "h") == [] and not list((tmp_path / "h").rglob("*.tmp"))
+
+
+def test_append_history_keeps_one_row_per_recording_across_calls_and_within_one(rows, tmp_path):
+    assert append_history(tmp_path / "h", rows) == 6
+    assert append_history(tmp_path / "h", rows) == 0
+    assert append_history(tmp_path / "h2", rows + rows[:2]) == 6
+    assert _count(tmp_path / "h") == _count(tmp_path / "h2") == (6, 6)
+
+
+def test_two_concurrent_identify_runs_leave_one_row_per_recording(small_fleet, tmp_path):
+    h = tmp_path / "h"
+    args = [*CLI, "fleet", "identify", str(small_fleet / "manifest.csv"), "--history", str(h), "--workers", "1"]
+    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=180) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    assert _count(h) == (6, 6)
+    identified = [int(o.split(" identified")[0]) for o, _ in outs]
+    assert sum(identified) == 6, outs
+
+
+def test_a_duplicated_manifest_line_and_a_copied_recording_give_one_row_each(small_fleet, tmp_path):
+    shutil.copy(small_fleet / "recordings" / "m01-x-day000.parquet", small_fleet / "copy-of-day000.parquet")
+    lines = (small_fleet / "manifest.csv").read_text().splitlines()
+    m = small_fleet / "duplicates.csv"
+    m.write_text("\n".join([*lines, lines[1], "copy-of-day000.parquet,m01,x,2026-11-09"]) + "\n")
+    r = _cli("fleet", "identify", str(m), "--history", str(tmp_path / "h"), "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    assert "6 identified" in r.stdout and "1 listed more than once" in r.stdout
+    assert _count(tmp_path / "h") == (6, 6)
