@@ -46,9 +46,15 @@ def identify_cmd(
     allow_outside: bool = typer.Option(False, "--allow-outside", help="Also read recordings outside the "
                                        "manifest's folder and URLs of any fsspec filesystem (a recording must "
                                        "still be a regular file)."),
+    flush_every: float = typer.Option(2.0, "--flush-every", min=0.05, help="Seconds between writes of finished "
+                                      "results to the history (they are written on Ctrl-C/SIGTERM too)."),
+    task_timeout: float = typer.Option(600.0, "--task-timeout", min=0.0, help="Seconds one recording may take; "
+                                       "a task still running then is reported failed and the run goes on "
+                                       "(0: no limit)."),
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
-    """Identify every recording of MANIFEST (one Dask task each); append new results to the history."""
+    """Identify every recording of MANIFEST (one Dask task each); add new results to the history. Exit 0 all
+    identified or already there, 1 some failed, 2 bad input, 130 interrupted (what finished is kept)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from rt_ident.fleet.identify import identify_fleet
@@ -71,6 +77,7 @@ def identify_cmd(
 
     with bar:
         res = identify_fleet(entries, history, scheduler=scheduler, workers=workers, method=method,
+                             flush_every=flush_every, task_timeout=task_timeout or None,
                              on_start=started, on_result=done)
     if json_out:
         typer.echo(json.dumps(res, indent=2))
@@ -80,6 +87,10 @@ def identify_cmd(
                   f"history, {res['failed']} failed{twice} -> {res['history']}", highlight=False)
         for f in res["failures"]:
             out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}", highlight=False)
+    if res["interrupted"]:
+        err.print(f"interrupted: the {res['identified']} results finished are in {res['history']}; run the same "
+                  "command again to identify the rest", highlight=False)
+        raise typer.Exit(130)
     if res["failed"]:
         raise typer.Exit(1)
 

@@ -1,6 +1,6 @@
-"""A history nothing can escape or break: `fleet query` runs one SELECT over the history only, a damaged batch
-file is skipped and named, manifest paths stay under the manifest's folder, batch files appear whole, and
-concurrent or repeated runs keep one row per recording.
+"""A history nothing can corrupt or escape: `fleet query` runs one SELECT over the history only, manifest paths
+stay under the manifest's folder, batch files appear whole, a damaged one is skipped and named, concurrent or
+repeated runs keep one row per recording, and an interrupted or stuck run keeps what finished.
 
 One small fleet is generated per module (2 machines x 1 axis x 3 days of closed-loop runs on the simulated axis).
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -19,9 +20,9 @@ import pytest
 
 from rt_ident.errors import ConfigError
 from rt_ident.fleet.history import query
-from rt_ident.fleet.identify import append_history, identify_recording
+from rt_ident.fleet.identify import append_history, identify_fleet, identify_recording, known_hashes
 from rt_ident.fleet.make import make_fleet
-from rt_ident.fleet.manifest import Entry, read_manifest
+from rt_ident.fleet.manifest import Entry, read_manifest, write_manifest
 from rt_ident.fleet.store import parquet_files
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -54,6 +55,16 @@ def history(rows, tmp_path) -> Path:
     h = tmp_path / "history"
     assert append_history(h, rows) == len(rows)
     return h
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A scheduler and one worker process on 127.0.0.1 for the in-process runs."""
+    from distributed import LocalCluster
+
+    c = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None)
+    yield c
+    c.close()
 
 
 def _cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
@@ -265,7 +276,8 @@ def test_append_history_keeps_one_row_per_recording_across_calls_and_within_one(
 
 def test_two_concurrent_identify_runs_leave_one_row_per_recording(small_fleet, tmp_path):
     h = tmp_path / "h"
-    args = [*CLI, "fleet", "identify", str(small_fleet / "manifest.csv"), "--history", str(h), "--workers", "1"]
+    args = [*CLI, "fleet", "identify", str(small_fleet / "manifest.csv"), "--history", str(h), "--workers", "1",
+            "--flush-every", "0.1"]
     procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
              for _ in range(2)]
     outs = [p.communicate(timeout=180) for p in procs]
@@ -284,3 +296,106 @@ def test_a_duplicated_manifest_line_and_a_copied_recording_give_one_row_each(sma
     assert r.returncode == 0, r.stderr
     assert "6 identified" in r.stdout and "1 listed more than once" in r.stdout
     assert _count(tmp_path / "h") == (6, 6)
+
+
+# --------------------------------------------------------------------------- interrupted, stuck
+def test_finished_results_are_written_while_the_run_goes_on(entries, cluster, tmp_path):
+    h = tmp_path / "h"
+    on_disk = []
+
+    def slow_reader(row):                       # time passes between results, as with long recordings
+        time.sleep(0.3)
+        on_disk.append(len(known_hashes(h)))
+
+    res = identify_fleet(entries, h, scheduler=cluster.scheduler_address, flush_every=0.1, on_result=slow_reader)
+    assert res["identified"] == 6
+    assert on_disk == [0, 1, 2, 3, 4, 5]        # each result written before the next was taken
+
+
+def test_an_interrupt_keeps_what_finished(entries, cluster, tmp_path):
+    h = tmp_path / "h"
+    seen = []
+
+    def ctrl_c_at_the_second(row):
+        seen.append(row)
+        if len(seen) == 2:
+            raise KeyboardInterrupt
+
+    res = identify_fleet(entries, h, scheduler=cluster.scheduler_address, flush_every=3600,
+                         on_result=ctrl_c_at_the_second)
+    assert res["interrupted"] and res["identified"] == len(seen) >= 2     # no periodic write: the interrupt's
+    assert len(known_hashes(h)) == res["identified"]
+
+
+def _huge_sparse(folder: Path) -> Path:
+    """A regular file whose hashing takes long (zeros, no disk used): a task that is still running."""
+    p = folder / "huge.parquet"
+    with open(p, "wb") as fh:
+        fh.truncate(64 << 30)
+    return p
+
+
+def _with_huge(entries: list[Entry], folder: Path) -> Path:
+    m = folder / "m.csv"
+    write_manifest(m, [*entries, Entry(str(_huge_sparse(folder)), "m09", "x", entries[0].time)])
+    return m
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_ends_a_run_with_130_and_keeps_what_finished(entries, tmp_path, sig):
+    h = tmp_path / "h"
+    m = _with_huge(entries, tmp_path)
+    p = subprocess.Popen([*CLI, "fleet", "identify", str(m), "--history", str(h), "--allow-outside",
+                          "--flush-every", "0.2", "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, env=ENV, start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        while not parquet_files(h) and time.monotonic() - t0 < 120 and p.poll() is None:
+            time.sleep(0.05)
+        assert parquet_files(h), "no result was written"
+        if sig == signal.SIGINT:
+            os.killpg(p.pid, sig)               # Ctrl-C in a terminal reaches the whole process group
+        else:
+            p.send_signal(sig)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130, err
+    n = len(known_hashes(h))
+    assert 1 <= n <= 6
+    assert f"interrupted: the {n} results finished are in {h}" in err and "Traceback" not in err
+
+
+def test_a_task_over_its_timeout_fails_with_a_message_and_the_run_ends(entries, tmp_path):
+    m = _with_huge(entries[:2], tmp_path)
+    t0 = time.monotonic()
+    r = _cli("fleet", "identify", str(m), "--history", str(tmp_path / "h"), "--allow-outside", "--workers", "1",
+             "--task-timeout", "4")
+    assert r.returncode == 1, r.stderr
+    assert "2 identified" in r.stdout and "1 failed" in r.stdout
+    assert f"failed: {tmp_path / 'huge.parquet'} (m09 x): timed out after 4 s (--task-timeout)" in r.stdout
+    assert time.monotonic() - t0 < 120 and "Traceback" not in r.stderr
+
+
+def test_identify_recording_returns_failed_when_its_work_overruns_the_timeout(entries, monkeypatch):
+    import rt_ident.reports.identify as ident
+
+    monkeypatch.setattr(ident, "identify_file", lambda *a, **k: time.sleep(3))
+    e = entries[0]
+    t0 = time.monotonic()
+    row = identify_recording({"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time}, timeout=0.3)
+    assert row["status"] == "failed" and row["error"].startswith("timed out after 0.3 s")
+    assert row["path"] == e.path and time.monotonic() - t0 < 2
+
+
+def test_a_task_timed_out_while_hashing_stops_reading_the_file(tmp_path):
+    import threading
+
+    huge = _huge_sparse(tmp_path)
+    row = identify_recording({"path": str(huge), "machine": "m09", "axis": "x", "time": None}, timeout=0.3)
+    assert row["status"] == "failed" and row["error"].startswith("timed out after 0.3 s")
+    t0 = time.monotonic()
+    while any(t.name == "identify huge.parquet" for t in threading.enumerate()) and time.monotonic() - t0 < 5:
+        time.sleep(0.05)
+    assert not any(t.name == "identify huge.parquet" for t in threading.enumerate())
