@@ -1,4 +1,4 @@
-"""``rt-ident fleet identify | drift | report | query`` (mounted by :mod:`rt_ident.cli`)."""
+"""``rt-ident fleet identify | drift | report | query | make`` (mounted by :mod:`rt_ident.cli`)."""
 
 from __future__ import annotations
 
@@ -17,35 +17,50 @@ err = Console(stderr=True, soft_wrap=True)
 out = Console(soft_wrap=True)
 
 @fleet_app.callback()
-def _needs_the_fleet_extra() -> None:
+def _needs_the_fleet_extra(ctx: typer.Context) -> None:
     from rt_ident.errors import require
 
+    if ctx.invoked_subcommand == "make":          # simulation and Parquet only: the core install
+        return
     for module in ("dask", "distributed", "duckdb", "matplotlib"):
         require(module, "fleet", "rt-ident fleet")
 
 
-HISTORY = typer.Option(..., "--history", help="The fleet's Parquet history: a folder (created if missing) or an "
-                       "fsspec URL such as s3://bucket/fleet.")
+HISTORY = typer.Option(..., "--history", help="The fleet's Parquet history to read (only read, never written): a "
+                       "folder or an fsspec URL such as s3://bucket/fleet.")
+HISTORY_WRITTEN = typer.Option(..., "--history", help="The fleet's Parquet history new results are added to: a "
+                               "folder (created if missing) or an fsspec URL such as s3://bucket/fleet.")
 
 
 @fleet_app.command("identify")
 def identify_cmd(
-    manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601)."),
-    history: str = HISTORY,
+    manifest: Path = typer.Argument(..., help="CSV with columns path, machine, axis, time (ISO 8601). Recording "
+                                              "paths must be regular files under the manifest's folder (or remote "
+                                              "URLs such as s3://...)."),
+    history: str = HISTORY_WRITTEN,
     scheduler: str | None = typer.Option(None, "--scheduler", help="A running Dask scheduler, e.g. "
                                             "tcp://10.0.0.5:8786 (workers need rt-ident installed). Default: a "
                                             "LocalCluster on 127.0.0.1."),
     workers: int = typer.Option(2, "--workers", min=1, help="LocalCluster worker processes."),
     method: str | None = typer.Option(None, "--method", help="Estimator (default: the recording's own)."),
+    allow_outside: bool = typer.Option(False, "--allow-outside", help="Also read recordings outside the "
+                                       "manifest's folder and URLs of any fsspec filesystem (a recording must "
+                                       "still be a regular file)."),
+    flush_every: float = typer.Option(2.0, "--flush-every", min=0.05, help="Seconds between writes of finished "
+                                      "results to the history (they are written on Ctrl-C/SIGTERM too)."),
+    task_timeout: float = typer.Option(600.0, "--task-timeout", min=0.0, help="Seconds one recording may take; "
+                                       "a task still running then is reported failed and the run goes on "
+                                       "(0: no limit)."),
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
-    """Identify every recording of MANIFEST (one Dask task each); append new results to the history."""
+    """Identify every recording of MANIFEST (one Dask task each); add new results to the history. Exit 0 all
+    identified or already there, 1 some failed, 2 bad input, 130 interrupted (what finished is kept)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from rt_ident.fleet.identify import identify_fleet
     from rt_ident.fleet.manifest import read_manifest
 
-    entries = read_manifest(manifest)
+    entries = read_manifest(manifest, allow_outside=allow_outside)
     bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                    TextColumn("failed {task.fields[failed]}"), TimeElapsedColumn(), console=err, transient=True)
     state: dict[str, Any] = {"failed": 0}
@@ -62,14 +77,20 @@ def identify_cmd(
 
     with bar:
         res = identify_fleet(entries, history, scheduler=scheduler, workers=workers, method=method,
+                             flush_every=flush_every, task_timeout=task_timeout or None,
                              on_start=started, on_result=done)
     if json_out:
         typer.echo(json.dumps(res, indent=2))
     else:
+        twice = f", {res['duplicates']} listed more than once" if res["duplicates"] else ""
         out.print(f"{res['identified']} identified ({res['untrusted']} not trusted), {res['skipped']} already in the "
-                  f"history, {res['failed']} failed -> {res['history']}")
+                  f"history, {res['failed']} failed{twice} -> {res['history']}", highlight=False)
         for f in res["failures"]:
-            out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}")
+            out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}", highlight=False)
+    if res["interrupted"]:
+        err.print(f"interrupted: the {res['identified']} results finished are in {res['history']}; run the same "
+                  "command again to identify the rest", highlight=False)
+        raise typer.Exit(130)
     if res["failed"]:
         raise typer.Exit(1)
 
@@ -129,12 +150,13 @@ def _cell(v: Any) -> str:
 
 @fleet_app.command("query")
 def query_cmd(
-    sql: str = typer.Argument(..., help='SQL on the view "history", e.g. "SELECT machine, axis, avg(K) FROM history '
-                                        'GROUP BY ALL".'),
+    sql: str = typer.Argument(..., help='One SELECT on the view "history", e.g. "SELECT machine, axis, avg(K) FROM '
+                                        'history GROUP BY ALL".'),
     history: str = HISTORY,
     json_out: bool = typer.Option(False, "--json", help="Rows as JSON objects on stdout."),
 ) -> None:
-    """Run SQL (DuckDB) over the fleet history."""
+    """Run one SELECT (DuckDB) over the fleet history. Read-only: another statement, a second statement or
+    any file, network or extension access outside the history is refused (exit 2)."""
     from rt_ident.fleet.history import query
 
     cols, rows = query(history, sql)
@@ -147,6 +169,15 @@ def query_cmd(
     for r in rows:
         tab.add_row(*(_cell(v) for v in r))
     out.print(tab)
+
+
+def _mount_make() -> None:
+    from rt_ident.fleet.make import make_cmd
+
+    fleet_app.command("make")(make_cmd)
+
+
+_mount_make()
 
 
 __all__ = ["fleet_app"]

@@ -7,7 +7,13 @@ to a Parquet history partitioned by machine.
   replayed through the loop's streaming estimator in record batches: memory does not grow with length).
   A remote recording (an fsspec URL) is copied to the worker's temporary folder first.
 * A task never raises: a bad recording comes back as a row with ``status = "failed"`` and its error, and the
-  others go on. Failed rows are reported, not stored (a fixed file is identified on the next run).
+  others go on. Failed rows are reported, not stored (a fixed file is identified on the next run). A local
+  recording must be a regular file (a device such as ``/dev/zero`` or a pipe would be read forever); a
+  task that runs longer than its timeout comes back failed ("timed out") and the run goes on.
+* Results are written as they arrive, at least every ``flush_every`` seconds, and on Ctrl-C or SIGTERM
+  before the run ends; each write takes the history's lock and drops the rows whose recording (content
+  hash) the history already holds, so concurrent runs and a recording listed twice give one row each
+  (:mod:`rt_ident.fleet.store`: the lock, the atomic writes).
 * Every stored row carries its verdict: ``trusted``, ``reasons`` (why not, in words) and ``trust_criteria``
   (JSON: each criterion with its value, limit and result). Drift uses trusted rows only.
 * The cluster: the scheduler the user names (``--scheduler tcp://host:8786``), else a ``LocalCluster`` of
@@ -21,15 +27,21 @@ import hashlib
 import json
 import logging
 import os
+import queue
 import shutil
+import signal
+import stat
 import tempfile
-import uuid
-from collections.abc import Callable, Iterable
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rt_ident import __version__
 from rt_ident.fleet.manifest import Entry
+from rt_ident.fleet.store import HashIndex, history_lock, write_rows
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -38,17 +50,25 @@ log = logging.getLogger(__name__)
 
 PARAMS = ("I1", "I2", "B", "K", "wn", "wd", "zeta")
 _CHUNK = 1 << 20
+#: seconds a task may run before it is reported as timed out
+TASK_TIMEOUT = 600.0
+#: seconds between writes of finished results
+FLUSH_EVERY = 2.0
 
 
-def _hash_local(path: str) -> str:
+def _hash_local(path: str, stop: threading.Event) -> str:
+    if not stat.S_ISREG(os.stat(path).st_mode):       # a device or pipe would be read forever
+        raise ValueError(f"{path} is not a regular file")
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for piece in iter(lambda: fh.read(_CHUNK), b""):
+            if stop.is_set():                          # the task timed out: stop reading
+                raise TimeoutError(path)
             h.update(piece)
     return h.hexdigest()
 
 
-def _fetch(url: str, folder: str) -> tuple[str, str]:
+def _fetch(url: str, folder: str, stop: threading.Event) -> tuple[str, str]:
     """Copy an fsspec URL to ``folder``; returns (local path, hash of the bytes)."""
     import fsspec
 
@@ -56,32 +76,57 @@ def _fetch(url: str, folder: str) -> tuple[str, str]:
     local = os.path.join(folder, os.path.basename(url.rstrip("/")) or "recording")
     with fsspec.open(url, "rb") as src, open(local, "wb") as dst:
         for piece in iter(lambda: src.read(_CHUNK), b""):
+            if stop.is_set():
+                raise TimeoutError(url)
             h.update(piece)
             dst.write(piece)
     return local, h.hexdigest()
 
 
 def identify_recording(entry: dict[str, Any], known: frozenset[str] = frozenset(),
-                       method: str | None = None) -> dict[str, Any]:
+                       method: str | None = None, timeout: float | None = None) -> dict[str, Any]:
     """One recording -> one history row (runs on a worker; never raises).
 
     ``entry``: ``path, machine, axis, time`` (time as a timezone-aware datetime). ``status`` is ``ok``,
-    ``skipped`` (its hash is in ``known``) or ``failed`` (``error`` says why).
+    ``skipped`` (its hash is in ``known``) or ``failed`` (``error`` says why). With ``timeout`` (seconds)
+    the work runs in a thread of its own and the task returns ``failed`` ("timed out") when it has not
+    finished by then. Hashing or copying the file stops then; the identification itself cannot be
+    stopped: its thread ends with its work or its process.
     """
+    stop = threading.Event()
+    if not timeout:
+        return _identify(entry, known, method, stop)
+    box: dict[str, dict[str, Any]] = {}
+    worker = threading.Thread(target=lambda: box.update(row=_identify(entry, known, method, stop)), daemon=True,
+                              name=f"identify {os.path.basename(str(entry.get('path')))}")
+    worker.start()
+    worker.join(timeout)
+    if "row" in box:
+        return box["row"]
+    stop.set()
+    return {**_blank_row(entry, method), "status": "failed",
+            "error": f"timed out after {timeout:g} s (--task-timeout); the recording is left unidentified"}
+
+
+def _blank_row(entry: dict[str, Any], method: str | None) -> dict[str, Any]:
+    return {**entry, "hash": None, "method": method, "version": __version__, "samples": None, "trusted": None,
+            "reasons": None, "trust_criteria": None, "status": "ok", "error": None}
+
+
+def _identify(entry: dict[str, Any], known: frozenset[str], method: str | None,
+              stop: threading.Event) -> dict[str, Any]:
     from rt_ident.reports.identify import identify_file
 
-    row: dict[str, Any] = {**entry, "hash": None, "method": method, "version": __version__,
-                           "samples": None, "trusted": None, "reasons": None, "trust_criteria": None,
-                           "status": "ok", "error": None}
+    row = _blank_row(entry, method)
     tmp = None
     try:
         path = entry["path"]
         if "://" in path and not path.startswith("file://"):
             tmp = tempfile.mkdtemp(prefix="rt-ident-fleet-")
-            local, digest = _fetch(path, tmp)
+            local, digest = _fetch(path, tmp, stop)
         else:
             local = path[len("file://"):] if path.startswith("file://") else path
-            digest = _hash_local(local)
+            digest = _hash_local(local, stop)
         row["hash"] = digest
         if digest in known:
             row["status"] = "skipped"
@@ -124,42 +169,42 @@ def _schema() -> pa.Schema:
     return pa.schema(fields)
 
 
-def append_history(history: str | Path, rows: list[dict[str, Any]]) -> int:
-    """Append identified rows to the Parquet dataset under ``history`` (hive-partitioned by machine).
-    Each call writes new files (a unique name per call): nothing written before is rewritten."""
+def append_history(history: str | Path, rows: list[dict[str, Any]], index: HashIndex | None = None) -> int:
+    """Write the ``ok`` rows of ``rows`` to the Parquet dataset under ``history`` (hive-partitioned by
+    machine); returns how many were written. Under the history's lock, rows whose recording (hash) the
+    history already holds with a verdict are dropped, and so are repeats within ``rows``: one row per
+    recording, whoever writes at the same time. Each file appears whole (temporary name, renamed); nothing
+    written before is rewritten. ``index``: the caller's :class:`~rt_ident.fleet.store.HashIndex` of
+    this history (kept up to date), to read each file once over many calls."""
+    return len(_append(history, rows, index or HashIndex(history)))
+
+
+def _append(history: str | Path, rows: list[dict[str, Any]], index: HashIndex) -> list[dict[str, Any]]:
+    """:func:`append_history`; returns the rows written."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
-        return 0
-    from rt_ident.fleet.history import is_url
-
-    schema = _schema()
-    table = pa.Table.from_pylist([{f.name: r.get(f.name) for f in schema} for r in ok], schema=schema)
-    fs = None
-    root = str(history)
-    if is_url(history):                       # object storage through fsspec (s3://, gs://, memory:// ...)
-        import fsspec
-
-        fs, root = fsspec.core.url_to_fs(root)
-    else:
-        Path(history).mkdir(parents=True, exist_ok=True)
-    pq.write_to_dataset(table, root_path=root, partition_cols=["machine"], filesystem=fs,
-                        basename_template=f"batch-{uuid.uuid4().hex}-{{i}}.parquet")
-    return len(ok)
+        return []
+    with history_lock(history):
+        stored = set(index.refresh())
+        fresh = []
+        for r in ok:
+            if r["hash"] not in stored:
+                stored.add(r["hash"])
+                fresh.append(r)
+        if not fresh:
+            return []
+        schema = _schema()
+        table = pa.Table.from_pylist([{f.name: r.get(f.name) for f in schema} for r in fresh], schema=schema)
+        index.add(write_rows(history, table), [r["hash"] for r in fresh])
+    return fresh
 
 
 def known_hashes(history: str | Path) -> frozenset[str]:
     """Hashes already identified *with a recorded verdict*: a row from before verdicts were recorded is
     identified again (a new row; :func:`rt_ident.fleet.drift.series` prefers it)."""
-    from rt_ident.fleet.history import columns, connect, has_history, verdict_sql
-
-    if not has_history(history):
-        return frozenset()
-    con = connect(history)
-    sql = f"SELECT DISTINCT hash FROM (SELECT hash, {verdict_sql(columns(con))} FROM history) WHERE has_verdict"
-    return frozenset(h for (h,) in con.execute(sql).fetchall())
+    return HashIndex(history).refresh()
 
 
 class _Cluster:
@@ -176,9 +221,10 @@ class _Cluster:
             # not the user's business unless they ask (-v); warnings still show
             logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger().level))
             # processes, one thread each: numba kernels and numpy hold the GIL for whole recordings
-            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                        host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                                        silence_logs=logging.ERROR)
+            with _children_ignore_ctrl_c():
+                self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                            host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                                            silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
         self.dashboard = self.client.dashboard_link if self._has_dashboard() else None
 
@@ -192,54 +238,168 @@ class _Cluster:
     def close(self) -> None:
         self.client.close()
         if self.cluster is not None:
-            self.cluster.close()
+            # a worker still running a timed-out or interrupted task is killed after a grace period;
+            # distributed's warning about it says nothing the run's result does not
+            nanny = logging.getLogger("distributed.nanny")
+            level = nanny.level
+            nanny.setLevel(max(logging.ERROR, level))
+            try:
+                self.cluster.close()
+            finally:
+                nanny.setLevel(level)
+
+
+@contextmanager
+def _children_ignore_ctrl_c() -> Iterator[None]:
+    """SIGINT ignored while the LocalCluster starts its worker processes, which inherit that: Ctrl-C in a
+    terminal reaches the whole process group, and only this process is to handle it (it ends the run and
+    the cluster). A Ctrl-C during those seconds is lost."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: str | None = None,
-                   workers: int = 2, method: str | None = None,
+                   workers: int = 2, method: str | None = None, flush_every: float = FLUSH_EVERY,
+                   task_timeout: float | None = TASK_TIMEOUT,
                    on_start: Callable[[int, str | None], None] | None = None,
                    on_result: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
     """Identify every entry on Dask; append new results to ``history``. Returns counts and failures.
 
     ``on_start(n_tasks, dashboard_url)`` once the cluster is up; ``on_result(row)`` per finished task
-    (progress). Results are appended as they arrive, in batches, so an interrupted run keeps what it did.
+    (progress). Finished results are written at least every ``flush_every`` seconds and when the run is
+    interrupted (Ctrl-C, or SIGTERM in the main thread): then ``interrupted`` is True and what finished is
+    in the history. ``task_timeout`` (seconds; None or 0: none) per task. An entry listed twice (same
+    path) is run once (``duplicates``); a row another run wrote meanwhile counts as ``skipped``.
     """
-    from distributed import as_completed
-
-    items = [{"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time} for e in entries]
-    known = known_hashes(history)
-    counts = {"tasks": len(items), "identified": 0, "untrusted": 0, "skipped": 0, "failed": 0}
+    items: list[dict[str, Any]] = []
+    paths: set[str] = set()
+    duplicates = 0
+    for e in entries:
+        if e.path in paths:
+            duplicates += 1
+            continue
+        paths.add(e.path)
+        items.append({"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time})
+    index = HashIndex(history)
+    known = index.refresh()
+    counts = {"tasks": len(items), "identified": 0, "untrusted": 0, "skipped": 0, "failed": 0,
+              "duplicates": duplicates}
     failures: list[dict[str, Any]] = []
+    pending: list[dict[str, Any]] = []
+    oldest = 0.0                                  # when the oldest unwritten result arrived
+
+    def flush() -> None:
+        with _signals_deferred():
+            written = _append(history, pending, index)
+            counts["identified"] += len(written)
+            counts["untrusted"] += sum(not r["trusted"] for r in written)
+            counts["skipped"] += len(pending) - len(written)      # another run (or another path) had it
+            pending.clear()
+
+    def take(fut: Any) -> None:
+        nonlocal oldest
+        row = _result(fut, futures[fut.key])
+        status = row["status"]
+        if status == "failed":
+            counts["failed"] += 1
+            failures.append({"path": row["path"], "machine": row["machine"], "axis": row["axis"],
+                             "error": row["error"]})
+        elif status == "skipped":
+            counts["skipped"] += 1
+        else:
+            if not pending:
+                oldest = time.monotonic()
+            pending.append(row)
+        if on_result is not None:
+            on_result(row)
+
+    interrupted = False
+    done: queue.Queue[Any] = queue.Queue()       # futures, as they finish (filled from Dask's thread)
+    futures: dict[Any, dict[str, Any]] = {}      # Dask key -> its entry
     cluster = _Cluster(scheduler, workers)
+    old_term = _term_interrupts()
     try:
-        if on_start is not None:
-            on_start(len(items), cluster.dashboard)
-        client = cluster.client
-        # one copy per worker of the known hashes (a list of one: scatter splits a collection into elements)
-        seen = client.scatter([known], broadcast=True)[0] if known else known
-        futures = [client.submit(identify_recording, it, seen, method, pure=False) for it in items]
-        batch: list[dict[str, Any]] = []
-        for fut in as_completed(futures):
-            row = fut.result()
-            fut.release()
-            status = row["status"]
-            counts[{"ok": "identified", "skipped": "skipped", "failed": "failed"}[status]] += 1
-            if status == "failed":
-                failures.append({"path": row["path"], "machine": row["machine"], "axis": row["axis"],
-                                 "error": row["error"]})
-            elif status == "ok":
-                counts["untrusted"] += not row["trusted"]
-                batch.append(row)
-                if len(batch) >= 64:
-                    append_history(history, batch)
-                    batch = []
-            if on_result is not None:
-                on_result(row)
-        append_history(history, batch)
+        try:
+            if on_start is not None:
+                on_start(len(items), cluster.dashboard)
+            client = cluster.client
+            # one copy per worker of the known hashes (a list of one: scatter splits a collection into elements)
+            seen = client.scatter([known], broadcast=True)[0] if known else known
+            for it in items:
+                fut = client.submit(identify_recording, it, seen, method, task_timeout or None, pure=False)
+                futures[fut.key] = it
+                fut.add_done_callback(done.put)
+            left = len(futures)
+            while left:
+                wait = oldest + flush_every - time.monotonic() if pending else flush_every
+                try:
+                    take(done.get(timeout=max(wait, 0.01)))
+                    left -= 1
+                except queue.Empty:
+                    pass
+                if pending and time.monotonic() - oldest >= flush_every:
+                    flush()
+        except KeyboardInterrupt:
+            interrupted = True
+            while not done.empty():               # what finished before the interrupt is kept too
+                take(done.get_nowait())
+        flush()
     finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
         cluster.close()
-    return {**counts, "failures": failures, "history": str(history), "dashboard": cluster.dashboard,
-            "scheduler": scheduler or "LocalCluster on 127.0.0.1"}
+    return {**counts, "interrupted": interrupted, "failures": failures, "history": str(history),
+            "dashboard": cluster.dashboard, "scheduler": scheduler or "LocalCluster on 127.0.0.1"}
 
 
-__all__ = ["identify_recording", "identify_fleet", "append_history", "known_hashes", "PARAMS"]
+def _result(fut: Any, item: dict[str, Any]) -> dict[str, Any]:
+    """A finished future's row; a task lost with its worker (or cancelled) is a failed row."""
+    try:
+        row = fut.result()
+    except Exception as exc:  # noqa: BLE001 - KilledWorker, CancelledError ...: this recording failed
+        row = {**_blank_row(item, None), "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+    fut.release()
+    return row
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Ctrl-C and SIGTERM during a write take effect once it is done (as KeyboardInterrupt): a write is
+    never cut between its files and the count of what it wrote."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[int] = []
+
+    def note(signum: int, frame: Any) -> None:  # noqa: ARG001
+        got.append(signum)
+
+    old = {sig: signal.signal(sig, note) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    if got:
+        raise KeyboardInterrupt
+
+
+def _term_interrupts() -> Any:
+    """SIGTERM interrupts as Ctrl-C does (in the main thread); returns the handler it had, or None."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, handler)
+
+
+__all__ = ["FLUSH_EVERY", "PARAMS", "TASK_TIMEOUT", "append_history", "identify_fleet", "identify_recording",
+           "known_hashes"]
