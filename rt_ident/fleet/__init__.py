@@ -3,6 +3,7 @@
 * :mod:`~rt_ident.fleet.manifest` - the CSV listing recordings (path, machine, axis, time);
 * :mod:`~rt_ident.fleet.identify` - one Dask task per recording, results appended to the history;
 * :mod:`~rt_ident.fleet.history` - DuckDB over the history's Parquet files;
-* :mod:`~rt_ident.fleet.drift` - CUSUM alarms per machine, axis and parameter;
-* :mod:`~rt_ident.fleet.report` - trend plots and the summary table.
+* :mod:`~rt_ident.fleet.drift` - each series' state, from CUSUM alarms per machine, axis and parameter;
+* :mod:`~rt_ident.fleet.findings` - what an alarm means on the machine (the rules table) and how urgent it is;
+* :mod:`~rt_ident.fleet.report` - one HTML page (the fleet worst first, trends, findings) and its CSV data.
 """
