@@ -86,19 +86,13 @@ def _when(iso: str) -> str:
 
 
 def _alarm_line(a: dict[str, Any]) -> str:
+    from rt_ident.fleet.findings import limit_words
+
     since = f"since {_when(a['since'])}, first alarm {_when(a['first_alarm'])}"
     rate = "" if a["rate_percent_per_day"] is None else f"; {a['rate_percent_per_day']:+.2f} %/day"
-    if a["limit_percent"] is None:
-        limit = "no limit set"
-    elif a["severity"] == "critical":
-        limit = f"limit {a['limit_percent']:+g} % passed"
-    elif a["days_to_limit"] is not None:
-        limit = f"limit {a['limit_percent']:+g} % in about {a['days_to_limit']:.0f} days at this rate"
-    else:
-        limit = f"limit {a['limit_percent']:+g} %, not approaching it"
     return (f"{a['parameter']:<5} {a['direction']} {since}: {a['change_at_first_alarm_percent']:+.2f} % at first "
-            f"alarm, {a['change_now_percent']:+.2f} % now ({_when(a['now_time'])}), both vs baseline{rate}; {limit} "
-            f"[{a['severity']}]")
+            f"alarm, {a['change_now_percent']:+.2f} % now ({_when(a['now_time'])}), both vs baseline{rate}; "
+            f"{limit_words(a)} [{a['severity']}]")
 
 
 def print_states(res: dict[str, Any]) -> None:
@@ -114,7 +108,8 @@ def print_states(res: dict[str, Any]) -> None:
     for s in res["series"]:
         name = f"{s['machine']} {s['axis']}"
         if s["state"] != "drifting":
-            typer.echo(f"{name}  {s['state']}: {s['message']}")
+            said = s["message"].startswith(s["state"].replace("-", " "))
+            typer.echo(f"{name}  {s['message']}" if said else f"{name}  {s['state']}: {s['message']}")
             continue
         typer.echo(f"{name}  DRIFTING, {s['severity']}")
         for f in s["findings"]:

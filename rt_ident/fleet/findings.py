@@ -70,16 +70,8 @@ RULES: tuple[Rule, ...] = (
          "not the mechanics",
          "the drive's torque constant and rated-torque settings, a replaced motor or drive, the current "
          "sensing", _SCALE_WHY),
-    Rule("stiffness loss", {"K": FELL}, {"K": FELL, "wn": FELL, "zeta": ROSE},
-         "stiffness loss between motor and table (ball-screw nut preload, coupling or support bearings)",
-         "the ball-screw nut's preload (a reversal or backlash test), the coupling's clamping screws and "
-         "elastomer, the screw's support bearings",
-         "K is the spring between motor and table; wn falls as sqrt K and zeta rises as 1/sqrt K"),
-    Rule("stiffness gain", {"K": ROSE}, {"K": ROSE, "wn": ROSE, "zeta": FELL},
-         "the drive train is stiffer than at the baseline",
-         "what was serviced since the baseline (preload reset, coupling replaced); if nothing, look for "
-         "binding: chips, a guard or cable carrier rubbing, a clamp left on",
-         "K is the spring between motor and table; wn rises as sqrt K and zeta falls as 1/sqrt K"),
+    # the damping rules first: when B and K both moved, zeta goes with B (it moves in proportion to B,
+    # as 1/sqrt K only)
     Rule("damping rise", {"B": ROSE}, {"B": ROSE, "zeta": ROSE},
          "more damping between motor and table: lubrication (grease aged, dirty or short) or wipers and seals "
          "dragging",
@@ -92,6 +84,16 @@ RULES: tuple[Rule, ...] = (
          "which lubricant is in use and at what temperature compared with the baseline, the nut's and "
          "coupling's screws",
          "B is the viscous loss between motor and table; zeta falls in proportion to B, wn does not move"),
+    Rule("stiffness loss", {"K": FELL}, {"K": FELL, "wn": FELL, "zeta": ROSE},
+         "stiffness loss between motor and table (ball-screw nut preload, coupling or support bearings)",
+         "the ball-screw nut's preload (a reversal or backlash test), the coupling's clamping screws and "
+         "elastomer, the screw's support bearings",
+         "K is the spring between motor and table; wn falls as sqrt K and zeta rises as 1/sqrt K"),
+    Rule("stiffness gain", {"K": ROSE}, {"K": ROSE, "wn": ROSE, "zeta": FELL},
+         "the drive train is stiffer than at the baseline",
+         "what was serviced since the baseline (preload reset, coupling replaced); if nothing, look for "
+         "binding: chips, a guard or cable carrier rubbing, a clamp left on",
+         "K is the spring between motor and table; wn rises as sqrt K and zeta falls as 1/sqrt K"),
     Rule("load increase", {"I2": ROSE, "K": STEADY}, {"I2": ROSE, "wn": FELL, "zeta": FELL},
          "a heavier load on the table (workpiece, fixture) with the stiffness unchanged",
          "the workpiece and fixture against the baseline's; if the load stays, commission the axis again (its "
@@ -232,9 +234,24 @@ def severity(change_now: float, rate_per_day: float, limit: float | None, soon_d
     return {"severity": level, "limit_used": round(used, 3), "days_to_limit": None if days is None else round(days, 1)}
 
 
+def limit_words(alarm: dict[str, Any]) -> str:
+    """An alarm's limit in words: passed, reached in about N days at this rate, or not approaching."""
+    lim = alarm["limit_percent"]
+    if lim is None:
+        return "no limit set"
+    if alarm["severity"] == "critical":
+        return f"limit {lim:+g} % passed"
+    days = alarm["days_to_limit"]
+    if days is None:
+        return f"limit {lim:+g} %, not approaching it"
+    if days > 365:
+        return f"limit {lim:+g} %, more than a year away at this rate"
+    return f"limit {lim:+g} % in about {days:.0f} days at this rate"
+
+
 def worst(levels: list[str]) -> str | None:
     return max(levels, key=SEVERITIES.index) if levels else None
 
 
-__all__ = ["RULES", "Rule", "Limits", "read_limits", "findings", "severity", "worst", "SEVERITIES", "PARAMETERS",
-           "ROSE", "FELL", "STEADY"]
+__all__ = ["RULES", "Rule", "Limits", "read_limits", "findings", "severity", "limit_words", "worst", "SEVERITIES",
+           "PARAMETERS", "ROSE", "FELL", "STEADY"]

@@ -30,7 +30,7 @@ import numpy as np
 
 from rt_ident.errors import ConfigError
 from rt_ident.fleet.drift import WATCHED, DriftSettings, drift
-from rt_ident.fleet.findings import Limits
+from rt_ident.fleet.findings import Limits, limit_words
 from rt_ident.outputs.html import esc, page, table, write_page
 from rt_ident.outputs.svg_plot import GREEN, GREY, ORANGE, RED, TrendPlot
 
@@ -140,14 +140,7 @@ def _plot(p: str, state: dict[str, Any], det: dict[str, Any], settings: DriftSet
 def _alarm_rows(state: dict[str, Any]) -> str:
     rows = []
     for a in state["alarms"]:
-        if a["limit_percent"] is None:
-            lim = "none set"
-        elif a["severity"] == "critical":
-            lim = f"{a['limit_percent']:+g} %: passed"
-        elif a["days_to_limit"] is not None:
-            lim = f"{a['limit_percent']:+g} %: in about {a['days_to_limit']:.0f} days"
-        else:
-            lim = f"{a['limit_percent']:+g} %: not approaching"
+        lim = limit_words(a).removeprefix("limit ")
         rate = "-" if a["rate_percent_per_day"] is None else f"{a['rate_percent_per_day']:+.2f}"
         rows.append([esc(a["parameter"]), esc(a["direction"]), esc(_when(a["since"])), esc(_when(a["first_alarm"])),
                      f"{a['change_at_first_alarm_percent']:+.2f} %", f"{a['change_now_percent']:+.2f} %",
