@@ -158,13 +158,12 @@ def _fleet_table(states: list[dict[str, Any]], stems: dict[tuple[str, str], str]
     rows = []
     for i, s in enumerate(states, 1):
         stem = stems[(s["machine"], s["axis"])]
-        moved = ", ".join(f"{a['parameter']} {a['change_now_percent']:+.1f} %" for a in s["alarms"])
         since = min((a["since"] for a in s["alarms"]), default=None)
         what = "<br>".join(f"{esc(f['finding'])}<br><small>check: {esc(f['check'])}</small>" for f in s["findings"])
         rows.append([str(i), f"<a href='#s-{esc(stem)}'>{esc(s['machine'])}</a>", esc(s["axis"]), esc(s["state"]),
-                     esc(s["severity"] or "-"), what or esc(s["message"]), esc(moved or "-"), esc(_when(since)),
+                     esc(s["severity"] or "-"), what or esc(s["message"]), esc(_when(since)[:10]),
                      f"{s['trusted']} of {s['recordings']}", f"<a href='data/{esc(stem)}.csv'>CSV</a>"])
-    return table(["#", "machine", "axis", "state", "severity", "finding / state", "change now vs baseline",
+    return table(["#", "machine", "axis", "state", "severity", "finding (change now vs baseline) and check / state",
                   "drift began", "trusted recordings", "data"], rows, [_row_class(s) for s in states])
 
 
