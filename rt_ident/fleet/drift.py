@@ -76,7 +76,7 @@ def series(history: str | Path) -> dict[tuple[str, str], dict[str, np.ndarray]]:
         "has_verdict DESC, version DESC) = 1 ORDER BY machine, axis, time").fetchnumpy()
     out: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     machine, axis = np.asarray(rows["machine"]).astype(str), np.asarray(rows["axis"]).astype(str)
-    keys = sorted(set(zip(machine, axis)))
+    keys = sorted({(str(m), str(a)) for m, a in zip(machine, axis)})
     known = np.asarray(rows["has_verdict"], dtype=bool)
     trusted = known & (np.asarray(np.ma.filled(np.ma.asarray(rows["trusted"]), False), dtype=bool))
     words = np.asarray(rows["reasons"], dtype=object)
