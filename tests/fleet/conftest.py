@@ -1,5 +1,5 @@
 """A fleet with one series per kind of wear, generated once per session by ``tools/make_fleet.py`` and identified
-serially (no cluster): 4 machines x axis x x 10 days; three series wear from day 6 on - one K alone (-0.5 %/day),
+serially (no cluster): 4 machines, axis x, 10 days; three series wear from day 6 on - one K alone (-0.5 %/day),
 one B alone (+2 %/day), one a load change (I2 +30 %) - and one stays healthy. ``truth.json`` says which is which."""
 
 from __future__ import annotations
