@@ -4,34 +4,14 @@ from __future__ import annotations
 
 import html
 import io
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rt_ident.config import RunConfig
-
-_CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1100px;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #ccc;padding:.3em .6em;text-align:left;
-vertical-align:top}th{background:#f3f3f3}.pass{color:#0a7d2c;font-weight:bold}.fail{color:#b00020;font-weight:bold}
-pre{background:#f6f6f6;padding:1em;overflow-x:auto}h1 span{font-size:.7em}"""
-
-
-def _fmt(v: Any) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.4g}" if math.isfinite(v) else str(v)
-    if isinstance(v, dict):
-        return ", ".join(f"{k} {_fmt(x)}" for k, x in v.items())
-    return str(v)
-
-
-def _table(head: list[str], rows: list[list[Any]]) -> str:
-    h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
-    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
+from rt_ident.outputs.html import page, table, write_page
+from rt_ident.outputs.html import value_text as fmt
 
 
 def _model_frf(p: dict[str, float], w: np.ndarray) -> np.ndarray:
@@ -107,52 +87,47 @@ def _frf_svg(result: dict[str, Any], cfg: RunConfig) -> str:
 
 def write(result: dict[str, Any], cfg: RunConfig, path: Path) -> None:
     verdict = result.get("verdict", "fail")
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>rt-ident commission: {verdict}</title>"
-             f"<style>{_CSS}</style></head><body>",
-             f"<h1>Commissioning <span class='{'pass' if verdict == 'pass' else 'fail'}'>{verdict.upper()}</span></h1>",
+    parts = [f"<h1>Commissioning <span class='{'pass' if verdict == 'pass' else 'fail'}'>{verdict.upper()}</span></h1>",
              f"<p>Config <code>{html.escape(str(result.get('config')))}</code>; stage reached: "
              f"{html.escape(str(result.get('stage_reached')))}; table moved at most "
-             f"{_fmt((result.get('max_travel_m') or 0) * 1e3)} mm at {_fmt((result.get('max_speed_m_s') or 0) * 1e3)}"
+             f"{fmt((result.get('max_travel_m') or 0) * 1e3)} mm at {fmt((result.get('max_speed_m_s') or 0) * 1e3)}"
              " mm/s while probing.</p>"]
     if result.get("failed"):
         f = result["failed"]
         parts.append(f"<p class='fail'>{html.escape(f['check'])} failed. Fix: {html.escape(str(f['fix']))}</p>")
     parts.append("<h2>Checks</h2>")
-    parts.append(_table(["check", "result", "measured", "expected", "fix"], [
+    parts.append(table(["check", "result", "measured", "expected", "fix"], [
         [html.escape(c["name"]), "<span class='pass'>pass</span>" if c["ok"] else "<span class='fail'>FAIL</span>",
-         html.escape(_fmt(c["measured"])), html.escape(_fmt(c["expected"])), html.escape(_fmt(c.get("fix")))]
+         html.escape(fmt(c["measured"])), html.escape(fmt(c["expected"])), html.escape(fmt(c.get("fix")))]
         for c in result.get("checks", [])]))
     if result.get("identity"):
-        parts.append("<h2>Device</h2>" + _table(["object", "value"], [
-            [html.escape(k), html.escape(_fmt(v))] for k, v in result["identity"].items()]))
+        parts.append("<h2>Device</h2>" + table(["object", "value"], [
+            [html.escape(k), html.escape(fmt(v))] for k, v in result["identity"].items()]))
     if result.get("pulses"):
-        parts.append("<h2>Torque pulses (controller off)</h2>" + _table(
+        parts.append("<h2>Torque pulses (controller off)</h2>" + table(
             ["direction", "breakaway [N m]", "push [N m]", "theta1 [rad]", "x [mm]", "x/theta1 [m/rad]",
              "acceleration per N m"],
-            [[q["direction"], _fmt(q["breakaway_nm"]), _fmt(q["push_nm"]), _fmt(q["theta1_rad"]),
-              _fmt(q["x_m"] * 1e3), _fmt(q["ratio_m_per_rad"]), _fmt(q["accel_per_nm"])] for q in result["pulses"]]))
+            [[q["direction"], fmt(q["breakaway_nm"]), fmt(q["push_nm"]), fmt(q["theta1_rad"]),
+              fmt(q["x_m"] * 1e3), fmt(q["ratio_m_per_rad"]), fmt(q["accel_per_nm"])] for q in result["pulses"]]))
     ident = result.get("identification") or {}
     if ident.get("parameters"):
         ci = ident.get("ci95") or {}
-        parts.append("<h2>Identified parameters</h2>" + _table(
+        parts.append("<h2>Identified parameters</h2>" + table(
             ["parameter", "value", "95 % interval"],
-            [[k, _fmt(v), f"{_fmt(ci[k][0])} .. {_fmt(ci[k][1])}" if ci.get(k) else "-"]
+            [[k, fmt(v), f"{fmt(ci[k][0])} .. {fmt(ci[k][1])}" if ci.get(k) else "-"]
              for k, v in ident["parameters"].items()]))
         parts.append("<h2>Frequency response</h2>" + _frf_svg(result, cfg))
     if result.get("design"):
-        parts.append("<h2>Controller design</h2>" + _table(["", "value"], [
-            [html.escape(k), html.escape(_fmt(v))] for k, v in result["design"].items()]))
+        parts.append("<h2>Controller design</h2>" + table(["", "value"], [
+            [html.escape(k), html.escape(fmt(v))] for k, v in result["design"].items()]))
     if result.get("verification"):
         v = result["verification"]
         keys = ("max_error_m", "rms_error_m", "overshoot_m", "settling_s")
-        parts.append(f"<h2>Verification move ({v['move_m'] * 1e3:g} mm and back)</h2>" + _table(
-            ["", *keys], [["measured", *(_fmt(v["measured"].get(k)) for k in keys)],
-                          ["identified model", *(_fmt(v["model"].get(k)) for k in keys)]]))
+        parts.append(f"<h2>Verification move ({v['move_m'] * 1e3:g} mm and back)</h2>" + table(
+            ["", *keys], [["measured", *(fmt(v["measured"].get(k)) for k in keys)],
+                          ["identified model", *(fmt(v["model"].get(k)) for k in keys)]]))
     if result.get("axis_toml"):
         parts.append("<h2>[axis] for run</h2><pre>" + html.escape(Path(result["axis_toml"]).read_text()) + "</pre>")
     if cfg.source and Path(cfg.source).is_file():
         parts.append("<h2>Config used</h2><pre>" + html.escape(Path(cfg.source).read_text()) + "</pre>")
-    parts.append("</body></html>")
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text("\n".join(parts), encoding="utf-8")
-    tmp.replace(path)
+    write_page(path, page(f"rt-ident commission: {verdict}", parts))

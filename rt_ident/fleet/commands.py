@@ -22,7 +22,7 @@ def _needs_the_fleet_extra(ctx: typer.Context) -> None:
 
     if ctx.invoked_subcommand == "make":          # simulation and Parquet only: the core install
         return
-    for module in ("dask", "distributed", "duckdb", "matplotlib"):
+    for module in ("dask", "distributed", "duckdb"):
         require(module, "fleet", "rt-ident fleet")
 
 
@@ -95,51 +95,93 @@ def identify_cmd(
         raise typer.Exit(1)
 
 
+
+def _when(iso: str) -> str:
+    return iso[:16].replace("T", " ")
+
+
+def _alarm_line(a: dict[str, Any]) -> str:
+    from rt_ident.fleet.findings import limit_words
+
+    since = f"since {_when(a['since'])}, first alarm {_when(a['first_alarm'])}"
+    rate = "" if a["rate_percent_per_day"] is None else f"; {a['rate_percent_per_day']:+.2f} %/day"
+    return (f"{a['parameter']:<5} {a['direction']} {since}: {a['change_at_first_alarm_percent']:+.2f} % at first "
+            f"alarm, {a['change_now_percent']:+.2f} % now ({_when(a['now_time'])}), both vs baseline{rate}; "
+            f"{limit_words(a)} [{a['severity']}]")
+
+
+def print_states(res: dict[str, Any]) -> None:
+    """Every series' state, worst first, in plain lines (what ``fleet drift`` prints)."""
+    counts = ", ".join(f"{n} {st.replace('-', ' ')}" for st, n in res["counts"].items() if n)
+    typer.echo(f"{len(res['series'])} series: {counts}")
+    typer.echo(f"{res['method']}; limits: {res['limits']['source']}")
+    ign = res["ignored"]
+    if ign["untrusted"] or ign["unknown_verdict"]:
+        typer.echo(f"skipped {ign['untrusted'] + ign['unknown_verdict']} rows: {ign['untrusted']} not trusted, "
+                   f"{ign['unknown_verdict']} with no recorded verdict (written by an older rt-ident: treated as "
+                   "untrusted; `fleet identify` on their manifest records one); per series below")
+    for s in res["series"]:
+        name = f"{s['machine']} {s['axis']}"
+        if s["state"] != "drifting":
+            said = s["message"].startswith(s["state"].replace("-", " "))
+            typer.echo(f"{name}  {s['message']}" if said else f"{name}  {s['state']}: {s['message']}")
+            continue
+        typer.echo(f"{name}  DRIFTING, {s['severity']}")
+        for f in s["findings"]:
+            typer.echo(f"  finding [{f['severity']}]: {f['finding']}")
+            typer.echo(f"  check: {f['check']}")
+        for a in s["alarms"]:
+            typer.echo(f"  {_alarm_line(a)}")
+        skipped = s["skipped_untrusted"] + s["skipped_unknown_verdict"]
+        if skipped or not s["latest"]["trusted"]:
+            typer.echo(f"  {s['trusted']} of {s['recordings']} recordings trusted ({skipped} skipped)"
+                       + ("; the latest is not trusted" if not s["latest"]["trusted"] else ""))
+
+
+LIMITS = typer.Option(None, "--limits", help="TOML: how far each parameter may move from its baseline, in per cent, "
+                      "e.g. [K] fall = 15; and soon_days (default 30). Sets each alarm's severity. Default: built-in "
+                      "limits (docs: operation/fleet).")
+
+
 @fleet_app.command("drift")
 def drift_cmd(
     history: str = HISTORY,
-    baseline: int = typer.Option(5, "--baseline", min=2, help="Recordings per series that set its baseline."),
+    baseline: int = typer.Option(5, "--baseline", min=2, help="Trusted recordings per series that set its baseline."),
     h: float = typer.Option(5.0, "--h", min=0.5, help="CUSUM decision interval (in sigmas)."),
+    limits: Path | None = LIMITS,
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
-    """Per machine, axis and parameter: alarms where the estimates leave their baseline (CUSUM)."""
+    """Every machine and axis: ok, drifting (what moved, since when, what it means, how urgent),
+    insufficient history or untrusted data."""
     from rt_ident.fleet.drift import DriftSettings, drift
+    from rt_ident.fleet.findings import read_limits
 
-    res = drift(history, DriftSettings(baseline=baseline, h=h))
+    res = drift(history, DriftSettings(baseline=baseline, h=h), read_limits(limits))
     res.pop("_detail")
     if json_out:
         typer.echo(json.dumps(res, indent=2))
         return
-    out.print(f"{res['series']} series, {res['checked']} parameter series checked ({res['method']})")
-    ign = res["ignored"]
-    if ign["untrusted"] or ign["unknown_verdict"]:
-        out.print(f"ignored {ign['untrusted'] + ign['unknown_verdict']} rows: {ign['untrusted']} not trusted, "
-                  f"{ign['unknown_verdict']} with no recorded verdict (written by an older rt-ident: treated as "
-                  "untrusted; `fleet identify` on their manifest records one)")
-    if not res["alarms"]:
-        out.print("no drift alarms")
-        return
-    tab = Table(title=f"{len(res['alarms'])} drift alarms, largest change first")
-    for c in ("machine", "axis", "parameter", "first alarm (UTC)", "change %", "recordings before"):
-        tab.add_column(c, no_wrap=c.startswith("first"))
-    for a in res["alarms"]:
-        tab.add_row(a["machine"], a["axis"], a["parameter"], a["first_time"][:16].replace("T", " "),
-                    f"{a['change_percent']:+.2f}",
-                    str(a["recordings_before"]))
-    out.print(tab)
+    print_states(res)
 
 
 @fleet_app.command("report")
 def report_cmd(
     history: str = HISTORY,
-    out_dir: Path = typer.Option(..., "--out", help="Folder for the figures and the summary."),
+    out_dir: Path = typer.Option(..., "--out", help="Folder for report.html and the CSV data behind it."),
+    baseline: int = typer.Option(5, "--baseline", min=2, help="Trusted recordings per series that set its baseline."),
+    h: float = typer.Option(5.0, "--h", min=0.5, help="CUSUM decision interval (in sigmas)."),
+    limits: Path | None = LIMITS,
 ) -> None:
-    """Trend plots per axis (intervals, baseline band, alarms) and a one-page summary, worst first."""
+    """One self-contained HTML page: the fleet worst first, each axis's trends, findings and checks;
+    the data behind it as CSV beside it."""
+    from rt_ident.fleet.drift import DriftSettings
+    from rt_ident.fleet.findings import read_limits
     from rt_ident.fleet.report import write_report
 
-    res = write_report(history, out_dir)
-    out.print(f"{res['series']} series, {res['alarms']} alarms: {res['summary_png']}, {res['summary_csv']} and "
-              f"{len(res['figures'])} trend figures in {out_dir}")
+    res = write_report(history, out_dir, DriftSettings(baseline=baseline, h=h), read_limits(limits))
+    counts = ", ".join(f"{n} {st.replace('-', ' ')}" for st, n in res["counts"].items() if n)
+    out.print(f"{res['series']} series ({counts}): {res['html']}; data: {res['fleet_csv']} and "
+              f"{len(res['series_csv'])} series CSV files in {res['data_dir']}", markup=False, highlight=False)
 
 
 def _cell(v: Any) -> str:

@@ -5,11 +5,13 @@
 Each recording is a short closed-loop run of the whole product on the simulated axis (``run_offline``:
 the host's position loop, quantized 2^17-count encoder and 0.1 um scale, torque noise on the measured
 torque and on the applied torque, a different noise seed per recording, each machine's axis a few
-per cent off the nominal Table 1 axis). A chosen fraction of the series wears slowly from a random day
-on: ball-screw stiffness K -0.5 %/day (preload loss) and coupling damping B +2 %/day (lubrication).
+per cent off the nominal Table 1 axis). A chosen fraction of the series wears from a random day on; by
+default both ways at once: ball-screw stiffness K -0.5 %/day (preload loss) and coupling damping B +2 %/day
+(lubrication). ``--wear k,b,load`` gives the worn series one kind each, in turn: K alone, B alone, or a load
+change (table inertia I2 +30 % from the day after the onset: a heavier fixture).
 
 Writes ``OUT/recordings/*.parquet``, ``OUT/manifest.csv`` (``rt-ident fleet identify`` input) and
-``OUT/truth.json`` (which series wear, from which day, and each recording's true parameters).
+``OUT/truth.json`` (which series wear, how, from which day, and each recording's true parameters).
 """
 
 from __future__ import annotations
@@ -27,11 +29,20 @@ from rt_ident.errors import ConfigError, RtIdentError
 
 K_PER_DAY = -0.005
 B_PER_DAY = 0.02
+LOAD_STEP = 0.30
+
+#: kind of wear -> which parameters move and how; ``d`` is the number of days since the onset
+WEAR: dict[str, dict[str, Callable[[int], float]]] = {
+    "k-b": {"K": lambda d: 1.0 + K_PER_DAY * d, "B": lambda d: 1.0 + B_PER_DAY * d},
+    "k": {"K": lambda d: 1.0 + K_PER_DAY * d},
+    "b": {"B": lambda d: 1.0 + B_PER_DAY * d},
+    "load": {"I2": lambda d: 1.0 + LOAD_STEP * (d > 0)},
+}
 
 
 def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("x", "y"), days: int = 12,
                worn: float = 0.5, duration: float = 0.4, seed: int = 1, start: str = "2026-11-01",
-               progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+               wear: tuple[str, ...] = ("k-b",), progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Write the fleet (see the module docstring) under ``out``; returns ``manifest``, ``truth``,
     ``recordings``, ``series`` and ``worn`` (how many series wear). ``progress(done, total)`` after
     each recording."""
@@ -50,6 +61,8 @@ def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("
         raise ConfigError("--duration", f"{duration:g} s: must be > 0")
     if not axes:
         raise ConfigError("--axes", "name at least one axis")
+    if not wear or any(w not in WEAR for w in wear):
+        raise ConfigError("--wear", f"{','.join(wear)!r}: comma-separated kinds among {', '.join(WEAR)}")
     try:
         day0 = dt.datetime.fromisoformat(start).replace(hour=6, tzinfo=dt.UTC)
     except ValueError:
@@ -62,7 +75,8 @@ def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("
     series = [(f"m{i + 1:02d}", a) for i in range(machines) for a in axes]
     n_worn = int(round(worn * len(series)))
     wearing = set(map(tuple, rng.permutation(np.array(series, dtype=object))[:n_worn].tolist()))
-    truth: dict[str, Any] = {"series": [], "k_per_day": K_PER_DAY, "b_per_day": B_PER_DAY}
+    wear_of = {s: wear[i % len(wear)] for i, s in enumerate(x for x in series if x in wearing)}
+    truth: dict[str, Any] = {"series": [], "k_per_day": K_PER_DAY, "b_per_day": B_PER_DAY, "load_step": LOAD_STEP}
     entries: list[Entry] = []
     total = len(series) * days
     done = 0
@@ -74,8 +88,8 @@ def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("
         for day in range(days):
             worn_days = max(0, day - onset) if onset is not None else 0
             p = dict(base)
-            p["K"] *= 1.0 + K_PER_DAY * worn_days
-            p["B"] *= 1.0 + B_PER_DAY * worn_days
+            for k, factor in WEAR[wear_of[(machine, axis)]].items() if onset is not None else ():
+                p[k] *= factor(worn_days)
             path = rec_dir / f"{machine}-{axis}-day{day:03d}.parquet"
             cfg = load(None, **{"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False,
                                 "loop.duration": duration, **{f"axis.{k}": v for k, v in p.items()},
@@ -91,7 +105,7 @@ def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("
             if progress is not None:
                 progress(done, total)
         truth["series"].append({"machine": machine, "axis": axis, "worn": onset is not None, "onset_day": onset,
-                                "recordings": recs})
+                                "wear": wear_of.get((machine, axis)), "recordings": recs})
     write_manifest(out / "manifest.csv", entries)
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     return {"manifest": str(out / "manifest.csv"), "truth": str(out / "truth.json"), "recordings": total,
@@ -114,6 +128,9 @@ def make_cmd(
     seed: int = typer.Option(1, "--seed", help="Random seed: the same seed and options write the same fleet."),
     start: str = typer.Option("2026-11-01", "--start", help="Date of day 0 (ISO 8601); each recording is made "
                                                             "between 06:00 and 08:00 UTC of its day."),
+    wear: str = typer.Option("k-b", "--wear", help="Kinds of wear, comma-separated, given to the worn series in "
+                                                   "turn: k (K alone), b (B alone), load (I2 +30 % from the day "
+                                                   "after the onset), k-b (K and B together, the default)."),
 ) -> None:
     """Write a generated fleet to try `rt-ident fleet` on: closed-loop runs of the product on the simulated
     axis, each machine's axis a few per cent off the nominal one, a fraction of the series wearing."""
@@ -123,7 +140,8 @@ def make_cmd(
         print(f"\r{done}/{total} recordings", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
     res = make_fleet(out, machines=machines, axes=names, days=days, worn=worn, duration=duration, seed=seed,
-                     start=start, progress=progress if sys.stderr.isatty() else None)
+                     start=start, wear=tuple(w.strip() for w in wear.split(",") if w.strip()),
+                     progress=progress if sys.stderr.isatty() else None)
     typer.echo(f"{res['recordings']} recordings of {res['series']} series ({res['worn']} wearing) in {out}; "
                f"manifest {res['manifest']}")
 

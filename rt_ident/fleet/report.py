@@ -1,125 +1,258 @@
-"""``rt-ident fleet report``: one trend figure per machine and axis, and a one-page summary (PNG + CSV).
+"""``rt-ident fleet report``: one self-contained HTML page for the fleet, and the data behind it as CSV.
 
-Each figure has a panel per watched parameter: every trusted estimate with its 95 % interval, the baseline mean
-and its +-2 sigma band (sigma as the CUSUM uses it, :mod:`rt_ident.fleet.drift`), and the first alarm
-marked. The summary lists every series worst first: series with an alarm before the others, then by the
-largest |z| of their last recording.
+``OUT/report.html``: the fleet table, worst first (:func:`rt_ident.fleet.drift.order`), then one section per
+machine and axis in the same order: its state, findings and checks, its alarms (since when, the change at
+the first alarm and now, the rate, the limit, the severity) and a trend plot per watched parameter - every
+trusted estimate as its change from the baseline mean in per cent, with its 95 % interval, the baseline's
++-2 sigma band (sigma as the CUSUM uses it), the baseline recordings shaded, the first alarm marked, the limit
+when the plot's range reaches it, and the recordings that were not trusted as ticks along the bottom.
+Figures are inline SVG (:mod:`rt_ident.outputs.svg_plot`): the page needs nothing beside it to open.
+
+``OUT/fleet.csv``: the fleet table; ``OUT/data/<machine>-<axis>.csv``: every recording of a series with its
+estimates, intervals, change from the baseline and CUSUM sums. File names are made from the machine and
+axis names with everything but letters, digits, ``.``, ``_`` and ``-`` replaced (and a short hash added when
+the name had to change or two series would share one), so they stay inside ``OUT``.
 """
 
 from __future__ import annotations
 
 import csv
+import datetime as _dt
+import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rt_ident.fleet.drift import WATCHED, DriftSettings, drift
+from rt_ident.fleet.findings import Limits, limit_words
+from rt_ident.fleet.paths import output_path, safe_name
+from rt_ident.outputs.html import esc, page, table, write_page
+from rt_ident.outputs.svg_plot import GREEN, GREY, ORANGE, RED, TrendPlot
 
 UNITS = {"I1": "kg m²", "I2": "kg m²", "B": "N m s/rad", "K": "N m/rad", "wn": "rad/s", "zeta": "-"}
+NAMES = {"I1": "motor inertia I1", "I2": "table inertia I2", "B": "coupling damping B", "K": "stiffness K",
+         "wn": "resonance ωn", "zeta": "damping ratio ζ"}
+
+_CSS = """.sev-critical{background:#f6c9c9}.sev-high{background:#fbdcc4}.sev-medium{background:#fff1bf}
+.sev-low{background:#e8f0fa}.st-untrusted-data{background:#ececec}.st-insufficient-history{color:#666}
+.finding{border-left:4px solid #b00020;padding:.3em .8em;margin:.4em 0;background:#fafafa}
+.plots{display:grid;grid-template-columns:repeat(auto-fill,minmax(540px,1fr));gap:.5em}
+section{border-top:1px solid #ccc;margin-top:1.5em}small{color:#666}"""
 
 
-def _summary_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
-    alarms = {(a["machine"], a["axis"], a["parameter"]): a for a in result["alarms"]}
+def _csv_text(v: Any) -> Any:
+    """A text cell a spreadsheet will not run as a formula (names come from the manifest)."""
+    return "'" + v if isinstance(v, str) and v[:1] in ("=", "+", "-", "@", "\t", "\r") else v
+
+
+def _days(t: np.ndarray, t0: np.datetime64) -> np.ndarray:
+    return (t - t0).astype("timedelta64[s]").astype(float) / 86400.0
+
+
+def _date_ticks(t0: np.datetime64) -> Callable[[float, float], list[tuple[float, str]]]:
+    """x ticks for days since ``t0``: a round number of days apart, labelled month-day."""
+    def ticks(a: float, b: float) -> list[tuple[float, str]]:
+        step = next((s for s in (1, 2, 5, 7, 14, 28, 56, 91, 182, 365) if (b - a) / s <= 6), 730)
+        first = math.ceil(a / step)
+        start = _dt.datetime.fromisoformat(str(t0.astype("datetime64[s]")))
+        return [(k * step, (start + _dt.timedelta(days=k * step)).strftime("%m-%d"))
+                for k in range(first, math.floor(b / step) + 1)]
+    return ticks
+
+
+def _when(iso: str | None) -> str:
+    return "-" if not iso else iso[:16].replace("T", " ")
+
+
+def _plot(p: str, state: dict[str, Any], det: dict[str, Any], settings: DriftSettings, limits: Limits,
+          t0: np.datetime64) -> str:
+    s, full, r = det["series"], det["all"], det["cusum"][p]
+    x, lo, hi = s[p], s[f"{p}_lo"], s[f"{p}_hi"]
+    ok = np.isfinite(x)
+    if not ok.any():
+        return f"<p><small>{esc(p)}: no estimate.</small></p>"
+    mu0 = r["mu0"]
+    has_baseline = math.isfinite(mu0)
+    ref = mu0 if has_baseline else float(np.mean(x[ok]))
+
+    def pct(v: Any) -> Any:                           # values, intervals and bands as per cent of the reference
+        return 100.0 * (v / ref - 1.0)
+
+    days = _days(s["time"], t0)
+    times = [_when(str(np.datetime_as_string(v, unit="m"))) for v in s["time"]]
+    tips = [f"{when}: {v:.6g} {UNITS[p]} ({pct(v):+.2f} %), 95 % {a:.6g} .. {b:.6g}"
+            for when, v, a, b in zip(times, x, lo, hi)]
+    alarm = next((a for a in state["alarms"] if a["parameter"] == p), None)
+    now = state["parameters"][p]["change_now_percent"]
+    title = f"{NAMES[p]}: {now:+.2f} % now" if now is not None else NAMES[p]
+    plot = TrendPlot(title=title + (f" - ALARM, {alarm['direction']}" if alarm else ""),
+                     ylabel="% vs baseline" if has_baseline else "% vs mean so far", x_ticks=_date_ticks(t0))
+    if has_baseline:
+        n0 = min(settings.baseline, int(x.size))
+        plot.vspan(float(days[0]), float(days[n0 - 1]), f"baseline recordings ({n0})")
+        half = 2.0 * max(r["s0"] * math.sqrt(1.0 + 1.0 / n0), settings.floor * abs(mu0))
+        plot.band(pct(mu0 - half), pct(mu0 + half), "baseline ±2σ")
+        plot.hline(0.0, "baseline mean")
+        for direction, label in ((-1, "fall"), (1, "rise")):
+            lim = limits.limit(p, direction)
+            if lim is not None:
+                plot.hline(direction * lim, f"limit {direction * lim:+g} % ({label})", ORANGE, dash=True,
+                           in_range=False)
+    plot.points(days, pct(x), pct(lo), pct(hi), "estimate, 95 % interval", tips=tips)
+    if alarm:
+        since = _days(np.array([np.datetime64(alarm["since"][:-1])]), t0)[0]
+        first = _days(np.array([np.datetime64(alarm["first_alarm"][:-1])]), t0)[0]
+        if since < first:
+            plot.vline(float(since), f"drift began (estimated) {_when(alarm['since'])[:10]}", GREEN)
+        plot.vline(float(first), f"first alarm {_when(alarm['first_alarm'])}", RED)
+    skipped = ~full["trusted"]
+    if skipped.any():
+        plot.marks(_days(full["time"][skipped], t0), f"not trusted, skipped ({int(skipped.sum())})", GREY)
+    return plot.svg()
+
+
+def _alarm_rows(state: dict[str, Any]) -> str:
     rows = []
-    for (machine, axis), det in result["_detail"].items():
-        for p, r in det["cusum"].items():
-            z = r["z"]
-            last = float(z[-1]) if z.size and np.isfinite(z[-1]) else float("nan")
-            a = alarms.get((machine, axis, p))
-            x = det["series"][p]
-            x_last = float(x[-1]) if x.size else float("nan")
-            rows.append({"machine": machine, "axis": axis, "parameter": p, "alarm": a is not None,
-                         "first_alarm": a["first_time"] if a else "", "change_percent": a["change_percent"] if a
-                         else round(100.0 * (x_last / r["mu0"] - 1.0), 3) if np.isfinite(r["mu0"]) else None,
-                         "baseline": r["mu0"], "last": x_last, "last_z": round(last, 2),
-                         "recordings": int(x.size), "ignored_untrusted": det.get("ignored", 0)})
-    rows.sort(key=lambda r: (not r["alarm"], -abs(r["last_z"]) if np.isfinite(r["last_z"]) else 0.0))
-    return rows
+    for a in state["alarms"]:
+        lim = limit_words(a).removeprefix("limit ")
+        rate = "-" if a["rate_percent_per_day"] is None else f"{a['rate_percent_per_day']:+.2f}"
+        rows.append([esc(a["parameter"]), esc(a["direction"]), esc(_when(a["since"])), esc(_when(a["first_alarm"])),
+                     f"{a['change_at_first_alarm_percent']:+.2f} %", f"{a['change_now_percent']:+.2f} %",
+                     rate, esc(lim), esc(a["severity"])])
+    return table(["parameter", "moved", "drift began (estimated)", "first alarm", "change at first alarm",
+                  "change now", "% per day", "limit", "severity"], rows,
+                 [f"sev-{a['severity']}" for a in state["alarms"]])
 
 
-def _series_figure(machine: str, axis: str, det: dict[str, Any], settings: DriftSettings, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    s = det["series"]
-    t = s["time"].astype("datetime64[s]").astype(object)
-    fig, axs = plt.subplots(len(WATCHED), 1, figsize=(8, 1.8 * len(WATCHED)), sharex=True)
-    for ax, p in zip(axs, WATCHED):
-        x, lo, hi = s[p], s[f"{p}_lo"], s[f"{p}_hi"]
-        r = det["cusum"][p]
-        err = np.vstack([np.where(np.isfinite(lo), x - lo, 0.0), np.where(np.isfinite(hi), hi - x, 0.0)])
-        ax.errorbar(t, x, yerr=err, fmt="o", ms=3, lw=0.8, color="C0", label="estimate, 95 % interval")
-        if np.isfinite(r["mu0"]):
-            n0 = min(settings.baseline, x.size)
-            band = 2.0 * max(r.get("s0", 0.0) * np.sqrt(1.0 + 1.0 / n0), settings.floor * abs(r["mu0"]))
-            ax.axhline(r["mu0"], color="0.4", lw=0.8)
-            ax.axhspan(r["mu0"] - band, r["mu0"] + band, color="0.85", zorder=0, label="baseline +-2 sigma")
-            ax.axvspan(t[0], t[n0 - 1], color="C2", alpha=0.08, zorder=0)
-            # keep the view on the estimates: an interval 100x wider than the scatter would flatten them
-            span = max(np.nanmax(x) - np.nanmin(x), 2 * band)
-            ax.set_ylim(np.nanmin(x) - 0.6 * span, np.nanmax(x) + 0.6 * span)
-        if r["alarm"] is not None:
-            ax.axvline(t[r["alarm"]], color="C3", lw=1.2, label="first alarm")
-        ax.set_ylabel(f"{p} [{UNITS[p]}]", fontsize=8)
-        ax.tick_params(labelsize=7)
-    axs[0].legend(fontsize=7, loc="upper left", ncols=3)
-    axs[0].set_title(f"{machine} axis {axis}: parameters over time (green: baseline recordings)", fontsize=9)
-    fig.autofmt_xdate()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def _row_class(s: dict[str, Any]) -> str:
+    return f"sev-{s['severity']}" if s["severity"] else f"st-{s['state']}"
 
 
-def _summary_png(rows: list[dict[str, Any]], path: Path, limit: int = 40) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    shown = rows[:limit]
-    cols = ["machine", "axis", "parameter", "alarm", "first_alarm", "change_percent", "last_z", "recordings"]
-    cells = [[("ALARM" if r[c] else "") if c == "alarm" else str(r[c]) for c in cols] for r in shown]
-    fig, ax = plt.subplots(figsize=(10, 0.28 * (len(shown) + 3)))
-    ax.axis("off")
-    tab = ax.table(cellText=cells or [[""] * len(cols)], colLabels=cols, loc="upper center", cellLoc="left")
-    tab.auto_set_font_size(False)
-    tab.set_fontsize(7)
-    for i, r in enumerate(shown, start=1):
-        if r["alarm"]:
-            for j in range(len(cols)):
-                tab[i, j].set_facecolor("#f6d5d5")
-    more = f" (first {limit} of {len(rows)})" if len(rows) > limit else ""
-    ax.set_title(f"fleet drift summary, worst first{more}", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def _fleet_table(states: list[dict[str, Any]], stems: dict[tuple[str, str], str]) -> str:
+    rows = []
+    for i, s in enumerate(states, 1):
+        stem = stems[(s["machine"], s["axis"])]
+        since = min((a["since"] for a in s["alarms"]), default=None)
+        what = "<br>".join(f"{esc(f['finding'])}<br><small>check: {esc(f['check'])}</small>" for f in s["findings"])
+        rows.append([str(i), f"<a href='#s-{esc(stem)}'>{esc(s['machine'])}</a>", esc(s["axis"]), esc(s["state"]),
+                     esc(s["severity"] or "-"), what or esc(s["message"]), esc(_when(since)[:10]),
+                     f"{s['trusted']} of {s['recordings']}", f"<a href='data/{esc(stem)}.csv'>CSV</a>"])
+    return table(["#", "machine", "axis", "state", "severity", "finding (change now vs baseline) and check / state",
+                  "drift began", "trusted recordings", "data"], rows, [_row_class(s) for s in states])
 
 
-def write_report(history: str | Path, out_dir: str | Path, settings: DriftSettings | None = None) -> dict[str, Any]:
-    """Write ``OUT/summary.csv``, ``OUT/summary.png`` and ``OUT/<machine>-<axis>.png``; returns the paths."""
+def _section(s: dict[str, Any], det: dict[str, Any], stem: str, settings: DriftSettings, limits: Limits) -> str:
+    head = f"{s['machine']} {s['axis']}: {s['state']}" + (f", {s['severity']}" if s["severity"] else "")
+    parts = [f"<section id='s-{esc(stem)}'><h2>{esc(head)}</h2>"]
+    if s["state"] != "drifting":
+        parts.append(f"<p>{esc(s['message'])}</p>")
+    for f in s["findings"]:
+        parts.append(f"<div class='finding'><b>Finding ({esc(f['severity'])}):</b> {esc(f['finding'])}<br>"
+                     f"<b>Check:</b> {esc(f['check'])}</div>")
+    if s["alarms"]:
+        parts.append(_alarm_rows(s))
+    skipped = s["skipped_untrusted"] + s["skipped_unknown_verdict"]
+    parts.append(f"<p><small>{s['trusted']} of {s['recordings']} recordings trusted ({skipped} skipped: "
+                 f"{s['skipped_untrusted']} not trusted, {s['skipped_unknown_verdict']} with no recorded verdict); "
+                 f"data: <a href='data/{esc(stem)}.csv'>data/{esc(stem)}.csv</a></small></p>")
+    if det["series"]["time"].size:
+        t0 = det["all"]["time"][0]
+        parts.append("<div class='plots'>" + "".join(_plot(p, s, det, settings, limits, t0) for p in WATCHED)
+                     + "</div>")
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def _series_csv(path: Path, det: dict[str, Any]) -> None:
+    full, per = det["all"], det["cusum"]
+    trusted_at = np.flatnonzero(full["trusted"])          # row of each trusted estimate in the full series
+    head = ["time", "trusted", "verdict_recorded", "reasons"]
+    for p in WATCHED:
+        head += [p, f"{p}_lo", f"{p}_hi", f"{p}_change_percent", f"{p}_z", f"{p}_cusum_plus", f"{p}_cusum_minus"]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(head)
+        for i in range(full["time"].size):
+            j = np.searchsorted(trusted_at, i)
+            k = int(j) if j < trusted_at.size and trusted_at[j] == i else None
+            reasons = full["reasons"][i]
+            row: list[Any] = [np.datetime_as_string(full["time"][i], unit="s") + "Z", bool(full["trusted"][i]),
+                              bool(full["has_verdict"][i]),
+                              _csv_text("; ".join(map(str, reasons)) if reasons is not None else "")]
+            for p in WATCHED:
+                r = per[p]
+                mu0 = r["mu0"]
+                v = full[p][i]
+                change = 100.0 * (v / mu0 - 1.0) if math.isfinite(mu0) else math.nan
+                z = r["z"][k] if k is not None else math.nan
+                cp = r["cplus"][k] if k is not None and r["cplus"] is not None else math.nan
+                cm = r["cminus"][k] if k is not None and r["cminus"] is not None else math.nan
+                row += [_num(v), _num(full[f"{p}_lo"][i]), _num(full[f"{p}_hi"][i]), _num(change), _num(z),
+                        _num(cp), _num(cm)]
+            w.writerow(row)
+
+
+def _num(v: float) -> str:
+    return "" if not math.isfinite(v) else f"{v:.9g}"
+
+
+def _fleet_csv(path: Path, states: list[dict[str, Any]], stems: dict[tuple[str, str], str]) -> None:
+    head = ["machine", "axis", "state", "severity", "message", "findings", "checks", "alarms", "drift_began",
+            "first_alarm", "recordings", "trusted", "skipped_untrusted", "skipped_unknown_verdict", "data"]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(head)
+        for s in states:
+            alarms = "; ".join(f"{a['parameter']} {a['direction']}: {a['change_at_first_alarm_percent']:+.2f} % at "
+                               f"first alarm, {a['change_now_percent']:+.2f} % now ({a['severity']})"
+                               for a in s["alarms"])
+            w.writerow([_csv_text(s["machine"]), _csv_text(s["axis"]), s["state"], s["severity"] or "",
+                        _csv_text(s["message"]), _csv_text("; ".join(f["finding"] for f in s["findings"])),
+                        _csv_text("; ".join(f["check"] for f in s["findings"])), alarms,
+                        min((a["since"] for a in s["alarms"]), default=""),
+                        min((a["first_alarm"] for a in s["alarms"]), default=""), s["recordings"], s["trusted"],
+                        s["skipped_untrusted"], s["skipped_unknown_verdict"],
+                        f"data/{stems[(s['machine'], s['axis'])]}.csv"])
+
+
+def write_report(history: str | Path, out_dir: str | Path, settings: DriftSettings | None = None,
+                 limits: Limits | None = None) -> dict[str, Any]:
+    """Write ``OUT/report.html``, ``OUT/fleet.csv`` and ``OUT/data/<machine>-<axis>.csv``; returns the paths
+    and the counts per state."""
     settings = settings or DriftSettings()
+    limits = limits or Limits()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    result = drift(history, settings)
-    rows = _summary_rows(result)
-    csv_path = out / "summary.csv"
-    with open(csv_path, "w", newline="", encoding="utf-8") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["machine"])
-        w.writeheader()
-        w.writerows(rows)
-    _summary_png(rows, out / "summary.png")
-    figures = []
-    for (machine, axis), det in result["_detail"].items():
-        if det["series"]["time"].size == 0:          # no trusted estimate: nothing to draw (summary says so)
-            continue
-        p = out / f"{machine}-{axis}.png"
-        _series_figure(machine, axis, det, settings, p)
-        figures.append(str(p))
-    return {"summary_csv": str(csv_path), "summary_png": str(out / "summary.png"), "figures": figures,
-            "alarms": len(result["alarms"]), "series": result["series"]}
+    data = out / "data"
+    data.mkdir(parents=True, exist_ok=True)
+    res = drift(history, settings, limits)
+    states, detail = res["series"], res["_detail"]
+    stems = {(s["machine"], s["axis"]): safe_name(s["machine"], s["axis"]) for s in states}
+    csvs = []
+    for s in states:
+        key = (s["machine"], s["axis"])
+        path = output_path(data, *key, suffix=".csv")
+        _series_csv(path, detail[key])
+        csvs.append(str(path))
+    fleet_csv = output_path(out, "fleet", suffix=".csv")
+    _fleet_csv(fleet_csv, states, stems)
+    counts = ", ".join(f"{n} {st.replace('-', ' ')}" for st, n in res["counts"].items() if n)
+    stamp = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    body = [f"<h1>Fleet drift report</h1><p>{len(states)} series: {esc(counts)}. History <code>{esc(history)}</code>, "
+            f"made {stamp}.<br><small>{esc(res['method'])}; limits: {esc(limits.source)} (a limit reached within "
+            f"{limits.soon_days:g} days at the current rate is urgent). Changes are against each series' baseline "
+            f"mean (its first {settings.baseline} trusted recordings).</small></p>",
+            "<h2>Fleet, worst first</h2>", _fleet_table(states, stems),
+            "<p><small>Data: <a href='fleet.csv'>fleet.csv</a> (this table); each series' recordings in "
+            "<code>data/</code>.</small></p>"]
+    body += [_section(s, detail[(s["machine"], s["axis"])], stems[(s["machine"], s["axis"])], settings, limits)
+             for s in states]
+    html_path = output_path(out, "report", suffix=".html")
+    write_page(html_path, page("rt-ident fleet report", body, _CSS))
+    return {"html": str(html_path), "fleet_csv": str(fleet_csv), "data_dir": str(data), "series_csv": csvs,
+            "series": len(states), "counts": res["counts"], "alarms": len(res["alarms"]),
+            "order": [(s["machine"], s["axis"], s["state"], s["severity"]) for s in states]}
 
 
 __all__ = ["write_report"]

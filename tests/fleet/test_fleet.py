@@ -41,7 +41,7 @@ def cluster():
     from distributed import LocalCluster
 
     c = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                     dashboard_address=None)
+                     dashboard_address="127.0.0.1:0")
     yield c
     c.close()
 
@@ -140,10 +140,10 @@ def test_command_line_identify_drift_report_query_end_to_end(fleet, tmp_path):
     r = subprocess.run([*cli, "fleet", "report", "--history", str(tmp_path / "h"), "--out", str(tmp_path / "rep")],
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert (tmp_path / "rep" / "summary.png").stat().st_size > 10_000
-    rows = (tmp_path / "rep" / "summary.csv").read_text().splitlines()
-    assert rows[1].split(",")[3] == "True"                    # worst first: an alarm heads the table
-    assert len(list((tmp_path / "rep").glob("m*-x.png"))) == 2
+    assert (tmp_path / "rep" / "report.html").stat().st_size > 20_000
+    rows = (tmp_path / "rep" / "fleet.csv").read_text().splitlines()
+    assert rows[1].split(",")[2] == "drifting"                # worst first: the worn series heads the table
+    assert len(list((tmp_path / "rep" / "data").glob("m*-x.csv"))) == 2
     r = subprocess.run([*cli, "fleet", "query", "SELECT count(*) AS n FROM history", "--history",
                         str(tmp_path / "h"), "--json"], capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0 and json.loads(r.stdout) == [{"n": 20}]
@@ -217,7 +217,7 @@ def test_drift_ignores_untrusted_rows_and_says_how_many(fleet, tmp_path):
     r = subprocess.run([sys.executable, "-m", "rt_ident", "fleet", "drift", "--history", str(tmp_path / "h")],
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert "ignored 2 rows: 2 not trusted" in r.stdout
+    assert "skipped 2 rows: 2 not trusted" in r.stdout
 
 
 def test_an_old_history_without_verdict_columns_reads_as_unknown_verdicts_and_is_identified_again(fleet, tmp_path):

@@ -62,7 +62,8 @@ def cluster():
     """A scheduler and one worker process on 127.0.0.1 for the in-process runs."""
     from distributed import LocalCluster
 
-    c = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None)
+    c = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                     dashboard_address="127.0.0.1:0")
     yield c
     c.close()
 
@@ -153,7 +154,7 @@ def test_a_truncated_batch_file_is_skipped_with_one_line_naming_it_by_query_drif
     assert r.stderr.strip().splitlines() == [r.stderr.strip()] and f"skipped damaged history file {bad}" in r.stderr
     r = _cli("fleet", "drift", "--history", str(history), "--json")
     assert r.returncode == 0, r.stderr
-    assert json.loads(r.stdout)["series"] == 1
+    assert len(json.loads(r.stdout)["series"]) == 1
     assert r.stderr.count(bad) == 1 and "Traceback" not in r.stderr
     r = _cli("fleet", "identify", str(small_fleet / "manifest.csv"), "--history", str(history), "--workers", "1")
     assert r.returncode == 0, r.stderr

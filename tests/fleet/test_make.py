@@ -25,7 +25,7 @@ def test_every_option_of_fleet_make_has_a_help_text():
     app = typer.Typer(add_completion=False)
     app.command()(make_cmd)
     params = typer.main.get_command(app).params
-    assert {p.name for p in params} == {"out", "machines", "axes", "days", "worn", "duration", "seed", "start"}
+    assert {p.name for p in params} == {"out", "machines", "axes", "days", "worn", "duration", "seed", "start", "wear"}
     for p in params:
         assert len(getattr(p, "help", "") or "") > 20, p.name
 
