@@ -445,6 +445,12 @@ def _print_run(s: dict) -> None:
             out.print(f"  rejected: {reason}")
     elif ctl:
         out.print("control: off (the host sends the excitation only; the drive must hold the axis)")
+    te = s.get("torque_estimate") or {}
+    if te.get("nrmse_percent") is not None:
+        out.print(f"torque estimate (Eq. 18 on filtered derivatives vs the filtered measured torque): NRMSE "
+                  f"{fmt(te['nrmse_percent'])} % over {fmt(te.get('seconds'))} s (from the first trusted fit on)")
+    elif te.get("why_none"):
+        out.print(f"torque estimate: none ({te['why_none']})")
     work = loop.get("work_us") or {}
     if work:
         cpu = loop.get("work_cpu_us") or {}

@@ -84,7 +84,8 @@ def main() -> None:
             time.sleep(0.001)
         t = ts + np.arange(n) / a.rate
         x = rng.standard_normal(n)
-        tp.publish({"t": t, "theta1": x, "theta2": -x, "torque_meas": x, "torque_cmd": x, "torque_hat": x})
+        tp.publish({"t": t, "theta1": x, "theta2": -x, "torque_meas": x, "torque_cmd": x, "torque_filt": x,
+                    "torque_hat": x})
         tt = ts + np.arange(ticks) * 1e-3
         fit = float(int(2 * ts))                      # a new fit every half simulated second
         tick = {"t": tt, "t_tick": tt, "lateness_us": 20 + 5 * rng.random(ticks),

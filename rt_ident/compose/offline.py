@@ -161,7 +161,7 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     x_end = float(truth.lead * backend.plant.state[2])      # the true table position when the run ended
     out: dict[str, Any] = {"stop": stop, "loop": loop.stats.as_dict(), "table_end_m": x_end,
                            "control": ctl.summary() if ctl is not None else {"mode": "off"},
-                           "friction": friction_summary(loop),
+                           "friction": friction_summary(loop), "torque_estimate": loop.torque_estimate(),
                            "truth": {"I1": now.I1, "I2": now.I2, "B": now.B, "K": now.K, **modal_parameters(now)}}
     ident = loop.identification
     if ident is not None:

@@ -326,6 +326,7 @@ def _axis_summary(ax: _Axis, host: dict[str, Any] | None = None) -> dict[str, An
         out["loop"] = {**loop.stats.as_dict(), **({"host": host} if host is not None else {}),
                        "compiled_tick": loop.compiled_ticks}
         out["control"] = loop.control.summary() if loop.control is not None else {"mode": "off"}
+        out["torque_estimate"] = loop.torque_estimate()
         fr = friction_summary(loop)
         if fr is not None:
             out["friction"] = fr

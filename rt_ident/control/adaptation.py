@@ -392,14 +392,16 @@ class Supervisor:
         self.stats.max_step_nm = max(self.stats.max_step_nm, abs(step))
 
     # ------------------------------------------------------------ adaptation
-    def observe(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, gap: bool) -> None:
-        """Feed the per-sample estimator every sample of the block (a sequence gap restarts its filter)."""
+    def observe(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, gap: bool,
+                trace: np.ndarray | None = None) -> None:
+        """Feed the per-sample estimator every sample of the block (a sequence gap restarts its filter);
+        ``trace`` receives its filtered signals (rt_ident.estimators.svf.SvfEstimator.update_block)."""
         est = self.per_sample
         if est is None or self.s.mode != "adaptive":
             return
         if gap:
             est.restart_filter()
-        est.update_block(theta1, theta2, torque)
+        est.update_block(theta1, theta2, torque, trace)
 
     def diverged(self, ident) -> str | None:
         """Why ``ident`` (an Identification or AxisParams) is not a usable estimate (non-finite, or

@@ -5,17 +5,27 @@
 with the 2x2 matrices of Eq. (3) built from estimated parameters. The first component
 of :math:`\\hat T` is the motor torque T; the second (table side) carries no input in
 the model and should be close to zero -- its size is a consistency check.
+
+The live form (:func:`eq18_filtered`, :func:`eq18_accumulate`) departs from the paper: it takes the
+derivatives from the state-variable filter F(s) = lam^3/(s + lam)^3 of
+:mod:`rt_ident.estimators.svf` instead of differencing sampled angles (on a quantizing encoder
+that is mostly noise), so it reconstructs F T, and is compared with the measured torque through
+the same filter (the same lag and gain on both sides).
 """
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 from rt_ident.axis.model import damping_matrix, mass_matrix, stiffness_matrix
 from rt_ident.axis.params import AxisParams
 from rt_ident.errors import DataError
+from rt_ident.estimators.svf import TR_F_DELTA, TR_F_TORQUE, TR_S2F_TH1, TR_SF_DELTA
 
-__all__ = ["fit_percent", "nrmse", "reconstruct_torque"]
+__all__ = ["eq18_accumulate", "eq18_filtered", "fit_percent", "nrmse", "nrmse_from_sums", "reconstruct_torque"]
 
 
 def _as_n2(name: str, x: np.ndarray) -> np.ndarray:
@@ -70,3 +80,44 @@ def nrmse(estimate: np.ndarray, truth: np.ndarray) -> float:
 def fit_percent(estimate: np.ndarray, truth: np.ndarray) -> float:
     """Fit [%] = 100 (1 - NRMSE) (100 = perfect; may be negative for a fit worse than the mean)."""
     return 100.0 * (1.0 - nrmse(estimate, truth))
+
+
+# Eq. (18), motor row, I1 th1'' + B (th1' - th2') + K (th1 - th2) (th2 = x / lead: the table position as
+# a screw angle), on one sample of an SVF trace (rt_ident.estimators.svf.svf_block's ``trace``: s^2 F th1,
+# s F (th1 - th2), F (th1 - th2), F T): each derivative a filter state, not a difference of sampled angles
+# (a departure from the paper), so the result is F T_hat
+@numba.njit(inline="always")
+def eq18_filtered(trace: np.ndarray, k: int, I1: float, B: float, K: float) -> float:
+    return I1 * trace[k, TR_S2F_TH1] + B * trace[k, TR_SF_DELTA] + K * trace[k, TR_F_DELTA]
+
+
+#: eq18_accumulate's running sums: samples, sum of squared errors, sum and sum of squares of F T
+EQ18_N, EQ18_SSE, EQ18_SUM, EQ18_SUMSQ, EQ18_SIZE = range(5)
+
+
+@numba.njit("void(float64[:, :], float64, float64, float64, float64[:])", cache=True)
+def eq18_accumulate(trace: np.ndarray, I1: float, B: float, K: float, sums: np.ndarray) -> None:
+    """Add a block's samples (rows of an SVF trace; rows with a NaN skipped) to the running sums of
+    the reconstruction :func:`eq18_filtered` against the filtered measured torque (``sums``:
+    ``EQ18_*``)."""
+    for k in range(trace.shape[0]):
+        m = trace[k, TR_F_TORQUE]
+        e = eq18_filtered(trace, k, I1, B, K) - m
+        if math.isfinite(e):
+            sums[EQ18_N] += 1.0
+            sums[EQ18_SSE] += e * e
+            sums[EQ18_SUM] += m
+            sums[EQ18_SUMSQ] += m * m
+
+
+def nrmse_from_sums(sums: np.ndarray) -> float:
+    """NRMSE [%] from :func:`eq18_accumulate`'s sums: 100 rms(error) / std(F T), as
+    :func:`nrmse` (NaN with fewer than 10 samples or a constant torque)."""
+    n = float(sums[EQ18_N])
+    if n < 10:
+        return math.nan
+    mean = float(sums[EQ18_SUM]) / n
+    var = float(sums[EQ18_SUMSQ]) / n - mean * mean
+    if not var > 0.0:
+        return math.nan
+    return 100.0 * math.sqrt(float(sums[EQ18_SSE]) / n / var)

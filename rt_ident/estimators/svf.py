@@ -165,22 +165,33 @@ def _solve4(A: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
+#: columns of a block's trace (svf_block's ``trace``): the filtered signals of Eq. (18)'s motor row
+TR_S2F_TH1, TR_SF_DELTA, TR_F_DELTA, TR_F_TORQUE, TR_COLS = range(5)
+NO_TRACE = np.zeros((0, TR_COLS))
+
+
 @numba.njit(cache=True)
 def svf_block(th1, th2, tq, Phi, G0, G1, Gz, xs, prev, scale, lam_f, rho, prior, Sigma,
-              R, r, acc, p, tmp, counts, min_torque2, lam_g):
+              R, r, acc, p, tmp, counts, min_torque2, lam_g, trace):
     """Advance the estimator over one block (every sample).
 
     xs (4, 3): filter states for theta1, Delta, theta2, torque; prev (4,): last theta1, theta2,
     torque, and 1.0 once a first sample was seen; acc (4,): W, sum of squared a-priori residuals,
     W2 (sum of squared weights), warm-up end (rows), mean square filtered torque; counts (5,): samples,
     rejected (non-finite), rows, solve failures, rows frozen by the dead zone.
+    trace (n, TR_COLS), or no rows: each sample's s^2 F th1, s F Delta, F Delta and F T (NaN for a
+    sample the filters did not take, and through their warm-up).
     """
     n = th1.shape[0]
+    keep = trace.shape[0] > 0
     phi1 = np.empty(4)
     phi2 = np.empty(4)
     for k in range(n):
         a, b, t = th1[k], th2[k], tq[k]
         counts[0] += 1.0
+        if keep:
+            for j in range(TR_COLS):
+                trace[k, j] = np.nan
         if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(t)):
             counts[1] += 1.0
             continue
@@ -203,6 +214,9 @@ def svf_block(th1, th2, tq, Phi, G0, G1, Gz, xs, prev, scale, lam_f, rho, prior,
         counts[2] += 1.0
         if counts[2] <= acc[3]:                  # acc[3] holds the warm-up length in samples
             continue
+        if keep:
+            trace[k, TR_S2F_TH1], trace[k, TR_SF_DELTA] = xs[0, 2], xs[1, 1]
+            trace[k, TR_F_DELTA], trace[k, TR_F_TORQUE] = xs[1, 0], xs[3, 0]
         # Eq. (3) on the filtered signals, scaled by the nominal parameters
         phi1[0] = scale[0] * xs[0, 2]
         phi1[1] = 0.0
@@ -260,7 +274,7 @@ class SvfEstimator:
         self._prior = np.ones(4)
         self.reset()
         z = np.zeros(2)                     # compile (or load) the kernel now, not in the loop's first tick
-        self.update_block(z, z, z)
+        self.update_block(z, z, z, np.zeros((2, TR_COLS)))
         self.reset()
 
     def reset(self) -> None:
@@ -286,12 +300,19 @@ class SvfEstimator:
         self._prev[3] = 0.0
         self._acc[3] = self._counts[2] + math.ceil(self.s.warmup_s / self.dt)
 
-    def update_block(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray) -> None:
+    def update_block(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray,
+                     trace: np.ndarray | None = None) -> None:
+        """``trace`` (optional, (n, TR_COLS) C-contiguous float64) receives each sample's filtered
+        signals (see :func:`svf_block`)."""
+        if trace is None:
+            trace = NO_TRACE
+        elif trace.shape != (len(theta1), TR_COLS) or trace.dtype != np.float64 or not trace.flags.c_contiguous:
+            raise ValueError(f"trace must be C-contiguous float64 of shape {(len(theta1), TR_COLS)}")
         svf_block(np.ascontiguousarray(theta1, dtype=np.float64), np.ascontiguousarray(theta2, dtype=np.float64),
                   np.ascontiguousarray(torque, dtype=np.float64), self._Phi, self._G0, self._G1, self._Gz,
                   self._xs, self._prev, self._scale, self.lam_f, self.s.rho, self._prior, self._Sigma,
                   self._R, self._r, self._acc, self._p, self._tmp, self._counts, self.s.min_torque ** 2,
-                  self.lam_g)
+                  self.lam_g, trace)
 
     @property
     def ready(self) -> bool:

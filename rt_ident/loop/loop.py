@@ -4,14 +4,17 @@ Each tick (default 1 kHz):
 
 1. ``backend.read()`` returns every sample since the previous tick;
 2. the steady-state Kalman filter turns the angles into omega and alpha
-   (for the safety monitor and the Eq. 18 torque reconstruction);
+   (for the controller and the safety monitor);
 3. the streaming estimator takes every sample (the default "frequency"
    method updates its per-harmonic DFT sums sample by sample); when a full
    excitation period completes, a snapshot goes to the fit process
    and the newest fit it returned becomes the current estimate;
 4. the position controller (:class:`rt_ident.control.adaptation.Supervisor`, when there is
    one) takes the state estimate at the newest sample and returns the torque for the next
-   tick: the host closes the position loop (a drive in torque mode holds nothing);
+   tick: the host closes the position loop (a drive in torque mode holds nothing); its
+   per-sample estimator's state-variable filter gives the filtered derivatives of the
+   torque estimate (Eq. 18 with the last trusted fit, against the measured torque through the
+   same filter: :meth:`IdentificationLoop.torque_estimate`);
 5. the safety monitor checks watchdog, stuck encoder and the stopping window;
 6. the torque plan for the next two ticks is written, keyed by sample sequence number: the
    control torque held per tick (the one computed now lands one tick after the newest
@@ -44,6 +47,8 @@ import numpy as np
 from drivers.base import Backend, SampleBlock
 from drivers.errors import SpeedTrip, TravelLimitTrip
 from rt_ident.errors import RtIdentError
+from rt_ident.estimators.excitation_id import EQ18_N, EQ18_SIZE, eq18_accumulate, nrmse_from_sums
+from rt_ident.estimators.svf import NO_TRACE, TR_COLS
 from rt_ident.loop import tick_kernel as tk
 from rt_ident.loop.compile_watch import CompileWatch
 from rt_ident.loop.safety import SafetyMonitor
@@ -211,7 +216,14 @@ class IdentificationLoop(TelemetryWindow):
         self.stall_policy = stall or StallPolicy()
         self._resume: float | None = None   # a stall's length [s] until the tick that resumes from it
         self.identification: Identification | None = None   # latest (None before the first period)
+        # the fit whose parameters the torque estimate uses: the last trusted one (see torque_estimate)
+        self.torque_ident: Identification | None = None
+        self.eq18_sums = np.zeros(EQ18_SIZE)     # its running sums (excitation_id.eq18_accumulate)
         self.control = control              # the host's position controller (None: excitation only)
+        # the per-sample estimator runs (and its filter gives the torque estimate's derivatives)
+        self._feeds_svf = control is not None and getattr(control, "per_sample", None) is not None and \
+            control.s.mode == "adaptive"
+        self._sample_keys = tk.SAMPLE_KEYS if self._feeds_svf else tk.SAMPLE_KEYS[:tk.SAMPLE_KEYS_NO_SVF]
         self.friction = friction            # per-sample friction-model estimator ([estimator] model), or None
         self.friction_feedforward = friction_feedforward
         # the tick's bookkeeping (tick_kernel.BI_* / BF_*: the sample expected next, the control clock's
@@ -245,14 +257,6 @@ class IdentificationLoop(TelemetryWindow):
     _tick_n: int = _book_int(tk.BI_TICK_N)
     _win_ticks: int = _book_int(tk.BI_WIN_TICKS)       # ticks in the current sample window
     _flush_at: int = _book_int(tk.BI_FLUSH_AT)         # ticks in the current telemetry window (MultiAxisLoop staggers)
-
-    @property
-    def _tel_hat_ok(self) -> bool:
-        return bool(self.book_i[tk.BI_TEL_HAT_OK])
-
-    @_tel_hat_ok.setter
-    def _tel_hat_ok(self, v: bool) -> None:
-        self.book_i[tk.BI_TEL_HAT_OK] = int(bool(v))
 
     _u_base = property(lambda self: float(self.book_f[tk.BF_U_BASE]),
                        doc="the control torque in force at the newest sample")
@@ -365,9 +369,11 @@ class IdentificationLoop(TelemetryWindow):
         if self.est.update_block(block.theta1, block.theta2, torque, block.seq):
             self._snapshot_due()
         ctl = self.control
+        trace = np.empty((n, TR_COLS)) if self._feeds_svf else NO_TRACE
         if ctl is not None:                             # the per-sample estimator, every sample
             ctl.observe(block.theta1, block.theta2, torque,
-                        resume or block.lost > 0 or int(block.seq[0]) != self._next_seq)
+                        resume or block.lost > 0 or int(block.seq[0]) != self._next_seq,
+                        trace if self._feeds_svf else None)
         elif resume:
             self._resume = None
         if self.friction is not None:
@@ -377,8 +383,36 @@ class IdentificationLoop(TelemetryWindow):
         if ctl is not None:
             self._control(ctl, block, states)
         self._check_safety(block, states)
+        self._torque_estimate(trace)
         if self.on_telemetry is not None:
-            self._collect_telemetry(block, states, lateness_s)
+            self._collect_telemetry(block, trace, lateness_s)
+
+    def _torque_estimate(self, trace: np.ndarray) -> None:
+        """The block's samples into the torque estimate's running sums, once there is a trusted fit."""
+        ident = self.torque_ident
+        if ident is not None and trace.shape[0]:
+            p = ident.params
+            eq18_accumulate(trace, float(p.I1), float(p.B), float(p.K), self.eq18_sums)
+
+    def torque_estimate(self) -> dict[str, Any]:
+        """The live torque estimate's figure for the summary: the NRMSE [%] of the Eq. (18) reconstruction
+        from the SVF's filtered derivatives against the measured torque through the same filter, over
+        every sample from the first trusted fit to the end, each with the last trusted fit's parameters
+        at its time (None, with why, when there is none)."""
+        n = int(self.eq18_sums[EQ18_N])
+        out: dict[str, Any] = {"nrmse_percent": None, "samples": n,
+                               "seconds": n * float(self.backend.sample_period)}
+        if not self._feeds_svf:
+            out["why_none"] = "no per-sample estimator: its state-variable filter gives the derivatives"
+        elif self.torque_ident is None:
+            out["why_none"] = "no trusted fit yet"
+        else:
+            v = nrmse_from_sums(self.eq18_sums)
+            if math.isfinite(v):
+                out["nrmse_percent"] = v
+            else:
+                out["why_none"] = "too few samples, or a constant torque"
+        return out
 
     def _snapshot_due(self) -> None:
         """An excitation period completed: a snapshot for the fit process, taken now and sent on this
@@ -413,6 +447,8 @@ class IdentificationLoop(TelemetryWindow):
             latest = self.jobs.unpack(got) if got else None
             if latest is not None:
                 self.identification = latest
+                if latest.trusted:
+                    self.torque_ident = latest
                 self.stats.estimates += 1
                 stage[2] = latest
         elif step == 3:

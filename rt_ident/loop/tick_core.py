@@ -54,7 +54,7 @@ from rt_ident.control.law import StateFeedback
 from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator, rdft_accumulate
 from rt_ident.estimators.state_estimation import AxisStateEstimator, AxisStates
 from rt_ident.estimators.streaming import FrequencyStream
-from rt_ident.estimators.svf import SvfEstimator
+from rt_ident.estimators.svf import TR_COLS, SvfEstimator
 from rt_ident.loop import tick_kernel as tk
 from rt_ident.loop.safety import SafetyMonitor
 from rt_ident.processes.shm_ring import key_words
@@ -156,6 +156,8 @@ class AxisCore:
         ar.adopt(tk.F_EXTABLE, loop, "_ex_table")
         ar.own(tk.F_PLAN, np.zeros(loop._plan_len))
         ar.own(tk.F_STATES, np.zeros((3, self.nmax, 2)))
+        ar.own(tk.F_SVF_TRACE, np.zeros((self.nmax if svf is not None else 0, TR_COLS)))
+        ar.adopt(tk.F_EQ18, loop, "eq18_sums")
         fc = np.zeros(tk.FC_SIZE)
         fc[tk.FC_DT] = self.dt
         fc[tk.FC_FS_LAM] = inner.forgetting
@@ -195,6 +197,7 @@ class AxisCore:
         tel[tk.TEL_WID] = -1
         tel[tk.TEL_TICK_FIELDS] = (3 if ctl is None else len(tk.TICK_FIELDS) if svf is not None
                                    else len(tk.TICK_FIELDS) - 4)
+        tel[tk.TEL_SAMPLE_FIELDS] = len(loop._sample_keys) if loop.on_telemetry is not None else 0
         tel[tk.TEL_SKEYS:tk.TEL_TKEYS] = np.concatenate([key_words(k) for k in tk.SAMPLE_KEYS])
         tel[tk.TEL_TKEYS:tk.TEL_TAIL] = np.concatenate([key_words(k) for k in tk.TICK_FIELDS])
         tel[tk.TEL_TAIL:tk.TEL_SROWS] = np.concatenate([key_words(k) for k in ("window_id", "window")])
@@ -220,6 +223,7 @@ class AxisCore:
         self._bindings = [(owner, attr, views[(ar._KINDS[a.dtype], slot)])
                           for kind in ar._items for slot, owner, attr, a in kind if attr is not None]
         self.big = views[(0, tk.F_STATES)]
+        self.trace_rows = views[(0, tk.F_SVF_TRACE)]
         self.plan = views[(0, tk.F_PLAN)]
         self.tel, self.win = views[(1, tk.I_TEL)], views[(0, tk.F_WIN)]
         self.fit = views[(1, tk.I_FIT)]
@@ -285,6 +289,10 @@ class AxisCore:
         big = self.big
         return AxisStates(theta=big[0, :n], omega=big[1, :n], alpha=big[2, :n])
 
+    def trace(self, n: int) -> np.ndarray:
+        """The SVF's filtered signals of the block just filtered (a view of the arena; no rows without it)."""
+        return self.trace_rows[:n]
+
     # ------------------------------------------------------------------------------------ the tick
     def tick(self, loop: Any, block: Any, lateness_s: float) -> bool:
         """``loop._process(block)`` through the kernel; False when the Python path is to run the whole
@@ -328,7 +336,7 @@ class AxisCore:
         has_meas = 1
         if tq is None:
             tq, has_meas = block.torque_cmd, 0
-        hat = self._hat(loop.identification)
+        hat = self._hat(loop.torque_ident)
         tp = self.tp
         if tp is not None and (tp._ring is not self.tel_ring or tp._truth_pending is not self.tel_truth or tp._closed):
             self._telemetry_state(tp)
@@ -363,7 +371,7 @@ class AxisCore:
                 if ctl is not None:
                     want = float(ctl.probe_scale)
                 code |= self.kernel(tk.MODE_CONTROL, *args, t_ctl, xr, vr, ar, a_ff, lateness_s, want,
-                                    *self._hat(loop.identification), last_torque)
+                                    *self._hat(loop.torque_ident), last_torque)
         if self.recorder is not None and tick % 10 == 5:
             self.recorder.check_alive()         # Python's put checks on every call (rate-limited to 10/s)
         if code & (tk.PY_CONTROL | tk.PY_SAFETY | tk.PY_TELEMETRY | tk.SCHED_FULL):
@@ -382,7 +390,7 @@ class AxisCore:
         return True
 
     def _hat(self, ident: Any) -> tuple[int, float, float, float]:
-        """(1, I1, B, K) of the estimate for Eq. (18), or (0, 0, 0, 0) without one (kept per estimate)."""
+        """(1, I1, B, K) of the fit Eq. (18) uses, or (0, 0, 0, 0) without one (kept per fit)."""
         if ident is not self._hat_ident:
             self._hat_ident = ident
             self._hat_args = (0, 0.0, 0.0, 0.0) if ident is None else \
@@ -446,7 +454,9 @@ class AxisCore:
             loop._control(ctl, block, states)
         elif ctl is not None and loop.control_turn(loop.stats.ticks):
             ctl.poll()
+        trace = self.trace(len(block))
         if code & (tk.PY_CONTROL | tk.PY_SAFETY):
             loop._check_safety(block, states)
+            loop._torque_estimate(trace)
         if loop.on_telemetry is not None:
-            loop._collect_telemetry(block, states, lateness_s)
+            loop._collect_telemetry(block, trace, lateness_s)

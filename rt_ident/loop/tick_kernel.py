@@ -16,9 +16,10 @@ import numpy as np
 from rt_ident.axis.kernels import first_non_finite3
 from rt_ident.control.adaptation import NOW_ERR, NOW_FALLBACK_SINCE, NOW_XREF, SC_LEAD, SC_MAX_ERROR, track_error
 from rt_ident.control.law import ST_FRICTION, ST_U, law_step
+from rt_ident.estimators.excitation_id import eq18_accumulate, eq18_filtered
 from rt_ident.estimators.frequency_stream import rdft_accumulate
 from rt_ident.estimators.state_estimation import kalman_block
-from rt_ident.estimators.svf import svf_block
+from rt_ident.estimators.svf import TR_COLS, TR_F_TORQUE, svf_block
 from rt_ident.loop.safety import SAFE_LAST_THETA1, SAFE_STALE, SAFE_STUCK
 from rt_ident.processes.shm_ring import consumer_waits, put_rows, put_seq_floats, put_sums
 
@@ -26,8 +27,8 @@ from rt_ident.processes.shm_ring import consumer_waits, put_rows, put_seq_floats
 # IdentificationLoop.book_i (int64): the sample expected next, the control clock's first sample (-1:
 # none yet), the probe amplitude's next period edge, the torques in flight to the drive (count, then
 # their first samples), the telemetry window's counters ...
-BI_NEXT_SEQ, BI_SEQ0, BI_PROBE_EDGE, BI_SCHED_N, BI_TEL_N, BI_TICK_N, BI_WIN_TICKS, BI_FLUSH_AT, BI_TEL_HAT_OK, \
-    BI_SCHED_SEQ = range(10)
+BI_NEXT_SEQ, BI_SEQ0, BI_PROBE_EDGE, BI_SCHED_N, BI_TEL_N, BI_TICK_N, BI_WIN_TICKS, BI_FLUSH_AT, \
+    BI_SCHED_SEQ = range(9)
 SCHED_CAP = 16
 BI_SIZE = BI_SCHED_SEQ + SCHED_CAP
 # ... and book_f (float64): the control torque in force, the probe amplitude now and from the edge on,
@@ -35,15 +36,16 @@ BI_SIZE = BI_SCHED_SEQ + SCHED_CAP
 BF_U_BASE, BF_PROBE_NOW, BF_PROBE_LATER, BF_SCHED_VAL = range(4)
 BF_SIZE = BF_SCHED_VAL + SCHED_CAP
 
-# the telemetry window's rows (IdentificationLoop.tel_rows / tick_rows)
-SAMPLE_KEYS = ("t", "theta1", "theta2", "torque_meas", "torque_cmd", "torque_hat")
+# the telemetry window's rows (IdentificationLoop.tel_rows / tick_rows); the last two (the measured torque
+# through the SVF, its Eq. (18) reconstruction) only with the per-sample estimator, whose filter gives them
+SAMPLE_KEYS = ("t", "theta1", "theta2", "torque_meas", "torque_cmd", "torque_filt", "torque_hat")
+SAMPLE_KEYS_NO_SVF = 5
 TICK_KEYS = ("t", "lateness_us", "x_ref", "x_table", "error_m", "u_control", "svf_I1", "svf_I2", "svf_B", "svf_K")
 
 
 def new_books() -> tuple[np.ndarray, np.ndarray]:
     bi = np.zeros(BI_SIZE, dtype=np.int64)
     bi[BI_SEQ0] = -1
-    bi[BI_TEL_HAT_OK] = 1
     bf = np.zeros(BF_SIZE)
     bf[BF_PROBE_NOW] = bf[BF_PROBE_LATER] = 1.0
     return bi, bf
@@ -120,12 +122,15 @@ def shape_plan(torque, start, bi, bf, period, want) -> None:
 
 # explicit types (any layout): whatever strides a backend's block arrays have, nothing compiles in a tick
 @numba.njit("int64(float64[:, :], int64, int64, float64[:], float64[:], float64[:], float64[:], float64[:], "
-            "float64[:, :], float64[:, :], float64[:, :], boolean, float64, float64, float64)", cache=True)
-def collect_samples(rows, i0, stride, t, th1, th2, tq, tcmd, theta, omega, alpha, hat, I1, B, K) -> int:
+            "float64[:, :], boolean, float64, float64, float64)", cache=True)
+def collect_samples(rows, i0, stride, t, th1, th2, tq, tcmd, trace, hat, I1, B, K) -> int:
     """Every ``stride``-th sample of a block (from its first) into the telemetry window's rows from
-    column ``i0`` on, with its Eq. (18) torque when ``hat`` (``I1 th1'' + B (th1' - th2') + K (th1 - th2)``,
-    the estimate's motor row, from the state estimates). Returns the samples stored."""
+    column ``i0`` on. With the SVF's ``trace`` of the block (rt_ident.estimators.svf.svf_block; no rows:
+    none), also the measured torque through the filter and, when ``hat``, its Eq. (18) reconstruction
+    from the filtered derivatives (excitation_id.eq18_filtered; NaN otherwise). Returns the samples
+    stored."""
     m = 0
+    svf = trace.shape[0] > 0
     for i in range(0, t.shape[0], stride):
         j = i0 + m
         rows[0, j] = t[i]
@@ -133,8 +138,9 @@ def collect_samples(rows, i0, stride, t, th1, th2, tq, tcmd, theta, omega, alpha
         rows[2, j] = th2[i]
         rows[3, j] = tq[i]
         rows[4, j] = tcmd[i]
-        if hat:
-            rows[5, j] = I1 * alpha[i, 0] + B * (omega[i, 0] - omega[i, 1]) + K * (theta[i, 0] - theta[i, 1])
+        if svf:
+            rows[5, j] = trace[i, TR_F_TORQUE]
+            rows[6, j] = eq18_filtered(trace, i, I1, B, K) if hat else np.nan
         m += 1
     return m
 
@@ -146,7 +152,7 @@ def collect_samples(rows, i0, stride, t, th1, th2, tq, tcmd, theta, omega, alpha
  F_SVF_PHI, F_SVF_G0, F_SVF_G1, F_SVF_GZ, F_SVF_XS, F_SVF_PREV, F_SVF_SCALE, F_SVF_PRIOR, F_SVF_SIGMA, F_SVF_RM,
  F_SVF_RV, F_SVF_ACC, F_SVF_P, F_SVF_TMP, F_SVF_COUNTS,
  F_LAW_G, F_LAW_ST, F_LAW_C, F_SUP_NOW, F_SUP_ERR, F_SUP_C, F_SAFE,
- F_BOOK, F_STATES, F_TEL, F_TICKS, F_EXTABLE, F_PLAN, F_CONST, F_WIN, F_FIT, F_SLOTS) = range(46)
+ F_BOOK, F_STATES, F_TEL, F_TICKS, F_EXTABLE, F_PLAN, F_CONST, F_WIN, F_FIT, F_SVF_TRACE, F_EQ18, F_SLOTS) = range(48)
 # int arena
 I_FS_HARM, I_FS_IDX, I_FS_COUNT, I_GAP_SEQ, I_KF_SEQ, I_BOOK, I_REC_COUNTS, I_CONST, I_TEL, I_FIT, I_SLOTS = range(11)
 # complex arena
@@ -159,10 +165,10 @@ FC_DT, FC_FS_LAM, FC_SVF_LAMF, FC_SVF_RHO, FC_SVF_MINT2, FC_SVF_LAMG, FC_SAFE_LE
  IC_PERIOD, IC_LAG, IC_FS_DISCARD, IC_REC_CAP, IC_REC_MAXMSG, IC_REC_KEYS, IC_SIZE) = (*range(15), 18)
 # I_TEL: the telemetry hand-off the kernel makes itself (TelemetryProcess.publish_rows' message, written by the
 # kernel): whether it may (the ring as the glue saw it, no truth to push first, no decimation), the window
-# vector's id (-1: none ready) and length, the ring's capacity and message limit, the fields of a tick window,
-# then the key words of the samples' fields, of a tick window's fields and of the window tail, and the rows
-# of the samples' fields and of a tick window's fields
-TEL_OK, TEL_WID, TEL_NVAL, TEL_CAP, TEL_MAXMSG, TEL_TICK_FIELDS, TEL_SKEYS = range(7)
+# vector's id (-1: none ready) and length, the ring's capacity and message limit, the fields of a tick window
+# and of the samples, then the key words of the samples' fields, of a tick window's fields and of the window
+# tail, and the rows of the samples' fields and of a tick window's fields
+TEL_OK, TEL_WID, TEL_NVAL, TEL_CAP, TEL_MAXMSG, TEL_TICK_FIELDS, TEL_SAMPLE_FIELDS, TEL_SKEYS = range(8)
 TEL_TKEYS = TEL_SKEYS + 2 * len(SAMPLE_KEYS)
 TEL_TAIL = TEL_TKEYS + 2 * (len(TICK_KEYS) + 1)
 TEL_SROWS = TEL_TAIL + 4
@@ -226,8 +232,8 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
     recorder ring (``rh``, ``rdi``, ``rdf``), the telemetry ring (``th``, ``tdi``, ``tdf``) and the
     fit process's (``fh``, ``fdi``, ``fdf``); the
     reference at ``t_ctl`` (the newest sample's time on the control clock) and the feedforward's
-    acceleration; the probe amplitude wanted; the estimate for Eq. (18) (``ident`` 0: none); the torque
-    last written. Returns the bits above."""
+    acceleration; the probe amplitude wanted; the parameters of Eq. (18) (``ident`` 0: none yet); the
+    torque last written. Returns the bits above."""
     ic = _is(ib, lay, I_CONST)
     fc = _fs(fb, lay, F_CONST)
     bi = _is(ib, lay, I_BOOK)
@@ -238,6 +244,8 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
     if n == 0 or n > nmax:
         return BAIL
     big = _fs(fb, lay, F_STATES).reshape((3, nmax, 2))
+    # the SVF's filtered signals of the block (no rows without the per-sample estimator)
+    trace = _fs(fb, lay, F_SVF_TRACE).reshape((nmax if ic[IC_HAS_SVF] else 0, TR_COLS))[:n]
     first, last = seq[0], seq[n - 1]
     if mode & MODE_ESTIMATE:
         # ---- everything that would leave the tick to Python is checked before anything changes
@@ -285,7 +293,7 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
                       _fs(fb, lay, F_SVF_PRIOR), _fs(fb, lay, F_SVF_SIGMA).reshape((4, 4)),
                       _fs(fb, lay, F_SVF_RM).reshape((4, 4)), _fs(fb, lay, F_SVF_RV), _fs(fb, lay, F_SVF_ACC),
                       _fs(fb, lay, F_SVF_P), _fs(fb, lay, F_SVF_TMP).reshape((4, 4)), _fs(fb, lay, F_SVF_COUNTS),
-                      fc[FC_SVF_MINT2], fc[FC_SVF_LAMG])
+                      fc[FC_SVF_MINT2], fc[FC_SVF_LAMG], trace)
     if not mode & MODE_CONTROL:
         return code
     # ---- the controller (Supervisor.tick; its bookkeeping, then the law)
@@ -322,19 +330,19 @@ def axis_tick(mode, t, seq, th1, th2, tcmd, tq, has_meas, fb, ib, cb, lay, rh, r
     sf[SAFE_STUCK] = 0.0
     sf[SAFE_LAST_THETA1] = a1
     bi[BI_NEXT_SEQ] = last + 1
+    # ---- the torque estimate's running sums (IdentificationLoop._torque_estimate)
+    if ident:
+        eq18_accumulate(trace, I1, B, K, _fs(fb, lay, F_EQ18))
     # ---- the telemetry window (IdentificationLoop._collect_telemetry)
     if ic[IC_HAS_TEL]:
         stride = ic[IC_STRIDE]
         rows = _fs(fb, lay, F_TEL)
-        cap = rows.shape[0] // 6
-        rows = rows.reshape((6, cap))
+        cap = rows.shape[0] // len(SAMPLE_KEYS)
+        rows = rows.reshape((len(SAMPLE_KEYS), cap))
         i0 = bi[BI_TEL_N]
         if i0 + (n + stride - 1) // stride > cap:
             return code | PY_TELEMETRY
-        bi[BI_TEL_N] = i0 + collect_samples(rows, i0, stride, t, th1, th2, tq, tcmd, big[0, :n], big[1, :n],
-                                            big[2, :n], ident != 0, I1, B, K)
-        if not ident:
-            bi[BI_TEL_HAT_OK] = 0
+        bi[BI_TEL_N] = i0 + collect_samples(rows, i0, stride, t, th1, th2, tq, tcmd, trace, ident != 0, I1, B, K)
         pe = ic[IC_PUBLISH_EVERY]
         tk = _fs(fb, lay, F_TICKS).reshape((len(TICK_KEYS), pe + 1))
         k = bi[BI_TICK_N]
@@ -397,7 +405,7 @@ def _hand_over_samples(bi, tel, rows, pe, th, tdi, tdf) -> int:
     as TelemetryProcess.publish_rows writes them), or FLUSH_SAMPLES: the Python path's to do."""
     if tel[TEL_OK] == 0:
         return FLUSH_SAMPLES
-    m = 6 if bi[BI_TEL_HAT_OK] else 5
+    m = tel[TEL_SAMPLE_FIELDS]
     n = bi[BI_TEL_N]
     got = 1
     if n:
@@ -408,7 +416,6 @@ def _hand_over_samples(bi, tel, rows, pe, th, tdi, tdf) -> int:
             return FLUSH_SAMPLES
     bi[BI_WIN_TICKS] = 0
     bi[BI_TEL_N] = 0
-    bi[BI_TEL_HAT_OK] = 1
     bi[BI_FLUSH_AT] = pe
     tel[TEL_WID] = -1                       # the window vector for the next tick's signals: the glue's
     code = WINDOW_DUE
@@ -464,7 +471,9 @@ def warm_up() -> None:
     schedule_torque(bi, bf, 0, 1, 0.0)
     shape_plan(np.zeros(4), 0, bi, bf, 1, 1.0)
     for hat in (True, False):
-        collect_samples(np.zeros((6, 4)), 0, 1, z1, z1, z1, z1, z1, z2, z2, z2, hat, 0.0, 0.0, 0.0)
+        collect_samples(np.zeros((len(SAMPLE_KEYS), 4)), 0, 1, z1, z1, z1, z1, z1, np.zeros((3, TR_COLS)), hat,
+                        0.0, 0.0, 0.0)
+    eq18_accumulate(np.zeros((3, TR_COLS)), 0.0, 0.0, 0.0, np.zeros(4))
     g, st, c = np.zeros(6), np.zeros(6), np.ones(6)
     law_step(g, st, c, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
     feedback_torque(g, st, c, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)

@@ -20,7 +20,6 @@ from rt_ident.loop import tick_kernel as tk
 if TYPE_CHECKING:
     from rt_ident.control.adaptation import Supervisor
     from rt_ident.estimators.base import Identification
-    from rt_ident.estimators.state_estimation import AxisStates
     from rt_ident.loop.loop import LoopStats
     from rt_ident.loop.tick_core import AxisCore
 
@@ -38,6 +37,7 @@ class TelemetryWindow:
     publish_every: int
     control: Supervisor | None
     identification: Identification | None
+    torque_ident: Identification | None
     stats: LoopStats
     on_telemetry: Callable[..., Any] | None
     on_loop_gain: Callable[[float, Any, Any], Any] | None
@@ -49,7 +49,7 @@ class TelemetryWindow:
     _tick_n: int
     _win_ticks: int
     _flush_at: int
-    _tel_hat_ok: bool
+    _sample_keys: tuple[str, ...]
 
     def _telemetry_buffers(self) -> None:
         """Preallocated window buffers (rows ``tick_kernel.SAMPLE_KEYS`` and ``TICK_KEYS``): a tick writes
@@ -73,8 +73,8 @@ class TelemetryWindow:
     def _tel_buf(self) -> dict[str, np.ndarray]:
         return dict(zip(tk.SAMPLE_KEYS, self.tel_rows))
 
-    def _collect_telemetry(self, block: SampleBlock, states: AxisStates, lateness_s: float) -> None:
-        self._collect_samples(block, states)
+    def _collect_telemetry(self, block: SampleBlock, trace: np.ndarray, lateness_s: float) -> None:
+        self._collect_samples(block, trace)
         k = self._tick_n
         rows = self.tick_rows
         rows[0, k] = block.t[-1]
@@ -97,11 +97,10 @@ class TelemetryWindow:
         elif self._tick_n > self.publish_every or (self._win_ticks == 1 and self._tick_n > 1):
             self._flush_telemetry(samples=False)
 
-    _NO_STATES = np.zeros((0, 2))
-
-    def _collect_samples(self, block: SampleBlock, states: AxisStates) -> None:
-        """Every ``stride``-th sample of the block (from its first) into the window buffers, with its
-        Eq. (18) torque once there is an estimate (``tick_kernel.collect_samples``, as the compiled tick)."""
+    def _collect_samples(self, block: SampleBlock, trace: np.ndarray) -> None:
+        """Every ``stride``-th sample of the block (from its first) into the window buffers, with the
+        measured torque through the SVF and its Eq. (18) reconstruction (``trace``: the SVF's filtered
+        signals of the block, no rows without it; ``tick_kernel.collect_samples``, as the compiled tick)."""
         stride = self.stride
         n = len(block)
         m = -(-n // stride)
@@ -111,19 +110,16 @@ class TelemetryWindow:
             self._flush_telemetry()               # a burst (after a stall): publish what is there first
             if m > cap:                           # keep the newest samples of an oversized burst
                 start = (m - cap) * stride
-        ident = self.identification
+        ident = self.torque_ident
         if ident is None:
-            self._tel_hat_ok = False
-            th = om = al = self._NO_STATES
             hat = (False, 0.0, 0.0, 0.0)
         else:
             p = ident.params
-            th, om, al = states.theta[start:], states.omega[start:], states.alpha[start:]
             hat = (True, float(p.I1), float(p.B), float(p.K))
         i = self._tel_n
         self._tel_n = i + tk.collect_samples(self.tel_rows, i, stride, block.t[start:], block.theta1[start:],
                                              block.theta2[start:], block.torque[start:], block.torque_cmd[start:],
-                                             th, om, al, *hat)
+                                             trace[start:], *hat)
 
     def _flush_telemetry(self, samples: bool = True, ticks: bool = True) -> None:
         """Publish the window: the decimated samples, per-tick lateness and the current estimate.
@@ -144,7 +140,7 @@ class TelemetryWindow:
         if samples:
             self._win_ticks = 0
         if n:
-            self._hand_over(tk.SAMPLE_KEYS if self._tel_hat_ok else tk.SAMPLE_KEYS[:-1], self.tel_rows, n)
+            self._hand_over(self._sample_keys, self.tel_rows, n)
         if samples and not ticks:
             # the window values are gathered now, the per-tick signals go on the next tick: this
             # tick's hand-off is the smaller one, so the two ticks carry about the same extra work
@@ -156,7 +152,6 @@ class TelemetryWindow:
             self._hand_over(_TICK_FIELDS[:m], self.tick_rows, k, _TICK_ROWS[:m], win)
         if samples:
             self._tel_n = 0
-            self._tel_hat_ok = True
         if ticks:
             self._tick_n = 0
 

@@ -8,9 +8,11 @@ column, which is most of a small row's bytes (sharing them makes a 10-s run's .r
 entity                                      block keys (see :mod:`rt_ident.processes.telemetry`)  unit
 ==========================================  ===============================================  ============
 ``angles``                                  ``theta1``, ``theta2``                           rad
-``torque/drive``                            ``torque_meas``, ``torque_cmd``, ``torque_hat``  N m
-                                            (measured, commanded, Eq. 18 reconstruction)
-``torque/nrmse_percent``                    (the telemetry process: Eq. 18 vs measured, 1 s)  %
+``torque/drive``                            ``torque_meas``, ``torque_cmd``                  N m
+                                            (measured, commanded)
+``torque/estimate``                         ``torque_filt``, ``torque_hat``                  N m
+                                            (measured through the SVF, its Eq. 18 reconstruction)
+``torque/nrmse_percent``                    (the telemetry process: the two above, 1 s)      %
 ``torque/control``                          ``u_control`` (the host's control torque)        N m
 ``params/{I1,I2,B,K}/estimate``             ``I1`` ... ``K``                                 SI
 ``params/{I1,I2,B,K}/ci95``                 ``lo_I1``, ``hi_I1`` ... (95 % interval)         SI
@@ -61,6 +63,7 @@ ESTIMATE_KEYS: tuple[str, ...] = PARAM_NAMES + MODAL_NAMES
 
 ANGLES = "angles"
 TORQUE_DRIVE = "torque/drive"
+TORQUE_ESTIMATE = "torque/estimate"
 TORQUE_NRMSE = "torque/nrmse_percent"
 TORQUE_CONTROL = "torque/control"
 LATENESS = "loop/lateness_us"
@@ -111,7 +114,8 @@ CONTROL_ENTITIES: Mapping[str, str] = MappingProxyType(
 ENTITY_SERIES: Mapping[str, tuple[str, ...]] = MappingProxyType(
     {
         ANGLES: ("theta1", "theta2"),
-        TORQUE_DRIVE: ("torque_meas", "torque_cmd", "torque_hat"),
+        TORQUE_DRIVE: ("torque_meas", "torque_cmd"),
+        TORQUE_ESTIMATE: ("torque_filt", "torque_hat"),
         **{estimate_path(k): (k,) for k in ESTIMATE_KEYS},
         **{interval_path(k): (f"lo_{k}", f"hi_{k}") for k in ESTIMATE_KEYS},
         LATENESS: ("lateness_us",),
@@ -147,8 +151,10 @@ SERIES_STYLES: Mapping[str, tuple[tuple[str, ...], tuple[tuple[int, int, int], .
         **{truth_path(k): ((f"{k} true [{_UNITS[k]}]",), (_TRUE_COLOR,)) for k in ESTIMATE_KEYS},
         **{f"params/{k}/per_sample": ((f"{k} per-sample (svf) [{_UNITS[k]}]",), (_ORANGE,)) for k in PARAM_NAMES},
         ANGLES: (("theta1 motor [rad]", "theta2 table x/l [rad]"), (_EST_COLOR, _ORANGE)),
-        TORQUE_DRIVE: (("measured [N m]", "commanded [N m]", "reconstructed, Eq. 18 [N m]"), (_RED, _GREY, _GREEN)),
-        TORQUE_NRMSE: (("Eq. 18 vs measured, NRMSE over 1 s [%]",), (_GREEN,)),
+        TORQUE_DRIVE: (("measured [N m]", "commanded [N m]"), (_RED, _GREY)),
+        TORQUE_ESTIMATE: (("measured, filtered [N m]", "reconstructed, Eq. 18 on filtered derivatives [N m]"),
+                          (_RED, _GREEN)),
+        TORQUE_NRMSE: (("Eq. 18 vs measured (both filtered), NRMSE over 1 s [%]",), (_GREEN,)),
         TORQUE_CONTROL: (("control torque [N m]",), (_ORANGE,)),
         LATENESS: (("tick lateness [us] (max per 10 ticks)",), (_PURPLE,)),
         OVERRUNS: (("overruns [count]",), (_RED,)),
@@ -296,7 +302,7 @@ def draw_loop_gain(rec: Any, rr: Any, t: float, view: Mapping[str, np.ndarray], 
 
 def default_blueprint() -> Any:
     """One grid: FRFs (measured vs model, loop gain), the estimates with their 95 % bands and true
-    values, torque vs its Eq. 18 reconstruction and NRMSE, tracking, margins, the loop's timing."""
+    values, the torque, its Eq. 18 reconstruction and NRMSE, tracking, margins, the loop's timing."""
     import rerun.blueprint as rrb
 
     def frf(origin: str, name: str) -> Any:
@@ -312,11 +318,12 @@ def default_blueprint() -> Any:
     views += [rrb.TimeSeriesView(origin=f"params/{k}", name=f"{k} [{_UNITS[k]}]") for k in PARAM_NAMES]
     views += [rrb.TimeSeriesView(origin=f"modal/{k}", name=f"{k} [{_UNITS[k]}]") for k in MODAL_NAMES]
     views += [
-        rrb.TimeSeriesView(origin=TORQUE_DRIVE, name="torque: measured vs reconstructed (Eq. 18) [N m]"),
+        rrb.TimeSeriesView(origin=TORQUE_ESTIMATE, name="torque through the SVF: measured vs Eq. 18 [N m]"),
         rrb.TimeSeriesView(origin=TORQUE_NRMSE, name="Eq. 18 reconstruction NRMSE [%]"),
         rrb.TimeSeriesView(origin="control/position", name="table position: reference vs actual [m]"),
         rrb.TimeSeriesView(origin="control/error", name="tracking error [m]"),
-        rrb.TimeSeriesView(origin=TORQUE_CONTROL, name="control torque [N m]"),
+        rrb.TimeSeriesView(origin="torque", contents=[f"+ /{TORQUE_DRIVE}", f"+ /{TORQUE_CONTROL}"],
+                           name="torque: measured, commanded, control [N m]"),
         rrb.TimeSeriesView(origin="control/margins", name="margins of the active controller"),
         rrb.TimeSeriesView(origin="control/gains", name="controller gains"),
         rrb.TimeSeriesView(origin="control/redesigns", name="redesigns accepted / rejected, fallbacks"),

@@ -11,7 +11,7 @@ columnar ``send_columns`` only (~70 ns/sample, vs ~30 us per ``rr.log``). Whatev
 Block contract (keys and entity paths: :mod:`rt_ident.outputs.dashboard`)::
 
     {"t": sample times [s],                      # required
-     "theta1", "theta2", "torque_meas", "torque_cmd", "torque_hat": arrays like t,
+     "theta1", "theta2", "torque_meas", "torque_cmd", "torque_filt", "torque_hat": arrays like t,
      "t_tick": tick times [s] (optional),
      "I1", "I2", "B", "K", "wn", "zeta", "lateness_us", "overruns": arrays like t_tick
                                                  # (like t when there is no t_tick)}
@@ -86,7 +86,7 @@ _WINDOW_SCHEMA = "window_schema"
 _WINDOW_WORDS = np.concatenate([key_words(_WINDOW_ID), key_words(_WINDOW)])   # publish_rows' tail
 _NO_VALUES = np.zeros(0)
 _VIEWS = ("frf:", "lg:")  # key prefixes of a fit's FRF view and of a controller's loop-gain view
-_NRMSE_WINDOW_S = 1.0  # Eq. 18 reconstruction NRMSE over the last second of samples
+_NRMSE_WINDOW_S = 1.0  # the torque estimate's running NRMSE over the last second of samples
 # Every send_columns is a chunk of its own (~1-2 kB of overhead in the .rrd). A step signal that did
 # not change is therefore extended (its last value re-sent) only this often, and the FRF views are
 # drawn at most this often (the newest one wins; the last one is always drawn at close).
@@ -309,8 +309,9 @@ class _Sender:
     a series missing from a block, like the reconstruction before the first fit, is NaN there).
     Signals that change only at a fit or a redesign (estimates, intervals, gains, margins,
     counters) are sent as their change points (:func:`_step_points`): repeating one value per
-    tick was most of the .rrd's bytes for none of its information. The Eq. 18 reconstruction's
-    NRMSE against the measured torque is computed here, over the last second, once per batch."""
+    tick was most of the .rrd's bytes for none of its information. The running NRMSE of the Eq. 18
+    reconstruction against the filtered measured torque is computed here, over the last second,
+    once per batch."""
 
     def __init__(self, rec: Any, rr: Any) -> None:
         self.rec, self.rr = rec, rr
@@ -321,7 +322,7 @@ class _Sender:
         self.views: dict[str, dict[str, np.ndarray]] = {}   # newest undrawn view per kind
         self.view_drawn: dict[str, float] = {}
         self.view_marks: np.ndarray | None = None   # resonance/anti-resonance of the last FRF drawn
-        self._torque: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # (t, measured, reconstructed)
+        self._torque: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # (t, filtered, reconstructed)
 
     def send(self, blocks: list[dict[str, np.ndarray]], truth: dict[str, float], final: bool = False) -> None:
         rec, rr = self.rec, self.rr
@@ -384,11 +385,12 @@ class _Sender:
                                       columns=rr.Scalars.columns(scalars=np.full(2, value)))
 
     def _nrmse(self, blocks: list[dict[str, np.ndarray]]) -> None:
-        """NRMSE [%] of the Eq. 18 reconstruction against the measured torque over the last second:
-        100 rms(T_hat - T) / std(T), the fit measure of rt_ident.estimators.excitation_id."""
+        """NRMSE [%] of the Eq. 18 reconstruction against the measured torque, both through the SVF,
+        over the last second: 100 rms(F T_hat - F T) / std(F T), the fit measure of
+        rt_ident.estimators.excitation_id."""
         for b in blocks:
-            if "torque_meas" in b and "torque_hat" in b:
-                self._torque.append((b["t"], b["torque_meas"], b["torque_hat"]))
+            if "torque_filt" in b and "torque_hat" in b:
+                self._torque.append((b["t"], b["torque_filt"], b["torque_hat"]))
         if not self._torque:
             return
         t_end = float(self._torque[-1][0][-1])

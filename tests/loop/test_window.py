@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.base import SampleBlock
+from rt_ident.estimators.svf import NO_TRACE, TR_COLS
+from rt_ident.loop import tick_kernel as tk
 from rt_ident.loop.loop import IdentificationLoop
 
 
@@ -35,13 +37,14 @@ def test_a_window_publishes_every_stride_th_sample_and_each_ticks_lateness():
     loop = _loop(published)
     blocks = [_block(100 * k, 100) for k in range(5)]
     for k, b in enumerate(blocks[:4]):
-        loop._collect_telemetry(b, None, lateness_s=k * 1e-6)
+        loop._collect_telemetry(b, NO_TRACE, lateness_s=k * 1e-6)
     (samples,) = published                     # the window's samples at its end ...
-    loop._collect_telemetry(blocks[4], None, lateness_s=4e-6)
+    loop._collect_telemetry(blocks[4], NO_TRACE, lateness_s=4e-6)
     ticks = published[1]                       # ... its per-tick signals one tick later (with that tick)
     np.testing.assert_array_equal(samples["t"], np.concatenate([b.t[::10] for b in blocks[:4]]))
     np.testing.assert_array_equal(samples["theta1"], np.sin(samples["t"]))
-    assert samples["t"].size == 40 and "torque_hat" not in samples      # no estimate yet: no Eq. 18 torque
+    assert samples["t"].size == 40
+    assert "torque_filt" not in samples and "torque_hat" not in samples    # no SVF: no torque estimate
     np.testing.assert_allclose(ticks["lateness_us"], [0.0, 1.0, 2.0, 3.0, 4.0])
     np.testing.assert_array_equal(ticks["t_tick"], [b.t[-1] for b in blocks])
     loop._flush_telemetry()                    # the run's end: what is left goes, nothing twice
@@ -51,9 +54,9 @@ def test_a_window_publishes_every_stride_th_sample_and_each_ticks_lateness():
 def test_a_burst_after_a_stall_flushes_first_and_keeps_its_newest_samples():
     published: list = []
     loop = _loop(published)
-    loop._collect_telemetry(_block(0, 100), None, 0.0)
+    loop._collect_telemetry(_block(0, 100), NO_TRACE, 0.0)
     burst = _block(100, 5000)                  # 50 ticks of samples in one read
-    loop._collect_telemetry(burst, None, 0.05)
+    loop._collect_telemetry(burst, NO_TRACE, 0.05)
     loop._flush_telemetry()
     first, second = published[0], published[2]          # [1] and [3] are the per-tick messages
     assert "t_tick" in published[1] and "t_tick" in published[3]
@@ -64,7 +67,7 @@ def test_a_burst_after_a_stall_flushes_first_and_keeps_its_newest_samples():
     assert np.all(np.diff(second["t"]) > 0)
 
 
-def test_one_sample_a_tick_keeps_each_blocks_first_sample_and_its_eq18_torque():
+def test_one_sample_a_tick_keeps_each_blocks_first_sample_its_filtered_torque_and_eq18_from_the_svf_trace():
     from types import SimpleNamespace
 
     from rt_ident.axis.modal import modal_parameters
@@ -73,19 +76,21 @@ def test_one_sample_a_tick_keeps_each_blocks_first_sample_and_its_eq18_torque():
     published: list = []
     loop = _loop(published)
     loop.stride = 100                                  # one sample of each 100-sample tick
+    loop._sample_keys = tk.SAMPLE_KEYS                 # as with a per-sample estimator
     p = thomson_x()
     loop.identification = SimpleNamespace(params=p, modal=modal_parameters(p), ci95=None)
     rng = np.random.default_rng(1)
-    blocks, states = [], []
+    blocks, traces = [], []
     for k in range(4):
+        if k == 2:
+            loop.torque_ident = loop.identification    # a trusted fit from the third tick on
         blocks.append(_block(100 * k, 100))
-        states.append(SimpleNamespace(theta=rng.normal(size=(100, 2)), omega=rng.normal(size=(100, 2)),
-                                      alpha=rng.normal(size=(100, 2))))
-        loop._collect_telemetry(blocks[-1], states[-1], 0.0)
+        traces.append(rng.normal(size=(100, TR_COLS)))
+        loop._collect_telemetry(blocks[-1], traces[-1], 0.0)
     samples = published[0]
     np.testing.assert_array_equal(samples["t"], [b.t[0] for b in blocks])
     np.testing.assert_array_equal(samples["theta2"], [b.theta2[0] for b in blocks])
     np.testing.assert_array_equal(samples["torque_cmd"], [b.torque_cmd[0] for b in blocks])
-    want = [p.I1 * st.alpha[0, 0] + p.B * (st.omega[0, 0] - st.omega[0, 1]) + p.K * (st.theta[0, 0] - st.theta[0, 1])
-            for st in states]
+    np.testing.assert_array_equal(samples["torque_filt"], [tr[0, 3] for tr in traces])
+    want = [np.nan, np.nan] + [p.I1 * tr[0, 0] + p.B * tr[0, 1] + p.K * tr[0, 2] for tr in traces[2:]]
     np.testing.assert_allclose(samples["torque_hat"], want, rtol=1e-15, atol=0)

@@ -32,7 +32,8 @@ def _block(k: int, n: int = 7) -> dict[str, np.ndarray]:
         "theta1": 0.001 * i,
         "theta2": -0.002 * i,
         "torque_meas": np.sin(i),
-        "torque_hat": np.sin(i) + 0.5,
+        "torque_filt": np.cos(i),
+        "torque_hat": np.cos(i) + 0.5,
         "t_tick": t[-1:],
         "I1": np.array([0.01 + k]),
         "K": np.array([1e5 + k]),
@@ -77,7 +78,7 @@ def test_rrd_holds_dashboard_entities_with_the_values_sent(tmp_path: Path) -> No
     assert not summary["terminated"]
 
     data = _read_rrd(path)
-    expected = {dashboard.ANGLES, dashboard.TORQUE_DRIVE, dashboard.TORQUE_NRMSE,
+    expected = {dashboard.ANGLES, dashboard.TORQUE_DRIVE, dashboard.TORQUE_ESTIMATE, dashboard.TORQUE_NRMSE,
                 dashboard.estimate_path("I1"), dashboard.truth_path("I1"), dashboard.estimate_path("K"),
                 dashboard.truth_path("K"), dashboard.estimate_path("wn"), dashboard.truth_path("wn"),
                 dashboard.LATENESS, dashboard.OVERRUNS}
@@ -92,7 +93,9 @@ def test_rrd_holds_dashboard_entities_with_the_values_sent(tmp_path: Path) -> No
     assert np.array_equal(v[:, 0], th1_all[::3]) and np.array_equal(v[:, 1], th2_all[::3])
     # the commanded torque is absent from every block: its series is NaN, the others are values
     t, v = data[dashboard.TORQUE_DRIVE]
-    assert np.all(np.isnan(v[:, 1])) and np.all(np.isfinite(v[:, [0, 2]]))
+    assert np.all(np.isnan(v[:, 1])) and np.all(np.isfinite(v[:, 0]))
+    t, v = data[dashboard.TORQUE_ESTIMATE]
+    assert np.array_equal(v[:, 0], np.cos(np.arange(280.0))[::3]) and np.all(np.isfinite(v[:, 1]))
     # Tick-rate estimates are not decimated and sit on t_tick (I1 changes every tick: every tick kept).
     t, v = data[dashboard.estimate_path("I1")]
     assert np.array_equal(v, [b["I1"][0] for b in blocks])
@@ -102,9 +105,9 @@ def test_rrd_holds_dashboard_entities_with_the_values_sent(tmp_path: Path) -> No
     # Overruns change every 10th tick: sent as steps (the change, the tick before it, the last).
     t, v = data[dashboard.OVERRUNS]
     assert np.array_equal(v, [0, 0, 1, 1, 2, 2, 3, 3])
-    # reconstruction = measured + 0.5: the NRMSE is 0.5 / std(measured) over the last second
-    meas = np.concatenate([b["torque_meas"] for b in blocks])[::3]
-    assert data[dashboard.TORQUE_NRMSE][1][-1] == pytest.approx(100 * 0.5 / np.std(meas), rel=1e-9)
+    # reconstruction = filtered measured + 0.5: the NRMSE is 0.5 / std(filtered measured) over the last second
+    filt = np.concatenate([b["torque_filt"] for b in blocks])[::3]
+    assert data[dashboard.TORQUE_NRMSE][1][-1] == pytest.approx(100 * 0.5 / np.std(filt), rel=1e-9)
     # The true value is drawn over the estimate's time span.
     t, v = data[dashboard.truth_path("K")]
     assert np.all(v == 2.5e5) and t.min() <= blocks[0]["t_tick"][0] and t.max() >= blocks[-1]["t_tick"][0]
