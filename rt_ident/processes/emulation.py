@@ -2,7 +2,7 @@
 
 An emulated device that streams at kHz rates from Python threads must not share the
 loop's process: it would compete with the loop for the GIL (and starve under the loop's
-SCHED_FIFO). So it runs in a child process (:class:`EmulatorProcess`, ``spawn`` context)
+SCHED_FIFO). So it runs in a child process (:class:`EmulatorProcess`, :mod:`rt_ident.processes.context`)
 and the loop reaches it like a real device:
 
 * ``serial``: the board on a pseudo-terminal; ``.port`` is its path;
@@ -24,15 +24,14 @@ from __future__ import annotations
 
 import importlib
 import logging
-import multiprocessing as mp
-import os
 import socket
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 from drivers.placement import device_placement, place, settle_heap
 from rt_ident.errors import RtIdentError
-from rt_ident.processes.guard import start_with_helper_env
+from rt_ident.processes.context import helper_context
+from rt_ident.processes.guard import ParentWatch, start_with_helper_env
 
 if TYPE_CHECKING:
     from rt_ident.config import RunConfig
@@ -52,7 +51,7 @@ def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dic
     """
     placement = placement or {}
     placed = place({"cpus": placement.get("cpus")})
-    parent = os.getppid()
+    parent = ParentWatch(every_s=0.0)
     try:
         mod = importlib.import_module(module)
         placed.update(place({"fifo_priority": placement.get("fifo_priority")}))
@@ -66,7 +65,7 @@ def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dic
         while True:
             if conn.poll(0.25):              # "stop", or EOF: the parent closed its end or died
                 break
-            if os.getppid() != parent:       # re-parented: the parent is gone
+            if parent.gone:                  # the parent is gone (its pipe end closed)
                 break
     except (OSError, EOFError):
         pass
@@ -102,7 +101,7 @@ class EmulatorProcess:
 
     def __init__(self, module: str, config: dict[str, Any], *, timeout: float = 20.0,
                  placement: dict[str, Any] | None = None, port: Any = None) -> None:
-        ctx = mp.get_context("spawn")
+        ctx = helper_context()
         self._conn, child = ctx.Pipe()
         self.module = module
         self._proc = ctx.Process(target=_serve, args=(module, config, child, placement),

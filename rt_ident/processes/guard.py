@@ -93,13 +93,16 @@ def become_helper() -> ParentWatch:
     """First call in a helper's main: ignore the group's SIGINT/SIGTERM, leave the loop's CPU; returns
     the parent watch.
 
-    A helper restarted during the run is forked from the loop thread and inherits its single-CPU
+    A helper started from the loop thread (a restart during the run) may inherit its single-CPU
     affinity (its scheduling policy is reset: the loop sets SCHED_RESET_ON_FORK): it moves to every
     other CPU here, as the helpers started before the loop were moved by the run."""
+    import multiprocessing
+
     for s in _GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
     try:
-        ppid = os.getppid()
+        parent = multiprocessing.parent_process()
+        ppid = parent.pid if parent is not None and parent.pid is not None else os.getppid()
         loop_cpus = os.sched_getaffinity(ppid)       # the parent's main thread: the loop, when it runs
         mine = os.sched_getaffinity(0)
         every = set(range(os.cpu_count() or 1))
@@ -113,10 +116,17 @@ def become_helper() -> ParentWatch:
 
 
 class ParentWatch:
-    """``gone`` becomes True once the process that started this helper has died."""
+    """``gone`` becomes True once the process that started this helper has died.
+
+    multiprocessing hands a child a pipe end that reaches EOF when that process ends, whether the child
+    was spawned or forked by the forkserver (whose own life does not follow the main process's: it
+    lasts while any child holds its socket). Outside multiprocessing: the parent pid changes."""
 
     def __init__(self, every_s: float = 0.2) -> None:
+        import multiprocessing
+
         self.ppid = os.getppid()
+        self._parent = multiprocessing.parent_process()
         self.every_s = every_s
         self._next = 0.0
         self._gone = False
@@ -128,7 +138,7 @@ class ParentWatch:
         now = time.monotonic()
         if now >= self._next:
             self._next = now + self.every_s
-            self._gone = os.getppid() != self.ppid
+            self._gone = (not self._parent.is_alive()) if self._parent is not None else os.getppid() != self.ppid
         return self._gone
 
 

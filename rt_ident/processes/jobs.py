@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import math
-import multiprocessing as mp
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -19,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from rt_ident.estimators.streaming import fit_snapshot
+from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing
 
@@ -121,7 +121,7 @@ class JobProcess:
         self.last_error: str | None = None
 
     def _make(self) -> None:
-        ctx = mp.get_context("spawn")
+        ctx = helper_context()
         self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
         self._out = MessageRing(self.ring_bytes, ctx=ctx)
         self._proc = ctx.Process(target=_job_process, args=(self.job, self._in, self._out, self.min_interval,

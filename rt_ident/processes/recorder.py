@@ -19,7 +19,7 @@ Columns: ``t`` [s] float64, ``seq`` int64, ``theta1``, ``theta2`` [rad], ``torqu
 stored as JSON under the schema key ``rt_ident.metadata`` in both files, so it is recoverable from
 the journal without any Parquet footer.
 
-:class:`RecorderProcess` runs a :class:`Recorder` in a separate (spawned) process fed through a
+:class:`RecorderProcess` runs a :class:`Recorder` in a separate process fed through a
 shared-memory ring, so compression and disk I/O never share the real-time loop's GIL.
 Reading (Parquet, journal, CSV) lives in :mod:`rt_ident.outputs.recording_reader`; ``Recording`` and
 ``read_recording`` are re-exported here.
@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import multiprocessing as mp
 import os
 import time
 from collections.abc import Mapping
@@ -51,6 +50,7 @@ from rt_ident.outputs.recording_reader import (
     part_path,
     read_recording,
 )
+from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import become_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing
 
@@ -394,7 +394,7 @@ class RecorderProcess:
         self.overwrite = overwrite
         self.queue_size = int(queue_size)
         self.ring_bytes = int(ring_bytes)
-        self._ctx = mp.get_context("spawn")
+        self._ctx: Any = None        # helper_context(), at start(): the constructor starts no process
         self._ring: MessageRing | None = None
         self._proc: Any = None
         self._rows_written: Any = None
@@ -412,6 +412,7 @@ class RecorderProcess:
     def start(self) -> RecorderProcess:
         if self._proc is not None:
             return self
+        self._ctx = helper_context()
         self._ring = MessageRing(self.ring_bytes, max_messages=self.queue_size, ctx=self._ctx)
         # Lock-free: one writer (the child); a child killed while holding a lock would hang us.
         self._rows_written = self._ctx.Value("q", 0, lock=False)

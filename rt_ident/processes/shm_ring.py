@@ -12,7 +12,7 @@ advances a write counter; the consumer polls the counter, copies out, and
 advances a read counter. A full ring makes ``put`` return False at once; the
 caller decides to drop (telemetry) or wait (recording).
 
-Memory: ``multiprocessing`` ``RawArray``s from a spawn context (an unlinked file
+Memory: ``multiprocessing`` ``RawArray``s of the helpers' context (an unlinked file
 mapped in both processes: nothing is left in ``/dev/shm`` when a process is
 killed). The objects are handed to the child as ``Process`` arguments.
 
@@ -32,7 +32,6 @@ float64, int64 or uint8 (the latter for pickled objects, see
 from __future__ import annotations
 
 import mmap
-import multiprocessing as mp
 import pickle
 import platform
 import struct
@@ -45,6 +44,7 @@ from numba.core import types
 from numba.extending import intrinsic
 
 from rt_ident.errors import ConfigError, DataError
+from rt_ident.processes.context import helper_context
 
 __all__ = ["MessageRing", "STRONG_ORDERING", "key_words", "consumer_waits", "put_rows", "put_seq_floats", "put_sums"]
 
@@ -78,7 +78,8 @@ class MessageRing:
 
     capacity_bytes : size of the data area (rounded up to a multiple of 8)
     max_messages : at most this many unread messages (a second limit besides the bytes)
-    ctx : multiprocessing context whose ``RawArray`` allocates the memory (default: spawn)
+    ctx : multiprocessing context whose ``RawArray`` allocates the memory
+        (default: :func:`~rt_ident.processes.context.helper_context`)
 
     Exactly one process calls the producer methods (:meth:`put`, :meth:`put_object`,
     :meth:`close_writer`) and one the consumer methods (:meth:`get`, :meth:`get_object`,
@@ -90,7 +91,7 @@ class MessageRing:
             raise ConfigError("capacity_bytes", f"must be an integer >= 1024, got {capacity_bytes!r}")
         if isinstance(max_messages, bool) or not isinstance(max_messages, int) or max_messages < 1:
             raise ConfigError("max_messages", f"must be an integer >= 1, got {max_messages!r}")
-        ctx = ctx if ctx is not None else mp.get_context("spawn")
+        ctx = ctx if ctx is not None else helper_context()
         self.capacity = _pad16(capacity_bytes)
         self.max_messages = max_messages
         self._header = ctx.RawArray("q", _HEADER_SLOTS)

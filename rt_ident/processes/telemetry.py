@@ -3,7 +3,7 @@
 The real-time loop calls :meth:`TelemetryProcess.publish` with a dict of arrays. ``publish``
 decimates it and copies it into a bounded shared-memory ring (:mod:`rt_ident.processes.shm_ring`: no
 feeder thread, no pickling, no system call in the loop's process). It never waits: on a full
-ring the block is dropped and counted. A spawned child process owns an
+ring the block is dropped and counted. A child process owns an
 ``rr.RecordingStream`` (no global rerun state), coalesces whatever is queued and logs it with
 columnar ``send_columns`` only (~70 ns/sample, vs ~30 us per ``rr.log``). Whatever the sink does
 (``connect_grpc`` to a missing viewer blocks the logging call), only the child can stall.
@@ -36,7 +36,6 @@ from __future__ import annotations
 import ipaddress
 import logging
 import math
-import multiprocessing as mp
 import os
 import socket
 import subprocess
@@ -61,6 +60,7 @@ from rt_ident.outputs.dashboard import (
     draw_loop_gain,
     truth_path,
 )
+from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, key_words, put_rows
 
@@ -614,9 +614,9 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
 
 
 class TelemetryProcess:
-    """Stream blocks to rerun from a spawned child process; the caller never blocks.
+    """Stream blocks to rerun from a child process; the caller never blocks.
 
-    ``start()`` spawns the child (``__enter__`` does too); ``publish(block)`` returns False and
+    ``start()`` starts the child (``__enter__`` does too); ``publish(block)`` returns False and
     counts a drop when the ring is full (or not started); ``close(timeout)`` asks the child to
     flush and disconnect, and terminates it if it has not finished in ``timeout`` seconds.
     ``sent`` counts blocks the child handed to rerun, ``dropped`` blocks refused by ``publish``.
@@ -624,7 +624,7 @@ class TelemetryProcess:
 
     def __init__(self, config: TelemetryConfig) -> None:
         self.config = config
-        self._ctx = mp.get_context("spawn")
+        self._ctx: Any = None        # helper_context(), at start(): the constructor starts no process
         self._ring: MessageRing | None = None
         self._proc: Any = None
         self._sent: Any = None  # mp.Value, created by start() (the constructor does no I/O)
@@ -661,6 +661,7 @@ class TelemetryProcess:
     def start(self) -> TelemetryProcess:
         if self._proc is not None or self.config.sink == "off":
             return self
+        self._ctx = helper_context()
         self._ring = MessageRing(self.config.ring_bytes, max_messages=self.config.queue_size, ctx=self._ctx)
         self._schemas = {}                     # a new child (restart) has been told no window names yet
         # Lock-free, one writer (the child). A child terminated while holding a lock would

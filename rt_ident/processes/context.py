@@ -1,0 +1,78 @@
+"""The multiprocessing context every helper process and emulated device is started from.
+
+A spawned child imports numpy, numba, scipy, python-control, rerun and pyarrow again (seconds of CPU
+per run on a small machine, and the imports of several helpers compete with the loop's start). On
+Linux the helpers are forked instead from one forkserver per main process that has imported those
+modules once (:data:`PRELOAD`). Each child still starts from a clean, single-threaded process: the
+forkserver runs no threads (a test checks) and holds nothing of the run.
+
+What the spawned children got from their parent at ``start()`` they get from the forkserver, so the
+forkserver is started the way helpers must be born: SIGINT and SIGTERM ignored (its children inherit
+that, with no window before :func:`rt_ident.processes.guard.become_helper`) and
+:data:`~rt_ident.processes.guard.HELPER_ENV` in its environment (one BLAS thread; it is read at
+numpy's import, which the forkserver does). It exits once the main process and every child have
+ended. ``RT_IDENT_START_METHOD=spawn`` (or a platform without fork) keeps the spawn start.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+import threading
+from multiprocessing.context import ForkServerContext, SpawnContext
+
+#: modules the forkserver imports once (one missing is skipped by multiprocessing). Not rerun nor pyarrow:
+#: they start threads at import (tokio's workers, jemalloc's), and a process with threads must not fork
+PRELOAD = ("numpy", "scipy.linalg", "scipy.signal", "numba", "control", "can", "canopen", "serial",
+           "rt_ident.processes.jobs", "rt_ident.processes.recorder", "rt_ident.processes.telemetry",
+           "rt_ident.processes.emulation", "rt_ident.estimators.streaming", "rt_ident.control.design")
+
+_lock = threading.Lock()
+
+
+def start_method() -> str:
+    """``forkserver`` where the platform has it, unless ``RT_IDENT_START_METHOD`` says otherwise."""
+    wanted = os.environ.get("RT_IDENT_START_METHOD", "").strip().lower()
+    available = mp.get_all_start_methods()
+    if wanted:
+        usable = [m for m in ("forkserver", "spawn") if m in available]
+        if wanted not in usable:
+            raise ValueError(f"RT_IDENT_START_METHOD={wanted!r}: use one of {', '.join(usable)}")
+        return wanted
+    return "forkserver" if "forkserver" in available else "spawn"
+
+
+def helper_context() -> ForkServerContext | SpawnContext:
+    """The context to create helper processes and their shared memory from (started on first use)."""
+    method = start_method()
+    if method == "forkserver":
+        fs = mp.get_context("forkserver")
+        _ensure_forkserver(fs)
+        return fs
+    return mp.get_context("spawn")
+
+
+def _ensure_forkserver(ctx: ForkServerContext) -> None:
+    """Start the forkserver (or start it again, if it died) as helpers must be born; a no-op while it runs."""
+    with _lock:
+        from multiprocessing import forkserver
+
+        from rt_ident.processes.guard import HELPER_ENV
+
+        ctx.set_forkserver_preload(list(PRELOAD))
+        added = [k for k in HELPER_ENV if k not in os.environ]
+        for k in added:
+            os.environ[k] = HELPER_ENV[k]
+        main = threading.current_thread() is threading.main_thread()
+        old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+        try:
+            forkserver.ensure_running()
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+            for k in added:
+                os.environ.pop(k, None)
+
+
+__all__ = ["PRELOAD", "helper_context", "start_method"]

@@ -1,0 +1,54 @@
+"""The helpers' start context: a forkserver that preloads, runs no threads and starts children as helpers
+must be born (SIGINT/SIGTERM ignored, one BLAS thread), or spawn when asked."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from rt_ident.processes import context
+
+
+def _child_report(q) -> None:
+    sig = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    q.put((sig[signal.SIGINT] == signal.SIG_IGN, sig[signal.SIGTERM] == signal.SIG_IGN,
+           os.environ.get("OPENBLAS_NUM_THREADS"), "control" in sys.modules))
+
+
+def test_every_preloaded_module_exists_so_none_is_silently_skipped():
+    for name in context.PRELOAD:
+        importlib.import_module(name)
+
+
+@pytest.mark.skipif(context.start_method() != "forkserver", reason="no forkserver on this platform")
+def test_helpers_are_forked_preloaded_ignoring_group_signals_with_one_blas_thread():
+    ctx = context.helper_context()
+    q = ctx.Queue()
+    p = ctx.Process(target=_child_report, args=(q,))
+    p.start()
+    got = q.get(timeout=60)
+    p.join(10)
+    assert got == (True, True, "1", True)
+    assert "OPENBLAS_NUM_THREADS" not in os.environ or os.environ["OPENBLAS_NUM_THREADS"] == "1"
+
+
+@pytest.mark.skipif(context.start_method() != "forkserver", reason="no forkserver on this platform")
+def test_the_forkserver_runs_a_single_thread_so_forking_it_is_safe():
+    from multiprocessing import forkserver
+
+    context.helper_context()
+    pid = forkserver._forkserver._forkserver_pid      # multiprocessing keeps no public handle on it
+    assert pid is not None
+    assert len(os.listdir(f"/proc/{pid}/task")) == 1
+
+
+def test_an_unknown_start_method_is_refused_in_one_line():
+    code = "from rt_ident.processes.context import start_method; start_method()"
+    r = subprocess.run([sys.executable, "-c", code], env={**os.environ, "RT_IDENT_START_METHOD": "fork"},
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0 and "RT_IDENT_START_METHOD='fork': use one of" in r.stderr
