@@ -25,11 +25,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    # the commissioning tests that make their process real-time run on one xdist worker, one after another:
-    # two of their SCHED_FIFO loops and emulated devices on a 2-CPU machine starved each other's devices
-    # ("--dist loadgroup")
+    # the commissioning tests that probe an emulated device run on one xdist worker, one after another: two
+    # probes and their devices side by side on a 2-CPU machine starved each other's devices ("--dist loadgroup")
     for item in items:
-        if "restore_scheduling" in getattr(item, "fixturenames", ()) and item.nodeid.startswith("tests/commission/"):
+        realtime = "restore_scheduling" in getattr(item, "fixturenames", ())
+        if item.nodeid.startswith("tests/commission/test_devices.py") or (
+                realtime and item.nodeid.startswith("tests/commission/")):
             item.add_marker(pytest.mark.xdist_group("realtime"))
     if config.getoption("--hardware"):
         return

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from rt_ident.commission.probe import ProbeLimits, Pulse
+from rt_ident.commission.probe import CAP_HOLD_S, ProbeLimits, Pulse
 from rt_ident.config import RunConfig
 
 #: the scale may differ from ``lead`` by this much (relative) before the check fails
@@ -56,8 +56,18 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
         return out
     still = [q for q in pulses if q.breakaway_nm is None]
     brk = [q.breakaway_nm for q in pulses if q.breakaway_nm is not None]
+    late = [q for q in still if q.cap_held_s < CAP_HOLD_S]
+    if late:          # the host's plans lapsed: the cap was never in force long enough to tell
+        q = late[0]
+        out.append(check("motion", False, f"the torque cap was in force for {q.cap_held_s * 1e3:.0f} ms only; "
+                         f"{q.starved} samples of the pulse had no torque plan in force (the host wrote late)",
+                         f"the cap in force for {CAP_HOLD_S * 1e3:.0f} ms",
+                         "loop.realtime = true (or a less busy host): the probe's torque plans lapsed between "
+                         "the host's writes"))
+        return out
     out.append(check("motion", not still, f"moved at {max(brk, default=0):.4g} N m" if not still
-                     else f"no motion up to {cap:.4g} N m ({'+' if still[0].direction > 0 else '-'})",
+                     else f"no motion up to {cap:.4g} N m ({'+' if still[0].direction > 0 else '-'}), in force "
+                          f"{still[0].cap_held_s * 1e3:.0f} ms",
                      f"motion below {cap:.4g} N m",
                      "backend.torque_limit (or commission.torque_share): the axis did not move; check the brake, "
                      "the drive's enable and the motor's power"))
@@ -134,4 +144,6 @@ def probe_limits(cfg: RunConfig, torque_limit: float) -> ProbeLimits:
     return ProbeLimits(travel_m=cfg.commission.travel_m, max_speed_m_s=cfg.commission.max_speed_m_s,
                        torque_cap=cfg.commission.torque_share * torque_limit, lead=p.lead, inertia=p.I1 + p.I2,
                        motion_theta1=10 * 2 * math.pi / cpr if cpr else 1e-4,
-                       motion_x=10 * res if res else 1e-6)
+                       motion_x=10 * res if res else 1e-6,
+                       # as long as a run waits for fresh samples before its watchdog trips
+                       no_samples_s=max(0.2, cfg.safety.watchdog_ticks / cfg.loop.tick_hz))

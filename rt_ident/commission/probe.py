@@ -2,15 +2,18 @@
 
 Each pulse, in one direction: the torque ramps up until the axis moves (the breakaway torque), on to that
 torque plus a push sized to reach a quarter of the speed limit in about 40 ms at the nominal inertia, then
-the same torque reversed until the commanded impulse is back to zero (the momentum the pulse gave, taken
-back: exact without friction), the speed has fallen to a twentieth of its peak (friction stopped it first),
-or twice the push has passed. This open-loop brake acts whatever the wiring's sign: the reversal is relative
-to the command and the speed a magnitude. Then zero torque. Every change of torque is a ramp. A pulse ends
-early once the table's speed would pass 0.4 x its limit within four ticks, or its distance from where the
-pulse started passes a quarter of the travel budget; if either limit is passed all the same, the pulse
-brakes and ends, and the check fails. Distance and speed are taken from both sensors, the scale (x) and the
-motor encoder (lead x theta1), and the larger is used: one wrong scaling cannot hide motion. Torque leaves
-the host as a short plan with a lease, so a stalled host leaves the axis coasting, not pushed.
+the same torque reversed until the impulse is back to zero (the momentum the pulse gave, taken back: exact
+without friction; summed from the torque the device's samples had in force), the speed has fallen to a
+twentieth of its peak (friction stopped it first), or twice the push has passed. This open-loop brake acts
+whatever the wiring's sign: the reversal is relative to the command and the speed a magnitude. Then zero
+torque. Every change of torque is a ramp. A pulse ends early once the table's speed would pass 0.4 x its
+limit within four ticks, or its distance from where the pulse started passes a quarter of the travel budget;
+if either limit is passed all the same, the pulse brakes and ends, and the check fails. Distance and speed
+are taken from both sensors, the scale (x) and the motor encoder (lead x theta1), and the larger is used:
+one wrong scaling cannot hide motion. Torque leaves the host as a short plan with a lease, so a stalled host
+leaves the axis coasting, not pushed; the ramp counts only the time its torque was in force, and "no motion"
+needs the cap in force for :data:`CAP_HOLD_S` (a late host's lapsed plans are reported as such, not as an
+axis that does not move).
 
 From the samples of a pulse: the direction theta1 and x moved in, the ratio dx/dtheta1 (a slope fit),
 and 1/J and the friction torque F from theta1(t) = c0 + c1 t + S(t)/J - F t^2 / (2 J), S the double
@@ -31,6 +34,8 @@ from rt_ident.errors import RtIdentError
 
 #: target time to reach the pushing speed (a quarter of the speed limit) at the nominal inertia [s]
 PUSH_TIME_S = 0.04
+#: the cap in force this long without motion: the axis does not move at the cap [s]
+CAP_HOLD_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -43,6 +48,7 @@ class ProbeLimits:
     motion_theta1: float       # rad: theta1 beyond this counts as motion
     motion_x: float            # m: x beyond this counts as motion
     tick_s: float = 1e-3
+    no_samples_s: float = 0.2  # this long without a sample: the device is gone
 
 
 @dataclass
@@ -62,6 +68,8 @@ class Pulse:
     brake_at: int | None = None               # samples before the brake began (None: it never pushed)
     fault: str | None = None                  # the device stopped during the pulse: why
     fault_cause: str | None = None
+    starved: int = 0                          # samples with a torque commanded but none in force (late plans)
+    cap_held_s: float = 0.0                   # time the cap was in force before the pulse gave up moving
 
     def _own(self) -> tuple[np.ndarray, np.ndarray]:
         """theta1 and x from the pulse's start, the drift at rest taken out (a table without static
@@ -156,8 +164,8 @@ class Prober:
             if len(blk):
                 got.append(blk)
             stale = 0 if len(blk) else stale + 1
-            if stale > 200:
-                raise ProbeError("no samples from the device for 0.2 s", "backend")
+            if stale * self.lim.tick_s > self.lim.no_samples_s:
+                raise ProbeError(f"no samples from the device for {self.lim.no_samples_s:g} s", "backend")
             if len(blk) and self.start is None:
                 self.start = (float(blk.theta1[0]), self.lim.lead * float(blk.theta2[0]))
                 plant, true = getattr(self.b, "plant", None), getattr(self.b, "true_params", None)
@@ -186,7 +194,9 @@ class Prober:
         th1s: list[np.ndarray] = []
         xs: list[np.ndarray] = []
         tqs: list[np.ndarray] = []
-        ramp = lim.torque_cap / 400.0                    # the cap in 0.4 s: slow enough to find the breakaway
+        # the cap in 0.4 s of torque in force (a late host's lapsed plans do not count): slow enough to find
+        # the breakaway
+        ramp = lim.torque_cap / 400.0
         slew = ramp * 5.0
         push_target = min(lim.torque_cap, lim.inertia * 0.25 * lim.max_speed_m_s / lim.lead / PUSH_TIME_S)
         out.drift = (self.drift[3], self.drift[4])
@@ -204,6 +214,8 @@ class Prober:
                     x0: float, push_target: float, ramp: float, slew: float, deadline: float) -> None:
         lim, b = self.lim, self.b
         phase, torque, target = "ramp", 0.0, 0.0
+        ramp_per_s = ramp / lim.tick_s
+        applied_s = 0.0                     # time with the ramp's torque in force
         t_push = t_brake = push_dur = peak = impulse = 0.0
         t_written = self._clock()
         rest = 0
@@ -218,9 +230,9 @@ class Prober:
             blk = self._read()
             if not len(blk):
                 stale += 1
-                if stale > 200:
+                if stale * lim.tick_s > lim.no_samples_s:
                     self._write(0.0)
-                    raise ProbeError("no samples from the device for 0.2 s", "backend")
+                    raise ProbeError(f"no samples from the device for {lim.no_samples_s:g} s", "backend")
             else:
                 stale = 0
                 th1, x = blk.theta1, lim.lead * blk.theta2
@@ -259,12 +271,19 @@ class Prober:
                 moved = (abs(float(th1[-1]) - drift_th) > lim.motion_theta1
                          or abs(float(x[-1]) - drift_x) > lim.motion_x)
                 pulse_travel = max(abs(float(x[-1]) - p_x0), abs(lim.lead * (float(th1[-1]) - p_th0)))
+                # samples that carried the torque last written (a lapsed plan leaves none in force)
+                carried = np.abs(blk.torque_cmd) >= 0.5 * abs(torque) if torque != 0.0 else np.ones(len(blk), bool)
+                out.starved += int(np.count_nonzero(~carried))
+                impulse += float(np.sum(blk.torque_cmd)) * b.sample_period     # the torque that was in force
                 if phase == "ramp":
+                    applied_s += float(np.count_nonzero(carried)) * b.sample_period
+                    if abs(torque) >= lim.torque_cap:
+                        out.cap_held_s += float(np.count_nonzero(carried)) * b.sample_period
                     if moved:
                         out.breakaway_nm = abs(torque)
                         out.push_nm = min(lim.torque_cap, abs(torque) + push_target)   # friction + the push
                         phase, target, t_push = "push", direction * out.push_nm, now
-                    elif abs(torque) >= lim.torque_cap:
+                    elif out.cap_held_s >= CAP_HOLD_S:
                         phase, target = "rest", 0.0
                 elif phase == "push":
                     accel = abs(_slope(tw, np.gradient(xw, tw))) if tw.size >= 4 else 0.0
@@ -280,15 +299,14 @@ class Prober:
                     if direction * impulse <= 0.0 or now - t_brake >= 2.0 * push_dur or speed < 0.05 * peak:
                         phase, target = "rest", 0.0
             if phase == "ramp":
-                target = direction * min(lim.torque_cap, abs(target) + ramp)
-            step = slew if phase != "ramp" else ramp
+                target = direction * min(lim.torque_cap, ramp_per_s * applied_s)
+            # the ramp rises with time (a late tick takes a larger, still small, step), never past its target
+            step = slew if phase != "ramp" else min(5.0 * ramp, max(ramp, ramp_per_s * (now - t_written)))
             if phase == "brake":                     # no overshoot of the impulse on the way back
                 step = min(step, max(abs(impulse) / lim.tick_s, 0.0) + abs(torque))
             torque = torque + max(-step, min(step, target - torque))
             self._write(torque)
-            t_now = self._clock()
-            impulse += torque * (t_now - t_written)
-            t_written = t_now
+            t_written = self._clock()
             if phase == "rest" and torque == 0.0:
                 rest += 1
                 if rest >= 50:

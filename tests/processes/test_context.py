@@ -13,6 +13,9 @@ import pytest
 
 from rt_ident.processes import context
 
+FORKSERVER = pytest.mark.skipif(context.start_method() != "forkserver",
+                                reason="helpers start with spawn here (platform or RT_IDENT_START_METHOD)")
+
 
 def _child_report(q) -> None:
     sig = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -25,7 +28,7 @@ def test_every_preloaded_module_exists_so_none_is_silently_skipped():
         importlib.import_module(name)
 
 
-@pytest.mark.skipif(context.start_method() != "forkserver", reason="no forkserver on this platform")
+@FORKSERVER
 def test_helpers_are_forked_preloaded_ignoring_group_signals_with_one_blas_thread():
     ctx = context.helper_context()
     q = ctx.Queue()
@@ -37,7 +40,7 @@ def test_helpers_are_forked_preloaded_ignoring_group_signals_with_one_blas_threa
     assert "OPENBLAS_NUM_THREADS" not in os.environ or os.environ["OPENBLAS_NUM_THREADS"] == "1"
 
 
-@pytest.mark.skipif(context.start_method() != "forkserver", reason="no forkserver on this platform")
+@FORKSERVER
 def test_the_forkserver_runs_a_single_thread_so_forking_it_is_safe():
     from multiprocessing import forkserver
 
