@@ -7,13 +7,13 @@ without friction; summed from the torque the device's samples had in force), the
 twentieth of its peak (friction stopped it first), or twice the push has passed. This open-loop brake acts
 whatever the wiring's sign: the reversal is relative to the command and the speed a magnitude. Then zero
 torque. Every change of torque is a ramp. A pulse ends early once the table's speed would pass 0.4 x its
-limit within four ticks, or its distance from where the pulse started passes a quarter of the travel budget;
-if either limit is passed all the same, the pulse brakes and ends, and the check fails. Distance and speed
-are taken from both sensors, the scale (x) and the motor encoder (lead x theta1), and the larger is used:
-one wrong scaling cannot hide motion. Torque leaves the host as a short plan with a lease, so a stalled host
-leaves the axis coasting, not pushed; the ramp counts only the time its torque was in force, and "no motion"
-needs the cap in force for :data:`CAP_HOLD_S` (a late host's lapsed plans are reported as such, not as an
-axis that does not move).
+limit within four ticks (at the host's own recent pace), or its distance from where the pulse started passes
+a quarter of the travel budget; if either limit is passed all the same, the pulse brakes and ends, and the
+check fails. Distance and speed are taken from both sensors, the scale (x) and the motor encoder (lead x
+theta1), and the larger is used: one wrong scaling cannot hide motion. Torque leaves the host as a short
+plan with a lease, so a stalled host leaves the axis coasting, not pushed; the ramp counts only the time its
+torque was in force, and "no motion" needs the cap in force for :data:`CAP_HOLD_S` (a late host's lapsed
+plans are reported as such, not as an axis that does not move).
 
 From the samples of a pulse: the direction theta1 and x moved in, the ratio dx/dtheta1 (a slope fit),
 and 1/J and the friction torque F from theta1(t) = c0 + c1 t + S(t)/J - F t^2 / (2 J), S the double
@@ -218,12 +218,15 @@ class Prober:
         applied_s = 0.0                     # time with the ramp's torque in force
         t_push = t_brake = push_dur = peak = impulse = 0.0
         t_written = self._clock()
+        pace = lim.tick_s
         rest = 0
         stale = 0
         p_th0: float | None = None
         p_x0 = 0.0
         while True:
             now = self._clock()
+            # the host's own pace: a late host looks further ahead (its next write may come that late)
+            pace = max(lim.tick_s, 0.8 * pace, now - t_written)
             if now > deadline:
                 out.aborted = "the pulse did not end within 5 s"
                 break
@@ -287,7 +290,7 @@ class Prober:
                         phase, target = "rest", 0.0
                 elif phase == "push":
                     accel = abs(_slope(tw, np.gradient(xw, tw))) if tw.size >= 4 else 0.0
-                    if (speed + 4 * lim.tick_s * accel >= 0.4 * lim.max_speed_m_s
+                    if (speed + 4 * pace * accel >= 0.4 * lim.max_speed_m_s
                             or pulse_travel >= 0.25 * lim.travel_m or now - t_push > 0.3):
                         push_dur = now - t_push
                         phase, target, t_brake = "brake", -direction * out.push_nm, now

@@ -19,7 +19,7 @@ LEAD = 7.96e-4
 #: the emulated links' timeouts widened, as in test_adaptation's emulated runs: next to pytest's other
 #: workers a device process that is not real-time is held off for 100 ms and more (the shipped limits are tested in the
 #: drivers' own tests)
-WIDE = {"serial-virtual.toml": {"backend": {"read_timeout": 0.3}, "emulator": {"heartbeat_timeout": 0.5},
+WIDE = {"serial-virtual.toml": {"backend": {"read_timeout": 1.0}, "emulator": {"heartbeat_timeout": 1.0},
                                 "safety": {"watchdog_ticks": 1000}},
         "canopen-virtual.toml": {"backend": {"stale_limit": 1000, "heartbeat_consumer_ms": 1000},
                                  "safety": {"watchdog_ticks": 1000}}}
