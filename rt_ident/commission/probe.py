@@ -36,6 +36,8 @@ from rt_ident.errors import RtIdentError
 PUSH_TIME_S = 0.04
 #: the cap in force this long without motion: the axis does not move at the cap [s]
 CAP_HOLD_S = 0.05
+#: at rest: the drift would not pass the motion thresholds within this time [s]
+REST_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -184,7 +186,13 @@ class Prober:
         lim = self.lim
         out = Pulse(direction, *(np.empty(0),) * 4)
         try:
+            # at rest before the pulse: a table still coasting from the last one (friction slowing it, which
+            # the drift line does not follow) would read as motion at zero torque
             self.settle(0.1)
+            for _ in range(9):
+                if (abs(self.drift[3]) * REST_S <= lim.motion_theta1 and abs(self.drift[4]) * REST_S <= lim.motion_x):
+                    break
+                self.settle(0.1)
         except RtIdentError as exc:
             out.fault, out.fault_cause = str(exc), getattr(exc, "cause", "device")
             return out

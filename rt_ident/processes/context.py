@@ -66,13 +66,44 @@ def _ensure_forkserver(ctx: ForkServerContext) -> None:
             os.environ[k] = HELPER_ENV[k]
         main = threading.current_thread() is threading.main_thread()
         old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+        sched = _ordinary_scheduling()
         try:
             forkserver.ensure_running()
         finally:
+            _restore_scheduling(sched)
             for s, h in old.items():
                 signal.signal(s, h)
             for k in added:
                 os.environ.pop(k, None)
+
+
+def _ordinary_scheduling() -> tuple | None:
+    """The calling thread on every CPU at SCHED_OTHER while it starts the forkserver (which inherits both and
+    passes them to every helper): a loop thread on its own CPU at SCHED_FIFO would otherwise start the
+    helpers and emulated devices of every later run there. Returns what to restore."""
+    try:
+        saved = (os.sched_getscheduler(0), os.sched_getparam(0), os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return None
+    try:
+        os.sched_setaffinity(0, set(range(os.cpu_count() or 1)))
+        if saved[0] != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass
+    return saved
+
+
+def _restore_scheduling(saved: tuple | None) -> None:
+    if saved is None:
+        return
+    policy, param, cpus = saved
+    try:
+        if policy != os.SCHED_OTHER:
+            os.sched_setscheduler(0, policy, param)
+        os.sched_setaffinity(0, cpus)
+    except OSError:
+        pass
 
 
 __all__ = ["PRELOAD", "helper_context", "start_method"]
