@@ -45,7 +45,9 @@ def _config(**over):
             "backend.stale_limit": 200,           # a loaded test machine must not trip the watchdog
             # ... nor the drive's heartbeat consumer: a loaded machine can hold the host's heartbeat back
             # for 250 ms (EMCY 0x8130); heartbeat loss is tested in test_canopen_backend
-            "backend.heartbeat_consumer_ms": 1000}
+            "backend.heartbeat_consumer_ms": 1000,
+            # ... nor the host's own watchdog: the drive process held off for tens of ms sends no fresh data
+            "safety.watchdog_ticks": 200}
     return load(CONFIG, **{**base, **over})
 
 
