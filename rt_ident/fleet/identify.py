@@ -222,9 +222,11 @@ class _Cluster:
             logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger().level))
             # processes, one thread each: numba kernels and numpy hold the GIL for whole recordings
             with _children_ignore_ctrl_c():
+                # the workers' own log lines stay quiet: a task's failure is reported per recording here, and a
+                # worker losing its scheduler while the cluster closes after Ctrl-C logs an ERROR with a traceback
                 self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                             host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                                            silence_logs=logging.ERROR)
+                                            silence_logs=logging.CRITICAL)
             self.client = Client(self.cluster)
         self.dashboard = self.client.dashboard_link if self._has_dashboard() else None
 
@@ -236,6 +238,9 @@ class _Cluster:
         return True
 
     def close(self) -> None:
+        # the results are in hand: what the scheduler says while it and its workers go down is noise
+        if self.cluster is not None:
+            logging.getLogger("distributed").setLevel(logging.CRITICAL)
         self.client.close()
         if self.cluster is not None:
             # a worker still running a timed-out or interrupted task is killed after a grace period;
