@@ -4,6 +4,7 @@ must be born (SIGINT/SIGTERM ignored, one BLAS thread), or spawn when asked."""
 from __future__ import annotations
 
 import importlib
+import multiprocessing as mp
 import os
 import signal
 import subprocess
@@ -13,8 +14,7 @@ import pytest
 
 from rt_ident.processes import context
 
-FORKSERVER = pytest.mark.skipif(context.start_method() != "forkserver",
-                                reason="helpers start with spawn here (platform or RT_IDENT_START_METHOD)")
+FORKSERVER = pytest.mark.skipif("forkserver" not in mp.get_all_start_methods(), reason="no forkserver here")
 
 
 def _child_report(q) -> None:
@@ -29,7 +29,8 @@ def test_every_preloaded_module_exists_so_none_is_silently_skipped():
 
 
 @FORKSERVER
-def test_helpers_are_forked_preloaded_ignoring_group_signals_with_one_blas_thread():
+def test_helpers_are_forked_preloaded_ignoring_group_signals_with_one_blas_thread(monkeypatch):
+    monkeypatch.setenv("RT_IDENT_START_METHOD", "forkserver")
     ctx = context.helper_context()
     q = ctx.Queue()
     p = ctx.Process(target=_child_report, args=(q,))
@@ -41,13 +42,19 @@ def test_helpers_are_forked_preloaded_ignoring_group_signals_with_one_blas_threa
 
 
 @FORKSERVER
-def test_the_forkserver_runs_a_single_thread_so_forking_it_is_safe():
+def test_the_forkserver_runs_a_single_thread_so_forking_it_is_safe(monkeypatch):
     from multiprocessing import forkserver
 
+    monkeypatch.setenv("RT_IDENT_START_METHOD", "forkserver")
     context.helper_context()
     pid = forkserver._forkserver._forkserver_pid      # multiprocessing keeps no public handle on it
     assert pid is not None
     assert len(os.listdir(f"/proc/{pid}/task")) == 1
+
+
+def test_helpers_are_spawned_unless_the_forkserver_is_asked_for(monkeypatch):
+    monkeypatch.delenv("RT_IDENT_START_METHOD", raising=False)
+    assert context.start_method() == "spawn"
 
 
 def test_an_unknown_start_method_is_refused_in_one_line():
