@@ -58,18 +58,13 @@ _SCALE_WHY = ("the model's torque balance is linear in I1, I2, B and K: a torque
               "multiplies all four by c and leaves wn and zeta unchanged")
 
 RULES: tuple[Rule, ...] = (
-    Rule("torque scale up", {"I1": ROSE, "I2": ROSE, "B": ROSE, "K": ROSE, "wn": STEADY, "zeta": STEADY},
-         {"I1": ROSE, "I2": ROSE, "B": ROSE, "K": ROSE},
-         "every physical parameter rose by the same factor with wn and zeta steady: the torque's scale changed, "
-         "not the mechanics",
-         "the drive's torque constant and rated-torque settings, a replaced motor or drive, the current "
-         "sensing", _SCALE_WHY),
-    Rule("torque scale down", {"I1": FELL, "I2": FELL, "B": FELL, "K": FELL, "wn": STEADY, "zeta": STEADY},
-         {"I1": FELL, "I2": FELL, "B": FELL, "K": FELL},
-         "every physical parameter fell by the same factor with wn and zeta steady: the torque's scale changed, "
-         "not the mechanics",
-         "the drive's torque constant and rated-torque settings, a replaced motor or drive, the current "
-         "sensing", _SCALE_WHY),
+    *(Rule(f"torque scale {way}", {**dict.fromkeys(("I1", "I2", "B", "K"), moved), "wn": STEADY, "zeta": STEADY},
+           dict.fromkeys(("I1", "I2", "B", "K"), moved),
+           f"every physical parameter {verb} by the same factor with wn and zeta steady: the torque's scale "
+           "changed, not the mechanics",
+           "the drive's torque constant and rated-torque settings, a replaced motor or drive, the current "
+           "sensing", _SCALE_WHY)
+      for way, moved, verb in (("up", ROSE, "rose"), ("down", FELL, "fell"))),
     # the damping rules first: when B and K both moved, zeta goes with B (it moves in proportion to B,
     # as 1/sqrt K only)
     Rule("damping rise", {"B": ROSE}, {"B": ROSE, "zeta": ROSE},

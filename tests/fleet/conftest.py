@@ -55,3 +55,13 @@ def wear_fleet(tmp_path_factory) -> WearFleet:
     truth = json.loads((out / "truth.json").read_text())
     assert sorted(str(s["wear"]) for s in truth["series"]) == ["None", "b", "k", "load"]
     return WearFleet(out, truth, rows)
+
+
+def local_cluster(workers: int):
+    """A real scheduler and ``workers`` worker processes, confined to 127.0.0.1 (dashboard included)."""
+    from distributed import LocalCluster
+
+    c = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                     dashboard_address="127.0.0.1:0")
+    yield c
+    c.close()

@@ -21,6 +21,7 @@ from rt_ident.fleet.drift import drift
 from rt_ident.fleet.history import query
 from rt_ident.fleet.identify import PARAMS, identify_fleet, identify_recording
 from rt_ident.fleet.manifest import read_manifest
+from tests.fleet.conftest import local_cluster
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
@@ -38,12 +39,7 @@ def fleet(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def cluster():
     """A real scheduler and two worker processes, confined to 127.0.0.1."""
-    from distributed import LocalCluster
-
-    c = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                     dashboard_address="127.0.0.1:0")
-    yield c
-    c.close()
+    yield from local_cluster(2)
 
 
 def _truth(fleet: Path) -> dict:

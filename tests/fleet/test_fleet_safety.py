@@ -24,6 +24,7 @@ from rt_ident.fleet.identify import append_history, identify_fleet, identify_rec
 from rt_ident.fleet.make import make_fleet
 from rt_ident.fleet.manifest import Entry, read_manifest, write_manifest
 from rt_ident.fleet.store import parquet_files
+from tests.fleet.conftest import local_cluster
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -60,12 +61,7 @@ def history(rows, tmp_path) -> Path:
 @pytest.fixture(scope="module")
 def cluster():
     """A scheduler and one worker process on 127.0.0.1 for the in-process runs."""
-    from distributed import LocalCluster
-
-    c = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
-                     dashboard_address="127.0.0.1:0")
-    yield c
-    c.close()
+    yield from local_cluster(1)
 
 
 def _cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
