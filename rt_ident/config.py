@@ -144,7 +144,13 @@ class ControlConfig(_Section):
     fallback_timeout_s: float = Field(0.5, gt=0)      # fallback not recovered by then -> safe stop
     feedforward: bool = True                          # inertia feedforward from the reference acceleration
     friction_feedforward: bool = True                 # Fc, Fv feedforward from [estimator] model's friction
-    trust_tolerance: float = Field(0.05, gt=0)        # per-sample estimate vs frequency fit: trusted when within
+    trust_tolerance: float = Field(0.05, gt=0)        # per-sample estimate vs frequency fit: agree when within
+    # per-sample: the per-sample estimate is trusted on its own evidence, the frequency fit audits it;
+    # cross-check: trusted only while the frequency fit agrees (slower)
+    trust: Literal["per-sample", "cross-check"] = "per-sample"
+    settle_tolerance: float = Field(0.02, gt=0)       # per-sample: I1, I2, K steady within this over the window
+    interval_tolerance: float = Field(0.05, gt=0)     # per-sample: 95 % half-widths of I1, I2, K within this
+    audit_grace_s: float = Field(1.0, ge=0)           # the frequency fit's lag after a detected change
     probe_scale_trusted: float = Field(1.0, gt=0, le=1)  # probing amplitude x this while the estimate is trusted
     delay_ticks: int = Field(1, ge=1, le=5)           # ticks from the newest sample until the torque lands
     drive_holds: bool = False                         # a real drive holds the axis itself (a position mode):

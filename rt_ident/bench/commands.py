@@ -44,15 +44,19 @@ def kernels_cmd(
 @bench_app.command("control")
 def control_cmd(
     json_out: bool = JSON,
-    quick: bool = typer.Option(False, "--quick", help="Shorter runs."),
+    quick: bool = typer.Option(False, "--quick", help="Shorter runs, 20 random plants."),
     figure: Path | None = typer.Option(None, "--figure", help="Write the comparison as a PNG."),
+    cases: int = typer.Option(20, "--cases", min=0, help="Randomized plant changes (I2 x 1.5..4, I1 x 1.2..2)."),
+    repeats: int = typer.Option(3, "--repeats", min=0,
+                                help="Each named scenario again under this many other noise seeds (the spread)."),
 ) -> None:
-    """Fixed vs adaptive vs oracle control after load changes, and the nominal design on 100 random plants."""
+    """Fixed vs adaptive vs oracle control after plant changes, change-to-redesign latency, the spread under
+    other noise seeds, and the nominal design on 100 random plants."""
     if figure is not None:
         from rt_ident.errors import require
 
         require("matplotlib", "plots", "--figure")
-    _print_control(json_out, quick, figure)
+    _print_control(json_out, quick, figure, cases, repeats)
 
 
 @bench_app.command("estimator")
@@ -80,10 +84,11 @@ def soak_cmd(
     _print_soak(seconds, rate, sink, json_out, record)
 
 
-def _print_control(json_out: bool, quick: bool, figure: Path | None) -> None:
+def _print_control(json_out: bool, quick: bool, figure: Path | None, cases: int, repeats: int) -> None:
     from rt_ident.bench.control import control_bench, targets
 
-    res = control_bench(quick=quick, progress=lambda s: err.print(f"control bench: {s}", highlight=False))
+    res = control_bench(quick=quick, cases=cases, repeats=repeats,
+                        progress=lambda s: err.print(f"control bench: {s}", highlight=False))
     if figure is not None:
         from rt_ident.bench.control import control_comparison
 
@@ -91,17 +96,28 @@ def _print_control(json_out: bool, quick: bool, figure: Path | None) -> None:
     if json_out:
         typer.echo(json.dumps(res, indent=2, default=json_default))
         return
-    tab = Table(title="table tracking error after the plant change, µm: RMS / max")
-    for col in ("scenario", "fixed", "adaptive", "oracle", "adaptive / oracle", "adaptive / fixed"):
+    tab = Table(title="table tracking error from the plant change on, µm: RMS / max")
+    for col in ("scenario", "fixed", "adaptive", "oracle", "adaptive / oracle", "adaptive / fixed",
+                "change to redesign, ms"):
         tab.add_column(col, justify="right")
-    for r in res["control"]["scenarios"]:
+    c = res["control"]
+    for r in c["scenarios"] + c["cases"]:
         cells = []
         for m in ("fixed", "adaptive", "oracle"):
             e = r[m]
             cell = f"{fmt(um(e['rms_error_m']))} / {fmt(um(e['max_error_m']))}"
             cells.append(cell + (" (stopped)" if e.get("stop") else ""))
-        tab.add_row(r["name"], *cells, fmt(r.get("adaptive_over_oracle")), fmt(r.get("adaptive_over_fixed")))
+        lat = r.get("change_to_redesign_s")
+        tab.add_row(r["name"], *cells, fmt(r.get("adaptive_over_oracle")), fmt(r.get("adaptive_over_fixed")),
+                    "never" if lat is None else f"{1e3 * lat:.0f}")
     out.print(tab)
+    sm = c["summary"]
+    for key, label in (("adaptive_over_oracle", "adaptive / oracle RMS"), ("adaptive_over_oracle_max",
+                       "adaptive / oracle max"), ("adaptive_over_fixed", "adaptive / fixed RMS")):
+        out.print(f"{label} over {sm['n']} changes: median {fmt(sm[key]['median'])}, worst {fmt(sm[key]['worst'])}")
+    for p in c["perturbed"]:
+        out.print(f"{p['name']} under other noise seeds: adaptive / oracle "
+                  f"{', '.join(fmt(v) for v in p['adaptive_over_oracle'])} (spread {fmt(p['spread'])})")
     rp = res["control"]["random_plants"]
     out.print(f"random plants (I1, I2, B, K each x 0.5..2, seed {rp['seed']}): {rp['unstable']} of {rp['n']} unstable "
               f"with the nominal design; worst overshoot {100 * rp['worst_overshoot']:.1f} %")

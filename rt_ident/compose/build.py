@@ -83,9 +83,12 @@ def friction_summary(loop) -> dict[str, Any] | None:
     return {"model": est.model, "parameters": p,
             "feedforward": None if ff is None else {"Fc": ff.Fc, "Fv": ff.Fv}}
 
-def controller_for(cfg: RunConfig, backend, jobs, quanta: tuple[float, float] | None = None):
+def controller_for(cfg: RunConfig, backend, jobs, quanta: tuple[float, float] | None = None,
+                   error_after_s: float | None = None):
     """The host's position controller for ``cfg`` (None with ``control.mode = "off"``), redesigning
-    through ``jobs`` (a job process here, in-process jobs in :mod:`rt_ident.compose.offline`)."""
+    through ``jobs`` (a job process here, in-process jobs in :mod:`rt_ident.compose.offline`).
+    ``error_after_s``: where the "after the change" error statistics start (default: 0.5 s after
+    the last plant change)."""
     settings = cfg.control.settings()
     if settings.mode == "off":
         return None
@@ -96,7 +99,8 @@ def controller_for(cfg: RunConfig, backend, jobs, quanta: tuple[float, float] | 
     last = cfg.plant.last_change_s()
     return make_controller(settings, cfg.axis_params(), tick=1.0 / cfg.loop.tick_hz,
                            torque_limit=backend.torque_limit, reference=make_reference(table),
-                           jobs=jobs, error_after_s=None if last is None else last + 0.5,
+                           jobs=jobs, error_after_s=error_after_s if error_after_s is not None
+                           else None if last is None else last + 0.5,
                            per_sample=per_sample_estimator(cfg, backend.sample_period,
                                                            quanta or sensor_quanta(cfg)),
                            reference_options=options)

@@ -11,6 +11,7 @@ is what the loop's code does, not what a model of it does.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -53,12 +54,14 @@ class VirtualClock:
 @dataclass
 class InlineJobs:
     """Jobs run in this process (a job process's stand-in): the result of ``submit`` becomes visible to
-    ``poll`` ``latency`` (virtual) seconds later, and the next job is taken ``min_interval`` after."""
+    ``poll`` ``latency`` (virtual) seconds later, and the next job is taken ``min_interval`` after.
+    ``cpu_latency``: at least the CPU time the job took here (a job process with a core of its own)."""
 
     job: Callable[[Any], Any]
     clock: VirtualClock
     latency: float = 0.1
     min_interval: float = 0.25
+    cpu_latency: bool = False
     fits: int = 0
     errors: int = 0
     skipped: int = 0
@@ -77,12 +80,14 @@ class InlineJobs:
             self.skipped += 1
             return False
         now = self.clock()
+        c0 = time.process_time()
         try:
             result: Any = self.job(request)
         except Exception as exc:  # noqa: BLE001 - like the job process: reported, not raised
             result = exc
-        self._due.append((now + self.latency, result))
-        self._busy_until = now + max(self.latency, self.min_interval)
+        latency = max(self.latency, time.process_time() - c0) if self.cpu_latency else self.latency
+        self._due.append((now + latency, result))
+        self._busy_until = now + max(latency, self.min_interval)
         return True
 
     def poll(self) -> Any:
@@ -105,8 +110,10 @@ class InlineJobs:
 
 
 def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], None] | None = None,
-                fit_latency: float = 0.1, record: str | None = None, overwrite: bool = False,
-                loop_options: dict[str, Any] | None = None, paced: bool = False) -> dict[str, Any]:
+                fit_latency: float = 0.1, design_cpu_latency: bool = False, record: str | None = None,
+                overwrite: bool = False,
+                loop_options: dict[str, Any] | None = None, paced: bool = False,
+                error_after_s: float | None = None) -> dict[str, Any]:
     """Run ``cfg`` (a ``sim`` backend) on virtual time; returns identification, control and truth.
 
     ``tick_hook(loop)`` is called after every tick (e.g. to swap in an oracle controller).
@@ -115,6 +122,10 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     ``loop_options``: more keyword arguments of the :class:`IdentificationLoop` (e.g. a telemetry
     consumer ``on_telemetry``). ``paced``: the sim produces the samples due on the virtual clock, as
     on the wall clock in a real run (a hook that advances ``loop.clock.now`` then stalls the loop).
+    ``design_cpu_latency``: a redesign's answer arrives after the CPU time the design took here (at
+    least 50 ms), not after a fixed 50 ms.
+    ``error_after_s``: where the controller's "after the change" error statistics start (default 0.5 s
+    after the last plant change).
     """
 
     if cfg.backend.name != "sim":
@@ -128,7 +139,9 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     ex = cfg.excitation
     kf, est = state_and_streaming(cfg, dt)
     fit = InlineJobs(partial(fit_snapshot, cfg.estimator.method, lead=truth.lead), clock, latency=fit_latency)
-    ctl = controller_for(cfg, backend, InlineJobs(redesign, clock, latency=0.05, min_interval=0.0))
+    ctl = controller_for(cfg, backend, InlineJobs(redesign, clock, latency=0.05, min_interval=0.0,
+                                                  cpu_latency=design_cpu_latency),
+                         error_after_s=error_after_s)
     warmup(kf, est, (cfg.loop.warmup_periods + 2) * ex.period_samples)
     recorder = None
     if record is not None:

@@ -12,6 +12,19 @@ plant when the estimate is wrong:
   an accepted design in bumplessly, falls back to the conservative controller when the tracking
   error leaves its bound or the estimate diverges, and asks for a safe stop when the fallback
   does not recover in time.
+
+**Trust** (``trust = "per-sample"``, the default): the per-sample estimate is trusted on its own
+evidence, checked every ``ASSESS_EVERY`` ticks: no change detected since the window began (the
+estimator's residual CUSUM, :mod:`rt_ident.estimators.svf`) and no row held back by its dead zone
+(an estimate frozen for want of excitation is steady but not evidence), its 95 % intervals within
+``interval_tolerance``, the last ``trust_window`` estimates
+within ``settle_tolerance`` of each other (B, whose estimate scatters most, within ``DAMPING_TOLERANCE``),
+and plausible. The design is made for the window's mean, not the newest estimate. The frequency fit
+audits: it disagreeing by more than ``trust_tolerance`` (B: ``DAMPING_TOLERANCE``) ``audit_vetoes``
+times in a row, outside ``audit_grace_s`` after a detected change or a redesign for a moved
+estimate (its own averaging lags), vetoes the per-sample trust and rolls back to the last design it
+agreed with (the conservative controller when there is none); its agreeing again lifts the veto.
+With ``trust = "cross-check"`` the per-sample estimate is trusted only while the fit agrees.
 """
 
 from __future__ import annotations
@@ -28,7 +41,7 @@ import numpy as np
 from rt_ident.axis.params import AxisParams
 from rt_ident.control.anchor import Anchor, ReferenceOptions
 from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_gain_view, loop_margins
-from rt_ident.control.law import Controller, StateFeedback
+from rt_ident.control.law import C_INERTIA, Controller, StateFeedback
 from rt_ident.errors import RtIdentError
 
 log = logging.getLogger(__name__)
@@ -61,7 +74,58 @@ class ControlSettings:
     feedforward: bool = True
     probe_scale_trusted: float = 1.0         # probing amplitude x this while the estimate is trusted
     delay_ticks: int = 1                     # ticks from the newest sample to the torque landing
-    trust_tolerance: float = 0.05            # per-sample estimate vs frequency fit: trusted when within
+    trust_tolerance: float = 0.05            # per-sample estimate vs frequency fit: agree when within
+    trust: str = "per-sample"                # "per-sample" (own evidence, the fit audits) | "cross-check"
+    settle_tolerance: float = 0.02           # I1, I2, K each within this of the window's mean (B: DAMPING_TOLERANCE)
+    trust_window: int = 4                    # per-sample estimates in the window (one every ASSESS_EVERY ticks)
+    interval_tolerance: float = 0.05         # 95 % interval half-widths of I1, I2, K within this (B: DAMPING_TOLERANCE)
+    audit_grace_s: float = 1.0               # after a detected change the frequency fit still lags this long
+    audit_vetoes: int = 2                    # consecutive disagreements of the fit (past the grace) that veto
+
+
+#: ticks between two looks at the per-sample estimate's evidence (Supervisor.assess)
+ASSESS_EVERY = 5
+#: a finished design is switched in on a quiet tick (Supervisor._quiet): the reference not accelerating
+#: and the new law's feedback torque before re-seeding within SWITCH_BUMP x the torque limit of the old
+#: one. The re-seeded integral absorbs the difference, and what it absorbs decays as a slow transient
+#: of the new loop. After QUIET_WAIT_S it is switched in regardless.
+QUIET_WAIT_S = 0.15
+#: how long after a detected change the inertia feedforward follows the per-sample estimate at most
+FOLLOW_S = 0.25
+#: ... and only while the 95 % half-widths of I1 and I2 are within this fraction of I1 + I2
+FOLLOW_INTERVAL = 0.05
+SWITCH_BUMP = 0.002
+
+
+#: B's share of the torque is small and its estimate scatters most; the family check keeps the margins
+#: for B x 0.7..1.3, so two estimates of B agree (and a design still fits) within this
+DAMPING_TOLERANCE = 0.25
+
+
+def _narrow(ci95: dict[str, tuple[float, float]] | None, tol: float) -> bool:
+    """Whether every 95 % interval is finite and its half-width within ``tol`` of its centre (B: within
+    DAMPING_TOLERANCE)."""
+    if not ci95:
+        return False
+    for k in KEYS:
+        lo, hi = ci95[k]
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        if not (math.isfinite(lo) and math.isfinite(hi) and mid > 0.0 and half >= 0.0):
+            return False
+        if half > (max(tol, DAMPING_TOLERANCE) if k == "B" else tol) * mid:
+            return False
+    return True
+
+
+def worst_difference(p: AxisParams, q: AxisParams, tol: float) -> tuple[str, float, bool]:
+    """(the parameter of ``p`` furthest from ``q`` relative to its tolerance, its relative difference,
+    whether it is within): ``tol`` for I1, I2, K, at least DAMPING_TOLERANCE for B."""
+    def limit(k: str) -> float:
+        return max(tol, DAMPING_TOLERANCE) if k == "B" else tol
+
+    worst = max(KEYS, key=lambda k: abs(getattr(p, k) / getattr(q, k) - 1.0) / limit(k))
+    rel = abs(getattr(p, worst) / getattr(q, worst) - 1.0)
+    return worst, rel, rel <= limit(worst)
 
 
 class ControlFallbackStop(RtIdentError):
@@ -183,6 +247,11 @@ class ControlStats:
     why_requested: dict[str, int] = field(default_factory=dict)   # the parameter that moved most, per request
     latency_s: list[float] = field(default_factory=list)   # request -> answer, loop time
     cpu_s: list[float] = field(default_factory=list)       # the job process's CPU per redesign
+    applied: list[tuple[float, str, AxisParams]] = field(default_factory=list)  # (t, kind, model) switched in
+    changes_detected: int = 0    # the per-sample estimator's change detector, seen by the supervisor
+    audit_vetoes: int = 0        # per-sample trust withdrawn by the frequency fit
+    feedforward_updates: int = 0  # inertia feedforward moved to the per-sample I1 + I2 before a redesign
+    trusted_at: list[float] = field(default_factory=list)   # when the per-sample estimate became trusted
     checks_agreed: int = 0       # cross-checks of the per-sample estimate against the frequency fit
     checks_disagreed: int = 0
     last_disagreement: str = ""
@@ -270,12 +339,28 @@ class Supervisor:
         self._pending = False
         self._due: tuple[AxisParams, Any, str] | None = None   # a request offer() decided on
         self._taken: list | None = None                     # a result taken, unpickled on the next poll
+        self._result: dict[str, Any] | None = None          # an accepted design waiting for a quiet tick
+        self._result_t = 0.0
         self._req = 0
         self.now = np.zeros(NOW_FALLBACK_SINCE + 1)     # NOW_*: t, x_ref, error, state, reference, fallback clock
         self.now[NOW_FALLBACK_SINCE] = math.nan
         self.consts = np.array([self.lead, settings.max_error_m,
                                 math.inf if error_after_s is None else float(error_after_s), tick])
         self.probe_scale = 1.0      # probing-excitation amplitude factor (dual excitation)
+        # per-sample trust (assess): the window of estimates, the changes seen, the latest one's time,
+        # whether the estimate is trusted now, the audit's veto and its run of disagreements
+        self._win = np.zeros((max(int(settings.trust_window), 2), 4))
+        self._win_n = 0
+        self._changes_seen = 0
+        self._frozen_seen = 0       # the estimator's dead-zone count at the last look
+        self._change_t: float | None = None
+        self._urgent = False        # a change detected and no request made since: the interval does not apply
+        self._inertia_seen = np.full(3, math.nan)   # the per-sample I1 + I2 at the last three looks
+        self._following = False     # from a detected change until a design is switched in
+        self.own_trust = False
+        self._vetoed = False
+        self._disagreements = 0
+        self._audited: Controller | None = None     # the model design in force when the fit last agreed
 
     @property
     def controller(self) -> Controller:
@@ -389,7 +474,10 @@ class Supervisor:
         th1, w1, th2, w2 = (float(v) for v in n[NOW_STATE:NOW_STATE + 4])
         xr, vr, ar = (float(v) for v in n[NOW_REF:NOW_REF + 3])
         step = self.law.switch(ctrl, th1, w1, th2, w2, xr, vr, ar, self.lead)
-        self.stats.max_step_nm = max(self.stats.max_step_nm, abs(step))
+        st = self.stats
+        st.max_step_nm = max(st.max_step_nm, abs(step))
+        st.applied.append((self.t, ctrl.kind, ctrl.model))
+        del st.applied[:-50]
 
     # ------------------------------------------------------------ adaptation
     def observe(self, theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, gap: bool,
@@ -435,10 +523,9 @@ class Supervisor:
         why = self.diverged(p)
         if why is not None or self.diverged(ident) is not None:
             return p, None, False, why                 # a frequency fit that diverged only withholds trust
-        worst = max(KEYS, key=lambda k: abs(getattr(p, k) / getattr(ident.params, k) - 1.0))
-        rel = abs(getattr(p, worst) / getattr(ident.params, worst) - 1.0)
+        worst, rel, agree = worst_difference(p, ident.params, self.s.trust_tolerance)
         st = self.stats
-        if rel <= self.s.trust_tolerance:
+        if agree:
             st.checks_agreed += 1
             return p, est.ci95, True, None        # the intervals (a 4x4 inverse) only if a redesign is asked
         st.checks_disagreed += 1
@@ -446,34 +533,166 @@ class Supervisor:
                                f"{getattr(ident.params, worst):.4g} ({100 * rel:.1f} %)"
         return p, None, False, None
 
+    def assess(self) -> None:
+        """Every ASSESS_EVERY ticks (``trust = "per-sample"``): the per-sample estimate's own evidence
+        (see the module docstring); trusted, it asks for a redesign when due."""
+        est = self.per_sample
+        if est is None or self.s.mode != "adaptive" or self.s.trust != "per-sample":
+            return
+        st = self.stats
+        changes = est.changes
+        if changes != self._changes_seen:
+            self._changes_seen = changes
+            self._change_t = self.t
+            self._urgent = self._following = True
+            self._win_n = 0
+            self._inertia_seen[:] = math.nan
+            self.own_trust = False
+            st.changes_detected += 1
+            st.events.append((self.t, "change detected", "the per-sample estimator's residual test"))
+            return
+        frozen, self._frozen_seen = self._frozen_seen, est.frozen
+        if not est.ready or frozen != self._frozen_seen:     # unexcited rows held back: nothing new to trust
+            self._win_n = 0
+            return
+        v = est.values_array()
+        if self._following:
+            self._follow_inertia(float(v[0] + v[1]))
+        win = self._win
+        win[self._win_n % win.shape[0]] = v
+        self._win_n += 1
+        if self._win_n < win.shape[0]:
+            return
+        mean = win.mean(axis=0)
+        if not bool(np.all(win > 0.0)) or not bool(np.all(np.isfinite(win))):
+            self.own_trust = False              # an estimate outside physics is no evidence (diverged)
+            self.probe_scale = 1.0
+            return
+        spread = (win.max(axis=0) - win.min(axis=0)) / mean
+        tol = self.s.settle_tolerance
+        steady = bool(spread[0] <= tol and spread[1] <= tol and spread[3] <= tol and spread[2] <= DAMPING_TOLERANCE)
+        p = AxisParams(**{k: float(v) for k, v in zip(KEYS, mean)}, lead=self.lead)
+        trusted = steady and not self._vetoed and self.diverged(p) is None
+        ci95 = est.ci95() if trusted else None         # a 4 x 4 inverse: only for a steady window
+        if trusted and not _narrow(ci95, self.s.interval_tolerance):
+            trusted = False
+        if trusted and not self.own_trust:
+            st.trusted_at.append(self.t)
+            del st.trusted_at[:-20]
+        self.own_trust = trusted
+        self.probe_scale = self.s.probe_scale_trusted if trusted else 1.0
+        if trusted:
+            self._consider(p, ci95)
+
+    @property
+    def following(self) -> bool:
+        """From a detected change until a design for the new plant is switched in (assessed every tick)."""
+        return self._following
+
+    def _follow_inertia(self, inertia: float) -> None:
+        """After a detected change, before the redesign: the inertia feedforward follows the per-sample
+        I1 + I2 (seen first, and within a few percent ~10 ms after the change) once three looks in a row
+        agree within settle_tolerance x 2.5 and it is plausible. The feedback gains and the reference
+        twist stay the design's until the redesign switches them (bumplessly); the feedforward's change
+        is the torque the new inertia needs along the reference. No design within FOLLOW_S: the
+        feedforward goes back to the design's (the estimate was not good enough for one)."""
+        c = self.law.consts
+        if self._change_t is not None and self.t - self._change_t > FOLLOW_S:
+            self._following = False
+            c[C_INERTIA] = self.controller.inertia
+            return
+        seen = self._inertia_seen
+        seen[0], seen[1], seen[2] = seen[1], seen[2], inertia
+        nom = self.nominal.I1 + self.nominal.I2
+        lo, hi = self.s.plausible
+        if not (bool(np.all(np.isfinite(seen))) and bool(np.all(seen >= lo * nom)) and bool(np.all(seen <= hi * nom))):
+            return
+        if (seen.max() - seen.min()) > 2.5 * self.s.settle_tolerance * inertia:
+            return
+        if abs(inertia / c[C_INERTIA] - 1.0) <= self.s.settle_tolerance:
+            return
+        ci = self.per_sample.ci95() if self.per_sample is not None else None    # 4 x 4 inverse: rare
+        if ci is None or any(not (ci[k][1] - ci[k][0]) <= 2.0 * FOLLOW_INTERVAL * inertia for k in ("I1", "I2")):
+            return
+        c[C_INERTIA] = inertia
+        self.stats.feedforward_updates += 1
+
     def offer(self, ident, trusted: bool) -> None:
-        """A new identification from the fit process: cross-check, and redesign when adaptive, trusted
-        and due. ``trusted`` is the frequency fit's own verdict (used when there is no per-sample
-        estimator)."""
+        """A new identification from the fit process: cross-check (with ``trust = "per-sample"``: audit),
+        and redesign when adaptive, trusted and due. ``trusted`` is the frequency fit's own verdict (used
+        when there is no per-sample estimator)."""
         if self.s.mode != "adaptive" or ident is None:
             return
         params, ci95, trusted, why = self._cross_check(ident, trusted)
-        # dual excitation: probe less while the estimate is trusted, fully again when it is not
-        self.probe_scale = self.s.probe_scale_trusted if (trusted and why is None) else 1.0
+        per_sample = self.per_sample is not None and self.s.trust == "per-sample"
+        if per_sample:
+            self._audit(trusted, why)
+        else:           # dual excitation: probe less while the estimate is trusted, fully again when it is not
+            self.probe_scale = self.s.probe_scale_trusted if (trusted and why is None) else 1.0
         if why is not None:
             if not self.in_fallback and self.controller.kind == "model":
                 self._fall_back(self.t, f"estimate diverged: {why}")
             return
-        if params is None or not trusted or self.jobs is None or self._pending:
+        if params is None or not trusted or per_sample:
             return
-        if self.t - self._last_request_t < self.s.redesign_interval_s:
+        self._consider(params, ci95)
+
+    def _audit(self, agreed: bool, why: str | None) -> None:
+        """The frequency fit's verdict on the per-sample estimate: agreeing lifts a veto; disagreeing
+        ``audit_vetoes`` times in a row outside the grace after a change vetoes the per-sample trust
+        and rolls a model controller back to the conservative one."""
+        if agreed:
+            self._disagreements = 0
+            if self.controller.kind == "model":
+                self._audited = self.controller
+            if self._vetoed:
+                self._vetoed = False
+                self.stats.events.append((self.t, "audit", "the frequency fit agrees again: per-sample trust restored"))
+            return
+        if why is not None or (self._change_t is not None and self.t - self._change_t < self.s.audit_grace_s):
+            return
+        if self.per_sample is None or not self.per_sample.ready:
+            return
+        self._disagreements += 1
+        if self._disagreements < self.s.audit_vetoes or self._vetoed:
+            return
+        self._vetoed = True
+        self.own_trust = False
+        self.stats.audit_vetoes += 1
+        detail = f"the frequency fit disagrees with the per-sample estimate: {self.stats.last_disagreement}"
+        self.stats.events.append((self.t, "audit veto", detail))
+        if self.in_fallback or self.controller.kind != "model":
+            return
+        back = self._audited
+        if back is not None:
+            if back is not self.controller:
+                self._switch(back)
+                self.stats.events.append((self.t, "rolled back", "to the last design the frequency fit agreed with: "
+                                          + _params_text(back.model)))
+        else:
+            self._fall_back(self.t, "audit veto: " + detail)
+
+    def _consider(self, params: AxisParams, ci95: Any) -> None:
+        """A trusted estimate: decide on a redesign (sent on the next :meth:`poll`)."""
+        if self.jobs is None or self._pending:
+            return
+        if not self._urgent and self.t - self._last_request_t < self.s.redesign_interval_s:
             return
         cur = self.controller.model
         # each parameter's change against its own threshold (B's is wider: ControlSettings.min_change_damping)
         moved = max(KEYS, key=lambda k: abs(getattr(params, k) / getattr(cur, k) - 1.0) / self._threshold(k))
         if self.controller.kind == "model" and \
                 abs(getattr(params, moved) / getattr(cur, moved) - 1.0) < self._threshold(moved):
+            self._urgent = False
             return
         if not self.jobs.ready:
             return
         # asked on the next tick (poll): the cross-check above and the request are each a few hundred
         # microseconds of Python, too much for one tick beside its own work
         self._pending = True
+        if self.controller.kind == "model":     # the estimate moved: the fit lags behind it for a while
+            self._change_t = self.t
+        self._urgent = False
         self._due = (params, ci95, moved)
 
     def _request(self, params: AxisParams, ci95: Any, moved: str) -> None:
@@ -505,12 +724,22 @@ class Supervisor:
 
     def poll(self) -> None:
         """One step per tick while a redesign is under way: send the request :meth:`offer` decided on;
-        take a finished design; on the next tick unpickle it and adopt or reject it."""
+        take a finished design; on the next tick unpickle it and reject it or wait for a quiet tick
+        (:meth:`_quiet`) to adopt it."""
         if self.jobs is None or not self._pending:
             return
         if self._due is not None:
             due, self._due = self._due, None
             self._request(*due)
+            return
+        if self._result is not None:
+            stale = self._stale(self._result["controller"].model)
+            if stale is not None or self._quiet(self._result["controller"]):
+                res, self._result = self._result, None
+                self._pending = False
+                if stale is not None:
+                    res, self._urgent = {"accepted": False, "reason": stale}, True
+                self._adopt(res)
             return
         if self._taken is None:
             self._taken = self.jobs.take() or None
@@ -519,7 +748,6 @@ class Supervisor:
         res = self.jobs.unpack(taken)
         if res is None:
             return
-        self._pending = False
         st = self.stats
         st.latency_s.append(self.t - self._last_request_t)
         if res.get("cpu_s") is not None:
@@ -528,8 +756,35 @@ class Supervisor:
         if stale is not None:
             # a design can take ~1 s on a loaded host, and the axis it was made for may have changed
             # since: a design for the inertia before a load change, applied after it, can drive the
-            # table hundreds of um off and into the fallback
+            # table hundreds of um off and into the fallback. The next trusted look asks again at once.
             res = {"accepted": False, "reason": stale}
+            self._urgent = True
+        if res.get("accepted") and not self.in_fallback:
+            self._result_t = self.t
+            if not self._quiet(res["controller"]):
+                self._result = res
+                return
+        self._pending = False
+        self._adopt(res)
+
+    def _quiet(self, ctrl: Controller) -> bool:
+        """Whether to switch to ``ctrl`` now: the reference does not accelerate and the new law's feedback
+        torque before re-seeding is within ``SWITCH_BUMP`` of the old one (so the re-seeded integral
+        starts no transient), or QUIET_WAIT_S has passed since the design arrived."""
+        if self.t - self._result_t >= QUIET_WAIT_S:
+            return True
+        n = self.now
+        if abs(float(n[NOW_REF + 2])) > 0.0:
+            return False
+        th1, w1, th2, w2 = (float(v) for v in n[NOW_STATE:NOW_STATE + 4])
+        xr, vr, ar = (float(v) for v in n[NOW_REF:NOW_REF + 3])
+        bump = self.law.bump(ctrl, th1, w1, th2, w2, xr, vr, ar, self.lead)
+        return abs(bump) <= SWITCH_BUMP * self.law.limit
+
+    def _adopt(self, res: dict[str, Any]) -> None:
+        """A redesign's result: switch to an accepted design (hold it through a fallback), or count the
+        rejection."""
+        st = self.stats
         if res.get("accepted"):
             st.accepted += 1
             text = _params_text(res["controller"].model)
@@ -542,6 +797,7 @@ class Supervisor:
                 st.events.append((self.t, "fallback kept", str(res["fallback_reason"])))
             if not self.in_fallback:
                 self._switch(res["controller"])
+                self._following = False
             else:
                 self._held = res["controller"]
             # recovering: onto the conservative controller that suits the axis
@@ -560,9 +816,8 @@ class Supervisor:
         if est is None or not est.ready:
             return None
         p = est.params
-        worst = max(KEYS, key=lambda k: abs(getattr(p, k) / getattr(model, k) - 1.0))
-        rel = abs(getattr(p, worst) / getattr(model, worst) - 1.0)
-        if rel <= self.s.trust_tolerance:
+        worst, rel, fits = worst_difference(p, model, self.s.trust_tolerance)
+        if fits:
             return None
         return (f"stale: designed for {worst} = {getattr(model, worst):.4g}, the axis now reads "
                 f"{getattr(p, worst):.4g} ({100 * rel:.0f} % off)")
@@ -574,7 +829,11 @@ class Supervisor:
             return None
         return {"method": type(est).__name__, "params": est.values(), "counters": est.counters,
                 "cross_checks": {"agreed": st.checks_agreed, "disagreed": st.checks_disagreed,
-                                 "last_disagreement": st.last_disagreement or None}}
+                                 "last_disagreement": st.last_disagreement or None},
+                "trust": self.s.trust, "trusted": self.own_trust if self.s.trust == "per-sample" else None,
+                "changes_detected": st.changes_detected, "audit_vetoes": st.audit_vetoes,
+                "feedforward_updates": st.feedforward_updates,
+                "trusted_at_s": [round(t, 4) for t in st.trusted_at]}
 
     def summary(self) -> dict[str, Any]:
         st = self.stats
@@ -592,6 +851,8 @@ class Supervisor:
                 "gains": [float(g) for g in self.controller.gains],
                 "margins": self.controller.margins,
                 "max_switch_step_nm": st.max_step_nm,
+                "applied": [{"t": round(t, 4), "kind": k, "model": {q: float(getattr(m, q)) for q in KEYS}}
+                            for t, k, m in st.applied],
                 "reference": {"origin": self.anchor.options.origin, "origin_m": self.anchor.origin,
                               "rejoins": self.anchor.rejoins, "last_rejoin": self.anchor.last_rejoin},
                 "per_sample": self._per_sample_summary(),

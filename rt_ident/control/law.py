@@ -193,6 +193,16 @@ class StateFeedback:
         self._seed_integral(old, th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)   # same feedback torque
         return self.feedback_torque(th1, w1, th2, w2, x_ref, v_ref, a_ref, lead) - old
 
+    def bump(self, controller: Controller, th1: float, w1: float, th2: float, w2: float, x_ref: float,
+             v_ref: float, a_ref: float, lead: float) -> float:
+        """The feedback torque step switching to ``controller`` would cause without re-seeding the
+        integral (what the re-seeded integral would absorb)."""
+        c = self.consts.copy()
+        c[C_INERTIA], c[C_I2], c[C_K] = controller.inertia, controller.model.I2, controller.model.K
+        new = feedback_torque(np.asarray(controller.gains, dtype=float), self.st, c, th1, w1, th2, w2,
+                              x_ref, v_ref, a_ref, lead)
+        return float(new) - self.feedback_torque(th1, w1, th2, w2, x_ref, v_ref, a_ref, lead)
+
     def rebase(self, th1: float, w1: float, th2: float, w2: float, x_ref: float, v_ref: float, a_ref: float,
                lead: float, u_fb: float = 0.0) -> None:
         """After the drive dropped the host's torque (a stall outlasted the plan's lease): nothing is in

@@ -38,6 +38,13 @@ The paper's Eqs. (9)-(10) difference the sampled angles twice; on a 2^17-count e
   regressand, which would bias the regression by selection).
 * **NaN rejection.** A sample with a non-finite angle or torque is skipped (counted) and the
   filter holds its state.
+* **Change detection** (beyond the paper). A one-sided CUSUM (Page's test) on the log ratio of the
+  a-priori residual's short-term power (~2 ms) to its long-term baseline (~0.5 s):
+  ``g = max(0, g + ln(fast / base) - ln(change_ratio))``, an alarm when ``g > change_threshold``.
+  On an alarm the information is discounted at once (R, r and the weights x ``change_discount``:
+  a covariance reset), so the estimate follows the new plant within a few memory-free
+  milliseconds instead of ~3 memory time constants; the baseline then re-learns for
+  ``change_rearm_s`` with the short time constant before the test is armed again.
 
 The information form (R, r) is used rather than the UD-factored covariance of
 :mod:`rt_ident.estimators.rls` because bias compensation subtracts from the information matrix;
@@ -70,6 +77,10 @@ class SvfSettings:
     warmup_s: float = 0.005         # filter start-up: no regression rows before this
     min_torque: float = 0.002       # N m: below this rms of the filtered torque (over the memory) the
                                     # data are noise only; the estimate freezes instead of drifting
+    change_ratio: float = 3.0       # residual power x this over its baseline counts toward a change
+    change_threshold: float = 8.0   # CUSUM alarm level (sum of per-sample log ratios beyond change_ratio)
+    change_discount: float = 0.01   # the information kept at an alarm (0 < d <= 1; 1: detection only)
+    change_rearm_s: float = 0.05    # after an alarm (and at start) the baseline re-learns this long
 
     def check(self, dt: float) -> None:
         if not self.filter_hz > 0 or not self.memory_s > 0:
@@ -176,9 +187,9 @@ def svf_block(th1, th2, tq, Phi, G0, G1, Gz, xs, prev, scale, lam_f, rho, prior,
     """Advance the estimator over one block (every sample).
 
     xs (4, 3): filter states for theta1, Delta, theta2, torque; prev (4,): last theta1, theta2,
-    torque, and 1.0 once a first sample was seen; acc (4,): W, sum of squared a-priori residuals,
-    W2 (sum of squared weights), warm-up end (rows), mean square filtered torque; counts (5,): samples,
-    rejected (non-finite), rows, solve failures, rows frozen by the dead zone.
+    torque, and 1.0 once a first sample was seen; acc (ACC_SIZE,): the ACC_* slots (sums, the change
+    detector's state and its settings); counts (5,): samples, rejected (non-finite), rows, solve
+    failures, rows frozen by the dead zone.
     trace (n, TR_COLS), or no rows: each sample's s^2 F th1, s F Delta, F Delta and F T (NaN for a
     sample the filters did not take, and through their warm-up).
     """
@@ -233,6 +244,7 @@ def svf_block(th1, th2, tq, Phi, G0, G1, Gz, xs, prev, scale, lam_f, rho, prior,
             continue
         e1 = y1 - (phi1[0] * p[0] + phi1[2] * p[2] + phi1[3] * p[3])
         e2 = -(phi2[1] * p[1] + phi2[2] * p[2] + phi2[3] * p[3])
+        _detect_change(e1 * e1 + e2 * e2, y1 * y1, acc, R, r)
         g = 1.0 - lam_f
         acc[0] = lam_f * acc[0] + 1.0
         acc[1] = lam_f * acc[1] + e1 * e1 + e2 * e2
@@ -250,6 +262,54 @@ def svf_block(th1, th2, tq, Phi, G0, G1, Gz, xs, prev, scale, lam_f, rho, prior,
             continue
         for i in range(4):
             p[i] = phi1[i]
+
+
+# acc slots: the regression's weight W, its sum of squared a-priori residuals, W2 (sum of squared
+# weights), the warm-up end (rows), the dead zone's mean square filtered torque; the change detector's
+# fast and baseline residual power, CUSUM sum, alarms, samples left to re-arm; its settings: alarm
+# level, ln(change_ratio), the fast and the baseline forgetting factors, the discount, re-arm samples;
+# the filtered torque's baseline power
+(ACC_W, ACC_SSE, ACC_W2, ACC_WARM, ACC_TQ2, ACC_FAST, ACC_BASE, ACC_CUSUM, ACC_ALARMS, ACC_REARM,
+ ACC_H, ACC_NU, ACC_LAM_FAST, ACC_LAM_BASE, ACC_DISCOUNT, ACC_REARM_N, ACC_TQ_BASE, ACC_SIZE) = range(18)
+
+
+#: the change detector's time constants: the residual's short-term power, its baseline
+CHANGE_FAST_S = 0.002
+CHANGE_BASE_S = 0.5
+
+
+@numba.njit(cache=True)
+def _detect_change(q, tq2, acc, R, r):
+    """One sample of the change detector (see the module docstring): ``q`` is the squared a-priori
+    residual, ``tq2`` the squared filtered torque. On an alarm R, r and the weights are discounted in
+    place. While the excitation has fallen below a quarter of its baseline power the test pauses: a
+    residual that grows as the excitation dies away is the data changing, not the plant."""
+    lf = acc[ACC_LAM_FAST]
+    lb = acc[ACC_LAM_BASE]
+    acc[ACC_FAST] = lf * acc[ACC_FAST] + (1.0 - lf) * q
+    acc[ACC_TQ_BASE] = lb * acc[ACC_TQ_BASE] + (1.0 - lb) * tq2
+    if acc[ACC_REARM] > 0.0:                     # (re-)learning the baseline, fast
+        acc[ACC_REARM] -= 1.0
+        acc[ACC_BASE] = lf * acc[ACC_BASE] + (1.0 - lf) * q
+        return
+    acc[ACC_BASE] = lb * acc[ACC_BASE] + (1.0 - lb) * q
+    if not (acc[ACC_BASE] > 0.0 and acc[ACC_FAST] > 0.0) or acc[ACC_TQ2] < 0.25 * acc[ACC_TQ_BASE]:
+        acc[ACC_CUSUM] = 0.0
+        return
+    acc[ACC_CUSUM] = max(0.0, acc[ACC_CUSUM] + math.log(acc[ACC_FAST] / acc[ACC_BASE]) - acc[ACC_NU])
+    if acc[ACC_CUSUM] <= acc[ACC_H]:
+        return
+    d = acc[ACC_DISCOUNT]
+    for i in range(4):
+        r[i] *= d
+        for j in range(4):
+            R[i, j] *= d
+    acc[ACC_W] *= d
+    acc[ACC_SSE] *= d
+    acc[ACC_W2] *= d * d
+    acc[ACC_CUSUM] = 0.0
+    acc[ACC_ALARMS] += 1.0
+    acc[ACC_REARM] = acc[ACC_REARM_N]
 
 
 class SvfEstimator:
@@ -285,13 +345,18 @@ class SvfEstimator:
             self._prev = np.zeros(4)
             self._R = np.zeros((4, 4))
             self._r = np.zeros(4)
-            self._acc = np.zeros(5)
+            self._acc = np.zeros(ACC_SIZE)
             self._p = np.zeros(4)
             self._tmp = np.zeros((4, 4))
             self._counts = np.zeros(5)   # samples, rejected, rows, solve failures, frozen
         for a in (self._xs, self._prev, self._R, self._r, self._acc, self._tmp, self._counts):
             a[...] = 0.0
-        self._acc[3] = float(math.ceil(self.s.warmup_s / self.dt))
+        a, st = self._acc, self.s
+        a[ACC_WARM] = float(math.ceil(st.warmup_s / self.dt))
+        a[ACC_H], a[ACC_NU], a[ACC_DISCOUNT] = st.change_threshold, math.log(st.change_ratio), st.change_discount
+        a[ACC_LAM_FAST] = math.exp(-self.dt / CHANGE_FAST_S)
+        a[ACC_LAM_BASE] = math.exp(-self.dt / CHANGE_BASE_S)
+        a[ACC_REARM] = a[ACC_REARM_N] = float(math.ceil(st.change_rearm_s / self.dt))
         self._p[:] = self._prior
 
     def restart_filter(self) -> None:
@@ -355,10 +420,26 @@ class SvfEstimator:
         return out
 
     @property
+    def changes(self) -> int:
+        """Changes the residual test has detected (each discounted the information)."""
+        return int(self._acc[ACC_ALARMS])
+
+    @property
+    def frozen(self) -> int:
+        """Rows the dead zone has held back so far (the estimate does not move while it does)."""
+        return int(self._counts[4])
+
+    @property
+    def residual_ratio(self) -> float:
+        """The residual's short-term power over its baseline (nan before both exist)."""
+        base = self._acc[ACC_BASE]
+        return float(self._acc[ACC_FAST] / base) if base > 0.0 else math.nan
+
+    @property
     def counters(self) -> dict[str, int]:
         c = self._counts
         return {"samples": int(c[0]), "rejected_non_finite": int(c[1]), "rows": int(c[2]),
-                "solve_failures": int(c[3]), "frozen_unexcited": int(c[4])}
+                "solve_failures": int(c[3]), "frozen_unexcited": int(c[4]), "changes_detected": self.changes}
 
 
 def make_svf(dt: float, nominal: AxisParams, *, filter_hz: float, memory_s: float,

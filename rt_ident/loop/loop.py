@@ -46,6 +46,7 @@ import numpy as np
 
 from drivers.base import Backend, SampleBlock
 from drivers.errors import SpeedTrip, TravelLimitTrip
+from rt_ident.control.adaptation import ASSESS_EVERY
 from rt_ident.errors import RtIdentError
 from rt_ident.estimators.excitation_id import EQ18_N, EQ18_SIZE, eq18_accumulate, nrmse_from_sums
 from rt_ident.estimators.svf import NO_TRACE, TR_COLS
@@ -382,6 +383,7 @@ class IdentificationLoop(TelemetryWindow):
             self._fit_exchange(ctl, float(block.t[-1]), stats.ticks)
         if ctl is not None:
             self._control(ctl, block, states)
+            self.assess_turn(ctl, stats.ticks)
         self._check_safety(block, states)
         self._torque_estimate(trace)
         if self.on_telemetry is not None:
@@ -505,6 +507,15 @@ class IdentificationLoop(TelemetryWindow):
             ctl.poll()
         if not tk.schedule_torque(self.book_i, self.book_f, last, ctl.law.delay * self._per_tick, u):
             raise RtIdentError(f"more than {tk.SCHED_CAP} control torques in flight (delay {ctl.law.delay} ticks)")
+
+    def assess_turn(self, ctl, tick: int) -> None:
+        """The supervisor's look at the per-sample estimate's evidence, after the law and its redesign
+        step, every ASSESS_EVERY ticks (on ticks the fit exchange leaves free); every tick from a
+        detected change until its redesign."""
+        if getattr(ctl, "per_sample", None) is None:
+            return
+        if (tick - self.fit_phase) % ASSESS_EVERY == 1 or ctl.following:
+            ctl.assess()
 
     def control_turn(self, tick: int) -> bool:
         """Whether the supervisor takes its next redesign step on ``tick`` (every other tick, the axes

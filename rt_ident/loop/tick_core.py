@@ -377,8 +377,10 @@ class AxisCore:
         if code & (tk.PY_CONTROL | tk.PY_SAFETY | tk.PY_TELEMETRY | tk.SCHED_FULL):
             self._finish_in_python(loop, block, code, lateness_s)
             return True
-        if ctl is not None and ctl._pending and loop.control_turn(tick):
-            ctl.poll()
+        if ctl is not None:
+            if ctl._pending and loop.control_turn(tick):
+                ctl.poll()
+            loop.assess_turn(ctl, tick)
         if code & (tk.TEL_SENT | tk.TEL_DROPPED | tk.WINDOW_DUE):
             self._telemetry_sent(loop, code)
         if code & tk.FLUSH_SAMPLES:
@@ -454,6 +456,8 @@ class AxisCore:
             loop._control(ctl, block, states)
         elif ctl is not None and loop.control_turn(loop.stats.ticks):
             ctl.poll()
+        if ctl is not None:
+            loop.assess_turn(ctl, loop.stats.ticks)
         trace = self.trace(len(block))
         if code & (tk.PY_CONTROL | tk.PY_SAFETY):
             loop._check_safety(block, states)

@@ -79,6 +79,7 @@ def test_svf_freezes_instead_of_winding_up_when_the_excitation_stops():
     assert np.all(np.isfinite(h))
     assert np.abs(est.scaled - before).max() < 0.02     # frozen, not drifting on sensor noise
     assert est.counters["frozen_unexcited"] > 0.9 * n
+    assert est.changes == 0                             # the excitation dying away is not a plant change
 
 
 def test_svf_refuses_a_filter_too_close_to_the_sample_rate():
@@ -153,9 +154,11 @@ def _answer(sup, w, result):
     sup.poll()
 
 
-def _supervisor(per_sample):
+def _supervisor(per_sample, trust: str = "cross-check"):
+    """The cross-check tests run ``trust = "cross-check"`` (the fit's agreement is the gate); the
+    per-sample trust has its own tests (tests/control/test_trust.py)."""
     w = _Worker()
-    sup = Supervisor(ControlSettings(), P, tick=1e-3, torque_limit=1.0, reference=Hold(0.0), jobs=w,
+    sup = Supervisor(ControlSettings(trust=trust), P, tick=1e-3, torque_limit=1.0, reference=Hold(0.0), jobs=w,
                      per_sample=per_sample)
     return sup, w
 
@@ -165,7 +168,8 @@ def _ident(p: AxisParams, trusted=False):
 
 
 def _fake_svf(p: AxisParams):
-    return SimpleNamespace(ready=True, params=p, ci95=lambda: None, values=lambda: {}, counters={})
+    return SimpleNamespace(ready=True, params=p, ci95=lambda: None, values=lambda: {}, counters={}, changes=0,
+                           frozen=0)
 
 
 def test_redesign_follows_the_per_sample_estimate_only_when_the_frequency_fit_agrees():

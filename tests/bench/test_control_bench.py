@@ -1,0 +1,52 @@
+"""``rt-ident bench control`` (rt_ident.bench.control): its measures, its randomized set, and the
+adaptive loop it measures after a load change."""
+
+from __future__ import annotations
+
+import pytest
+
+from rt_ident.axis.params import AxisParams
+from rt_ident.bench import control as cb
+from rt_ident.config import load
+
+P = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110.0)
+
+
+def _applied(t, kind, **f):
+    return {"t": t, "kind": kind, "model": {k: getattr(P, k) * f.get(k, 1.0) for k in ("I1", "I2", "B", "K")}}
+
+
+def test_change_to_redesign_is_the_first_model_design_near_the_new_plant_after_the_change():
+    new = cb.changed_plant(P, {"I2": 3.0})
+    control = {"applied": [_applied(0.2, "model"), _applied(4.05, "conservative", I2=3.0),
+                           _applied(4.06, "model", I2=2.0), _applied(4.12, "model", I2=3.05),
+                           _applied(4.5, "model", I2=3.0)]}
+    assert cb.change_to_redesign(control, new, 4.0) == pytest.approx(0.12)
+    assert cb.change_to_redesign({"applied": [_applied(4.06, "model", I2=2.0)]}, new, 4.0) is None
+
+
+def test_random_cases_are_reproducible_and_inside_the_stated_ranges():
+    cases = cb.random_cases(30, seed=5)
+    assert cases == cb.random_cases(30, seed=5) and cases != cb.random_cases(30, seed=6)
+    for _, f, at, _seed in cases:
+        assert f and set(f) <= {"I1", "I2"} and 2.5 <= at <= 4.5
+        assert 1.5 <= f.get("I2", 2.0) <= 4.0 and 1.2 <= f.get("I1", 1.5) <= 2.0
+
+
+def test_summary_takes_medians_and_worsts_and_counts_what_is_missing():
+    rows = [{"adaptive_over_oracle": 1.0, "change_to_redesign_s": 0.1, "adaptive": {"fallbacks": 0}},
+            {"adaptive_over_oracle": 1.2, "change_to_redesign_s": None, "adaptive": {"fallbacks": 1}},
+            {"adaptive_over_oracle": 1.1, "change_to_redesign_s": 0.3, "adaptive": {"fallbacks": 0}}]
+    s = cb.summarize(rows)
+    assert s["adaptive_over_oracle"] == {"median": pytest.approx(1.1), "worst": 1.2, "missing": 0}
+    assert s["change_to_redesign_s"]["missing"] == 1 and s["change_to_redesign_s"]["worst"] == 0.3
+    assert s["adaptive_fallbacks"] == 1
+
+
+@pytest.mark.slow
+def test_after_i2_x3_with_a_50_ms_design_the_adaptive_loop_redesigns_within_150_ms_and_tracks_like_the_oracle():
+    row = cb.run_case(load("sim-load-change.toml"), "I2 x 3", {"I2": 3.0}, change_at=2.0, duration=3.0,
+                      cpu_latency=False)             # a 50 ms design: the figure does not depend on this host
+    assert row["change_to_redesign_s"] is not None and row["change_to_redesign_s"] <= 0.15, row
+    assert row["adaptive_over_oracle"] <= 1.1 and row["adaptive_over_fixed"] <= 0.7, row
+    assert row["adaptive"]["fallbacks"] == 0 and row["adaptive"]["stop"] is None

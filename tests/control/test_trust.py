@@ -1,0 +1,268 @@
+"""Per-sample trust in the supervisor (rt_ident.control.adaptation: assess, the audit, the inertia
+feedforward after a change, the quiet switch) and the change detector it reads
+(rt_ident.estimators.svf)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rt_ident.axis.excitation import schroeder_multisine
+from rt_ident.axis.params import AxisParams
+from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
+from rt_ident.control import adaptation as A
+from rt_ident.control.adaptation import ControlSettings, Supervisor, model_controller
+from rt_ident.control.law import C_INERTIA
+from rt_ident.control.reference import Hold
+from rt_ident.estimators.svf import SvfEstimator, SvfSettings
+
+P = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110.0)
+HEAVY = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
+DT = 2.9481e-5
+S = ControlSettings()
+
+
+class _Worker:
+    """The control process as the supervisor sees it: requests in, ``result`` out when set."""
+    ready = True
+
+    def __init__(self):
+        self.requests = []
+        self.result = None
+
+    def submit(self, req):
+        self.requests.append(req)
+        return True
+
+    def take(self):
+        out, self.result = ([self.result] if self.result is not None else []), None
+        return out
+
+    def unpack(self, msgs):
+        return msgs[-1] if msgs else None
+
+
+class _Estimate:
+    """A per-sample estimator whose estimate, intervals, change count and dead-zone count a test sets."""
+    ready = True
+
+    def __init__(self, p: AxisParams, half: float = 0.002):
+        self.p, self.half, self.changes, self.frozen = p, half, 0, 0
+
+    def values_array(self):
+        return np.array([self.p.I1, self.p.I2, self.p.B, self.p.K])
+
+    @property
+    def params(self):
+        return self.p
+
+    def ci95(self):
+        return {k: (getattr(self.p, k) * (1 - self.half), getattr(self.p, k) * (1 + self.half))
+                for k in ("I1", "I2", "B", "K")}
+
+    def values(self):
+        return {}
+
+    counters: dict = {}
+
+
+def _supervisor(est, **settings):
+    w = _Worker()
+    sup = Supervisor(ControlSettings(**settings), P, tick=1e-3, torque_limit=1.0, reference=Hold(0.0), jobs=w,
+                     per_sample=est)
+    sup.adopt(model_controller(P, 1e-3, S))
+    return sup, w
+
+
+def _looks(sup, n, dt=0.005):
+    for _ in range(n):
+        sup.t = sup.t + dt
+        sup.assess()
+
+
+def test_a_steady_narrow_per_sample_estimate_asks_for_a_redesign_with_no_frequency_fit():
+    est = _Estimate(HEAVY)
+    sup, w = _supervisor(est)
+    _looks(sup, S.trust_window - 1)
+    assert not sup._pending                               # the window is not full yet
+    _looks(sup, 1)
+    assert sup.own_trust and sup._pending
+    sup.poll()
+    assert len(w.requests) == 1 and w.requests[0]["params"]["I2"] == pytest.approx(HEAVY.I2)
+    assert sup.stats.trusted_at and sup.stats.checks_agreed == 0
+
+
+def test_a_moving_estimate_wide_intervals_or_a_frozen_estimator_are_no_evidence():
+    est = _Estimate(HEAVY)
+    sup, w = _supervisor(est)
+    for i in range(8):                                    # I2 climbing 1.5 % per look
+        est.p = AxisParams(I1=P.I1, I2=HEAVY.I2 * (1 + 0.015 * i), B=P.B, K=P.K)
+        _looks(sup, 1)
+    assert not sup.own_trust and not sup._pending
+    est.p, est.half = HEAVY, 0.2                          # steady, but the intervals are +-20 %
+    _looks(sup, 8)
+    assert not sup.own_trust and not sup._pending
+    est.half = 0.002
+    for _ in range(8):                                    # steady and narrow, but held back by the dead zone
+        est.frozen += 100
+        _looks(sup, 1)
+    assert not sup.own_trust and not sup._pending
+    _looks(sup, S.trust_window)
+    assert sup.own_trust and sup._pending
+
+
+def test_a_detected_change_restarts_the_window_and_is_not_held_back_by_the_redesign_interval():
+    est = _Estimate(HEAVY)
+    sup, w = _supervisor(est)
+    _looks(sup, S.trust_window)
+    sup.poll()
+    w.result = {"accepted": True, "controller": model_controller(HEAVY, 1e-3, S), "seq": 1}
+    sup.poll()
+    sup.poll()
+    assert sup.controller.model is not None and sup.controller.model.I2 == pytest.approx(HEAVY.I2)
+    heavier = AxisParams(I1=P.I1, I2=4 * P.I2, B=P.B, K=P.K)
+    est.p, est.changes = heavier, 1                       # 10 ms later the load changes again
+    _looks(sup, 1, dt=0.002)
+    assert sup.stats.changes_detected == 1 and not sup.own_trust
+    _looks(sup, S.trust_window, dt=0.001)                 # well inside redesign_interval_s of the last request
+    assert sup._pending
+    sup.poll()
+    assert len(w.requests) == 2 and w.requests[1]["params"]["I2"] == pytest.approx(heavier.I2)
+
+
+def test_the_inertia_feedforward_follows_the_estimate_after_a_change_and_returns_without_a_design():
+    est = _Estimate(P)
+    sup, _ = _supervisor(est)
+    est.p, est.changes = HEAVY, 1
+    _looks(sup, 1, dt=0.001)
+    assert sup.following
+    _looks(sup, 3, dt=0.001)                              # three looks that agree
+    c = sup.law.consts
+    assert c[C_INERTIA] == pytest.approx(HEAVY.I1 + HEAVY.I2)
+    assert sup.stats.feedforward_updates == 1
+    sup.t += A.FOLLOW_S + 0.01                            # no design for the new plant in time
+    sup.assess()
+    assert not sup.following and c[C_INERTIA] == pytest.approx(P.I1 + P.I2)
+
+
+def test_the_inertia_feedforward_does_not_follow_an_estimate_with_wide_intervals():
+    est = _Estimate(P)
+    sup, _ = _supervisor(est)
+    est.p, est.changes, est.half = HEAVY, 1, 0.3
+    _looks(sup, 5, dt=0.001)
+    assert sup.law.consts[C_INERTIA] == pytest.approx(P.I1 + P.I2) and sup.stats.feedforward_updates == 0
+
+
+def _ident(p: AxisParams):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(params=p, ci95=None, trusted=True)
+
+
+def test_the_audit_vetoes_and_rolls_back_to_the_last_design_it_agreed_with_then_lifts_the_veto():
+    est = _Estimate(P)
+    sup, w = _supervisor(est, audit_grace_s=0.0)
+    agreed = sup.controller
+    sup.t = 1.0
+    sup.offer(_ident(P), True)                            # the fit agrees with the design in force
+    sup.adopt(model_controller(HEAVY, 1e-3, S))           # later a design from the per-sample estimate alone
+    est.p = HEAVY
+    for t in (2.0, 2.1):                                  # the fit keeps seeing the nominal axis
+        sup.t = t
+        sup.offer(_ident(P), True)
+    assert sup.stats.audit_vetoes == 1 and sup.controller is agreed and sup.stats.fallbacks == 0
+    assert [e[1] for e in sup.stats.events[-2:]] == ["audit veto", "rolled back"]
+    _looks(sup, 8)
+    assert not sup.own_trust and not sup._pending         # vetoed: the per-sample evidence is not enough
+    sup.offer(_ident(HEAVY), True)                        # the fit now agrees: trust restored
+    _looks(sup, S.trust_window)
+    assert sup.own_trust and sup._pending
+
+
+def test_the_audit_waits_out_the_fits_lag_after_a_change():
+    est = _Estimate(P)
+    sup, _ = _supervisor(est, audit_grace_s=1.0)
+    est.p, est.changes = HEAVY, 1
+    _looks(sup, 1)
+    for t in (0.3, 0.5, 0.7):                             # the fit still averages the old plant in
+        sup.t = t
+        sup.offer(_ident(P), True)
+    assert sup.stats.audit_vetoes == 0
+    for t in (1.2, 1.4):
+        sup.t = t
+        sup.offer(_ident(P), True)
+    assert sup.stats.audit_vetoes == 1
+
+
+def test_a_finished_design_waits_for_a_tick_where_the_reference_does_not_accelerate():
+    est = _Estimate(HEAVY)
+    sup, w = _supervisor(est)
+    before = sup.controller
+    _looks(sup, S.trust_window)
+    sup.poll()
+    sup.now[A.NOW_REF + 2] = 0.5                          # the reference accelerates
+    w.result = {"accepted": True, "controller": model_controller(HEAVY, 1e-3, S), "seq": 1}
+    sup.poll()
+    sup.poll()
+    sup.t += 0.01
+    sup.poll()
+    assert sup.controller is before and sup._pending
+    sup.now[A.NOW_REF + 2] = 0.0
+    sup.poll()
+    assert sup.controller is not before and not sup._pending and sup.stats.accepted == 1
+
+
+def test_a_finished_design_is_switched_in_after_the_quiet_wait_even_mid_acceleration():
+    est = _Estimate(HEAVY)
+    sup, w = _supervisor(est)
+    before = sup.controller
+    _looks(sup, S.trust_window)
+    sup.poll()
+    sup.now[A.NOW_REF + 2] = 0.5
+    w.result = {"accepted": True, "controller": model_controller(HEAVY, 1e-3, S), "seq": 1}
+    sup.poll()
+    sup.poll()
+    assert sup.controller is before
+    sup.t += A.QUIET_WAIT_S + 0.001
+    sup.poll()
+    assert sup.controller is not before and sup.stats.accepted == 1
+
+
+def _excited(sim: PlantSimulator, seconds: float):
+    u = np.resize(schroeder_multisine(512, (1, 20), peak=0.3).signal, int(seconds / DT))
+    return sim.step_block(u)
+
+
+def _feed(est: SvfEstimator, b, block: int = 34) -> list[tuple[int, np.ndarray]]:
+    out = []
+    for i in range(0, len(b.theta1), block):
+        est.update_block(b.theta1[i:i + block], b.theta2[i:i + block], b.torque_meas[i:i + block])
+        out.append((est.changes, est.values_array()))
+    return out
+
+
+def test_the_svf_detects_an_inertia_step_within_5_ms_and_is_within_2_percent_50_ms_later():
+    sim = PlantSimulator(P, DT, sensors=SensorConfig(torque_meas_noise=5e-4), controller=HoldController(), seed=4)
+    est = SvfEstimator(DT, P, SvfSettings(q1=2 * math.pi / 2**17, q2=1e-7 / 7.96e-4))
+    _feed(est, _excited(sim, 1.0))
+    assert est.changes == 0                               # a second of a steady plant: no alarm
+    sim.set_params(HEAVY)
+    trail = _feed(est, _excited(sim, 0.2))
+    block_s = 34 * DT
+    first = next(i for i, (c, _) in enumerate(trail) if c > 0)
+    assert first * block_s <= 0.005, first * block_s
+    later = trail[first + int(round(0.05 / block_s))][1]
+    assert abs(later[1] / HEAVY.I2 - 1.0) < 0.02 and abs(later[0] / HEAVY.I1 - 1.0) < 0.02, later
+
+
+def test_the_svf_without_its_detector_takes_several_memory_constants_for_the_same_step():
+    sim = PlantSimulator(P, DT, sensors=SensorConfig(torque_meas_noise=5e-4), controller=HoldController(), seed=4)
+    est = SvfEstimator(DT, P, SvfSettings(q1=2 * math.pi / 2**17, q2=1e-7 / 7.96e-4, change_discount=1.0,
+                                          change_threshold=1e300))
+    _feed(est, _excited(sim, 1.0))
+    sim.set_params(HEAVY)
+    trail = _feed(est, _excited(sim, 0.2))
+    at_60_ms = trail[int(round(0.06 / (34 * DT)))][1]
+    assert est.changes == 0 and abs(at_60_ms[1] / HEAVY.I2 - 1.0) > 0.1, at_60_ms
