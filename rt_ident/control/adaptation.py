@@ -533,9 +533,11 @@ class Supervisor:
                                f"{getattr(ident.params, worst):.4g} ({100 * rel:.1f} %)"
         return p, None, False, None
 
-    def assess(self) -> None:
+    def assess(self, window: bool = True) -> None:
         """Every ASSESS_EVERY ticks (``trust = "per-sample"``): the per-sample estimate's own evidence
-        (see the module docstring); trusted, it asks for a redesign when due."""
+        (see the module docstring); trusted, it asks for a redesign when due. ``window=False`` (the
+        ticks between, while :attr:`following`): the inertia feedforward only; the window keeps its
+        5 ms spacing."""
         est = self.per_sample
         if est is None or self.s.mode != "adaptive" or self.s.trust != "per-sample":
             return
@@ -558,6 +560,8 @@ class Supervisor:
         v = est.values_array()
         if self._following:
             self._follow_inertia(float(v[0] + v[1]))
+        if not window:
+            return
         win = self._win
         win[self._win_n % win.shape[0]] = v
         self._win_n += 1

@@ -33,7 +33,10 @@ Two designs:
 
 :func:`loop_margins` breaks the loop at the controller output (before the delay):
 ``L(z) = G (zI - A_z)^{-1} B_z`` for a plant (the true one, or one of a family), and reads
-gain and phase margins with ``control.stability_margins``. The loop is conditionally stable
+gain and phase margins from ``1 + L = det(zI - A_cl) / det(zI - A_z)`` on the unit circle
+(its crossings bracketed on a grid and refined on L itself; ``control.stability_margins`` was
+~3x slower, reported crossings that are not there near a lightly damped mode, and did not count
+one at z = -1). The loop is conditionally stable
 (a double integrator plus the integral action), so there is a *lower* gain margin (how much
 the gain may drop) as well as an upper one; both are checked.
 """
@@ -174,7 +177,7 @@ def loop_gain_view(G: np.ndarray, p: AxisParams, tick: float, n: int = 200) -> d
     z = np.exp(2j * math.pi * f * tick)
     eye = np.eye(Az.shape[0])
     # L(z) = G (zI - Az)^-1 Bz; the loop's sign convention u = -G x makes -L the open-loop gain
-    # whose Nyquist plot is checked against -1 (as control.stability_margins does with L)
+    # whose Nyquist plot is checked against -1 (as loop_margins does with L)
     L = np.array([(Gr @ np.linalg.solve(zi * eye - Az, Bz))[0, 0] for zi in z])
     with np.errstate(divide="ignore"):
         mag = 20.0 * np.log10(np.abs(L))
@@ -184,60 +187,106 @@ def loop_gain_view(G: np.ndarray, p: AxisParams, tick: float, n: int = 200) -> d
 
 
 def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
-    """Margins of the loop G on plant ``p`` (broken at the controller output)."""
+    """Margins of the loop G on plant ``p`` (broken at the controller output).
+
+    With ``u = -G x`` the return difference is ``1 + L(z) = det(zI - A_cl) / det(zI - A_z)``
+    (the matrix determinant lemma, A_cl = A_z - B_z G), so L on the unit circle is a ratio of
+    products over the closed- and the open-loop eigenvalues: no polynomial coefficients, no
+    optimizer. Crossings are bracketed on a log grid (densified around each lightly damped pole)
+    and bisected on L itself; a crossing of the negative real axis at Nyquist (z = -1) counts."""
     Az, Bz = sampled_model(p, tick, delay_of(G))
     Gr = np.asarray(G, dtype=float).reshape(1, -1)
-    radius = float(np.abs(np.linalg.eigvals(Az - Bz @ Gr)).max())
     if not np.all(np.isfinite(Gr)):
         return Margins(math.inf, -math.inf, math.inf, -math.inf)
-    L = ct.ss(Az, Bz, Gr, np.zeros((1, 1)), tick)
-    gm, pm, _, w_pc, w_gc, _ = ct.stability_margins(L, returnall=True)
-    gm, w_pc = np.atleast_1d(np.asarray(gm, dtype=float)), np.atleast_1d(np.asarray(w_pc, dtype=float))
-    pm, w_gc = np.atleast_1d(np.asarray(pm, dtype=float)), np.atleast_1d(np.asarray(w_gc, dtype=float))
-    # python-control 0.10.2 finds a discrete loop's crossings as polynomial roots on the unit circle,
-    # and near a lightly damped mode it reports crossings that are not there (python-control issues
-    # #465, #523), e.g. a "gain crossing" with a 2 deg phase margin where |L| = 0.42, which refuses a
-    # sound design. Each crossing is checked on L itself.
-    resp = _loop_response(Az, Bz, Gr, tick)
-    if pm.size:
-        Lg = resp(w_gc)
-        pm = pm[np.abs(np.abs(Lg) - 1.0) <= _CROSSING_TOL]
-    if gm.size:
-        Lp = resp(w_pc)
-        gm = gm[(np.abs(Lp.imag) <= _CROSSING_TOL * np.maximum(np.abs(Lp), 1e-300)) & (Lp.real < 0)]
-    gm = gm[np.isfinite(gm) & (gm > 0)]
-    up = gm[gm > 1.0]
-    down = gm[gm < 1.0]
+    mu = np.linalg.eigvals(Az - Bz @ Gr)
+    lam = _open_loop_poles(p, tick, delay_of(G))
+    radius = float(np.abs(mu).max())
+    gm_up, gm_down, pm = _crossing_margins(mu, lam, tick)
+    return Margins(radius, gm_up, gm_down, pm)
+
+
+def _open_loop_poles(p: AxisParams, tick: float, delay: int) -> np.ndarray:
+    """The eigenvalues of the design model's A_z, from its structure rather than a numerical
+    eigensolver (which returns a triple eigenvalue at 1 or a d-fold one at 0 only to eps^(1/3) and
+    eps^(1/d)): ordered (torques in flight, plant, integral) A_z is block lower triangular, so they
+    are d zeros (the shift register), exp(T s) of the plant's continuous poles (a double 0: the rigid
+    body, 1 after sampling; the flexible pair) and 1 (the integral)."""
+    A, _ = state_space(p)
+    s = np.linalg.eigvals(A)
+    flex = s[np.argsort(-np.abs(s))[:2]]                 # the rigid body's double 0 is the smallest pair
+    return np.concatenate([np.zeros(delay), np.ones(3), np.exp(flex * tick)]).astype(complex)
+
+
+def _return_ratio(mu: np.ndarray, lam: np.ndarray, tick: float) -> Callable[[np.ndarray], np.ndarray]:
+    """w [rad/s] -> L(e^{j w T}) = prod(z - mu) / prod(z - lam) - 1."""
+    def L(w: np.ndarray) -> np.ndarray:
+        z = np.exp(1j * np.asarray(w, dtype=float) * tick)[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.prod((z - mu) / (z - lam), axis=1) - 1.0
+    return L
+
+
+def _grid(lam: np.ndarray, tick: float) -> np.ndarray:
+    """A log grid from 1e-6 of Nyquist to Nyquist, densified around each pole near the unit circle."""
+    wn = math.pi / tick
+    parts = [np.geomspace(wn * 1e-6, wn * (1.0 - 1e-9), 2000)]
+    for v in lam:
+        ang, r = abs(float(np.angle(v))), float(abs(v))
+        if r < 0.5 or not 0.0 < ang < math.pi:
+            continue
+        width = max(1.0 - r, 1e-5)                      # a pole's half-power width in z ~ its distance to |z| = 1
+        parts.append(np.clip(ang + width * np.linspace(-20.0, 20.0, 81), 1e-6 * math.pi, math.pi * (1 - 1e-9))
+                     / tick)
+    return np.unique(np.concatenate(parts))
+
+
+def _crossing_margins(mu: np.ndarray, lam: np.ndarray, tick: float) -> tuple[float, float, float]:
+    """(upper gain margin dB, lower gain margin dB, smallest |phase margin| deg) of L (see loop_margins)."""
+    L = _return_ratio(mu, lam, tick)
+    w = _grid(lam, tick)
+    v = L(w)
+    ok = np.isfinite(v)
+    both = ok[:-1] & ok[1:]
+    mag, im = np.abs(v) - 1.0, v.imag
+    gi = np.flatnonzero(both & (np.sign(mag[:-1]) * np.sign(mag[1:]) < 0))     # |L| crosses 1
+    pi_ = np.flatnonzero(both & (np.sign(im[:-1]) * np.sign(im[1:]) < 0))     # L crosses the real axis
+    lo = np.concatenate([w[gi], w[pi_]])
+    hi = np.concatenate([w[gi + 1], w[pi_ + 1]])
+    is_gain = np.arange(lo.size) < gi.size
+
+    def f(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        lx = L(x)
+        return np.where(is_gain, np.abs(lx) - 1.0, lx.imag), lx
+
+    lx = np.zeros(0, dtype=complex)
+    if lo.size:                                          # regula falsi (Illinois), all brackets together
+        flo, fhi = f(lo)[0], f(hi)[0]
+        x = lo
+        for _ in range(_REFINE_STEPS):
+            x = hi - fhi * (hi - lo) / (fhi - flo)
+            fx, lx = f(x)
+            same = np.sign(fx) == np.sign(fhi)
+            # the end that stays keeps half its value when the other moves twice in a row (Illinois)
+            flo = np.where(same, flo * 0.5, fhi)
+            lo = np.where(same, lo, hi)
+            hi, fhi = x, fx
+        if not lx.size:
+            lx = f(x)[1]
+    lg, lp = lx[is_gain], lx[~is_gain]
+    pms = np.remainder(np.angle(lg, deg=True) + 360.0, 360.0) - 180.0          # 180 + phase, in (-180, 180]
+    gms = [1.0 / abs(x) for x in lp if x.real < 0 and abs(x) > 0]
+    end = complex(L(np.array([math.pi / tick]))[0])      # z = -1: L is real there
+    if math.isfinite(end.real) and end.real < 0:
+        gms.append(1.0 / abs(end.real))
+    g = np.array(gms, dtype=float)
+    up, down = g[g > 1.0], g[g < 1.0]
     gm_up = 20.0 * math.log10(up.min()) if up.size else math.inf
     gm_down = 20.0 * math.log10(down.max()) if down.size else -math.inf
-    pm = pm[np.isfinite(pm)]
-    pm_min = float(np.abs(pm).min()) if pm.size else math.inf
-    return Margins(radius, gm_up, gm_down, pm_min)
+    pm = float(np.abs(pms).min()) if pms.size else math.inf
+    return gm_up, gm_down, pm
 
 
-_CROSSING_TOL = 0.02   # a reported crossing is kept when |L| is within 2 % of 1 (gain) or L within 2 % of real (phase)
-
-
-def _loop_response(Az: np.ndarray, Bz: np.ndarray, Gr: np.ndarray,
-                   tick: float) -> Callable[[np.ndarray], np.ndarray]:
-    """w [rad/s] -> L(e^{j w T}) = G (zI - A)^{-1} B, evaluated directly (no polynomial form)."""
-    n = Az.shape[0]
-    eye = np.eye(n)
-
-    def resp(w: np.ndarray) -> np.ndarray:
-        out = np.empty(w.shape, dtype=complex)
-        for i, wi in enumerate(w):
-            if not np.isfinite(wi):
-                out[i] = np.nan
-                continue
-            z = np.exp(1j * wi * tick)
-            try:
-                out[i] = (Gr @ np.linalg.solve(z * eye - Az, Bz))[0, 0]
-            except np.linalg.LinAlgError:         # on a pole (the integrators at w = 0): no crossing
-                out[i] = np.nan
-        return out
-
-    return resp
+_REFINE_STEPS = 8   # Illinois steps: a grid bracket (< 1 % of w) to round-off
 
 
 @dataclass(frozen=True)

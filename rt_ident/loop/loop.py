@@ -514,8 +514,9 @@ class IdentificationLoop(TelemetryWindow):
         detected change until its redesign."""
         if getattr(ctl, "per_sample", None) is None:
             return
-        if (tick - self.fit_phase) % ASSESS_EVERY == 1 or ctl.following:
-            ctl.assess()
+        turn = (tick - self.fit_phase) % ASSESS_EVERY == 1
+        if turn or ctl.following:
+            ctl.assess(turn)
 
     def control_turn(self, tick: int) -> bool:
         """Whether the supervisor takes its next redesign step on ``tick`` (every other tick, the axes

@@ -52,6 +52,64 @@ def test_margin_check_rejects_a_design_too_fast_for_its_phase_margin():
     assert not check.ok and "phase margin" in check.reason
 
 
+def _direct_margins(G: np.ndarray, p: AxisParams, tick: float) -> tuple[float, float, float]:
+    """The oracle, another way: L = G (zI - A)^-1 B solved at each point of a dense log grid, every
+    sign change of |L| - 1 and of Im L (Re L < 0) solved with Brent's method, and z = -1."""
+    from scipy.optimize import brentq
+
+    Az, Bz = sampled_model(p, tick, G.size - 5)
+    Gr, eye = G.reshape(1, -1), np.eye(Az.shape[0])
+
+    def L(x: float) -> complex:
+        return complex((Gr @ np.linalg.solve(np.exp(1j * x * tick) * eye - Az, Bz))[0, 0])
+
+    w = np.geomspace(np.pi / tick * 1e-6, np.pi / tick * (1 - 1e-9), 6000)
+    v = np.array([L(x) for x in w])
+    gms, pms = [], []
+    for i in np.flatnonzero(np.sign(np.abs(v[:-1]) - 1) * np.sign(np.abs(v[1:]) - 1) < 0):
+        r = brentq(lambda x: abs(L(x)) - 1.0, w[i], w[i + 1], xtol=1e-13 * w[i])
+        pms.append(abs((np.angle(L(r), deg=True) + 360.0) % 360.0 - 180.0))
+    for i in np.flatnonzero(np.sign(v[:-1].imag) * np.sign(v[1:].imag) < 0):
+        r = brentq(lambda x: L(x).imag, w[i], w[i + 1], xtol=1e-13 * w[i])
+        if L(r).real < 0:
+            gms.append(1.0 / abs(L(r)))
+    end = L(np.pi / tick)
+    if end.real < 0:
+        gms.append(1.0 / abs(end))
+    g = np.array(gms)
+    up, down = g[g > 1.0], g[g < 1.0]
+    return (20 * np.log10(up.min()) if up.size else np.inf, 20 * np.log10(down.max()) if down.size else -np.inf,
+            min(pms) if pms else np.inf)
+
+
+def test_loop_margins_agree_with_a_direct_dense_grid_computation_on_random_plants_designs_delays_and_ticks():
+    rng = np.random.default_rng(7)
+    light = AxisParams(I1=1.0e-5, I2=2.5e-5, B=1.0e-3, K=60.0)
+    for trial in range(30):
+        base = P if trial % 2 else light
+        f, g = np.exp(rng.uniform(np.log(0.3), np.log(3.0), 4)), np.exp(rng.uniform(np.log(0.5), np.log(2.0), 4))
+        plant = _scaled(base, I1=f[0], I2=f[1], B=f[2], K=f[3])
+        model = _scaled(plant, I1=g[0], I2=g[1], B=g[2], K=g[3])
+        tick = T if trial % 3 else 5e-4
+        G = design_lqr(model, tick, float(rng.uniform(5, 40)), delay=int(rng.integers(1, 3)))
+        _assert_margins_agree(G, plant, tick, trial)
+
+
+def _assert_margins_agree(G: np.ndarray, plant: AxisParams, tick: float, what) -> None:
+    ours = loop_margins(G, plant, tick)
+    ref = _direct_margins(G, plant, tick)
+    for got, want in zip((ours.gm_up_db, ours.gm_down_db, ours.pm_deg), ref):
+        assert got == pytest.approx(want, abs=0.01) or (np.isinf(want) and got == want), (what, ours, ref)
+
+
+@pytest.mark.parametrize("tick,delay", [(3e-4, 1), (3e-4, 5), (1e-2, 1), (1e-3, 5)])
+def test_loop_margins_agree_with_the_direct_computation_for_slow_loops_fast_ticks_and_long_delays(tick, delay):
+    # the lower gain margin of a slow loop sits close to z = 1, where the design model has three poles
+    for bw in (1.0, 2.5):
+        _assert_margins_agree(design_rigid(P.I1 + P.I2, tick, bw, delay=delay), P, tick, ("rigid", bw))
+    _assert_margins_agree(design_lqr(P, tick, min(20.0, 0.2 / tick), delay=delay), P, tick, "model")
+
+
 def test_family_includes_each_parameter_scaled_and_the_ci95_corners():
     ci = {k: (getattr(P, k) * 0.9, getattr(P, k) * 1.1) for k in ("I1", "I2", "B", "K")}
     fam = plant_family(P, (0.7, 1.3), ci)
