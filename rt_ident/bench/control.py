@@ -316,8 +316,8 @@ def control_comparison(result: dict[str, Any], path: str | Path) -> Path:
     colors = {"fixed": "#7f7f7f", "adaptive": "#1f77b4", "oracle": "#2ca02c"}
     x = np.arange(len(rows))
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for ax, key, title in ((axes[0], "rms_error_m", "RMS after the change"),
-                           (axes[1], "max_error_m", "max after the change")):
+    for ax, key, title in ((axes[0], "rms_error_m", "RMS from the change on"),
+                           (axes[1], "max_error_m", "max from the change on")):
         for i, m in enumerate(modes):
             vals = [1e6 * (r[m][key] or np.nan) for r in rows]
             ax.bar(x + (i - 1) * 0.27, vals, 0.27, label=m, color=colors[m])
