@@ -53,6 +53,11 @@ def test_summary_reports_host_steal_time_around_the_loop(recorded):
 
 def test_loop_final_estimate_equals_identify_on_its_own_recording(recorded):
     s, rec, _ = recorded
+    if s["loop"]["stalls"]["count"]:
+        # after a stall the loop leaves the excitation periods it touched out of the fit, and the
+        # recording does not carry the stall: the two are then not the same computation
+        pytest.skip(f"the loop stalled ({s['loop']['stalls']['count']}x, longest "
+                    f"{s['loop']['stalls']['longest_ms']:.0f} ms): a replay cannot see it")
     ident, info = identify_file(rec)
     assert info["how"].startswith("replay") and "streamed" in info["how"]   # row group by row group
     for k in PARAMS:
