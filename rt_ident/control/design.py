@@ -34,11 +34,10 @@ Two designs:
 :func:`loop_margins` breaks the loop at the controller output (before the delay):
 ``L(z) = G (zI - A_z)^{-1} B_z`` for a plant (the true one, or one of a family), and reads
 gain and phase margins from ``1 + L = det(zI - A_cl) / det(zI - A_z)`` on the unit circle
-(its crossings bracketed on a grid and refined on L itself; ``control.stability_margins`` was
-~3x slower, reported crossings that are not there near a lightly damped mode, and did not count
-one at z = -1). The loop is conditionally stable
-(a double integrator plus the integral action), so there is a *lower* gain margin (how much
-the gain may drop) as well as an upper one; both are checked.
+(its crossings bracketed on a grid and refined on L itself: no polynomial roots, which near a
+lightly damped mode give crossings that are not there; a crossing at z = -1 counts). The loop
+is conditionally stable (a double integrator plus the integral action), so there is a *lower*
+gain margin (how much the gain may drop) as well as an upper one; both are checked.
 """
 
 from __future__ import annotations
