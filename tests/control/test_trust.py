@@ -17,31 +17,12 @@ from rt_ident.control.adaptation import ControlSettings, Supervisor, model_contr
 from rt_ident.control.law import C_INERTIA
 from rt_ident.control.reference import Hold
 from rt_ident.estimators.svf import SvfEstimator, SvfSettings
+from tests.estimators.test_svf import FakeControlProcess
 
 P = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110.0)
 HEAVY = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
 DT = 2.9481e-5
 S = ControlSettings()
-
-
-class _Worker:
-    """The control process as the supervisor sees it: requests in, ``result`` out when set."""
-    ready = True
-
-    def __init__(self):
-        self.requests = []
-        self.result = None
-
-    def submit(self, req):
-        self.requests.append(req)
-        return True
-
-    def take(self):
-        out, self.result = ([self.result] if self.result is not None else []), None
-        return out
-
-    def unpack(self, msgs):
-        return msgs[-1] if msgs else None
 
 
 class _Estimate:
@@ -69,7 +50,7 @@ class _Estimate:
 
 
 def _supervisor(est, **settings):
-    w = _Worker()
+    w = FakeControlProcess()
     sup = Supervisor(ControlSettings(**settings), P, tick=1e-3, torque_limit=1.0, reference=Hold(0.0), jobs=w,
                      per_sample=est)
     sup.adopt(model_controller(P, 1e-3, S))
@@ -196,9 +177,9 @@ def test_the_audit_waits_out_the_fits_lag_after_a_change():
     assert sup.stats.audit_vetoes == 1
 
 
-def test_a_finished_design_waits_for_a_tick_where_the_reference_does_not_accelerate():
-    est = _Estimate(HEAVY)
-    sup, w = _supervisor(est)
+def _design_arrives_mid_acceleration():
+    """A supervisor whose finished design arrives while the reference accelerates; its controller before."""
+    sup, w = _supervisor(_Estimate(HEAVY))
     before = sup.controller
     _looks(sup, S.trust_window)
     sup.poll()
@@ -206,6 +187,11 @@ def test_a_finished_design_waits_for_a_tick_where_the_reference_does_not_acceler
     w.result = {"accepted": True, "controller": model_controller(HEAVY, 1e-3, S), "seq": 1}
     sup.poll()
     sup.poll()
+    return sup, before
+
+
+def test_a_finished_design_waits_for_a_tick_where_the_reference_does_not_accelerate():
+    sup, before = _design_arrives_mid_acceleration()
     sup.t += 0.01
     sup.poll()
     assert sup.controller is before and sup._pending
@@ -215,15 +201,7 @@ def test_a_finished_design_waits_for_a_tick_where_the_reference_does_not_acceler
 
 
 def test_a_finished_design_is_switched_in_after_the_quiet_wait_even_mid_acceleration():
-    est = _Estimate(HEAVY)
-    sup, w = _supervisor(est)
-    before = sup.controller
-    _looks(sup, S.trust_window)
-    sup.poll()
-    sup.now[A.NOW_REF + 2] = 0.5
-    w.result = {"accepted": True, "controller": model_controller(HEAVY, 1e-3, S), "seq": 1}
-    sup.poll()
-    sup.poll()
+    sup, before = _design_arrives_mid_acceleration()
     assert sup.controller is before
     sup.t += A.QUIET_WAIT_S + 0.001
     sup.poll()

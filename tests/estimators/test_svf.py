@@ -121,7 +121,7 @@ def test_svf_tracks_a_20_percent_inertia_step_in_closed_loop():
     assert abs(r["error_at_0_2_s"]["I2"]) < 0.05, r
 
 
-class _Worker:
+class FakeControlProcess:
     """The control process as the supervisor sees it: requests in, ``result`` out when set."""
     ready = True
 
@@ -157,7 +157,7 @@ def _answer(sup, w, result):
 def _supervisor(per_sample, trust: str = "cross-check"):
     """The cross-check tests run ``trust = "cross-check"`` (the fit's agreement is the gate); the
     per-sample trust has its own tests (tests/control/test_trust.py)."""
-    w = _Worker()
+    w = FakeControlProcess()
     sup = Supervisor(ControlSettings(trust=trust), P, tick=1e-3, torque_limit=1.0, reference=Hold(0.0), jobs=w,
                      per_sample=per_sample)
     return sup, w
