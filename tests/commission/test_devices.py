@@ -64,16 +64,11 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
     # real time, as on a bench: the board's link (a frame every 50 us, 0.05 s timeouts) and the drive's
     # 2 kHz SYNC next to pytest's other workers need it
     cfg = device_cfg(name, {**actual, "x0": 0.01}, loop={"realtime": True})
-    for attempt in range(3):
-        r = commission(cfg, tmp_path / f"out{attempt}")
-        assert r["verdict"] == "fail", r["checks"]
-        if r["max_travel_m"] is not None:
-            assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
-        # a host too late for the probe's torque plans (pytest's other workers) is named as such, rightly:
-        # the probe is run again; what is checked is the key named when the host kept time
-        if not r["failed"]["fix"].startswith("loop.realtime"):
-            break
+    r = commission(cfg, tmp_path / "out")
+    assert r["verdict"] == "fail", r["checks"]
     # the key first, or (the board's encoder check stopped it before the host saw the motion) among those named
     named = r["failed"]["fix"].split(":")[0]
     assert named.startswith(key) or key.removeprefix("backend.") in named, (r["failed"], r.get("pulses"))
+    if r["max_travel_m"] is not None:
+        assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
 
