@@ -292,7 +292,10 @@ def test_a_run_hands_every_snapshot_to_the_fit_worker_from_the_kernel(monkeypatc
     # snapshots reached the job process's ring (its message count), none through the Python put; beside a busy
     # machine the (niced) jobs may not have answered yet, so its estimates are not counted on here
     (jobs,) = workers
-    assert jobs._in.compiled_views()[0][1] >= 1 and "SpectraSums" not in submitted
+    assert jobs._in.compiled_views()[0][1] >= 1
+    # the tick after a loop stall is the Python path's (it re-plans), and a snapshot due on it goes through
+    # the Python put: at most one per stall; none without one
+    assert submitted.count("SpectraSums") <= s["loop"]["stalls"]["count"], (submitted, s["loop"]["stalls"])
 
 
 def test_a_recorder_that_dies_under_the_compiled_tick_stops_the_run(tmp_path):
