@@ -102,6 +102,11 @@ SWITCH_BUMP = 0.002
 DAMPING_TOLERANCE = 0.25
 
 
+def _tolerance(key: str, tol: float) -> float:
+    """``tol`` for I1, I2, K; at least DAMPING_TOLERANCE for B."""
+    return max(tol, DAMPING_TOLERANCE) if key == "B" else tol
+
+
 def _narrow(ci95: dict[str, tuple[float, float]] | None, tol: float) -> bool:
     """Whether every 95 % interval is finite and its half-width within ``tol`` of its centre (B: within
     DAMPING_TOLERANCE)."""
@@ -112,20 +117,17 @@ def _narrow(ci95: dict[str, tuple[float, float]] | None, tol: float) -> bool:
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         if not (math.isfinite(lo) and math.isfinite(hi) and mid > 0.0 and half >= 0.0):
             return False
-        if half > (max(tol, DAMPING_TOLERANCE) if k == "B" else tol) * mid:
+        if half > _tolerance(k, tol) * mid:
             return False
     return True
 
 
 def worst_difference(p: AxisParams, q: AxisParams, tol: float) -> tuple[str, float, bool]:
     """(the parameter of ``p`` furthest from ``q`` relative to its tolerance, its relative difference,
-    whether it is within): ``tol`` for I1, I2, K, at least DAMPING_TOLERANCE for B."""
-    def limit(k: str) -> float:
-        return max(tol, DAMPING_TOLERANCE) if k == "B" else tol
-
-    worst = max(KEYS, key=lambda k: abs(getattr(p, k) / getattr(q, k) - 1.0) / limit(k))
+    whether it is within :func:`_tolerance`)."""
+    worst = max(KEYS, key=lambda k: abs(getattr(p, k) / getattr(q, k) - 1.0) / _tolerance(k, tol))
     rel = abs(getattr(p, worst) / getattr(q, worst) - 1.0)
-    return worst, rel, rel <= limit(worst)
+    return worst, rel, rel <= _tolerance(worst, tol)
 
 
 class ControlFallbackStop(RtIdentError):
@@ -469,11 +471,13 @@ class Supervisor:
         """Switch to ``ctrl`` now, bumplessly (e.g. an oracle design in a benchmark)."""
         self._switch(ctrl)
 
+    def _state_and_reference(self) -> tuple[float, float, float, float, float, float, float]:
+        """(th1, w1, th2, w2, x_ref, v_ref, a_ref) the newest tick saw."""
+        th1, w1, th2, w2, xr, vr, ar = (float(v) for v in self.now[NOW_STATE:NOW_REF + 3])
+        return th1, w1, th2, w2, xr, vr, ar
+
     def _switch(self, ctrl: Controller) -> None:
-        n = self.now
-        th1, w1, th2, w2 = (float(v) for v in n[NOW_STATE:NOW_STATE + 4])
-        xr, vr, ar = (float(v) for v in n[NOW_REF:NOW_REF + 3])
-        step = self.law.switch(ctrl, th1, w1, th2, w2, xr, vr, ar, self.lead)
+        step = self.law.switch(ctrl, *self._state_and_reference(), self.lead)
         st = self.stats
         st.max_step_nm = max(st.max_step_nm, abs(step))
         st.applied.append((self.t, ctrl.kind, ctrl.model))
@@ -609,7 +613,7 @@ class Supervisor:
         seen[0], seen[1], seen[2] = seen[1], seen[2], inertia
         nom = self.nominal.I1 + self.nominal.I2
         lo, hi = self.s.plausible
-        if not (bool(np.all(np.isfinite(seen))) and bool(np.all(seen >= lo * nom)) and bool(np.all(seen <= hi * nom))):
+        if not bool(np.all((seen >= lo * nom) & (seen <= hi * nom))):      # NaN (no look yet) fails too
             return
         if (seen.max() - seen.min()) > 2.5 * self.s.settle_tolerance * inertia:
             return
@@ -644,7 +648,8 @@ class Supervisor:
     def _audit(self, agreed: bool, why: str | None) -> None:
         """The frequency fit's verdict on the per-sample estimate: agreeing lifts a veto; disagreeing
         ``audit_vetoes`` times in a row outside the grace after a change vetoes the per-sample trust
-        and rolls a model controller back to the conservative one."""
+        and rolls a model controller back to the last design the fit agreed with (the conservative
+        one when there is none)."""
         if agreed:
             self._disagreements = 0
             if self.controller.kind == "model":
@@ -777,12 +782,9 @@ class Supervisor:
         starts no transient), or QUIET_WAIT_S has passed since the design arrived."""
         if self.t - self._result_t >= QUIET_WAIT_S:
             return True
-        n = self.now
-        if abs(float(n[NOW_REF + 2])) > 0.0:
+        if abs(float(self.now[NOW_REF + 2])) > 0.0:
             return False
-        th1, w1, th2, w2 = (float(v) for v in n[NOW_STATE:NOW_STATE + 4])
-        xr, vr, ar = (float(v) for v in n[NOW_REF:NOW_REF + 3])
-        bump = self.law.bump(ctrl, th1, w1, th2, w2, xr, vr, ar, self.lead)
+        bump = self.law.bump(ctrl, *self._state_and_reference(), self.lead)
         return abs(bump) <= SWITCH_BUMP * self.law.limit
 
     def _adopt(self, res: dict[str, Any]) -> None:

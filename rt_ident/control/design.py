@@ -192,7 +192,7 @@ def loop_margins(G: np.ndarray, p: AxisParams, tick: float) -> Margins:
     (the matrix determinant lemma, A_cl = A_z - B_z G), so L on the unit circle is a ratio of
     products over the closed- and the open-loop eigenvalues: no polynomial coefficients, no
     optimizer. Crossings are bracketed on a log grid (densified around each lightly damped pole)
-    and bisected on L itself; a crossing of the negative real axis at Nyquist (z = -1) counts."""
+    and refined on L itself; a crossing of the negative real axis at Nyquist (z = -1) counts."""
     Az, Bz = sampled_model(p, tick, delay_of(G))
     Gr = np.asarray(G, dtype=float).reshape(1, -1)
     if not np.all(np.isfinite(Gr)):
@@ -269,8 +269,6 @@ def _crossing_margins(mu: np.ndarray, lam: np.ndarray, tick: float) -> tuple[flo
             flo = np.where(same, flo * 0.5, fhi)
             lo = np.where(same, lo, hi)
             hi, fhi = x, fx
-        if not lx.size:
-            lx = f(x)[1]
     lg, lp = lx[is_gain], lx[~is_gain]
     pms = np.remainder(np.angle(lg, deg=True) + 360.0, 360.0) - 180.0          # 180 + phase, in (-180, 180]
     gms = [1.0 / abs(x) for x in lp if x.real < 0 and abs(x) > 0]

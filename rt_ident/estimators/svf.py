@@ -430,12 +430,6 @@ class SvfEstimator:
         return int(self._counts[4])
 
     @property
-    def residual_ratio(self) -> float:
-        """The residual's short-term power over its baseline (nan before both exist)."""
-        base = self._acc[ACC_BASE]
-        return float(self._acc[ACC_FAST] / base) if base > 0.0 else math.nan
-
-    @property
     def counters(self) -> dict[str, int]:
         c = self._counts
         return {"samples": int(c[0]), "rejected_non_finite": int(c[1]), "rows": int(c[2]),
