@@ -109,6 +109,7 @@ def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, em
     # test_canopen_backend.py.
     extra = ({"backend.stale_limit": 200, "backend.heartbeat_consumer_ms": 1000} if config.startswith("canopen")
              else {})
+    extra["safety.watchdog_ticks"] = 200      # nor the host's own no-fresh-feedback watchdog (a stall next to pytest)
     cfg = load(CONFIG_DIR / config, **{**FAST, "loop.duration": duration, "loop.realtime": True, **extra})
     summary = run_mod.run(cfg)
     # the host's steal time and the loop's figures with a stop: a VM paused as a whole looks like this
