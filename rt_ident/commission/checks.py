@@ -54,9 +54,9 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
                else f"backend ({faulted[0].fault_cause})")
         out.append(check("device", False, fault, "no fault while probing", fix))
         return out
-    still = [q for q in pulses if q.breakaway_nm is None]
+    still = [q for q in pulses if q.breakaway_nm is None and not q.aborted]   # a limit's stop: the limits check
     brk = [q.breakaway_nm for q in pulses if q.breakaway_nm is not None]
-    late = [q for q in still if q.cap_held_s < CAP_HOLD_S]
+    late = [q for q in still if q.lapsed]
     if late:          # the host's plans lapsed: the cap was never in force long enough to tell
         q = late[0]
         out.append(check("motion", False, f"the torque cap was in force for {q.cap_held_s * 1e3:.0f} ms only; "

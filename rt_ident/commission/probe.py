@@ -1,19 +1,23 @@
 """Open-loop probing of an axis with small torque pulses, the host's position controller off.
 
 Each pulse, in one direction: the torque ramps up until the axis moves (the breakaway torque), on to that
-torque plus a push sized to reach a quarter of the speed limit in about 40 ms at the nominal inertia, then
-the same torque reversed until the impulse is back to zero (the momentum the pulse gave, taken back: exact
-without friction; summed from the torque the device's samples had in force), the speed has fallen to a
-twentieth of its peak (friction stopped it first), or twice the push has passed. This open-loop brake acts
-whatever the wiring's sign: the reversal is relative to the command and the speed a magnitude. Then zero
-torque. Every change of torque is a ramp. A pulse ends early once the table's speed would pass 0.4 x its
-limit within four ticks (at the host's own recent pace), or its distance from where the pulse started passes
-a quarter of the travel budget; if either limit is passed all the same, the pulse brakes and ends, and the
-check fails. Distance and speed are taken from both sensors, the scale (x) and the motor encoder (lead x
-theta1), and the larger is used: one wrong scaling cannot hide motion. Torque leaves the host as a short
-plan with a lease, so a stalled host leaves the axis coasting, not pushed; the ramp counts only the time its
-torque was in force, and "no motion" needs the cap in force for :data:`CAP_HOLD_S` (a late host's lapsed
-plans are reported as such, not as an axis that does not move).
+torque plus a push sized to reach a quarter of the speed limit in about 40 ms at the nominal inertia (none
+when the ramp alone already gave that speed), then a brake: the torque reversed, sized by the push's measured
+acceleration to take the speed back over :data:`BRAKE_TICKS` of the host's ticks or more, at the pace it keeps
+(a brake ended a tick early or late leaves a small fraction of the speed, whatever the torque's true scale),
+until the speed along the push's motion has fallen to a twentieth of its peak by either sensor (before it
+reverses), the impulse is back to zero (summed from the torque the device's samples had in force), or the
+brake has been in force for twice the push's time (and 3 x BRAKE_TICKS ticks). The brake acts whatever the
+wiring: it is relative to the command and to the signs the sensors moved in under the push. Then zero torque.
+Every change of torque is a ramp. The push ends early once the table's speed would pass 0.4 x its limit within
+four ticks (at the host's own recent pace), or its distance from where the pulse started passes a quarter of
+the travel budget; if either limit is passed all the same, the pulse brakes and ends, and the check fails.
+Distance and speed are taken from both sensors, the scale (x) and the motor encoder (lead x theta1), and the
+larger is used: one wrong scaling cannot hide motion. Torque leaves the host as a short plan with a lease, so
+a stalled host leaves the axis coasting, not pushed (once the brake has shown its deceleration, its plan holds
+it to half the predicted stop instead); the ramp counts only the time its torque was in force, and "no motion"
+needs the cap in force for :data:`CAP_HOLD_S` (a late host's lapsed plans are reported as such, not as an axis
+that does not move).
 
 From the samples of a pulse: the direction theta1 and x moved in, the ratio dx/dtheta1 (a slope fit),
 and 1/J and the friction torque F from theta1(t) = c0 + c1 t + S(t)/J - F t^2 / (2 J), S the double
@@ -38,6 +42,12 @@ PUSH_TIME_S = 0.04
 CAP_HOLD_S = 0.05
 #: at rest: the drift would not pass the motion thresholds within this time [s]
 REST_S = 0.05
+#: a pulse whose plans lapsed (see :attr:`Pulse.lapsed`) is run again this many times before the check
+#: says the host was late: it did not move the table
+LAPSED_RETRIES = 2
+#: the brake takes the push's speed back over at least this many host ticks (at the push's own measured
+#: acceleration), so that ending it a tick late or early leaves a small fraction of that speed
+BRAKE_TICKS = 10
 
 
 @dataclass(frozen=True)
@@ -72,6 +82,13 @@ class Pulse:
     fault_cause: str | None = None
     starved: int = 0                          # samples with a torque commanded but none in force (late plans)
     cap_held_s: float = 0.0                   # time the cap was in force before the pulse gave up moving
+
+    @property
+    def lapsed(self) -> bool:
+        """It never moved, nor had the cap in force long enough to say the axis does not move (the host's
+        plans lapsed), and nothing else stopped it."""
+        return (self.breakaway_nm is None and self.cap_held_s < CAP_HOLD_S and not self.aborted
+                and not self.fault)
 
     def _own(self) -> tuple[np.ndarray, np.ndarray]:
         """theta1 and x from the pulse's start, the drift at rest taken out (a table without static
@@ -128,6 +145,13 @@ def _slope(t: np.ndarray, y: np.ndarray) -> float:
     return float(tc @ (y - y.mean()) / den) if den > 0 else 0.0
 
 
+def _brake_nm(push_nm: float, peak: float, push_dur: float, tick_s: float) -> float:
+    """A brake that takes ``peak`` back in BRAKE_TICKS host ticks of ``tick_s`` at the push's mean
+    acceleration (friction, not counted, only shortens it), never stronger than the push."""
+    a_push = peak / max(push_dur, tick_s)
+    return push_nm * min(1.0, peak / (BRAKE_TICKS * tick_s) / a_push) if a_push > 0 else push_nm
+
+
 class Prober:
     """Runs pulses on an active backend (see the module docstring)."""
 
@@ -153,8 +177,15 @@ class Prober:
             self.next_seq = int(blk.seq[-1]) + 1
         return blk
 
-    def _write(self, torque: float) -> None:
-        self.b.write(np.full(self.plan_len, torque), start_seq=self.next_seq, lease=self.lease)
+    def _write(self, torque: float, until: int | None = None) -> None:
+        """``torque`` from the next sample on, for the plan and its lease; with ``until``, for that many
+        samples and then zero, whether or not the host writes again."""
+        if until is None:
+            self.b.write(np.full(self.plan_len, torque), start_seq=self.next_seq, lease=self.lease)
+            return
+        plan = np.zeros(max(self.plan_len, until + 1))
+        plan[:until] = torque
+        self.b.write(plan, start_seq=self.next_seq, lease=0)
 
     def settle(self, seconds: float) -> None:
         """Zero torque for ``seconds``, measuring the drift; the first call fixes where the table stands."""
@@ -218,14 +249,23 @@ class Prober:
         out.max_travel_m, out.max_speed_m_s = self.max_travel, self.max_speed
         return out
 
+    @staticmethod
+    def _along(t: np.ndarray, theta1: np.ndarray, x: np.ndarray) -> tuple[int, int]:
+        """The signs theta1 and x are moving in (whatever the wiring)."""
+        return int(np.sign(_slope(t, theta1))) or 1, int(np.sign(_slope(t, x))) or 1
+
     def _pulse_loop(self, direction: int, out: Pulse, ts: list, th1s: list, xs: list, tqs: list, th0: float,
                     x0: float, push_target: float, ramp: float, slew: float, deadline: float) -> None:
         lim, b = self.lim, self.b
         phase, torque, target = "ramp", 0.0, 0.0
         ramp_per_s = ramp / lim.tick_s
         applied_s = 0.0                     # time with the ramp's torque in force
-        t_push = t_brake = push_dur = peak = impulse = 0.0
-        t_written = self._clock()
+        t_push = push_dur = peak = impulse = brake_s = 0.0
+        brake_tick = lim.tick_s
+        along = (0, 0)                         # the signs theta1 and x moved in under the push
+        braked: list[tuple[float, float]] = []   # (device time, speed along) with the brake in force
+        brake_n: int | None = None             # samples the brake holds on its own (None: a plan and lease)
+        t_written = t_looked = self._clock()
         pace = lim.tick_s
         rest = 0
         stale = 0
@@ -233,8 +273,9 @@ class Prober:
         p_x0 = 0.0
         while True:
             now = self._clock()
-            # the host's own pace: a late host looks further ahead (its next write may come that late)
-            pace = max(lim.tick_s, 0.8 * pace, now - t_written)
+            # the host's own pace (a write that blocks counts): a late host looks further ahead (its next
+            # write may come that late) and brakes over more of its ticks
+            pace, t_looked = max(lim.tick_s, 0.8 * pace, now - t_looked), now
             if now > deadline:
                 out.aborted = "the pulse did not end within 5 s"
                 break
@@ -273,9 +314,9 @@ class Prober:
                     out.aborted = (f"{'travel' if travel > lim.travel_m else 'speed'} limit passed "
                                    f"({travel * 1e3:.3f} mm, {speed * 1e3:.2f} mm/s)")
                     if phase == "push":                 # brake what the push gave, as a pulse ends
-                        push_dur = now - t_push
-                        phase, target, t_brake = "brake", -direction * out.push_nm, now
-                        peak = speed
+                        push_dur, peak, along = now - t_push, speed, self._along(tw, thw, xw)
+                        brake_tick = pace         # the host's pace: the brake lasts BRAKE_TICKS of it
+                        phase, target = "brake", -direction * _brake_nm(out.push_nm, peak, push_dur, brake_tick)
                         out.brake_at = sum(a.size for a in ts)
                     elif phase == "ramp":
                         phase, target = "rest", 0.0
@@ -290,7 +331,15 @@ class Prober:
                     applied_s += float(np.count_nonzero(carried)) * b.sample_period
                     if abs(torque) >= lim.torque_cap:
                         out.cap_held_s += float(np.count_nonzero(carried)) * b.sample_period
-                    if moved:
+                    if moved and speed >= 0.25 * lim.max_speed_m_s:
+                        # the ramp alone gave the push's speed (more torque than told, or a late host saw the
+                        # motion late): no push, the brake at once
+                        out.breakaway_nm = out.push_nm = abs(torque)
+                        push_dur, peak, along = max(applied_s, lim.tick_s), speed, self._along(tw, thw, xw)
+                        brake_tick = pace         # the host's pace: the brake lasts BRAKE_TICKS of it
+                        phase, target = "brake", -direction * _brake_nm(out.push_nm, peak, push_dur, brake_tick)
+                        out.brake_at = sum(a.size for a in ts)
+                    elif moved:
                         out.breakaway_nm = abs(torque)
                         out.push_nm = min(lim.torque_cap, abs(torque) + push_target)   # friction + the push
                         phase, target, t_push = "push", direction * out.push_nm, now
@@ -300,14 +349,32 @@ class Prober:
                     accel = abs(_slope(tw, np.gradient(xw, tw))) if tw.size >= 4 else 0.0
                     if (speed + 4 * pace * accel >= 0.4 * lim.max_speed_m_s
                             or pulse_travel >= 0.25 * lim.travel_m or now - t_push > 0.3):
-                        push_dur = now - t_push
-                        phase, target, t_brake = "brake", -direction * out.push_nm, now
-                        peak = speed
+                        push_dur, peak, along = now - t_push, speed, self._along(tw, thw, xw)
+                        brake_tick = pace         # the host's pace: the brake lasts BRAKE_TICKS of it
+                        phase, target = "brake", -direction * _brake_nm(out.push_nm, peak, push_dur, brake_tick)
                         out.brake_at = sum(a.size for a in ts)
                 elif phase == "brake":
                     peak = max(peak, speed)
+                    # the speed along the push's motion, by the sensor that says it has fallen furthest: the
+                    # brake ends where either sees the motion end, before it reverses it
+                    v = min(along[0] * lim.lead * _slope(tw, thw), along[1] * _slope(tw, xw))
+                    t_dev = float(tw[-1])
+                    if direction * torque < 0.0:
+                        brake_s += float(np.count_nonzero(carried)) * b.sample_period
+                    if direction * torque < 0.0 and torque == target and bool(carried.all()):
+                        braked.append((t_dev, v))
+                    bt = np.array([t for t, _ in braked])
+                    if bt.size >= 4 and bt[-1] - bt[0] >= 3 * lim.tick_s:
+                        # the deceleration the brake has shown (a line through its speeds): the device brakes
+                        # on to half the predicted stop (less the speed window's lag) should the host come
+                        # late - a host back late brakes the rest, a reversal nothing would take back
+                        decel = -_slope(bt, np.array([u for _, u in braked]))
+                        if decel > 0.0:
+                            stop = v / decel - 0.5 * float(tw[-1] - tw[0])
+                            brake_n = max(self.plan_len, int(0.5 * stop / b.sample_period))
                     # the commanded impulse back to zero: the momentum the pulse gave, taken back
-                    if direction * impulse <= 0.0 or now - t_brake >= 2.0 * push_dur or speed < 0.05 * peak:
+                    if (direction * impulse <= 0.0 or v <= 0.05 * peak or speed < 0.05 * peak
+                            or brake_s >= max(2.0 * push_dur, 3 * BRAKE_TICKS * brake_tick)):
                         phase, target = "rest", 0.0
             if phase == "ramp":
                 target = direction * min(lim.torque_cap, ramp_per_s * applied_s)
@@ -316,7 +383,7 @@ class Prober:
             if phase == "brake":                     # no overshoot of the impulse on the way back
                 step = min(step, max(abs(impulse) / lim.tick_s, 0.0) + abs(torque))
             torque = torque + max(-step, min(step, target - torque))
-            self._write(torque)
+            self._write(torque, brake_n if phase == "brake" and direction * torque < 0.0 else None)
             t_written = self._clock()
             if phase == "rest" and torque == 0.0:
                 rest += 1

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from rt_ident.commission.checks import check, probe_checks, probe_limits
-from rt_ident.commission.probe import ProbeError, Prober
+from rt_ident.commission.probe import LAPSED_RETRIES, ProbeError, Prober
 from rt_ident.config import RunConfig, from_mapping
 from rt_ident.errors import ConfigError, RtIdentError
 
@@ -111,8 +111,13 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             prober.settle(0.05)
             pulses = []
             for d in (1, -1):
-                pulses.append(prober.pulse(d))
-                if pulses[-1].aborted or pulses[-1].breakaway_nm is None or pulses[-1].fault:
+                for _ in range(1 + LAPSED_RETRIES):
+                    q = prober.pulse(d)
+                    if not q.lapsed:
+                        break
+                    result["lapsed_pulses"] = result.get("lapsed_pulses", 0) + 1
+                pulses.append(q)
+                if q.aborted or q.breakaway_nm is None or q.fault:
                     break
         except ProbeError as exc:
             checks.append(check("probe", False, str(exc), "samples every tick", exc.key))
@@ -129,7 +134,8 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         if truth:
             result["device_truth"] = {k: max(t[k] for t in truth) for k in truth[0]}
         result["pulses"] = [{"direction": q.direction, "fault": q.fault, "breakaway_nm": q.breakaway_nm,
-                             "push_nm": q.push_nm, "theta1_rad": q.moved()[0], "x_m": q.moved()[1],
+                             "push_nm": q.push_nm, "aborted": q.aborted, "cap_held_s": q.cap_held_s,
+                             "starved_samples": q.starved, "theta1_rad": q.moved()[0], "x_m": q.moved()[1],
                              "ratio_m_per_rad": q.ratio(),
                              "accel_per_nm": q.dynamics(backend.sample_period)[0]} for q in pulses]
         checks.extend(probe_checks(cfg, pulses, backend.sample_period))

@@ -19,9 +19,11 @@ LEAD = 7.96e-4
 #: the emulated links' timeouts widened, as in test_adaptation's emulated runs: next to pytest's other
 #: workers a device process that is not real-time is held off for 100 ms and more (the shipped limits are tested in the
 #: drivers' own tests)
-WIDE = {"serial-virtual.toml": {"backend": {"read_timeout": 1.0}, "emulator": {"heartbeat_timeout": 1.0},
-                                "safety": {"watchdog_ticks": 1000}},
-        "canopen-virtual.toml": {"backend": {"stale_limit": 1000, "heartbeat_consumer_ms": 1000},
+WIDE = {"serial-virtual.toml": {"backend": {"read_timeout": 1.0, "write_timeout": 1.0, "startup_timeout": 5.0,
+                                            "info_timeout": 1.0},
+                                "emulator": {"heartbeat_timeout": 1.0}, "safety": {"watchdog_ticks": 1000}},
+        "canopen-virtual.toml": {"backend": {"stale_limit": 1000, "heartbeat_consumer_ms": 1000,
+                                             "startup_timeout": 5.0, "sdo_timeout": 2.0},
                                  "safety": {"watchdog_ticks": 1000}}}
 
 

@@ -1,0 +1,107 @@
+"""The probe's torque pulses on the sim, the host's clock and the device's simulated together: a host that
+stalls at a chosen write, the same way on every run whatever else the machine is doing."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+
+from drivers.sim import SimBackend
+from rt_ident import config
+from rt_ident.commission import probe
+from rt_ident.commission.checks import probe_limits
+from rt_ident.compose.build import backend_options
+from tests.commission.test_stages import sim_data
+
+
+class HostClock:
+    """The host's time: a tick's sleep or a stall advances it, and the paced sim produces the samples due."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += seconds
+
+
+def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float = 0.03, late_s: float = 0.0):
+    """Two pulses (+, -); ``stall_at``: the host stalls after its first write of a self-ending brake plan
+    ("plan") or its second write of a braking torque ("lease", the brake's deceleration not yet measured);
+    ``late_s``: every write comes this much later than the tick (a slow host)."""
+    cfg = config.from_mapping(sim_data(actual))
+    clock = HostClock()
+    monkeypatch.setattr(probe, "time", types.SimpleNamespace(perf_counter=clock, sleep=clock.sleep))
+    backend = SimBackend(backend_options(cfg), clock=clock)
+    state = {"direction": 0, "braking": 0, "stalls": 0, "planned": 0}
+    write = probe.Prober._write
+
+    def host_write(self, torque, until=None):
+        write(self, torque, until)
+        clock.sleep(late_s)
+        if torque * state["direction"] >= 0.0:
+            return
+        state["braking"] += 1
+        state["planned"] += until is not None
+        if (stall_at == "plan" and until is not None and state["planned"] == 1) or (
+                stall_at == "lease" and state["braking"] == 2):
+            state["stalls"] += 1
+            clock.sleep(stall_s)
+
+    monkeypatch.setattr(probe.Prober, "_write", host_write)
+    pulses = []
+    with backend:
+        backend.activate()
+        prober = probe.Prober(backend, probe_limits(cfg, backend.torque_limit))
+        prober.settle(0.05)
+        for d in (1, -1):
+            state.update(direction=d, braking=0, planned=0)
+            pulses.append(prober.pulse(d))
+    return cfg, pulses, state
+
+
+def coast(q: probe.Pulse) -> float:
+    """The speed the pulse left the table at: the sim is frictionless, the last 20 ms at zero torque."""
+    tail = q.t >= q.t[-1] - 0.02
+    return float(np.polyfit(q.t[tail], q.x[tail], 1)[0])
+
+
+@pytest.mark.parametrize("stall_at", [None, "plan", "lease"])
+@pytest.mark.parametrize("torque_scale", [1.0, 10.0])
+def test_the_brake_leaves_the_table_nearly_still_at_either_torque_scale_whether_or_not_the_host_stalls_mid_brake(
+        monkeypatch, torque_scale, stall_at):
+    cfg, pulses, state = run_pulses(monkeypatch, {"torque_scale": torque_scale}, stall_at)
+    assert state["stalls"] == (2 if stall_at else 0)
+    for q in pulses:
+        assert q.breakaway_nm is not None and q.brake_at is not None and q.aborted is None and q.fault is None
+        peak = q.max_speed_m_s
+        assert 0.1 * cfg.commission.max_speed_m_s < peak <= cfg.commission.max_speed_m_s
+        # neither coasting on at the push's speed nor driven back
+        assert abs(coast(q)) <= 0.1 * peak, (q.direction, coast(q), peak)
+    assert max(q.max_travel_m for q in pulses) <= 0.25 * cfg.commission.travel_m
+
+
+def test_a_host_stalled_mid_brake_before_the_deceleration_is_measured_leaves_no_brake_in_force(monkeypatch):
+    """Without a measured deceleration the brake's plan lasts a tick and its lease: the stall's samples
+    carry no torque (the table coasts instead of being driven back for 30 ms)."""
+    _, pulses, state = run_pulses(monkeypatch, {"torque_scale": 10.0}, "lease")
+    assert state["stalls"] == 2
+    for q in pulses:
+        assert q.starved > 0
+
+
+@pytest.mark.parametrize(("torque_scale", "late_s"), [(10.0, 0.004), (10.0, 0.015), (30.0, 0.015), (100.0, 0.004)])
+def test_a_slow_host_probing_a_much_stronger_axis_keeps_the_speed_limit_and_the_travel_budget(monkeypatch,
+                                                                                              torque_scale, late_s):
+    """Each write 4 or 15 ms after the 1 ms tick, at up to a hundred times the acceleration [axis] gives: the
+    ramp's first steps may already give the push's speed (then it brakes at once), the push looks ahead and
+    the brake spreads over the host's own pace."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {"torque_scale": torque_scale}, None, late_s=late_s)
+    for q in pulses:
+        assert q.aborted is None and q.fault is None and q.breakaway_nm is not None, q.aborted
+        assert q.truth["max_speed_m_s"] <= cfg.commission.max_speed_m_s
+    assert max(q.truth["max_travel_m"] for q in pulses) <= 0.25 * cfg.commission.travel_m
