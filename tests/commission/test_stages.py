@@ -126,3 +126,33 @@ def test_sigterm_mid_commissioning_stops_the_device_writes_the_files_and_exits_1
     r = json.loads((out / "commission.json").read_text())
     assert r["interrupted"] is True and r["verdict"] == "fail" and r["failed"]["check"] == "interrupted"
     assert (out / "report.html").is_file() and (out / "identify.parquet").is_file()
+
+
+@pytest.mark.parametrize("stalled_runs", [1, 2])
+def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_names_the_host(tmp_path, monkeypatch,
+                                                                                              stalled_runs):
+    """The measured move's summary reports a 500 ms stall and the speed trip that followed, ``stalled_runs``
+    times: once, the move runs again and passes; twice, the check names the host, not the controller."""
+    from rt_ident.compose import run as run_mod
+
+    real, moves = run_mod.run, []
+
+    def stalled(cfg, **kw):
+        s = real(cfg, **kw)
+        if str(cfg.recording.path or "").endswith("move.parquet"):
+            moves.append(s)
+            if len(moves) <= stalled_runs:
+                s["loop"]["stalls"] = {"count": 1, "longest_ms": 500.0, "events": []}
+                s["stop"] = {"cause": "speed-limit", "message": "table too fast (0.03 s after a 500 ms loop stall)"}
+        return s
+
+    monkeypatch.setattr(run_mod, "run", stalled)
+    data = sim_data()
+    data["commission"] = {"identify_s": 1.0}
+    r = commission(config.from_mapping(data), tmp_path / "out")
+    assert len(moves) == 2 and r["stalled_moves"] == min(stalled_runs, 2)
+    if stalled_runs == 1:
+        assert r["verdict"] == "pass", r.get("failed")
+    else:
+        assert r["verdict"] == "fail" and r["failed"]["check"] == "verification move"
+        assert r["failed"]["fix"].startswith("loop.realtime"), r["failed"]

@@ -161,7 +161,7 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
 @pytest.mark.slow
 def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
     rc, s, r, err = _sigstop_run(tmp_path)
-    assert rc == 0, (s["stop"], err[-2000:])
+    assert rc == 0, (s["stop"], s["control"]["events"][-10:], s["loop"]["stalls"], err[-2000:])
     assert s["stop"]["cause"] is None
     stalls = s["loop"]["stalls"]
     assert stalls["count"] >= 1 and stalls["longest_ms"] >= 400, stalls
