@@ -270,7 +270,7 @@ class Prober:
         rest = 0
         stale = 0
         p_th0: float | None = None
-        p_x0 = 0.0
+        p_x0 = p_t0 = 0.0
         while True:
             now = self._clock()
             # the host's own pace (a write that blocks counts): a late host looks further ahead (its next
@@ -289,9 +289,11 @@ class Prober:
                 stale = 0
                 th1, x = blk.theta1, lim.lead * blk.theta2
                 if p_th0 is None:
-                    p_th0, p_x0 = float(th1[0]), float(x[0])
-                dt_d = float(blk.seq[-1]) * b.sample_period - self.drift[0]
-                drift_th, drift_x = self.drift[1] + self.drift[3] * dt_d, self.drift[2] + self.drift[4] * dt_d
+                    p_t0, p_th0, p_x0 = float(blk.seq[0]) * b.sample_period, float(th1[0]), float(x[0])
+                # the drift at rest, from the pulse's first sample (not carried over a late host's gap since
+                # the rest: a small error in its speed would grow into motion over it)
+                dt_d = float(blk.seq[-1]) * b.sample_period - p_t0
+                drift_th, drift_x = p_th0 + self.drift[3] * dt_d, p_x0 + self.drift[4] * dt_d
                 ts.append(blk.seq * b.sample_period)
                 th1s.append(th1)
                 xs.append(x)
@@ -331,6 +333,7 @@ class Prober:
                     applied_s += float(np.count_nonzero(carried)) * b.sample_period
                     if abs(torque) >= lim.torque_cap:
                         out.cap_held_s += float(np.count_nonzero(carried)) * b.sample_period
+                    moved = moved and torque != 0.0          # at zero torque it is the drift's, not the pulse's
                     if moved and speed >= 0.25 * lim.max_speed_m_s:
                         # the ramp alone gave the push's speed (more torque than told, or a late host saw the
                         # motion late): no push, the brake at once
