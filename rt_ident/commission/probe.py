@@ -169,7 +169,7 @@ class Prober:
         self.max_speed = 0.0
         self._clock = time.perf_counter
         self._tx0: float | None = None      # a simulated device's true table position at the start
-        self.drift = (0.0, 0.0, 0.0, 0.0, 0.0)   # (t, theta1, x, dtheta1/dt, dx/dt) at the end of the last rest
+        self.drift = (0.0, 0.0)     # (dtheta1/dt, dx/dt) at the end of the last rest
 
     def _read(self) -> Any:
         blk = self.b.read()
@@ -210,8 +210,7 @@ class Prober:
             t = np.concatenate([g.seq for g in got]) * self.b.sample_period
             half = t.size // 2
             th, x = np.concatenate([g.theta1 for g in got]), self.lim.lead * np.concatenate([g.theta2 for g in got])
-            self.drift = (float(t[-1]), float(th[-1]), float(x[-1]), _slope(t[half:], th[half:]),
-                          _slope(t[half:], x[half:]))
+            self.drift = (_slope(t[half:], th[half:]), _slope(t[half:], x[half:]))
 
     def pulse(self, direction: int) -> Pulse:
         lim = self.lim
@@ -221,7 +220,7 @@ class Prober:
             # the drift line does not follow) would read as motion at zero torque
             self.settle(0.1)
             for _ in range(9):
-                if (abs(self.drift[3]) * REST_S <= lim.motion_theta1 and abs(self.drift[4]) * REST_S <= lim.motion_x):
+                if abs(self.drift[0]) * REST_S <= lim.motion_theta1 and abs(self.drift[1]) * REST_S <= lim.motion_x:
                     break
                 self.settle(0.1)
         except RtIdentError as exc:
@@ -238,7 +237,7 @@ class Prober:
         ramp = lim.torque_cap / 400.0
         slew = ramp * 5.0
         push_target = min(lim.torque_cap, lim.inertia * 0.25 * lim.max_speed_m_s / lim.lead / PUSH_TIME_S)
-        out.drift = (self.drift[3], self.drift[4])
+        out.drift = self.drift
         deadline = self._clock() + 5.0
         try:
             self._pulse_loop(direction, out, ts, th1s, xs, tqs, th0, x0, push_target, ramp, slew, deadline)
@@ -293,7 +292,7 @@ class Prober:
                 # the drift at rest, from the pulse's first sample (not carried over a late host's gap since
                 # the rest: a small error in its speed would grow into motion over it)
                 dt_d = float(blk.seq[-1]) * b.sample_period - p_t0
-                drift_th, drift_x = p_th0 + self.drift[3] * dt_d, p_x0 + self.drift[4] * dt_d
+                drift_th, drift_x = p_th0 + self.drift[0] * dt_d, p_x0 + self.drift[1] * dt_d
                 ts.append(blk.seq * b.sample_period)
                 th1s.append(th1)
                 xs.append(x)

@@ -13,20 +13,8 @@ from rt_ident import config
 from rt_ident.commission import probe
 from rt_ident.commission.checks import probe_limits
 from rt_ident.compose.build import backend_options
+from rt_ident.compose.offline import VirtualClock
 from tests.commission.test_stages import sim_data
-
-
-class HostClock:
-    """The host's time: a tick's sleep or a stall advances it, and the paced sim produces the samples due."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += seconds
 
 
 def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float = 0.03, late_s: float = 0.0):
@@ -34,7 +22,7 @@ def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float =
     ("plan") or its second write of a braking torque ("lease", the brake's deceleration not yet measured);
     ``late_s``: every write comes this much later than the tick (a slow host)."""
     cfg = config.from_mapping(sim_data(actual))
-    clock = HostClock()
+    clock = VirtualClock()      # the host's time: a tick's sleep or a stall advances it, the paced sim follows
     monkeypatch.setattr(probe, "time", types.SimpleNamespace(perf_counter=clock, sleep=clock.sleep))
     backend = SimBackend(backend_options(cfg), clock=clock)
     state = {"direction": 0, "braking": 0, "stalls": 0, "planned": 0}
