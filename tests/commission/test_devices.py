@@ -70,6 +70,9 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
     assert r["verdict"] == "fail", r["checks"]
     # the key first, or (the board's encoder check stopped it before the host saw the motion) among those named
     named = r["failed"]["fix"].split(":")[0]
-    assert named.startswith(key) or key.removeprefix("backend.") in named, (r["failed"], r.get("pulses"))
+    assert named.startswith(key) or key.removeprefix("backend.") in named, (
+        [(c["name"], c["measured"]) for c in r["checks"] if not c["ok"]], r["failed"]["fix"],
+        [{k: p.get(k) for k in ("direction", "breakaway_nm", "push_nm", "aborted", "starved_samples")}
+         for p in r.get("pulses") or []], r.get("max_travel_m"), r.get("max_speed_m_s"))
     if r["max_travel_m"] is not None:
         assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
