@@ -270,6 +270,13 @@ class Prober:
         stale = 0
         p_th0: float | None = None
         p_x0 = p_t0 = 0.0
+        def brake(dur: float) -> tuple[float, float, tuple[int, int], float, float, int]:
+            """(push time, peak speed, signs moved in, the host's pace, brake torque, samples before it): the
+            brake takes ``speed`` back over BRAKE_TICKS of the host's pace."""
+            along_ = self._along(tw, thw, xw)
+            return (dur, speed, along_, pace, -direction * _brake_nm(out.push_nm, speed, dur, pace),
+                    sum(a.size for a in ts))
+
         while True:
             now = self._clock()
             # the host's own pace (a write that blocks counts): a late host looks further ahead (its next
@@ -315,10 +322,8 @@ class Prober:
                     out.aborted = (f"{'travel' if travel > lim.travel_m else 'speed'} limit passed "
                                    f"({travel * 1e3:.3f} mm, {speed * 1e3:.2f} mm/s)")
                     if phase == "push":                 # brake what the push gave, as a pulse ends
-                        push_dur, peak, along = now - t_push, speed, self._along(tw, thw, xw)
-                        brake_tick = pace         # the host's pace: the brake lasts BRAKE_TICKS of it
-                        phase, target = "brake", -direction * _brake_nm(out.push_nm, peak, push_dur, brake_tick)
-                        out.brake_at = sum(a.size for a in ts)
+                        push_dur, peak, along, brake_tick, target, out.brake_at = brake(now - t_push)
+                        phase = "brake"
                     elif phase == "ramp":
                         phase, target = "rest", 0.0
                 moved = (abs(float(th1[-1]) - drift_th) > lim.motion_theta1
@@ -337,10 +342,8 @@ class Prober:
                         # the ramp alone gave the push's speed (more torque than told, or a late host saw the
                         # motion late): no push, the brake at once
                         out.breakaway_nm = out.push_nm = abs(torque)
-                        push_dur, peak, along = max(applied_s, lim.tick_s), speed, self._along(tw, thw, xw)
-                        brake_tick = pace         # the host's pace: the brake lasts BRAKE_TICKS of it
-                        phase, target = "brake", -direction * _brake_nm(out.push_nm, peak, push_dur, brake_tick)
-                        out.brake_at = sum(a.size for a in ts)
+                        push_dur, peak, along, brake_tick, target, out.brake_at = brake(max(applied_s, lim.tick_s))
+                        phase = "brake"
                     elif moved:
                         out.breakaway_nm = abs(torque)
                         out.push_nm = min(lim.torque_cap, abs(torque) + push_target)   # friction + the push
@@ -351,10 +354,8 @@ class Prober:
                     accel = abs(_slope(tw, np.gradient(xw, tw))) if tw.size >= 4 else 0.0
                     if (speed + 4 * pace * accel >= 0.4 * lim.max_speed_m_s
                             or pulse_travel >= 0.25 * lim.travel_m or now - t_push > 0.3):
-                        push_dur, peak, along = now - t_push, speed, self._along(tw, thw, xw)
-                        brake_tick = pace         # the host's pace: the brake lasts BRAKE_TICKS of it
-                        phase, target = "brake", -direction * _brake_nm(out.push_nm, peak, push_dur, brake_tick)
-                        out.brake_at = sum(a.size for a in ts)
+                        push_dur, peak, along, brake_tick, target, out.brake_at = brake(now - t_push)
+                        phase = "brake"
                 elif phase == "brake":
                     peak = max(peak, speed)
                     # the speed along the push's motion, by the sensor that says it has fallen furthest: the
