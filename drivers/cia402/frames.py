@@ -4,8 +4,10 @@
 owner calls :meth:`FrameIO.pump` - and sends them. On ``udp_multicast`` (the emulated
 drive's transport across processes) it reads and writes the socket itself in
 python-can's wire format (one msgpack map per datagram), at about a quarter of
-python-can's cost per frame, and this host's own frames come back in bus order; on
-every other interface (SocketCAN, PCAN, ...) it uses ``bus.recv()`` / ``bus.send()``.
+python-can's cost per frame; on every other interface (SocketCAN, PCAN, ...) it uses
+``bus.recv()`` / ``bus.send()``. As on CAN, a bus's own frames are not received, except on
+a ``udp_multicast`` bus open to the network (python-can's own socket: multicast loopback
+hands them back, in bus order; :attr:`FrameIO.own_frames_back`).
 """
 
 from __future__ import annotations
@@ -73,9 +75,12 @@ class FrameIO:
     ``udp_multicast``: the bus's socket is read and written directly (a duplicate of its
     file descriptor) in python-can's wire format (one msgpack map per frame): reading,
     decoding and dispatching a frame costs ~15 us instead of ~40 us through ``bus.recv()``;
-    ``t_arrival`` is the kernel's receive time. Frames this process sent come back too
-    (multicast loopback), in bus order. Frames the kernel dropped because the receive
-    buffer was full are counted in :attr:`dropped`. Other interfaces: ``bus.recv()``.
+    ``t_arrival`` is the kernel's receive time. On the loopback-confined bus
+    (:class:`drivers.cia402.bus.LoopbackUdpMulticastBus`) frames go out through the bus's send
+    socket and those from its address are dropped (a node does not receive its own frames);
+    on python-can's own ``udp_multicast`` bus they come back, in bus order. Frames the kernel
+    dropped because the receive buffer was full are counted in :attr:`dropped`. Other
+    interfaces: ``bus.recv()``.
     """
 
     def __init__(self, bus: can.BusABC, handler: Callable[[list[Frame]], None], *,
@@ -92,6 +97,8 @@ class FrameIO:
         self.foreign = 0          # datagrams dropped because they came from another address
         self._dest = (str(bus_kwargs.get("channel")), int(bus_kwargs.get("port") or UDP_DEFAULT_PORT))
         self._sock: socket.socket | None = None
+        self._tx: socket.socket | None = None
+        self._own: tuple[str, int] | None = getattr(bus, "own_address", None)   # our frames' source: dropped
         self._templates: dict[tuple[int, int], tuple[bytes, bytes]] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -102,6 +109,12 @@ class FrameIO:
         self.dropped = 0          # frames the kernel dropped (receive buffer full)
         self.errors = 0           # handler exceptions
         self.failure: str | None = None   # why reading stopped (the bus broke)
+
+    @property
+    def own_frames_back(self) -> bool:
+        """True when this bus hands its own frames back in bus order (python-can's ``udp_multicast``
+        bus open to the network); never on CAN or the loopback-confined bus."""
+        return self.udp and self._own is None
 
     @property
     def running(self) -> bool:
@@ -121,6 +134,8 @@ class FrameIO:
             except OSError as exc:
                 log.warning("canopen: receive buffer / drop counter / timestamps not available: %s", exc)
             self._mono_offset = time.time() - time.monotonic()
+            tx_fileno = getattr(self.bus, "tx_fileno", None)
+            self._tx = socket.socket(fileno=os.dup(tx_fileno())) if tx_fileno is not None else sock
             self._sock = sock
         return self
 
@@ -146,6 +161,9 @@ class FrameIO:
     def close(self) -> None:
         """Stop, and close the duplicate socket (the bus itself stays open)."""
         self.stop()
+        if self._tx is not None and self._tx is not self._sock:
+            self._tx.close()
+        self._tx = None
         if self._sock is not None:
             self._sock.close()
             self._sock = None
@@ -153,7 +171,7 @@ class FrameIO:
     # ----- sending ----------------------------------------------------------------------
     def send(self, cob_id: int, data: bytes) -> None:
         """Send one 11-bit data frame (thread-safe). Raises python-can's or the socket's error."""
-        sock = self._sock
+        sock = self._tx
         if sock is not None:
             key = (cob_id, len(data))
             tpl = self._templates.get(key)
@@ -192,7 +210,7 @@ class FrameIO:
             log.exception("%s: frame handler failed", self.name)
 
     def _read_udp(self, sock: socket.socket, limit: int) -> list[Frame]:
-        recvmsg, unpack, offset = sock.recvmsg, self._unpack, self._mono_offset
+        recvmsg, unpack, offset, own = sock.recvmsg, self._unpack, self._mono_offset, self._own
         assert unpack is not None               # open() set it with the socket
         frames: list[Frame] = []
         while len(frames) < limit:
@@ -203,6 +221,8 @@ class FrameIO:
             if self.local_only and not (src and str(src[0]).startswith("127.")):
                 self.foreign += 1
                 continue
+            if own is not None and src is not None and tuple(src[:2]) == own:
+                continue                        # our own frame: a CAN node does not receive it
             t = 0.0
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET:

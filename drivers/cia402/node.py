@@ -8,9 +8,10 @@ the object; an SDO timeout in the middle of the set-up -> :class:`DeviceTimeout`
 
 Frames are received by :class:`~drivers.cia402.frames.FrameIO` (shared with the emulated drive), not by
 canopen's ``Network.connect()`` notifier: on ``udp_multicast`` it reads the socket
-itself at about a quarter of python-can's cost per frame, and this host's own SYNCs
-come back in bus order - the sample assembly uses them as window markers (see
-:mod:`drivers.cia402.stream`).
+itself at about a quarter of python-can's cost per frame. Only where the bus hands this
+host's own SYNCs back in bus order (python-can's ``udp_multicast`` open to the network) does
+the sample assembly use them as window markers; on CAN and the loopback-confined bus the
+SYNC sender's markers do (see :mod:`drivers.cia402.stream`).
 """
 
 from __future__ import annotations
@@ -59,8 +60,9 @@ class BusConnection:
     Connections are keyed by interface, channel and port, and counted: the last
     :meth:`release` closes the bus.
 
-    Echoes of this host's SYNCs (``udp_multicast``) are counted here, so that each drive's
-    deque can tell the SYNCs sent before its channel joined from its own (``(ECHO, t, n)``).
+    Echoes of this host's SYNCs (where the bus hands them back: :attr:`FrameIO.own_frames_back`) are
+    counted here, so that each drive's deque can tell the SYNCs sent before its channel joined from its
+    own (``(ECHO, t, n)``).
     """
 
     _open: dict[tuple, BusConnection] = {}
@@ -128,7 +130,7 @@ class BusConnection:
         self.network = net
         self.io = FrameIO(bus, self._dispatch, bus_kwargs=cfg.bus_kwargs(), send_lock=net.send_lock,
                           name=f"canopen-rx-{cfg.channel}").start()
-        if self.io.udp:
+        if self.io.own_frames_back:
             net.subscribe(0x80, self._on_sync_echo)
         self._hb_task = net.send_periodic(0x700 + cfg.master_node_id, bytes([0x05]), cfg.heartbeat_ms / 1000.0)
 
@@ -322,9 +324,9 @@ class NodeSetup:
 
     @property
     def echo(self) -> bool:
-        """True when this host's own frames come back in bus order (``udp_multicast``): then the
-        echoed SYNCs, not the sender's clock, mark the sample windows."""
-        return self.io is not None and self.io.udp and self._on_sync_echo is not None
+        """True when this host's own frames come back in bus order (python-can's ``udp_multicast``
+        open to the network): then the echoed SYNCs, not the sender's clock, mark the sample windows."""
+        return self.io is not None and self.io.own_frames_back and self._on_sync_echo is not None
 
     def send(self, cob_id: int, data: bytes) -> None:
         """Send one frame (thread-safe; a fraction of the cost of ``Network.send_message``, used per SYNC)."""

@@ -20,10 +20,11 @@ TPDO is *stale* (the sample is dropped; ``SampleBlock.lost`` shows the gap); ext
 frames in a window are *late* (the newest is used); frames of the wrong length are
 *corrupt*. The window markers are:
 
-* with ``echo`` (``udp_multicast``: the bus hands this host's own frames back, in bus
-  order): the **echo of SYNC k** ``(ECHO, t)``. The sender's marker only records
-  ``k``, time and torque. Attribution is then exact whatever the host's scheduling:
-  a TPDO read after SYNC k's echo and before SYNC k+1's was on the bus between them;
+* with ``echo`` (python-can's ``udp_multicast`` open to the network: the bus hands this host's
+  own frames back, in bus order; not CAN, not the loopback-confined bus): the **echo of SYNC k**
+  ``(ECHO, t)``. The sender's marker only records ``k``, time and torque. Attribution is then
+  exact whatever the host's scheduling: a TPDO read after SYNC k's echo and before SYNC k+1's
+  was on the bus between them;
 * otherwise the sender's marker itself: it enters the deque before SYNC ``k`` is on the
   bus, so every TPDO answering SYNC ``k`` follows it, but a TPDO the receive thread
   handles after the sender's *next* marker (a late receive thread, not a late drive)
