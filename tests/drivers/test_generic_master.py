@@ -1,0 +1,194 @@
+"""The emulated CiA 402 drive in its default configuration, driven by a generic master (python canopen's
+``BaseNode402``) on a bus without echo; CiA 301 PDO transmission types, inhibit time and event timer."""
+
+from __future__ import annotations
+
+import configparser
+import threading
+import time
+import uuid
+
+import canopen
+import pytest
+from canopen.sdo import SdoAbortedError
+
+from drivers.cia402 import profile as p402
+from drivers.cia402.bus import open_bus
+from drivers.cia402.emulated_drive import EmulatedCia402Drive
+from rt_ident.axis.params import CONFIG_DIR, thomson_x
+from rt_ident.axis.plant import PlantSimulator, SensorConfig
+from tests.drivers.test_canopen_process import GROUP, free_udp_port
+
+EDS = CONFIG_DIR / "cia402_generic.eds"
+NODE = 5
+
+
+def _bus(interface: str) -> dict:
+    if interface == "virtual":
+        return {"interface": "virtual", "channel": f"g-{uuid.uuid4().hex[:8]}"}
+    return {"interface": "udp_multicast", "channel": GROUP, "port": free_udp_port()}
+
+
+class _Master:
+    """A canopen ``Network`` on the bus (ours for udp_multicast: confined, no echo) with the drive's node."""
+
+    def __init__(self, kw: dict) -> None:
+        self.net = canopen.Network(open_bus(kw))
+        self.net.NOTIFIER_CYCLE = 0.05
+        self.net.connect()
+        self.node = canopen.BaseNode402(NODE, str(EDS))
+        self.net.add_node(self.node)
+        self.node.sdo.RESPONSE_TIMEOUT = 0.5
+        self.frames: dict[int, list[float]] = {}
+        self._lock = threading.Lock()
+        self.net.subscribe(0x180 + NODE, self._count)
+
+    def _count(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            self.frames.setdefault(can_id, []).append(time.monotonic())
+
+    def count(self, can_id: int, since: float = 0.0) -> int:
+        with self._lock:
+            return sum(t >= since for t in self.frames.get(can_id, ()))
+
+    def close(self) -> None:
+        self.net.sync.stop()
+        self.net.disconnect()
+
+
+def _drive(kw: dict) -> EmulatedCia402Drive:
+    plant = PlantSimulator(thomson_x(), 1e-3, sensors=SensorConfig())
+    return EmulatedCia402Drive(NODE, EDS, kw, plant, rated_torque=0.5)
+
+
+@pytest.mark.parametrize("interface", ["virtual", "udp_multicast"])
+def test_basenode402_enables_the_drive_in_its_default_configuration_and_torque_moves_it(interface):
+    kw = _bus(interface)
+    with _drive(kw) as drive:
+        m = _Master(kw)
+        try:
+            node = m.node
+            node.nmt.state = "PRE-OPERATIONAL"
+            node.setup_402_state_machine()                # reads the PDO configuration by SDO
+            assert node.tpdo[1].trans_type == 255 and [v.index for v in node.tpdo[1]] == [p402.STATUSWORD]
+            assert node.rpdo[1].trans_type == 255 and [v.index for v in node.rpdo[1]] == [p402.CONTROLWORD]
+            node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+            assert node.op_mode == "CYCLIC SYNCHRONOUS TORQUE"
+            m.net.sync.start(0.001)                       # CST: the drive applies torque at each SYNC
+            node.nmt.state = "OPERATIONAL"
+            node.state = "SWITCH ON DISABLED"             # waits for TPDO1 (sent on entering OPERATIONAL)
+            node.state = "OPERATION ENABLED"
+            assert node.state == "OPERATION ENABLED" and drive.state == p402.OPERATION_ENABLED
+            p0 = node.sdo[p402.POSITION_ACTUAL].raw
+            node.sdo[p402.TARGET_TORQUE].raw = 50         # 5 % of the rated torque
+            end = time.monotonic() + 2.0
+            while abs(node.sdo[p402.POSITION_ACTUAL].raw - p0) < 100 and time.monotonic() < end:
+                time.sleep(0.01)
+            assert abs(node.sdo[p402.POSITION_ACTUAL].raw - p0) >= 100 and drive.applied_torque != 0.0
+            node.sdo[p402.TARGET_TORQUE].raw = 0
+            node.state = "SWITCH ON DISABLED"
+            assert drive.state == p402.SWITCH_ON_DISABLED and drive.applied_torque == 0.0
+        finally:
+            m.close()
+
+
+def test_every_mandatory_object_of_the_eds_reads_by_sdo():
+    eds = configparser.ConfigParser(interpolation=None)
+    eds.optionxform = str                                 # type: ignore[assignment,method-assign]
+    eds.read(EDS)
+    sec = eds["MandatoryObjects"]
+    indices = [int(sec[str(i)], 0) for i in range(1, int(sec["SupportedObjects"], 0) + 1)]
+    assert {0x1000, 0x1001, 0x1018} <= set(indices)
+    kw = _bus("virtual")
+    with _drive(kw):
+        m = _Master(kw)
+        try:
+            for index in indices:
+                obj = m.node.object_dictionary[index]
+                variables = list(obj.values()) if isinstance(obj, (canopen.objectdictionary.ODRecord,
+                                                                    canopen.objectdictionary.ODArray)) else [obj]
+                for var in variables:
+                    assert len(m.node.sdo.upload(index, var.subindex)) > 0, f"0x{index:04X}:{var.subindex}"
+        finally:
+            m.close()
+
+
+def test_pdo_mapping_only_while_disabled_and_at_most_8_bytes():
+    kw = _bus("virtual")
+    with _drive(kw):
+        m = _Master(kw)
+        try:
+            sdo = m.node.sdo
+            with pytest.raises(SdoAbortedError) as err:   # TPDO1 is valid: its mapping is locked
+                sdo[0x1A00][0].raw = 0
+            assert err.value.code == 0x08000022
+            sdo[0x1800][1].raw = 0x80000180 + NODE        # disabled: mapping allowed
+            sdo[0x1A00][0].raw = 0
+            for sub, entry in enumerate([(0x6064, 32), (0x6077, 16), (0x6041, 16), (0x6041, 16)], start=1):
+                sdo[0x1A00][sub].raw = p402.mapping_entry(entry[0], 0, entry[1])
+            with pytest.raises(SdoAbortedError) as err:   # 80 bits
+                sdo[0x1A00][0].raw = 4
+            assert err.value.code == 0x06040042
+            sdo[0x1A00][0].raw = 3
+            sdo[0x1800][1].raw = 0x180 + NODE
+        finally:
+            m.close()
+
+
+def test_tpdo_transmission_types_event_timer_and_inhibit_time():
+    """CiA 301: 255 with an event timer sends without a change; the inhibit time spaces changes; 1..240 every
+    n-th SYNC; 0 only at the SYNC after a change."""
+    kw = _bus("virtual")
+    with _drive(kw) as drive:
+        m = _Master(kw)
+        cob = 0x180 + NODE
+        try:
+            sdo = m.node.sdo
+            sdo[0x1800][5].raw = 20                       # event timer 20 ms
+            m.node.nmt.state = "OPERATIONAL"
+            t0 = time.monotonic()
+            time.sleep(0.3)
+            n = m.count(cob, t0)
+            assert 10 <= n <= 17, n                       # ~15: one on entering OPERATIONAL, then every 20 ms
+            sdo[0x1800][5].raw = 0
+            # inhibit time 50 ms: controlword toggles every 5 ms change the statusword, TPDO1 at most every 50 ms
+            sdo[0x1800][1].raw = 0x80000000 + cob
+            sdo[0x1800][3].raw = 500
+            sdo[0x1800][1].raw = cob
+            time.sleep(0.05)
+            t0 = time.monotonic()
+            for i in range(40):                           # 0.2 s of SWITCH ON DISABLED <-> READY TO SWITCH ON
+                m.net.send_message(0x200 + NODE, (p402.CW_SHUTDOWN if i % 2 == 0 else 0).to_bytes(2, "little"))
+                time.sleep(0.005)
+            time.sleep(0.06)
+            n = m.count(cob, t0)
+            assert 3 <= n <= 7, n                         # 0.2 s / 50 ms, plus the last change after it
+            assert drive.state in (p402.SWITCH_ON_DISABLED, p402.READY_TO_SWITCH_ON)
+            # every 3rd SYNC
+            m.node.nmt.state = "PRE-OPERATIONAL"
+            sdo[0x1800][1].raw = 0x80000000 + cob
+            sdo[0x1800][2].raw = 3
+            sdo[0x1800][1].raw = cob
+            m.node.nmt.state = "OPERATIONAL"
+            time.sleep(0.05)
+            t0 = time.monotonic()
+            for _ in range(30):
+                m.net.send_message(0x80, b"")
+                time.sleep(0.003)
+            time.sleep(0.02)
+            assert m.count(cob, t0) == 10
+            # type 0: at a SYNC only after a change (none here: the statusword stands still)
+            sdo[0x1800][1].raw = 0x80000000 + cob
+            sdo[0x1800][2].raw = 0
+            sdo[0x1800][1].raw = cob
+            time.sleep(0.05)
+            m.net.send_message(0x80, b"")                 # the first SYNC after the change of PDO set: sent
+            time.sleep(0.02)
+            t0 = time.monotonic()
+            for _ in range(10):
+                m.net.send_message(0x80, b"")
+                time.sleep(0.003)
+            time.sleep(0.02)
+            assert m.count(cob, t0) == 0
+        finally:
+            m.close()
