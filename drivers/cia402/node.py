@@ -11,12 +11,14 @@ canopen's ``Network.connect()`` notifier: on ``udp_multicast`` it reads the sock
 itself at about a quarter of python-can's cost per frame. Only where the bus hands this
 host's own SYNCs back in bus order (python-can's ``udp_multicast`` open to the network) does
 the sample assembly use them as window markers; on CAN and the loopback-confined bus the
-SYNC sender's markers do (see :mod:`drivers.cia402.stream`).
+SYNC sender's marker times do, compared with each frame's time on the bus (see
+:mod:`drivers.cia402.stream`).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import struct
 import sys
 import threading
@@ -327,6 +329,17 @@ class NodeSetup:
         """True when this host's own frames come back in bus order (python-can's ``udp_multicast``
         open to the network): then the echoed SYNCs, not the sender's clock, mark the sample windows."""
         return self.io is not None and self.io.own_frames_back and self._on_sync_echo is not None
+
+    @property
+    def timed(self) -> bool:
+        """True when the frames carry their time on the bus on this host's clock and this host's own
+        frames do not come back: the sender's marker times mark the sample windows."""
+        return self.io is not None and self.io.timed and not self.echo
+
+    @property
+    def read_until(self) -> float:
+        """Every frame on the bus before this monotonic time has been handed over (timed buses)."""
+        return self.io.read_until if self.io is not None else -math.inf
 
     def send(self, cob_id: int, data: bytes) -> None:
         """Send one frame (thread-safe; a fraction of the cost of ``Network.send_message``, used per SYNC)."""
