@@ -66,6 +66,7 @@ from drivers.cia402.bus import open_bus
 from drivers.cia402.faults import FaultConfig
 from drivers.cia402.frames import FrameIO, stop_periodic
 from drivers.cia402.local_pdo import PdoLayout, check_mapping_write, od_value, pdo_layouts
+from drivers.cia402.variants import INTERPOLATION_PERIOD, PARAMETER_ERROR, DriveProfile, drive_profile
 from rt_ident.axis.plant import PlantSimulator
 from rt_ident.errors import ConfigError
 
@@ -87,6 +88,10 @@ def _int32(v: int) -> int:
     return ((v + 0x80000000) & 0xFFFFFFFF) - 0x80000000
 
 
+def _int8(v: int) -> int:
+    return ((v + 0x80) & 0xFF) - 0x80
+
+
 def _int16(v: float) -> int:
     return max(-32768, min(32767, int(round(v))))
 
@@ -104,7 +109,8 @@ class EmulatedCia402Drive:
 
     ``counts_per_rev``, ``scale_resolution``, ``rated_torque`` (0x6076): the drive's true values;
     ``torque_sign``, ``motor_encoder_sign``, ``scale_sign`` (+-1), ``torque_scale`` (> 0): how the
-    motor and the encoders are truly wired (see the module docstring); ``polarity``: 0x607E at power-up.
+    motor and the encoders are truly wired (see the module docstring); ``polarity``: 0x607E at power-up
+    (0: the profile's); ``profile``: the vendor variant (:mod:`drivers.cia402.variants`).
     """
 
     def __init__(self, node_id: int, eds_path: str | Path, bus: Mapping[str, Any], plant: PlantSimulator,
@@ -112,7 +118,7 @@ class EmulatedCia402Drive:
                  scale_resolution: float = 1e-7, scale_index: int = 0x60E4, scale_subindex: int = 1,
                  rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto",
                  torque_sign: int = 1, motor_encoder_sign: int = 1, scale_sign: int = 1, torque_scale: float = 1.0,
-                 polarity: int = 0) -> None:
+                 polarity: int = 0, profile: str | DriveProfile = "generic") -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node_id must be 1..127, got {node_id!r}")
         self.node_id = int(node_id)
@@ -134,7 +140,8 @@ class EmulatedCia402Drive:
         self.torque_sign, self.motor_encoder_sign, self.scale_sign = int(torque_sign), int(motor_encoder_sign), \
             int(scale_sign)
         self.torque_scale = float(torque_scale)
-        self._polarity0 = int(polarity)
+        self.profile = drive_profile(profile)
+        self._polarity0 = int(polarity) or (self.profile.polarity or 0)
         self._rated_override = rated_torque
         self.rated_torque = rated_torque or 0.0
         self._controller = plant.controller
@@ -195,6 +202,11 @@ class EmulatedCia402Drive:
         return self._state == p402.OPERATION_ENABLED
 
     @property
+    def polarity_sign(self) -> int:
+        """-1 while position polarity (0x607E bit 7) reverses the torque at the motor and 0x6064."""
+        return self._position_polarity()
+
+    @property
     def nmt_state(self) -> str:
         return self._node.nmt.state if self._node is not None else "INITIALISING"
 
@@ -215,6 +227,7 @@ class EmulatedCia402Drive:
             return self
         self._warm_plant()
         od = canopen.import_od(str(self.eds_path), self.node_id)
+        self.profile.apply(od)                            # the vendor's variant of the EDS's drive
         bus = open_bus(self.bus_kwargs)
         net = canopen.Network(bus)
         node = canopen.LocalNode(self.node_id, od)
@@ -229,7 +242,7 @@ class EmulatedCia402Drive:
             self._values[(p402.POLARITY, 0)] = self._polarity0
         elif self._polarity0:
             raise ConfigError("emulator.polarity", f"0x{self._polarity0:02X} set, but the drive's EDS "
-                              f"{self.eds_path.name} has no 0x607E")
+                              f"{self.eds_path.name} (profile {self.profile.name}) has no 0x607E")
         counts, scale = self._encoders(float(self.plant.state[0]), float(self.plant.state[2]))
         self._values.update({(p402.CONTROLWORD, 0): 0, (p402.TARGET_TORQUE, 0): 0, (0x60B2, 0): 0,
                              (p402.MODES_DISPLAY, 0): 0, (p402.ERROR_CODE, 0): 0, (p402.ERROR_REGISTER, 0): 0,
@@ -307,6 +320,8 @@ class EmulatedCia402Drive:
             check_mapping_write(self._node, index, subindex, value)
         if 0x1400 <= index < 0x1C00:
             self._pdo_dirty = True
+        elif index == INTERPOLATION_PERIOD and subindex == 2 and not -6 <= _int8(value) <= 0:
+            raise SdoAbortedError(0x06090030)       # a time index this drive does not take (1 us .. 1 s)
         elif index == p402.MODES_OF_OPERATION:
             self._values[(index, 0)] = value
             bit = p402.MODE_BITS.get(value)
@@ -591,7 +606,17 @@ class EmulatedCia402Drive:
                 state = p402.SWITCH_ON_DISABLED           # 12: quick stop done (torque already 0)
         new = p402.drive_transition(state, controlword, self._prev_cw, self._values[(_QUICK_STOP_OPTION, 0)])
         self._prev_cw = controlword
+        if new == p402.OPERATION_ENABLED and state != new and not self._cycle_time_set():
+            self._fault(PARAMETER_ERROR, "cyclic synchronous mode without an interpolation time period (0x60C2)")
+            return
         self._set_state(new)
+
+    def _cycle_time_set(self) -> bool:
+        """False for a drive that needs 0x60C2 for a cyclic synchronous mode and has 0 in it."""
+        if not self.profile.interpolation_period or self._values.get((p402.MODES_DISPLAY, 0)) not in (8, 9, 10):
+            return True
+        assert self._node is not None                # the state machine steps while on the bus
+        return od_value(self._node, INTERPOLATION_PERIOD, 1) != 0
 
     def _use_controller(self, enabled: bool) -> None:
         """The drive's own position loop (if the plant has one) runs only when enabled."""

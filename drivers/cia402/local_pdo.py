@@ -3,7 +3,8 @@
 ``LocalNode`` stores whatever an SDO client writes; a real device refuses a mapping
 while its PDO is valid (CiA 301: map only with COB-ID bit 31 set; abort 0x08000022, "present
 device state"), one that names a missing object (abort 0x06020000), an object that is not
-PDO-mappable or mapped with the wrong length (0x06040041), or more than 8 bytes (0x06040042).
+PDO-mappable or mapped with the wrong length (0x06040041), or more than 8 bytes or more entries
+than the drive's mapping record has (0x06040042).
 :func:`check_mapping_write` does that; :func:`pdo_layouts` reads the valid PDOs and
 their mappings as ``struct`` layouts.
 """
@@ -43,6 +44,9 @@ def check_mapping_write(node: canopen.LocalNode, index: int, subindex: int, valu
     if node.object_dictionary.get_variable(comm, 1) is not None and not od_value(node, comm, 1) & p402.PDO_INVALID:
         raise SdoAbortedError(0x08000022)    # the PDO is valid: mapping only while disabled (CiA 301)
     if subindex == 0:
+        record = node.object_dictionary[index]
+        if value > max((s for s in getattr(record, "subindices", {0: None})), default=0):
+            raise SdoAbortedError(0x06040042)   # more entries than this drive's mapping record has
         bits = sum(p402.split_mapping_entry(od_value(node, index, s))[2] for s in range(1, value + 1))
         if bits > 64:
             raise SdoAbortedError(0x06040042)

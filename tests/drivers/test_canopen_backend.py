@@ -573,8 +573,8 @@ def test_drive_refusing_a_mapping_raises_protocol_error(tmp_path):
         return text[:start] + text[start:end].replace("PDOMapping=1", "PDOMapping=0") + text[end:]
     eds = _edited_eds(tmp_path, "drive.eds", unmappable_scale)
     with rig(emulator={"eds": eds}) as (drive, be):
-        with pytest.raises(ProtocolError, match=r"refused writing 0x1A01:01 .*mapping 0x60E4:01 .*TPDO2.*"
-                                                r"cannot be mapped"):
+        with pytest.raises(ProtocolError, match=r"cannot map 0x60E4:01 \(additional position actual value\) into "
+                                                r"TPDO2: SDO abort 0x06040041 \(object cannot be mapped"):
             with be:
                 pass
         assert_drive_safe(drive)
