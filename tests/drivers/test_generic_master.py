@@ -1,5 +1,6 @@
 """The emulated CiA 402 drive in its default configuration, driven by a generic master (python canopen's
-``BaseNode402``) on a bus without echo; CiA 301 PDO transmission types, inhibit time and event timer."""
+``BaseNode402``) on a bus without echo, as each vendor variant too (drivers.cia402.variants); CiA 301 PDO
+transmission types, inhibit time and event timer."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from canopen.sdo import SdoAbortedError
 from drivers.cia402 import profile as p402
 from drivers.cia402.bus import open_bus
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
+from drivers.cia402.faults import FaultConfig
+from drivers.cia402.variants import PROFILES
 from rt_ident.axis.params import CONFIG_DIR, thomson_x
 from rt_ident.axis.plant import PlantSimulator, SensorConfig
 from tests.drivers.test_canopen_process import GROUP, free_udp_port
@@ -56,25 +59,35 @@ class _Master:
         self.net.disconnect()
 
 
-def _drive(kw: dict) -> EmulatedCia402Drive:
+def _drive(kw: dict, profile: str = "generic", faults: FaultConfig | None = None) -> EmulatedCia402Drive:
     plant = PlantSimulator(thomson_x(), 1e-3, sensors=SensorConfig())
-    return EmulatedCia402Drive(NODE, EDS, kw, plant, rated_torque=0.5)
+    return EmulatedCia402Drive(NODE, EDS, kw, plant, faults, rated_torque=0.5, profile=profile)
 
 
-@pytest.mark.parametrize("interface", ["virtual", "udp_multicast"])
-def test_basenode402_enables_the_drive_in_its_default_configuration_and_torque_moves_it(interface):
+def _to_cst(m: _Master, profile: str) -> None:
+    """What a user of a generic master does before enabling: the 402 set-up, CST, and on a drive that
+    needs it the interpolation time period (1 ms, the SYNC below: 1 x 10^-3 s); SYNC running."""
+    node = m.node
+    node.nmt.state = "PRE-OPERATIONAL"
+    node.setup_402_state_machine()                    # reads the PDO configuration by SDO
+    assert node.tpdo[1].trans_type == 255 and [v.index for v in node.tpdo[1]] == [p402.STATUSWORD]
+    assert node.rpdo[1].trans_type == 255 and [v.index for v in node.rpdo[1]] == [p402.CONTROLWORD]
+    node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+    assert node.op_mode == "CYCLIC SYNCHRONOUS TORQUE"
+    if PROFILES[profile].interpolation_period:        # not in the generic EDS: written by index
+        node.sdo.download(0x60C2, 2, (-3).to_bytes(1, "little", signed=True))
+        node.sdo.download(0x60C2, 1, bytes([1]))
+    m.net.sync.start(0.001)                           # CST: the drive applies torque at each SYNC
+
+
+@pytest.mark.parametrize("interface,profile", [("virtual", "generic")] + [("udp_multicast", p) for p in PROFILES])
+def test_basenode402_enables_the_drive_in_its_default_configuration_and_torque_moves_it(interface, profile):
     kw = _bus(interface)
-    with _drive(kw) as drive:
+    with _drive(kw, profile) as drive:
         m = _Master(kw)
         try:
             node = m.node
-            node.nmt.state = "PRE-OPERATIONAL"
-            node.setup_402_state_machine()                # reads the PDO configuration by SDO
-            assert node.tpdo[1].trans_type == 255 and [v.index for v in node.tpdo[1]] == [p402.STATUSWORD]
-            assert node.rpdo[1].trans_type == 255 and [v.index for v in node.rpdo[1]] == [p402.CONTROLWORD]
-            node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
-            assert node.op_mode == "CYCLIC SYNCHRONOUS TORQUE"
-            m.net.sync.start(0.001)                       # CST: the drive applies torque at each SYNC
+            _to_cst(m, profile)
             node.nmt.state = "OPERATIONAL"
             node.state = "SWITCH ON DISABLED"             # waits for TPDO1 (sent on entering OPERATIONAL)
             node.state = "OPERATION ENABLED"
@@ -92,7 +105,36 @@ def test_basenode402_enables_the_drive_in_its_default_configuration_and_torque_m
             m.close()
 
 
-def test_every_mandatory_object_of_the_eds_reads_by_sdo():
+def test_basenode402_resets_an_injected_fault_and_enables_the_drive_again():
+    kw = _bus("udp_multicast")
+    with _drive(kw, faults=FaultConfig(emcy_at_sample=200, emcy_code=0x2310)) as drive:
+        m = _Master(kw)
+        try:
+            node = m.node
+            _to_cst(m, "generic")
+            node.nmt.state = "OPERATIONAL"
+            node.state = "SWITCH ON DISABLED"
+            node.state = "OPERATION ENABLED"
+            end = time.monotonic() + 2.0
+            while node.state != "FAULT" and time.monotonic() < end:   # the event-driven statusword says so
+                time.sleep(0.01)
+            assert node.state == "FAULT" and drive.state == p402.FAULT and drive.applied_torque == 0.0
+            end = time.monotonic() + 1.0
+            while not node.emcy.log and time.monotonic() < end:
+                time.sleep(0.01)
+            assert [e.code for e in node.emcy.log] == [0x2310]
+            node.state = "SWITCH ON DISABLED"             # fault reset: rising edge of controlword bit 7
+            assert drive.state == p402.SWITCH_ON_DISABLED
+            node.state = "OPERATION ENABLED"
+            assert drive.state == p402.OPERATION_ENABLED
+            node.state = "SWITCH ON DISABLED"
+            assert drive.state == p402.SWITCH_ON_DISABLED and drive.applied_torque == 0.0
+        finally:
+            m.close()
+
+
+@pytest.mark.parametrize("profile", list(PROFILES))
+def test_every_mandatory_object_of_the_eds_reads_by_sdo(profile):
     eds = configparser.ConfigParser(interpolation=None)
     eds.optionxform = str                                 # type: ignore[assignment,method-assign]
     eds.read(EDS)
@@ -100,7 +142,7 @@ def test_every_mandatory_object_of_the_eds_reads_by_sdo():
     indices = [int(sec[str(i)], 0) for i in range(1, int(sec["SupportedObjects"], 0) + 1)]
     assert {0x1000, 0x1001, 0x1018} <= set(indices)
     kw = _bus("virtual")
-    with _drive(kw):
+    with _drive(kw, profile):
         m = _Master(kw)
         try:
             for index in indices:
