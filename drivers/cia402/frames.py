@@ -162,9 +162,14 @@ class FrameIO:
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _RCVBUF)
                 sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
-                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             except OSError as exc:
-                log.warning("canopen: receive buffer / drop counter / timestamps not available: %s", exc)
+                log.warning("canopen: receive buffer / drop counter not available: %s", exc)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            except OSError as exc:              # then a frame's time is when it was read: not timed
+                self.timed = False
+                log.warning("canopen: kernel receive times not available (%s): frames are placed among the "
+                            "SYNCs in the order a thread reads them", exc)
             tx_fileno = getattr(self.bus, "tx_fileno", None)
             self._tx = socket.socket(fileno=os.dup(tx_fileno())) if tx_fileno is not None else sock
             self._sock = sock
