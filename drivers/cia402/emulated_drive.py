@@ -503,9 +503,12 @@ class EmulatedCia402Drive:
     def _event_tpdos(self) -> None:
         """Send the event-driven TPDOs (254/255, CiA 301) that are due: data changed and the inhibit time
         (0x18xx:03) since the last one over, or the event timer (0x18xx:05) expired. Only in OPERATIONAL;
-        entering it sends each once."""
+        entering it sends each once. PDO parameters written since the last look take effect first, as a
+        drive applies them when written (an inhibit time just set holds for the next change already)."""
         node = self._node
         assert node is not None                      # on the bus
+        if self._pdo_dirty:
+            self._rebuild_pdos()
         if node.nmt.state != "OPERATIONAL":
             self._tpdo_sent.clear()
             self._tpdo_sent_t.clear()

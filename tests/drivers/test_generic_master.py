@@ -10,6 +10,7 @@ import time
 import uuid
 
 import canopen
+import numpy as np
 import pytest
 from canopen.sdo import SdoAbortedError
 
@@ -42,17 +43,22 @@ class _Master:
         self.node = canopen.BaseNode402(NODE, str(EDS))
         self.net.add_node(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = 0.5
-        self.frames: dict[int, list[float]] = {}
+        self.frames: dict[int, list[tuple[float, float]]] = {}   # cob -> [(received, time on the bus)]
         self._lock = threading.Lock()
         self.net.subscribe(0x180 + NODE, self._count)
 
     def _count(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._lock:
-            self.frames.setdefault(can_id, []).append(time.monotonic())
+            self.frames.setdefault(can_id, []).append((time.monotonic(), timestamp))
 
     def count(self, can_id: int, since: float = 0.0) -> int:
         with self._lock:
-            return sum(t >= since for t in self.frames.get(can_id, ()))
+            return sum(t >= since for t, _ in self.frames.get(can_id, ()))
+
+    def bus_times(self, can_id: int, since: float = 0.0) -> list[float]:
+        """Times on the bus of the frames received since ``since`` (the virtual bus: when they were sent)."""
+        with self._lock:
+            return [ts for t, ts in self.frames.get(can_id, ()) if t >= since]
 
     def close(self) -> None:
         self.net.sync.stop()
@@ -177,9 +183,28 @@ def test_pdo_mapping_only_while_disabled_and_at_most_8_bytes():
             m.close()
 
 
+def _until(pred, timeout: float = 5.0) -> bool:
+    end = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.002)
+    return True
+
+
+def _sync_handled(m: _Master, drive: EmulatedCia402Drive) -> None:
+    """One SYNC, and wait until the drive has handled it (its TPDOs sent: ``stats()`` waits for the lock
+    the SYNC handler holds), so that no SYNC arrives while the previous is being answered."""
+    n = drive.stats()["syncs"]
+    m.net.send_message(0x80, b"")
+    assert _until(lambda: drive.stats()["syncs"] > n)
+
+
 def test_tpdo_transmission_types_event_timer_and_inhibit_time():
-    """CiA 301: 255 with an event timer sends without a change; the inhibit time spaces changes; 1..240 every
-    n-th SYNC; 0 only at the SYNC after a change."""
+    """CiA 301: 255 with an event timer sends without a change, never sooner than the timer; the inhibit time
+    spaces the TPDOs of a changing statusword; 1..240 answers every n-th SYNC; 0 only the SYNC after a
+    change. Spacings are the frames' send times on the virtual bus and the SYNCs go one at a time: nothing
+    here depends on how fast the machine runs the test."""
     kw = _bus("virtual")
     with _drive(kw) as drive:
         m = _Master(kw)
@@ -189,22 +214,21 @@ def test_tpdo_transmission_types_event_timer_and_inhibit_time():
             sdo[0x1800][5].raw = 20                       # event timer 20 ms
             m.node.nmt.state = "OPERATIONAL"
             t0 = time.monotonic()
-            time.sleep(0.3)
-            n = m.count(cob, t0)
-            assert 10 <= n <= 17, n                       # ~15: one on entering OPERATIONAL, then every 20 ms
+            assert _until(lambda: m.count(cob, t0) >= 5)  # the statusword stands still: the timer sends
+            gaps = np.diff(m.bus_times(cob, t0))
+            assert gaps.min() >= 0.019, gaps
             sdo[0x1800][5].raw = 0
             # inhibit time 50 ms: controlword toggles every 5 ms change the statusword, TPDO1 at most every 50 ms
             sdo[0x1800][1].raw = 0x80000000 + cob
             sdo[0x1800][3].raw = 500
             sdo[0x1800][1].raw = cob
-            time.sleep(0.05)
             t0 = time.monotonic()
-            for i in range(40):                           # 0.2 s of SWITCH ON DISABLED <-> READY TO SWITCH ON
+            for i in range(40):                           # >= 0.2 s of SWITCH ON DISABLED <-> READY TO SWITCH ON
                 m.net.send_message(0x200 + NODE, (p402.CW_SHUTDOWN if i % 2 == 0 else 0).to_bytes(2, "little"))
                 time.sleep(0.005)
-            time.sleep(0.06)
-            n = m.count(cob, t0)
-            assert 3 <= n <= 7, n                         # 0.2 s / 50 ms, plus the last change after it
+            assert _until(lambda: m.count(cob, t0) >= 3)
+            gaps = np.diff(m.bus_times(cob, t0))
+            assert gaps.min() >= 0.049, gaps
             assert drive.state in (p402.SWITCH_ON_DISABLED, p402.READY_TO_SWITCH_ON)
             # every 3rd SYNC
             m.node.nmt.state = "PRE-OPERATIONAL"
@@ -212,25 +236,26 @@ def test_tpdo_transmission_types_event_timer_and_inhibit_time():
             sdo[0x1800][2].raw = 3
             sdo[0x1800][1].raw = cob
             m.node.nmt.state = "OPERATIONAL"
-            time.sleep(0.05)
+            assert _until(lambda: drive.nmt_state == "OPERATIONAL")
             t0 = time.monotonic()
+            first = drive.stats()["syncs"]
             for _ in range(30):
-                m.net.send_message(0x80, b"")
-                time.sleep(0.003)
-            time.sleep(0.02)
-            assert m.count(cob, t0) == 10
+                _sync_handled(m, drive)
+            due = sum((first + i) % 3 == 0 for i in range(1, 31))
+            assert due == 10 and _until(lambda: m.count(cob, t0) >= due)
+            time.sleep(0.05)
+            assert m.count(cob, t0) == due
             # type 0: at a SYNC only after a change (none here: the statusword stands still)
             sdo[0x1800][1].raw = 0x80000000 + cob
             sdo[0x1800][2].raw = 0
             sdo[0x1800][1].raw = cob
-            time.sleep(0.05)
-            m.net.send_message(0x80, b"")                 # the first SYNC after the change of PDO set: sent
-            time.sleep(0.02)
+            t0 = time.monotonic()
+            _sync_handled(m, drive)                       # the first SYNC after the change of PDO set: sent
+            assert _until(lambda: m.count(cob, t0) == 1)
             t0 = time.monotonic()
             for _ in range(10):
-                m.net.send_message(0x80, b"")
-                time.sleep(0.003)
-            time.sleep(0.02)
+                _sync_handled(m, drive)
+            time.sleep(0.05)
             assert m.count(cob, t0) == 0
         finally:
             m.close()
