@@ -10,7 +10,10 @@ this host, so by default the bus is confined to the loopback interface:
   not reach it) and joins the group on 127.0.0.1 only;
 * multicast goes out through 127.0.0.1 with a hop limit (TTL) of 0, looped back to this host;
 * :class:`drivers.cia402.frames.FrameIO` also drops any datagram whose source is not a loopback
-  address (counted as ``foreign``).
+  address (counted as ``foreign``);
+* as on CAN, a node does not receive its own frames (python-can's ``receive_own_messages=False``):
+  each bus sends from a socket of its own bound to 127.0.0.1 and an ephemeral port, and drops the
+  datagrams whose source is that address (multicast loopback would hand them back).
 
 A bus that really spans hosts needs ``bus_options = { allow_network = true }`` (then python-can's
 own socket and the configured ``hop_limit`` are used, and the user has said so).
@@ -63,7 +66,40 @@ def open_bus(bus_kwargs: Mapping[str, Any]) -> can.BusABC:
 
 
 class _LoopbackMulticast(GeneralPurposeUdpMulticastBus):
-    """python-can's multicast handler with a socket bound to the group on the loopback interface."""
+    """python-can's multicast handler with a socket bound to the group on the loopback interface, and a
+    send socket of its own whose address (:attr:`own_address`) marks this bus's frames: they are dropped
+    on receipt (a CAN controller does not receive what it sends)."""
+
+    def __init__(self, group: str, port: int, hop_limit: int, *args: Any, **kwargs: Any) -> None:
+        super().__init__(group, port, hop_limit, *args, **kwargs)
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("@I", 0))
+            tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(LOOPBACK))
+            tx.bind((LOOPBACK, 0))
+        except OSError:
+            tx.close()
+            self._socket.close()
+            raise
+        self.tx = tx
+        self.own_address: tuple[str, int] = tx.getsockname()
+
+    def send(self, data: bytes, timeout: float | None = None) -> None:
+        try:
+            self.tx.sendto(data, self._send_destination)
+        except OSError as error:
+            raise can.CanOperationError("failed to send via socket") from error
+
+    def recv(self, timeout: float | None = None) -> Any:
+        result = super().recv(timeout)
+        if result is not None and tuple(result[1][:2]) == self.own_address:
+            return None                 # our own frame (BusABC.recv keeps waiting until its timeout)
+        return result
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.tx.close()
 
     def _create_socket(self, address_family: socket.AddressFamily) -> socket.socket:
         if address_family != socket.AF_INET:
@@ -101,5 +137,15 @@ class LoopbackUdpMulticastBus(UdpMulticastBus):
             raise ConfigError("backend.channel", f"{channel!r}: the loopback-confined udp_multicast bus needs an "
                               "IPv4 multicast group (or bus_options.allow_network = true)") from None
         can.BusABC.__init__(self, channel, **kwargs)
-        self._multicast = _LoopbackMulticast(channel, port, 0)
+        self._loopback = _LoopbackMulticast(channel, port, 0)
+        self._multicast = self._loopback
         self._can_protocol = CanProtocol.CAN_FD if fd else CanProtocol.CAN_20
+
+    @property
+    def own_address(self) -> tuple[str, int]:
+        """Source address of this bus's datagrams (its frames carry it; receivers here drop them)."""
+        return self._loopback.own_address
+
+    def tx_fileno(self) -> int:
+        """File descriptor of the send socket."""
+        return self._loopback.tx.fileno()

@@ -151,7 +151,8 @@ class Cia402Backend(Backend):
                      "and position); the table scale is reversed on the host (effective scale_sign %d)",
                      cfg.node_id, polarity, self.scale_sign)
         self._asm = SampleAssembler(setup.tpdo_layouts, cfg.stale_limit,
-                                    cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo)
+                                    cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo,
+                                    timed=setup.timed)
         self._hb_time = time.monotonic()
 
     def _identity(self) -> dict[str, Any]:
@@ -182,8 +183,8 @@ class Cia402Backend(Backend):
             # was being locked in memory): only a heartbeat after one reporting OPERATIONAL counts.
             self._hb_operational = False
             self._hb_not_operational = 0
-            if setup.echo:          # bus order is in the socket: read it in this thread, no GIL contention
-                setup.receive_in_caller()
+            if setup.echo or setup.timed:   # bus order or bus times are in the frames: read them in this
+                setup.receive_in_caller()      # thread, no receive thread competing for the GIL
             setup.nmt_operational()
             self._hb_time = time.monotonic()
             # one SYNC producer per bus: started by the first drive, joined by the others
@@ -210,7 +211,7 @@ class Cia402Backend(Backend):
         hold = max(0.02, 10 * cfg.sample_period)    # each controlword long enough for several SYNCs
         while True:
             setup.pump()
-            asm.feed(self._deque, deliver=False)
+            asm.feed(self._deque, deliver=False, read_until=setup.read_until)
             self._check_emcy_heartbeat(startup=True)
             sw = asm.statusword
             state = p402.decode_state(sw) if sw is not None else None
@@ -273,7 +274,7 @@ class Cia402Backend(Backend):
         assert asm is not None and setup is not None      # opened
         setup.pump()
         self._check_emcy_heartbeat()
-        asm.feed(self._deque, deliver=True)
+        asm.feed(self._deque, deliver=True, read_until=setup.read_until)
         rows = asm.take_rows()
         n = len(rows["k"])
         if n == 0:
@@ -309,7 +310,7 @@ class Cia402Backend(Backend):
         while True:
             try:
                 setup.pump()
-                asm.feed(self._deque, deliver=False)
+                asm.feed(self._deque, deliver=False, read_until=setup.read_until)
             except DriverError:
                 pass
             sw = asm.statusword

@@ -1,9 +1,18 @@
 """An emulated CiA 402 servo drive on a python-can bus, built on ``canopen.LocalNode``.
 
 The drive answers SDO and NMT through ``LocalNode``; everything ``LocalNode`` does
-not do is done here: the 402 power state machine driven by the controlword,
-synchronous RPDOs applied at each SYNC, TPDOs sent on SYNC, the heartbeat consumer
-(loss of the master's heartbeat -> fault, torque 0, EMCY 0x8130) and EMCY on faults.
+not do is done here: the 402 power state machine driven by the controlword, PDOs as
+CiA 301 transmits them (below), the heartbeat consumer (loss of the master's heartbeat
+-> fault, torque 0, EMCY 0x8130) and EMCY on faults.
+
+PDO transmission types (0x14xx:02 / 0x18xx:02, CiA 301), in NMT OPERATIONAL only:
+RPDOs 0-240 are applied at the next SYNC, 254/255 on receipt (a controlword steps the
+state machine at once). TPDO 0 is sent at the SYNC after its data changed, 1-240 at every
+n-th SYNC, 254/255 when its data change, not sooner than the inhibit time (0x18xx:03)
+after the previous one and at the latest the event timer (0x18xx:05) after it (checked
+with the housekeeping, every 2 ms or when due). Out of the box (the EDS) TPDO1 is the
+statusword and RPDO1 the controlword, both event-driven (255), as drives ship; a master
+maps and sets transmission types itself.
 On each SYNC in NMT OPERATIONAL the plant (:class:`rt_ident.axis.plant.PlantSimulator`)
 advances one sample with the last target torque if OPERATION ENABLED, else with zero.
 TPDOs carry the measurement taken at that SYNC (the plant measures at the start of
@@ -57,6 +66,7 @@ from drivers.cia402.bus import open_bus
 from drivers.cia402.faults import FaultConfig
 from drivers.cia402.frames import FrameIO, stop_periodic
 from drivers.cia402.local_pdo import PdoLayout, check_mapping_write, od_value, pdo_layouts
+from drivers.cia402.variants import INTERPOLATION_PERIOD, PARAMETER_ERROR, DriveProfile, drive_profile
 from rt_ident.axis.plant import PlantSimulator
 from rt_ident.errors import ConfigError
 
@@ -78,6 +88,10 @@ def _int32(v: int) -> int:
     return ((v + 0x80000000) & 0xFFFFFFFF) - 0x80000000
 
 
+def _int8(v: int) -> int:
+    return ((v + 0x80) & 0xFF) - 0x80
+
+
 def _int16(v: float) -> int:
     return max(-32768, min(32767, int(round(v))))
 
@@ -95,7 +109,8 @@ class EmulatedCia402Drive:
 
     ``counts_per_rev``, ``scale_resolution``, ``rated_torque`` (0x6076): the drive's true values;
     ``torque_sign``, ``motor_encoder_sign``, ``scale_sign`` (+-1), ``torque_scale`` (> 0): how the
-    motor and the encoders are truly wired (see the module docstring); ``polarity``: 0x607E at power-up.
+    motor and the encoders are truly wired (see the module docstring); ``polarity``: 0x607E at power-up
+    (0: the profile's); ``profile``: the vendor variant (:mod:`drivers.cia402.variants`).
     """
 
     def __init__(self, node_id: int, eds_path: str | Path, bus: Mapping[str, Any], plant: PlantSimulator,
@@ -103,7 +118,7 @@ class EmulatedCia402Drive:
                  scale_resolution: float = 1e-7, scale_index: int = 0x60E4, scale_subindex: int = 1,
                  rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto",
                  torque_sign: int = 1, motor_encoder_sign: int = 1, scale_sign: int = 1, torque_scale: float = 1.0,
-                 polarity: int = 0) -> None:
+                 polarity: int = 0, profile: str | DriveProfile = "generic") -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node_id must be 1..127, got {node_id!r}")
         self.node_id = int(node_id)
@@ -125,7 +140,8 @@ class EmulatedCia402Drive:
         self.torque_sign, self.motor_encoder_sign, self.scale_sign = int(torque_sign), int(motor_encoder_sign), \
             int(scale_sign)
         self.torque_scale = float(torque_scale)
-        self._polarity0 = int(polarity)
+        self.profile = drive_profile(profile)
+        self._polarity0 = int(polarity) or (self.profile.polarity or 0)
         self._rated_override = rated_torque
         self.rated_torque = rated_torque or 0.0
         self._controller = plant.controller
@@ -151,6 +167,10 @@ class EmulatedCia402Drive:
         self._rpdos: list[PdoLayout] = []
         self._tpdos: list[PdoLayout] = []
         self._pdo_dirty = True
+        self._rpdo_by_cob: dict[int, PdoLayout] = {}
+        self._tpdo_sent: dict[int, bytes] = {}       # TPDO COB-ID -> data last sent (types 0, 254, 255)
+        self._tpdo_sent_t: dict[int, float] = {}     # TPDO COB-ID -> when (inhibit time, event timer)
+        self._event_due = math.inf                   # next inhibit / event timer expiry
         self._syncs = 0
         self._qs_samples = 0
         self._delayed: list[tuple[float, int, int, bytes]] = []
@@ -182,6 +202,11 @@ class EmulatedCia402Drive:
         return self._state == p402.OPERATION_ENABLED
 
     @property
+    def polarity_sign(self) -> int:
+        """-1 while position polarity (0x607E bit 7) reverses the torque at the motor and 0x6064."""
+        return self._position_polarity()
+
+    @property
     def nmt_state(self) -> str:
         return self._node.nmt.state if self._node is not None else "INITIALISING"
 
@@ -202,6 +227,7 @@ class EmulatedCia402Drive:
             return self
         self._warm_plant()
         od = canopen.import_od(str(self.eds_path), self.node_id)
+        self.profile.apply(od)                            # the vendor's variant of the EDS's drive
         bus = open_bus(self.bus_kwargs)
         net = canopen.Network(bus)
         node = canopen.LocalNode(self.node_id, od)
@@ -216,7 +242,7 @@ class EmulatedCia402Drive:
             self._values[(p402.POLARITY, 0)] = self._polarity0
         elif self._polarity0:
             raise ConfigError("emulator.polarity", f"0x{self._polarity0:02X} set, but the drive's EDS "
-                              f"{self.eds_path.name} has no 0x607E")
+                              f"{self.eds_path.name} (profile {self.profile.name}) has no 0x607E")
         counts, scale = self._encoders(float(self.plant.state[0]), float(self.plant.state[2]))
         self._values.update({(p402.CONTROLWORD, 0): 0, (p402.TARGET_TORQUE, 0): 0, (0x60B2, 0): 0,
                              (p402.MODES_DISPLAY, 0): 0, (p402.ERROR_CODE, 0): 0, (p402.ERROR_REGISTER, 0): 0,
@@ -232,6 +258,7 @@ class EmulatedCia402Drive:
                            send_lock=net.send_lock, name=f"emulated-drive-rx-{self.node_id}",
                            on_idle=self._idle if polling else None)
         net.subscribe(0x80, self._on_sync)
+        self._rebuild_pdos()                              # RPDOs heard from now on
         self._set_state(p402.SWITCH_ON_DISABLED)          # transition 1 after initialisation
         self._stop.clear()
         self._io.start()
@@ -281,6 +308,9 @@ class EmulatedCia402Drive:
         """SDO writes (receive thread): refuse bad PDO mappings, track process values."""
         with self._lock:
             self._written(index, subindex, od.decode_raw(data))
+            if 0x1400 <= index < 0x1C00:             # stored now (LocalNode stores after the callbacks): a
+                assert self._node is not None        # rebuild by the housekeeping thread must see it
+                self._node.data_store.setdefault(index, {})[subindex] = bytes(data)
 
     def _written(self, index: int, subindex: int, value: int) -> None:
         if index == p402.POLARITY and self._state in _POWERED:
@@ -290,6 +320,8 @@ class EmulatedCia402Drive:
             check_mapping_write(self._node, index, subindex, value)
         if 0x1400 <= index < 0x1C00:
             self._pdo_dirty = True
+        elif index == INTERPOLATION_PERIOD and subindex == 2 and not -6 <= _int8(value) <= 0:
+            raise SdoAbortedError(0x06090030)       # a time index this drive does not take (1 us .. 1 s)
         elif index == p402.MODES_OF_OPERATION:
             self._values[(index, 0)] = value
             bit = p402.MODE_BITS.get(value)
@@ -325,6 +357,9 @@ class EmulatedCia402Drive:
         for lay in rpdos:
             net.subscribe(lay.cob, self._on_rpdo)
         self._rpdos, self._tpdos = rpdos, tpdos
+        self._rpdo_by_cob = {lay.cob: lay for lay in rpdos}
+        self._tpdo_sent.clear()                           # a changed PDO set: event TPDOs go out afresh
+        self._tpdo_sent_t.clear()
         self._pdo_dirty = False
 
     # ----- receive-thread callbacks (light) ---------------------------------------------
@@ -360,7 +395,23 @@ class EmulatedCia402Drive:
                 log.exception("emulated drive: SYNC processing failed")
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self._rpdo_data[can_id] = bytes(data)
+        lay = self._rpdo_by_cob.get(can_id)
+        if lay is None or lay.trans_type <= 240:          # synchronous: applied at the next SYNC
+            self._rpdo_data[can_id] = bytes(data)
+            return
+        with self._lock:                                  # event-driven (254/255): applied on receipt
+            assert self._node is not None                 # subscribed while on the bus
+            if self._node.nmt.state != "OPERATIONAL":
+                return
+            if len(data) != lay.struct.size:
+                self.rpdo_length_errors += 1
+                return
+            v = self._values
+            for key, value in zip(lay.keys, lay.struct.unpack(data)):
+                v[key] = value
+            if (p402.CONTROLWORD, 0) in lay.keys:
+                self._step_state_machine(v[(p402.CONTROLWORD, 0)], sample=False)
+            self._event_tpdos()
 
     def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         self._master_hb = time.monotonic()
@@ -369,7 +420,8 @@ class EmulatedCia402Drive:
     def _idle(self) -> None:
         """Housekeeping from the polling receive thread: every 2 ms, or when a delayed frame is due."""
         now = time.monotonic()
-        if now < self._next_housekeeping and not (self._delayed and self._delayed[0][0] <= now):
+        if now < self._next_housekeeping and now < self._event_due and not (
+                self._delayed and self._delayed[0][0] <= now):
             return
         self._next_housekeeping = now + 0.002
         with self._lock:
@@ -381,6 +433,7 @@ class EmulatedCia402Drive:
             with self._lock:
                 if self._delayed:
                     timeout = min(timeout, max(0.0, self._delayed[0][0] - time.monotonic()))
+                timeout = min(timeout, max(0.0, self._event_due - time.monotonic()))
             if self._stop.wait(timeout):
                 break
             with self._lock:
@@ -443,6 +496,42 @@ class EmulatedCia402Drive:
         if node.nmt.state != "OPERATIONAL" and self._state in (
                 p402.OPERATION_ENABLED, p402.QUICK_STOP_ACTIVE, p402.SWITCHED_ON):
             self._set_state(p402.SWITCH_ON_DISABLED)      # communication ended: power stage off
+        if self._pdo_dirty:
+            self._rebuild_pdos()
+        self._event_tpdos()
+
+    def _event_tpdos(self) -> None:
+        """Send the event-driven TPDOs (254/255, CiA 301) that are due: data changed and the inhibit time
+        (0x18xx:03) since the last one over, or the event timer (0x18xx:05) expired. Only in OPERATIONAL;
+        entering it sends each once. PDO parameters written since the last look take effect first, as a
+        drive applies them when written (an inhibit time just set holds for the next change already)."""
+        node = self._node
+        assert node is not None                      # on the bus
+        if self._pdo_dirty:
+            self._rebuild_pdos()
+        if node.nmt.state != "OPERATIONAL":
+            self._tpdo_sent.clear()
+            self._tpdo_sent_t.clear()
+            self._event_due = math.inf
+            return
+        now, v, due = time.monotonic(), self._values, math.inf
+        for lay in self._tpdos:
+            if lay.trans_type < 254:
+                continue
+            data = lay.struct.pack(*(v.get(k, 0) for k in lay.keys))
+            last = self._tpdo_sent_t.get(lay.cob)
+            timer_due = last + lay.event_s if last is not None and lay.event_s > 0 else math.inf
+            if self._tpdo_sent.get(lay.cob) == data and now < timer_due:
+                due = min(due, timer_due)
+                continue
+            if last is not None and now < last + lay.inhibit_s:
+                due = min(due, last + lay.inhibit_s)     # changed, but inhibited: sent when it ends
+                continue
+            self._send(lay.cob, data)
+            self._tpdo_sent[lay.cob], self._tpdo_sent_t[lay.cob] = data, now
+            if lay.event_s > 0:
+                due = min(due, now + lay.event_s)
+        self._event_due = due
 
     def _on_sync_work(self) -> None:
         assert self._node is not None                # SYNCs arrive after start()
@@ -489,6 +578,7 @@ class EmulatedCia402Drive:
             self._fault(0x8612, "table outside its travel")
         self._set_state(self._state)                      # refresh the statusword
         self._send_tpdos(enabled, n)
+        self._event_tpdos()
 
     def _position_polarity(self) -> int:
         """-1 while 0x607E bit 7 (position polarity) is set. Bit 6 (velocity polarity) is stored only:
@@ -510,15 +600,26 @@ class EmulatedCia402Drive:
         steps = self.scale_sign * int(math.floor(x / self.scale_resolution + 0.5))
         return _int32(counts), _int32(steps)
 
-    def _step_state_machine(self, controlword: int) -> None:
+    def _step_state_machine(self, controlword: int, sample: bool = True) -> None:
+        """``sample``: called at a SYNC (a quick stop ends after two); else on an event-driven RPDO."""
         state = self._state
-        if state == p402.QUICK_STOP_ACTIVE:
+        if state == p402.QUICK_STOP_ACTIVE and sample:
             self._qs_samples += 1
             if self._qs_samples > 1 and self._values[(_QUICK_STOP_OPTION, 0)] in (0, 1, 2, 3, 4):
                 state = p402.SWITCH_ON_DISABLED           # 12: quick stop done (torque already 0)
         new = p402.drive_transition(state, controlword, self._prev_cw, self._values[(_QUICK_STOP_OPTION, 0)])
         self._prev_cw = controlword
+        if new == p402.OPERATION_ENABLED and state != new and not self._cycle_time_set():
+            self._fault(PARAMETER_ERROR, "cyclic synchronous mode without an interpolation time period (0x60C2)")
+            return
         self._set_state(new)
+
+    def _cycle_time_set(self) -> bool:
+        """False for a drive that needs 0x60C2 for a cyclic synchronous mode and has 0 in it."""
+        if not self.profile.interpolation_period or self._values.get((p402.MODES_DISPLAY, 0)) not in (8, 9, 10):
+            return True
+        assert self._node is not None                # the state machine steps while on the bus
+        return od_value(self._node, INTERPOLATION_PERIOD, 1) != 0
 
     def _use_controller(self, enabled: bool) -> None:
         """The drive's own position loop (if the plant has one) runs only when enabled."""
@@ -541,11 +642,20 @@ class EmulatedCia402Drive:
 
     def _send_tpdos(self, enabled: bool, n: int) -> None:
         f, v = self.faults, self._values
-        frames = [(lay.cob, lay.struct.pack(*(v.get(k, 0) for k in lay.keys))) for lay in self._tpdos
-                  if lay.trans_type <= 240 and self._syncs % max(lay.trans_type, 1) == 0]
+        frames, acyclic = [], []
+        for lay in self._tpdos:                           # 0: at the SYNC after a change; n: every n-th SYNC
+            if lay.trans_type > 240 or (lay.trans_type and self._syncs % lay.trans_type):
+                continue
+            data = lay.struct.pack(*(v.get(k, 0) for k in lay.keys))
+            if lay.trans_type == 0:
+                if self._tpdo_sent.get(lay.cob) == data:
+                    continue
+                acyclic.append((lay.cob, data))
+            frames.append((lay.cob, data))
         if not self._still_in_window():                   # outside the synchronous window: not sent
             self.late_syncs += 1
             return
+        self._tpdo_sent.update(acyclic)
         frames = f.tpdo_frames(frames, n, enabled)
         delay = f.tpdo_delay(n, enabled)
         if delay > 0:

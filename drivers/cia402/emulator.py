@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
+from drivers.cia402.variants import drive_profile
 from drivers.placement import device_placement, place, settle_heap
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
@@ -75,6 +76,13 @@ class EmulatorConfig(BaseModel):
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # m: where the table starts (at rest)
     actual: DriveTruth = Field(default_factory=DriveTruth)   # the true device ([plant.actual])
     polarity: int = Field(0, ge=0, le=255)      # 0x607E at power-up: bit 7 position, bit 6 velocity polarity
+    profile: str = "generic"                    # the vendor variant of the drive (drivers.cia402.variants.PROFILES)
+
+    @field_validator("profile")
+    @classmethod
+    def _known_profile(cls, v: str) -> str:
+        drive_profile(v)                        # ValueError names the profiles there are
+        return v
 
     @field_validator("travel")
     @classmethod
@@ -146,7 +154,7 @@ def build_emulator_for(config: Any) -> EmulatedCia402Drive:
                                poll_s="auto" if emu.poll_us is None else 1e-6 * emu.poll_us,
                                torque_sign=truth.torque_sign, motor_encoder_sign=truth.motor_encoder_sign,
                                scale_sign=truth.scale_sign, torque_scale=truth.torque_scale,
-                               polarity=emu.polarity)
+                               polarity=emu.polarity, profile=emu.profile)
 
 
 class EmulatedDrives:

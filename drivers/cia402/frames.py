@@ -4,13 +4,22 @@
 owner calls :meth:`FrameIO.pump` - and sends them. On ``udp_multicast`` (the emulated
 drive's transport across processes) it reads and writes the socket itself in
 python-can's wire format (one msgpack map per datagram), at about a quarter of
-python-can's cost per frame, and this host's own frames come back in bus order; on
-every other interface (SocketCAN, PCAN, ...) it uses ``bus.recv()`` / ``bus.send()``.
+python-can's cost per frame; on every other interface (SocketCAN, PCAN, ...) it uses
+``bus.recv()`` / ``bus.send()``. As on CAN, a bus's own frames are not received, except on
+a ``udp_multicast`` bus open to the network (python-can's own socket: multicast loopback
+hands them back, in bus order; :attr:`FrameIO.own_frames_back`).
+
+Where the frames carry the time they were on the bus (:attr:`FrameIO.timed`: the kernel's receive
+time on ``udp_multicast`` and SocketCAN, the send time on python-can's ``virtual`` bus), that time
+is handed over on this host's monotonic clock, and :attr:`FrameIO.read_until` tells a reader that
+every frame on the bus before it has been handed over: a frame's place among the SYNCs then does
+not depend on when a thread got to read it.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import select
 import socket
@@ -26,6 +35,7 @@ from drivers.cia402.bus import confined
 
 log = logging.getLogger(__name__)
 
+_OFFSET_EVERY_S = 1.0    # s; how often the realtime -> monotonic offset of frame times is measured again
 _IDLE_S = 0.05           # s; a blocking receive thread wakes at least this often (stop() waits at most this)
 _SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)   # Linux: cumulative drop count of the receive queue
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
@@ -46,6 +56,19 @@ def stop_periodic(task: Any) -> None:
     thread = getattr(getattr(task, "_task", task), "thread", None)
     if isinstance(thread, threading.Thread) and thread is not threading.current_thread():
         thread.join(1.0)
+
+
+def _clock_offset() -> float | None:
+    """``time.time() - time.monotonic()`` from the tightest of three readings (None if every one was
+    interrupted for more than 20 us: a preempted reading would shift every frame's time)."""
+    best: tuple[float, float] | None = None
+    for _ in range(3):
+        a = time.monotonic()
+        r = time.time()
+        b = time.monotonic()
+        if b - a < 20e-6 and (best is None or b - a < best[0]):
+            best = (b - a, r - 0.5 * (a + b))
+    return best[1] if best is not None else None
 
 
 def _udp_template(cob: int, n: int) -> tuple[bytes, bytes]:
@@ -73,9 +96,18 @@ class FrameIO:
     ``udp_multicast``: the bus's socket is read and written directly (a duplicate of its
     file descriptor) in python-can's wire format (one msgpack map per frame): reading,
     decoding and dispatching a frame costs ~15 us instead of ~40 us through ``bus.recv()``;
-    ``t_arrival`` is the kernel's receive time. Frames this process sent come back too
-    (multicast loopback), in bus order. Frames the kernel dropped because the receive
-    buffer was full are counted in :attr:`dropped`. Other interfaces: ``bus.recv()``.
+    ``t_arrival`` is the kernel's receive time. On the loopback-confined bus
+    (:class:`drivers.cia402.bus.LoopbackUdpMulticastBus`) frames go out through the bus's send
+    socket and those from its address are dropped (a node does not receive its own frames);
+    on python-can's own ``udp_multicast`` bus they come back, in bus order. Frames the kernel
+    dropped because the receive buffer was full are counted in :attr:`dropped`. Other
+    interfaces: ``bus.recv()``.
+
+    ``timed`` (``udp_multicast``, ``socketcan``, ``virtual``): ``t_arrival`` is the frame's
+    time on the bus (kernel receive time; the virtual bus's send time) converted to
+    ``time.monotonic()``, not the time this process read it; :attr:`read_until` is the
+    monotonic time at which the last completed read began (every frame stamped before it has
+    been handed over by then). Elsewhere ``t_arrival`` is the time of reading.
     """
 
     def __init__(self, bus: can.BusABC, handler: Callable[[list[Frame]], None], *,
@@ -88,20 +120,33 @@ class FrameIO:
         self.name = name
         self._lock = send_lock if send_lock is not None else threading.Lock()
         self.udp = bus_kwargs.get("interface") == "udp_multicast"
+        # frames stamped with their time on the bus, on the realtime clock (python-can: SocketCAN's kernel
+        # receive time, the virtual bus's send time; udp_multicast: the kernel's, read here)
+        self.timed = self.udp or bus_kwargs.get("interface") in ("socketcan", "virtual")
+        self.read_until = -math.inf   # monotonic time at which the last completed read began
         self.local_only = confined(bus_kwargs)   # drop datagrams from anywhere but this host (drivers.cia402.bus)
         self.foreign = 0          # datagrams dropped because they came from another address
         self._dest = (str(bus_kwargs.get("channel")), int(bus_kwargs.get("port") or UDP_DEFAULT_PORT))
         self._sock: socket.socket | None = None
+        self._tx: socket.socket | None = None
+        self._own: tuple[str, int] | None = getattr(bus, "own_address", None)   # our frames' source: dropped
         self._templates: dict[tuple[int, int], tuple[bytes, bytes]] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._unpack: Callable | None = None
-        self._mono_offset = 0.0   # time.time() - time.monotonic(): kernel (realtime) stamps -> monotonic
+        self._mono_offset = _clock_offset() or time.time() - time.monotonic()   # realtime stamps -> monotonic
+        self._offset_at = time.monotonic()
         self.frames = 0           # frames handed to the handler
         self.malformed = 0        # datagrams that are not python-can frames
         self.dropped = 0          # frames the kernel dropped (receive buffer full)
         self.errors = 0           # handler exceptions
         self.failure: str | None = None   # why reading stopped (the bus broke)
+
+    @property
+    def own_frames_back(self) -> bool:
+        """True when this bus hands its own frames back in bus order (python-can's ``udp_multicast``
+        bus open to the network); never on CAN or the loopback-confined bus."""
+        return self.udp and self._own is None
 
     @property
     def running(self) -> bool:
@@ -117,10 +162,16 @@ class FrameIO:
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _RCVBUF)
                 sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
-                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             except OSError as exc:
-                log.warning("canopen: receive buffer / drop counter / timestamps not available: %s", exc)
-            self._mono_offset = time.time() - time.monotonic()
+                log.warning("canopen: receive buffer / drop counter not available: %s", exc)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            except OSError as exc:              # then a frame's time is when it was read: not timed
+                self.timed = False
+                log.warning("canopen: kernel receive times not available (%s): frames are placed among the "
+                            "SYNCs in the order a thread reads them", exc)
+            tx_fileno = getattr(self.bus, "tx_fileno", None)
+            self._tx = socket.socket(fileno=os.dup(tx_fileno())) if tx_fileno is not None else sock
             self._sock = sock
         return self
 
@@ -146,6 +197,9 @@ class FrameIO:
     def close(self) -> None:
         """Stop, and close the duplicate socket (the bus itself stays open)."""
         self.stop()
+        if self._tx is not None and self._tx is not self._sock:
+            self._tx.close()
+        self._tx = None
         if self._sock is not None:
             self._sock.close()
             self._sock = None
@@ -153,7 +207,7 @@ class FrameIO:
     # ----- sending ----------------------------------------------------------------------
     def send(self, cob_id: int, data: bytes) -> None:
         """Send one 11-bit data frame (thread-safe). Raises python-can's or the socket's error."""
-        sock = self._sock
+        sock = self._tx
         if sock is not None:
             key = (cob_id, len(data))
             tpl = self._templates.get(key)
@@ -168,11 +222,15 @@ class FrameIO:
     # ----- receiving --------------------------------------------------------------------
     def pump(self, limit: int = 4096) -> int:
         """Read every frame waiting now (at most ``limit``) and hand them over; returns how many.
+        A read that got every waiting frame moves :attr:`read_until` to the time it began.
 
         Raises :class:`OSError` / ``can.CanError`` if the bus broke.
         """
+        began = time.monotonic()
         frames = self.read_now(limit)
         self._deliver(frames)
+        if len(frames) < limit:
+            self.read_until = began
         return len(frames)
 
     def read_now(self, limit: int = 4096) -> list[Frame]:
@@ -191,8 +249,16 @@ class FrameIO:
             self.errors += 1
             log.exception("%s: frame handler failed", self.name)
 
+    def _follow_clock(self) -> float:
+        """The realtime -> monotonic offset of frame times, measured again every ``_OFFSET_EVERY_S``
+        (the realtime clock is slewed by NTP; the monotonic one is not stepped)."""
+        if time.monotonic() - self._offset_at > _OFFSET_EVERY_S:
+            self._offset_at = time.monotonic()
+            self._mono_offset = _clock_offset() or self._mono_offset
+        return self._mono_offset
+
     def _read_udp(self, sock: socket.socket, limit: int) -> list[Frame]:
-        recvmsg, unpack, offset = sock.recvmsg, self._unpack, self._mono_offset
+        recvmsg, unpack, offset, own = sock.recvmsg, self._unpack, self._follow_clock(), self._own
         assert unpack is not None               # open() set it with the socket
         frames: list[Frame] = []
         while len(frames) < limit:
@@ -203,6 +269,8 @@ class FrameIO:
             if self.local_only and not (src and str(src[0]).startswith("127.")):
                 self.foreign += 1
                 continue
+            if own is not None and src is not None and tuple(src[:2]) == own:
+                continue                        # our own frame: a CAN node does not receive it
             t = 0.0
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET:
@@ -223,9 +291,12 @@ class FrameIO:
     def _read_bus(self, limit: int, timeout: float = 0.0) -> list[Frame]:
         frames: list[Frame] = []
         msg = self.bus.recv(timeout)
+        offset = self._follow_clock() if self.timed else None
         while msg is not None:
             if not (msg.is_error_frame or msg.is_remote_frame):
-                frames.append((msg.arbitration_id, bytes(msg.data), time.monotonic()))
+                now = time.monotonic()
+                t = msg.timestamp - offset if offset is not None and msg.timestamp else now
+                frames.append((msg.arbitration_id, bytes(msg.data), min(t, now)))
             if len(frames) >= limit:
                 break
             msg = self.bus.recv(0.0)
@@ -240,7 +311,11 @@ class FrameIO:
         while not stop.is_set():
             try:
                 if self._sock is None and poll_s is None:       # block in python-can's recv
-                    self._deliver(self._read_bus(512, _IDLE_S))
+                    began = time.monotonic()
+                    frames = self._read_bus(512, _IDLE_S)
+                    self._deliver(frames)
+                    if len(frames) < 512:
+                        self.read_until = began
                     continue
                 if self.pump(512):
                     continue

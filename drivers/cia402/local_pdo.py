@@ -1,8 +1,10 @@
 """PDO tables of a ``canopen.LocalNode`` (the emulated drive's side of CiA 301 PDO mapping).
 
 ``LocalNode`` stores whatever an SDO client writes; a real device refuses a mapping
-that names a missing object (abort 0x06020000), an object that is not PDO-mappable
-or mapped with the wrong length (0x06040041), or too many bits (0x06040042).
+while its PDO is valid (CiA 301: map only with COB-ID bit 31 set; abort 0x08000022, "present
+device state"), one that names a missing object (abort 0x06020000), an object that is not
+PDO-mappable or mapped with the wrong length (0x06040041), or more than 8 bytes or more entries
+than the drive's mapping record has (0x06040042).
 :func:`check_mapping_write` does that; :func:`pdo_layouts` reads the valid PDOs and
 their mappings as ``struct`` layouts.
 """
@@ -38,7 +40,13 @@ def _data_type(node: canopen.LocalNode, index: int, subindex: int) -> int:
 
 def check_mapping_write(node: canopen.LocalNode, index: int, subindex: int, value: int) -> None:
     """Refuse a write to an RPDO (0x16xx) / TPDO (0x1Axx) mapping parameter the way a device would."""
+    comm = index - 0x200                     # 0x16xx -> 0x14xx, 0x1Axx -> 0x18xx
+    if node.object_dictionary.get_variable(comm, 1) is not None and not od_value(node, comm, 1) & p402.PDO_INVALID:
+        raise SdoAbortedError(0x08000022)    # the PDO is valid: mapping only while disabled (CiA 301)
     if subindex == 0:
+        record = node.object_dictionary[index]
+        if value > max((s for s in getattr(record, "subindices", {0: None})), default=0):
+            raise SdoAbortedError(0x06040042)   # more entries than this drive's mapping record has
         bits = sum(p402.split_mapping_entry(od_value(node, index, s))[2] for s in range(1, value + 1))
         if bits > 64:
             raise SdoAbortedError(0x06040042)
@@ -57,12 +65,19 @@ def check_mapping_write(node: canopen.LocalNode, index: int, subindex: int, valu
 
 @dataclass(frozen=True)
 class PdoLayout:
-    """One valid PDO: 11-bit COB-ID, transmission type, packing, mapped (index, subindex) keys."""
+    """One valid PDO: 11-bit COB-ID, transmission type, packing, mapped (index, subindex) keys; for a
+    TPDO its inhibit time (0x18xx:03, 100 us units) and event timer (0x18xx:05, ms) in seconds."""
 
     cob: int
     trans_type: int
     struct: struct.Struct
     keys: tuple[tuple[int, int], ...]
+    inhibit_s: float = 0.0
+    event_s: float = 0.0
+
+
+def _optional(node: canopen.LocalNode, index: int, subindex: int) -> int:
+    return od_value(node, index, subindex) if node.object_dictionary.get_variable(index, subindex) else 0
 
 
 def _layout(node: canopen.LocalNode, comm: int, mapping: int) -> PdoLayout | None:
@@ -72,7 +87,10 @@ def _layout(node: canopen.LocalNode, comm: int, mapping: int) -> PdoLayout | Non
     keys = tuple(p402.split_mapping_entry(od_value(node, mapping, s))[:2]
                  for s in range(1, od_value(node, mapping, 0) + 1))
     st = p402.pdo_struct([_data_type(node, i, s) for i, s in keys])
-    return PdoLayout(cob & 0x7FF, od_value(node, comm, 2), st, keys)
+    tx = comm >= 0x1800
+    return PdoLayout(cob & 0x7FF, od_value(node, comm, 2), st, keys,
+                     inhibit_s=1e-4 * _optional(node, comm, 3) if tx else 0.0,
+                     event_s=1e-3 * _optional(node, comm, 5) if tx else 0.0)
 
 
 def pdo_layouts(node: canopen.LocalNode) -> tuple[list[PdoLayout], list[PdoLayout]]:

@@ -8,14 +8,17 @@ the object; an SDO timeout in the middle of the set-up -> :class:`DeviceTimeout`
 
 Frames are received by :class:`~drivers.cia402.frames.FrameIO` (shared with the emulated drive), not by
 canopen's ``Network.connect()`` notifier: on ``udp_multicast`` it reads the socket
-itself at about a quarter of python-can's cost per frame, and this host's own SYNCs
-come back in bus order - the sample assembly uses them as window markers (see
+itself at about a quarter of python-can's cost per frame. Only where the bus hands this
+host's own SYNCs back in bus order (python-can's ``udp_multicast`` open to the network) does
+the sample assembly use them as window markers; on CAN and the loopback-confined bus the
+SYNC sender's marker times do, compared with each frame's time on the bus (see
 :mod:`drivers.cia402.stream`).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import struct
 import sys
 import threading
@@ -31,6 +34,7 @@ from drivers.cia402.bus import open_bus
 from drivers.cia402.config import Cia402Config
 from drivers.cia402.frames import FrameIO, stop_periodic
 from drivers.cia402.stream import RpdoChannel, SyncSender
+from drivers.cia402.variants import interpolation_period
 from drivers.errors import DeviceConnectionError, DeviceTimeout, ProtocolError
 from rt_ident.errors import ConfigError
 
@@ -46,6 +50,29 @@ def _best_effort(what: str, steps: Iterable[Callable[[], object]]) -> None:
             log.warning("canopen: %s step failed: %s", what, exc)
 
 
+class SdoRefused(ProtocolError):
+    """The drive aborted an SDO transfer; ``code`` is its abort code."""
+
+    def __init__(self, code: int, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+#: Aborts that say a PDO's mapping record has no room for another entry.
+_NO_ROOM = (0x06090011, 0x06040042)
+#: Aborts that say a drive does not take an optional object (absent, read-only, value refused).
+_NOT_TAKEN = (0x06020000, 0x06010002, 0x06090030, 0x06090011)
+
+
+class _NoRoom(Exception):
+    """A PDO's mapping takes only ``entries`` objects (``cause``: the drive's abort)."""
+
+    def __init__(self, entries: int, cause: str) -> None:
+        super().__init__(cause)
+        self.entries = entries
+        self.cause = cause
+
+
 class BusConnection:
     """One CAN interface, opened once per process and shared by every drive on it.
 
@@ -59,8 +86,9 @@ class BusConnection:
     Connections are keyed by interface, channel and port, and counted: the last
     :meth:`release` closes the bus.
 
-    Echoes of this host's SYNCs (``udp_multicast``) are counted here, so that each drive's
-    deque can tell the SYNCs sent before its channel joined from its own (``(ECHO, t, n)``).
+    Echoes of this host's SYNCs (where the bus hands them back: :attr:`FrameIO.own_frames_back`) are
+    counted here, so that each drive's deque can tell the SYNCs sent before its channel joined from its
+    own (``(ECHO, t, n)``).
     """
 
     _open: dict[tuple, BusConnection] = {}
@@ -128,7 +156,7 @@ class BusConnection:
         self.network = net
         self.io = FrameIO(bus, self._dispatch, bus_kwargs=cfg.bus_kwargs(), send_lock=net.send_lock,
                           name=f"canopen-rx-{cfg.channel}").start()
-        if self.io.udp:
+        if self.io.own_frames_back:
             net.subscribe(0x80, self._on_sync_echo)
         self._hb_task = net.send_periodic(0x700 + cfg.master_node_id, bytes([0x05]), cfg.heartbeat_ms / 1000.0)
 
@@ -297,14 +325,17 @@ class NodeSetup:
         st = struct.Struct("<" + p402.STRUCT_CODE[code])
         return st.unpack_from(bytes(data).ljust(st.size, b"\0"))[0]
 
-    def download(self, index: int, subindex: int, value: int, what: str = "") -> None:
-        data = struct.pack("<" + p402.STRUCT_CODE[self._data_type(index, subindex)], value)
+    def download(self, index: int, subindex: int, value: int, what: str = "", code: int | None = None) -> None:
+        """Write an object by SDO (its data type from the EDS, or ``code`` for one the EDS lacks).
+        A refusal raises :class:`SdoRefused` (a :class:`ProtocolError` naming the object and the abort)."""
+        code = self._data_type(index, subindex) if code is None else code
+        data = struct.pack("<" + p402.STRUCT_CODE[code], value)
         assert self.node is not None            # connected
         try:
             self.node.sdo.download(index, subindex, data)
         except SdoAbortedError as exc:
-            raise ProtocolError(f"node {self.cfg.node_id} refused writing {p402.object_label(index, subindex)} "
-                                f"= 0x{value & 0xFFFFFFFF:X}{what}: {p402.abort_text(exc.code)}") from exc
+            raise SdoRefused(exc.code, f"node {self.cfg.node_id} refused writing {p402.object_label(index, subindex)} "
+                             f"= 0x{value & 0xFFFFFFFF:X}{what}: {p402.abort_text(exc.code)}") from exc
         except SdoCommunicationError as exc:
             raise DeviceTimeout(f"node {self.cfg.node_id} did not answer writing "
                                 f"{p402.object_label(index, subindex)} within sdo_timeout "
@@ -322,9 +353,20 @@ class NodeSetup:
 
     @property
     def echo(self) -> bool:
-        """True when this host's own frames come back in bus order (``udp_multicast``): then the
-        echoed SYNCs, not the sender's clock, mark the sample windows."""
-        return self.io is not None and self.io.udp and self._on_sync_echo is not None
+        """True when this host's own frames come back in bus order (python-can's ``udp_multicast``
+        open to the network): then the echoed SYNCs, not the sender's clock, mark the sample windows."""
+        return self.io is not None and self.io.own_frames_back and self._on_sync_echo is not None
+
+    @property
+    def timed(self) -> bool:
+        """True when the frames carry their time on the bus on this host's clock and this host's own
+        frames do not come back: the sender's marker times mark the sample windows."""
+        return self.io is not None and self.io.timed and not self.echo
+
+    @property
+    def read_until(self) -> float:
+        """Every frame on the bus before this monotonic time has been handed over (timed buses)."""
+        return self.io.read_until if self.io is not None else -math.inf
 
     def send(self, cob_id: int, data: bytes) -> None:
         """Send one frame (thread-safe; a fraction of the cost of ``Network.send_message``, used per SYNC)."""
@@ -403,23 +445,22 @@ class NodeSetup:
         """PDO mapping, mode 10 verified, torque limit, cycle period, heartbeats. Returns the rated torque [N m]."""
         cfg = self.cfg
         rated = self._rated_torque()
+        self._probe_streamed()
         # RPDO1: controlword + target torque, applied at each SYNC
         self.rpdo_cob = self._map_pdo(0x1400, 0x1600, [(p402.CONTROLWORD, 0), (p402.TARGET_TORQUE, 0)],
                                       0x200 + cfg.node_id, "RPDO1")
-        tpdo1 = [(p402.STATUSWORD, 0), (p402.POSITION_ACTUAL, 0), (p402.TORQUE_ACTUAL, 0)]
-        tpdo2 = [(cfg.scale_index, cfg.scale_subindex)]
-        cob1 = self._map_pdo(0x1800, 0x1A00, tpdo1, 0x180 + cfg.node_id, "TPDO1")
-        cob2 = self._map_pdo(0x1801, 0x1A01, tpdo2, 0x280 + cfg.node_id, "TPDO2")
+        streamed = [(p402.STATUSWORD, 0), (p402.POSITION_ACTUAL, 0), (p402.TORQUE_ACTUAL, 0),
+                    (cfg.scale_index, cfg.scale_subindex)]
+        tpdos = self._map_tpdos(streamed)
         self._disable_unused(0x1400, used=1)
-        self._disable_unused(0x1800, used=2)
-        self.tpdo_cobs = [cob1, cob2]
-        self.tpdo_layouts = [(cob1, p402.pdo_struct([self._data_type(i, s) for i, s in tpdo1])),
-                             (cob2, p402.pdo_struct([self._data_type(i, s) for i, s in tpdo2]))]
+        self._disable_unused(0x1800, used=len(tpdos))
+        self.tpdo_cobs = [cob for cob, _ in tpdos]
+        self.tpdo_layouts = [(cob, p402.pdo_struct([self._data_type(i, s) for i, s in entries]))
+                             for cob, entries in tpdos]
         assert self.network is not None         # connected
         for cob in self.tpdo_cobs:
             self.network.subscribe(cob, self._on_tpdo)
-        if self.od.get_variable(p402.CYCLE_PERIOD) is not None:
-            self.download(p402.CYCLE_PERIOD, 0, int(round(1e6 / cfg.sync_rate_hz)), " (SYNC period in us)")
+        self._set_cycle_time()
         self._set_mode_cst()
         permille = cfg.max_torque_permille or min(65535, int(round(cfg.torque_limit * 1000.0 / rated)))
         self.download(p402.MAX_TORQUE, 0, permille, " (drive-side torque limit, per mille of rated torque)")
@@ -474,20 +515,87 @@ class NodeSetup:
                               f"be scaled wrongly (leave backend.rated_torque unset to use the drive's)")
         return cfg.rated_torque
 
+    def _probe_streamed(self) -> None:
+        """Read every object the TPDOs will carry once by SDO: a drive without one is refused here, in one
+        line naming the object and the drive's abort (the table scale's says where else it can come from)."""
+        cfg = self.cfg
+        for index, sub in ((p402.STATUSWORD, 0), (p402.POSITION_ACTUAL, 0), (p402.TORQUE_ACTUAL, 0)):
+            self.upload(index, sub, " (streamed in every sample)")
+        try:
+            self.upload(cfg.scale_index, cfg.scale_subindex)
+        except ProtocolError as exc:
+            raise ProtocolError(f"{exc} - the table scale (backend.scale_index / scale_subindex); a drive without "
+                                f"0x60E4 needs the object its second encoder input is read from, named there "
+                                f"with that drive's EDS") from None
+
+    def _map_tpdos(self, entries: list[tuple[int, int]]) -> list[tuple[int, list[tuple[int, int]]]]:
+        """The streamed objects in TPDO1 (statusword, position, torque) and TPDO2 (scale); on a drive that
+        takes fewer entries per PDO, across TPDOs in the same order (at least 2 per PDO: the set stays
+        two frames per SYNC). Returns ``[(cob, entries)]``."""
+        cfg = self.cfg
+        chunks = [entries[:3], entries[3:]]
+        while True:
+            try:
+                return [(self._map_pdo(0x1800 + n, 0x1A00 + n, chunk, (0x180, 0x280, 0x380, 0x480)[n] + cfg.node_id,
+                                       f"TPDO{n + 1}"), chunk) for n, chunk in enumerate(chunks)]
+            except _NoRoom as room:
+                size = max(len(c) for c in chunks)
+                if room.entries >= size or room.entries < 2:
+                    raise ProtocolError(f"node {cfg.node_id} maps at most {room.entries} objects into a PDO "
+                                        f"({room.cause}); the backend needs at least 2") from None
+                log.info("canopen: node %d maps at most %d objects per PDO: the streamed objects go across "
+                         "TPDOs", cfg.node_id, room.entries)
+                n = room.entries
+                chunks = [entries[i:i + n] for i in range(0, len(entries), n)]
+
     def _map_pdo(self, comm: int, mapping: int, entries: list[tuple[int, int]], default_cob: int,
                  label: str) -> int:
-        """CiA 301 sequence: invalidate, transmission type 1, count 0, entries, count, validate."""
+        """CiA 301 sequence: invalidate, transmission type 1, count 0, entries, count, validate.
+        An entry the drive has no room for raises :class:`_NoRoom`; one it cannot map, a one-line
+        :class:`ProtocolError` naming the object and the abort."""
         cob = self.upload(comm, 1) & 0x7FF or default_cob
         self.download(comm, 1, cob | p402.PDO_INVALID, f" (disable {label} to map it)")
         self.download(comm, 2, p402.TRANS_SYNC_EVERY, f" ({label} transmission type: every SYNC)")
         self.download(mapping, 0, 0, f" (clear {label} mapping)")
         for i, (index, sub) in enumerate(entries, start=1):
             bits = len(self._var(index, sub))
-            self.download(mapping, i, p402.mapping_entry(index, sub, bits),
-                          f" (mapping {p402.object_label(index, sub)} into {label})")
-        self.download(mapping, 0, len(entries), f" ({label} mapping count)")
+            try:
+                self.download(mapping, i, p402.mapping_entry(index, sub, bits),
+                              f" (mapping {p402.object_label(index, sub)} into {label})")
+            except SdoRefused as exc:
+                if exc.code in _NO_ROOM and i > 1:
+                    raise _NoRoom(i - 1, p402.abort_text(exc.code)) from None
+                raise ProtocolError(f"node {self.cfg.node_id} cannot map {p402.object_label(index, sub)} into "
+                                    f"{label}: {p402.abort_text(exc.code)}; the backend needs it in every "
+                                    f"sample") from None
+        try:
+            self.download(mapping, 0, len(entries), f" ({label} mapping count)")
+        except SdoRefused as exc:
+            if exc.code in _NO_ROOM and len(entries) > 1:
+                raise _NoRoom(len(entries) - 1, p402.abort_text(exc.code)) from None
+            raise
         self.download(comm, 1, cob, f" (enable {label})")
         return cob
+
+    def _set_cycle_time(self) -> None:
+        """The SYNC period in 0x1006 (if the drive takes it: some keep it read-only) and in 0x60C2, the
+        interpolation time period, where the drive has one (some need it for cyclic synchronous modes)."""
+        cfg = self.cfg
+        period = 1.0 / cfg.sync_rate_hz
+        if self.od.get_variable(p402.CYCLE_PERIOD) is not None:
+            try:
+                self.download(p402.CYCLE_PERIOD, 0, int(round(1e6 * period)), " (SYNC period in us)")
+            except SdoRefused as exc:
+                if exc.code not in _NOT_TAKEN:
+                    raise
+                log.info("canopen: node %d does not take 0x1006 (%s); the SYNC sets its cycle",
+                         cfg.node_id, p402.abort_text(exc.code))
+        if self.optional_upload(p402.INTERPOLATION_PERIOD, 1, 0x05) is None:
+            return                              # no such object: the drive follows the SYNC
+        value, power = interpolation_period(period)
+        self.download(p402.INTERPOLATION_PERIOD, 2, power, " (interpolation time index, power of ten)", code=0x02)
+        self.download(p402.INTERPOLATION_PERIOD, 1, value, f" (interpolation time period: {value} x 10^{power} s)",
+                      code=0x05)
 
     def _disable_unused(self, comm_base: int, used: int) -> None:
         n = used

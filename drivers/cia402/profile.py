@@ -25,6 +25,7 @@ MAX_TORQUE = 0x6072
 RATED_TORQUE = 0x6076
 TORQUE_ACTUAL = 0x6077
 POLARITY = 0x607E          # UNSIGNED8; bit 7 position polarity, bit 6 velocity polarity
+INTERPOLATION_PERIOD = 0x60C2   # RECORD: sub 1 value (UNSIGNED8), sub 2 index (INTEGER8): value * 10^index s
 ERROR_CODE = 0x603F
 SUPPORTED_MODES = 0x6502
 DEVICE_TYPE = 0x1000
@@ -44,6 +45,7 @@ OBJECT_NAMES = {
     TORQUE_ACTUAL: "torque actual value", 0x60E4: "additional position actual value",
     CONSUMER_HEARTBEAT: "consumer heartbeat time", PRODUCER_HEARTBEAT: "producer heartbeat time",
     DEVICE_TYPE: "device type", POLARITY: "polarity", SUPPORTED_MODES: "supported drive modes",
+    INTERPOLATION_PERIOD: "interpolation time period", CYCLE_PERIOD: "communication cycle period",
 }
 
 #: 0x607E bits (CiA 402-2): position polarity reverses position actual, target torque and torque actual
@@ -251,6 +253,7 @@ def abort_text(code: int) -> str:
 EMCY_TEXT = {
     0x1000: "generic error", 0x2310: "continuous over-current", 0x3210: "DC link over-voltage",
     0x4310: "drive temperature", 0x5000: "device hardware", 0x6000: "device software",
+    0x6320: "parameter error",
     0x7305: "incremental sensor 1 fault", 0x8110: "CAN overrun (objects lost)",
     0x8130: "life guard error or heartbeat error", 0x8210: "PDO not processed due to length error",
     0x8611: "following error", 0x8612: "reference limit", 0xFF00: "device specific",

@@ -9,9 +9,9 @@ Threads and hand-offs:
   (synchronous RPDO) and answers with its TPDOs;
 * the frame reader (:class:`drivers.cia402.frames.FrameIO`) runs a light callback that
   only appends ``(cob_id, t_arrival, bytes)`` to the same deque (``deque.append`` is
-  atomic). It is a receive thread, except with ``echo`` while the backend is active:
-  then the loop thread reads the bus itself at the start of ``read()`` (no thread
-  competes with the loop for the GIL; the socket keeps the frames in bus order);
+  atomic). It is a receive thread, except while the backend is active with ``echo`` or
+  ``timed`` markers: then the loop thread reads the bus itself at the start of ``read()``
+  (no thread competes with the loop for the GIL; the frames wait in the socket);
 * the **loop thread** drains the deque in ``read()`` through :class:`SampleAssembler`.
 
 The frames between two window markers form the window of one sample (CiA 301's
@@ -20,14 +20,22 @@ TPDO is *stale* (the sample is dropped; ``SampleBlock.lost`` shows the gap); ext
 frames in a window are *late* (the newest is used); frames of the wrong length are
 *corrupt*. The window markers are:
 
-* with ``echo`` (``udp_multicast``: the bus hands this host's own frames back, in bus
-  order): the **echo of SYNC k** ``(ECHO, t)``. The sender's marker only records
-  ``k``, time and torque. Attribution is then exact whatever the host's scheduling:
-  a TPDO read after SYNC k's echo and before SYNC k+1's was on the bus between them;
-* otherwise the sender's marker itself: it enters the deque before SYNC ``k`` is on the
-  bus, so every TPDO answering SYNC ``k`` follows it, but a TPDO the receive thread
-  handles after the sender's *next* marker (a late receive thread, not a late drive)
-  lands in the next window.
+* ``timed`` (the bus stamps each frame with its time on the bus: the kernel's receive time
+  on ``udp_multicast`` and SocketCAN, the send time on python-can's ``virtual`` bus; see
+  :attr:`drivers.cia402.frames.FrameIO.timed`): the sender's marker **time**, taken just
+  before SYNC ``k`` is sent. A frame stamped at or after it and before SYNC ``k+1``'s marker
+  time belongs to window ``k``, however late a thread read it; a window closes once the
+  reader has read everything up to the next marker's time (``FrameIO.read_until``). A real
+  CAN adapter does not hand a node its own frames, so this does not need them;
+* with ``echo`` (python-can's ``udp_multicast`` open to the network: the bus hands this host's
+  own frames back, in bus order; not CAN, not the loopback-confined bus): the **echo of SYNC k**
+  ``(ECHO, t)``. The sender's marker only records ``k``, time and torque. Attribution is then
+  exact whatever the host's scheduling: a TPDO read after SYNC k's echo and before SYNC k+1's
+  was on the bus between them;
+* otherwise (an interface whose frame times are not on this host's clock) the sender's marker
+  itself, by deque order: it enters the deque before SYNC ``k`` is on the bus, so every TPDO
+  answering SYNC ``k`` follows it, but a TPDO the receive thread handles after the sender's
+  *next* marker (a late receive thread, not a late drive) lands in the next window.
 
 TPDOs carry no SYNC counter. A drive does not send an answer once the next SYNC has
 arrived (CiA 301 synchronous window; the emulated drive checks), but an answer sent just
@@ -42,6 +50,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import os
 import struct
 import threading
@@ -290,20 +299,25 @@ class SyncSender:
                 self.overruns += skip
             if self._changes:
                 self._apply_changes(channels)
-            t = clock()
-            frames = []
+            cycle = []
             for ch in channels:
                 permille, torque = ch.encode(ch.plan.take(k))
-                ch.sink.append((MARK, k, t, torque))
-                frames.append((ch.rpdo_cob, pack(ch.controlword & 0xFFFF, permille)))
+                cycle.append((ch, torque, pack(ch.controlword & 0xFFFF, permille)))
+            marked = False
             try:
-                for cob, data in frames:
-                    send(cob, data)
+                for ch, _, data in cycle:
+                    send(ch.rpdo_cob, data)
+                # the marker's time as close before the SYNC as it can be: a frame stamped after it
+                # answers this SYNC or a later one (timed window markers, see SampleAssembler)
+                t = clock()
+                for ch, torque, _ in cycle:
+                    ch.sink.append((MARK, k, t, torque))
+                marked = True
                 send(sync_cob, b"")
                 self.sent += 1
                 self.consecutive_errors = 0
             except Exception as exc:  # noqa: BLE001 - a sender thread must not die on a bus error
-                for ch in channels:
+                for ch in channels if marked else ():
                     ch.sink.append((CANCEL, k))
                 self.send_errors += 1
                 self.consecutive_errors += 1
@@ -363,11 +377,13 @@ class SampleAssembler:
     """
 
     def __init__(self, layouts: list[tuple[int, struct.Struct]], stale_limit: int, stuck_permille: float,
-                 echo: bool = False) -> None:
+                 echo: bool = False, timed: bool = False) -> None:
         self.layouts = layouts
         self.stale_limit = stale_limit
         self.stuck_permille = stuck_permille
         self.echo = echo
+        self.timed = timed and not echo
+        self._open: collections.deque = collections.deque()   # timed mode: [(marker, frames)], oldest first
         self._records: collections.deque = collections.deque()   # echo mode: SYNCs sent, echo not yet read
         self.echoes = 0
         self._echo_floor = 0                  # echoes with an ordinal up to this are older than our markers
@@ -419,7 +435,7 @@ class SampleAssembler:
         self.rows = {k: [] for k in rows}
         return rows
 
-    def feed(self, dq: collections.deque, deliver: bool) -> None:
+    def feed(self, dq: collections.deque, deliver: bool, read_until: float | None = None) -> None:
         """Consume every item now in ``dq``; rows of delivered samples accumulate in ``rows``.
 
         A window closes at the next marker, taking the newest valid frame of each TPDO (so a
@@ -427,7 +443,13 @@ class SampleAssembler:
         as soon as it is complete, only when the previous window was complete: then no frame
         of an older SYNC can still be on its way, and the sample is delivered without waiting
         for the next SYNC.
+
+        ``timed``: ``read_until`` is the bus reader's :attr:`~drivers.cia402.frames.FrameIO.read_until`
+        (every frame stamped before it is in ``dq``); see :meth:`_feed_timed`.
         """
+        if self.timed:
+            self._feed_timed(dq, deliver, read_until)
+            return
         pop = dq.popleft
         echo = self.echo
         for _ in range(len(dq)):
@@ -445,7 +467,7 @@ class SampleAssembler:
                     continue
                 self.echoes += 1
                 if self._marker is not None:
-                    self._close(self._marker, deliver)
+                    self._close(self._marker, self._frames, deliver)
                 self._marker = self._records.popleft()
                 self._frames = {}
             elif kind == SKIP:
@@ -455,7 +477,7 @@ class SampleAssembler:
                     self._records.pop()        # never on the bus: no echo will come
             elif kind == MARK:
                 if self._marker is not None:
-                    self._close(self._marker, deliver)
+                    self._close(self._marker, self._frames, deliver)
                 self._marker = item
                 self._frames = {}
             else:
@@ -464,18 +486,60 @@ class SampleAssembler:
                     self.late += 1
                     continue
                 self._frames.setdefault(item[0], []).append(item)
-        if self._marker is not None and self._prev_complete and all(
-                any(len(f[2]) == st.size for f in self._frames.get(cob, ())) for cob, st in self.layouts):
-            self._close(self._marker, deliver)
+        if self._marker is not None and self._prev_complete and self._complete(self._frames):
+            self._close(self._marker, self._frames, deliver)
             self._marker = None
 
-    def _close(self, marker: tuple, deliver: bool) -> None:
+    def _complete(self, frames: dict[int, list[tuple]]) -> bool:
+        """A valid frame of every TPDO is in the window."""
+        return all(any(len(f[2]) == st.size for f in frames.get(cob, ())) for cob, st in self.layouts)
+
+    def _feed_timed(self, dq: collections.deque, deliver: bool, read_until: float | None) -> None:
+        """Windows by time: a frame belongs to the newest SYNC whose marker time is not after the frame's
+        time on the bus, whenever the frame was read. The sender's marker enters the deque before its
+        SYNC is sent, so it precedes every answer to that SYNC there; a frame stamped before the oldest
+        open window answers a window already closed (``late``). The oldest window closes once the next
+        SYNC's marker time is at or before ``read_until`` (every frame of the window has been read), or
+        early as in :meth:`feed`. Without ``read_until`` a window closes when the next marker is in."""
+        pop, wins = dq.popleft, self._open
+        for _ in range(len(dq)):
+            item = pop()
+            kind = item[0]
+            if kind == MARK:
+                wins.append((item, {}))
+            elif kind == CANCEL:
+                if wins and wins[-1][0][1] == item[1]:          # never on the bus: no window of its own
+                    _, frames = wins.pop()
+                    for cob, got in frames.items():
+                        if wins:
+                            wins[-1][1].setdefault(cob, []).extend(got)
+            elif kind in (ECHO, SKIP):
+                continue
+            else:
+                self.frames_seen += 1
+                t = item[1]
+                for marker, frames in reversed(wins):
+                    if marker[2] <= t:
+                        frames.setdefault(item[0], []).append(item)
+                        break
+                else:
+                    self.late += 1                 # answers a SYNC whose window has closed
+        horizon = math.inf if read_until is None else read_until
+        while wins:
+            marker, frames = wins[0]
+            ended = len(wins) > 1 and (wins[1][0][2] <= horizon or len(wins) > _MAX_PENDING)
+            if not (ended or (self._prev_complete and self._complete(frames))):
+                break
+            wins.popleft()
+            self._close(marker, frames, deliver)
+
+    def _close(self, marker: tuple, window: dict[int, list[tuple]], deliver: bool) -> None:
         _, k, t, cmd = marker
         values: list = []
         bad = None
         lone = True                      # exactly one valid frame of every TPDO
         for cob, st in self.layouts:
-            frames = self._frames.get(cob)
+            frames = window.get(cob)
             if not frames:
                 bad = bad or "missing"
                 continue

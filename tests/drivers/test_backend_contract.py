@@ -1,7 +1,8 @@
 """One contract suite for every backend: the rules of :mod:`drivers.base` checked on real traffic.
 
 The ``rig`` fixture is parametrized over ``sim``, ``canopen-emulated`` (CiA 402 drive
-emulator on a fresh in-process python-can ``virtual`` channel) and ``serial-emulated``
+emulator on a fresh in-process python-can ``virtual`` channel), ``canopen-emulated:<variant>``
+(the same as each vendor variant our master adapts to) and ``serial-emulated``
 (board emulator on a pty), plus one ``hardware:<config>`` param per ``--hardware-config``
 (marked ``hardware``: skipped unless ``--hardware``). Each test gets a freshly
 constructed, not opened backend and, for emulated devices, a view of the device side
@@ -43,7 +44,10 @@ DEADLINE = 3.0          # s: every wait for data or a device reaction is bounded
 HW_SETTLE = 0.3         # s: on real hardware a torque must be in force this soon (bounds the axis' travel)
 STOP_GRACE = 1.0        # s: a stopped device must show zero torque and disabled within this
 DEVICE_LIMIT = 1.0      # N m: power-stage limit of the emulated devices (above CONTRACT_LIMIT)
-EMULATED = ["sim", "canopen-emulated", "serial-emulated"]
+#: Drive variants (drivers.cia402.variants) our CANopen master adapts to, each a rig of its own; the others
+#: it refuses (tests/drivers/test_drive_variants.py)
+CANOPEN_VARIANTS = ["four-objects-per-pdo", "two-objects-per-pdo", "interpolation-period", "polarity-set"]
+EMULATED = ["sim", "canopen-emulated", "serial-emulated"] + [f"canopen-emulated:{v}" for v in CANOPEN_VARIANTS]
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
@@ -104,7 +108,7 @@ def _sim_rig(stack: ExitStack) -> Rig:
                                      lambda: "enabled" if be.drive_enabled else "disabled"))
 
 
-def _canopen_rig(stack: ExitStack) -> Rig:
+def _canopen_rig(stack: ExitStack, profile: str = "generic") -> Rig:
     from drivers.cia402 import profile as p402
     from drivers.cia402.emulator import start_emulator_for
 
@@ -115,14 +119,17 @@ def _canopen_rig(stack: ExitStack) -> Rig:
     backend.update(interface="virtual", channel=f"contract-{uuid.uuid4().hex[:12]}", torque_limit=CONTRACT_LIMIT,
                    sync_rate_hz=500, stale_limit=250, startup_timeout=3.0, heartbeat_consumer_ms=1000)
     emulator = {**data.get("emulator", {}), "position_hold": False, "travel": None, "faults": {},
-                "torque_limit": DEVICE_LIMIT}
+                "torque_limit": DEVICE_LIMIT, "profile": profile}
     drive = start_emulator_for({"backend": backend, "emulator": emulator, "axis": data["axis"]})
     stack.callback(drive.stop)
     be = make_backend("canopen", backend)
     stack.callback(be.close)
     live = (p402.SWITCHED_ON, p402.OPERATION_ENABLED, p402.QUICK_STOP_ACTIVE, p402.FAULT_REACTION_ACTIVE)
-    return Rig("canopen-emulated", be, DeviceView(drive, lambda: drive.applied_torque,
-                                                  lambda: drive.state in live, lambda: drive.state))
+    # the torque in the drive's own frame, the one the host commands in (position polarity reverses it at
+    # the motor)
+    return Rig("canopen-emulated" + ("" if profile == "generic" else f":{profile}"), be,
+               DeviceView(drive, lambda: drive.applied_torque * drive.polarity_sign,
+                          lambda: drive.state in live, lambda: drive.state))
 
 
 def _serial_rig(stack: ExitStack) -> Rig:
@@ -205,7 +212,10 @@ def rig(request: pytest.FixtureRequest, hardware_devices: dict[str, Any]) -> Ite
             made = _hardware_backend(hw_path, hardware_devices)
             stack.callback(made.backend.close)
         else:
-            made = {"sim": _sim_rig, "canopen-emulated": _canopen_rig, "serial-emulated": _serial_rig}[kind](stack)
+            if kind.startswith("canopen-emulated:"):
+                made = _canopen_rig(stack, kind.split(":", 1)[1])
+            else:
+                made = {"sim": _sim_rig, "canopen-emulated": _canopen_rig, "serial-emulated": _serial_rig}[kind](stack)
         assert made.backend.state is State.CREATED
         yield made
     # the stack closed the backend first, then stopped the emulator (LIFO)

@@ -228,6 +228,68 @@ def test_lone_answer_after_a_missing_one_is_dropped_as_ambiguous():
     assert asm.stale == 3 and asm.ambiguous == 1 and asm.late == 2
 
 
+# ----- window assembly by frame times on the bus (CAN, the loopback-confined bus: no echo) ---------------
+def _timed_answer(dq: collections.deque, pos: int, t: float) -> None:
+    dq.append((0x185, t, TPDO1.pack(SW_ENABLED, pos, 0)))
+    dq.append((0x285, t, TPDO2.pack(pos)))
+
+
+def test_timed_windows_put_a_frame_read_after_the_next_marker_where_its_bus_time_says():
+    """A late reader (an 11 ms stall) hands over answers after the sender's later markers: their
+    times on the bus, not the deque order, say which SYNC they answer."""
+    asm = SampleAssembler([(0x185, TPDO1), (0x285, TPDO2)], stale_limit=10, stuck_permille=0.0, timed=True)
+    dq: collections.deque = collections.deque()
+    for k in range(4):                              # the sender ran on; nothing read yet
+        dq.append((MARK, k, float(k), 0.1 * k))
+    for k in range(4):                              # then every answer at once, each 0.3 periods after its SYNC
+        _timed_answer(dq, 100 + k, k + 0.3)
+    asm.feed(dq, deliver=True, read_until=3.5)
+    rows = asm.take_rows()
+    assert rows["k"] == [0, 1, 2, 3] and rows["pos"] == [100, 101, 102, 103]
+    assert rows["cmd"] == pytest.approx([0.0, 0.1, 0.2, 0.3]) and asm.stale == asm.late == 0
+
+
+def test_timed_window_stays_open_until_everything_before_the_next_sync_is_read():
+    asm = SampleAssembler([(0x185, TPDO1), (0x285, TPDO2)], stale_limit=10, stuck_permille=0.0, timed=True)
+    dq: collections.deque = collections.deque([(MARK, 0, 0.0, 0.0), (MARK, 1, 1.0, 0.0)])
+    dq.append((0x185, 0.2, TPDO1.pack(SW_ENABLED, 100, 0)))   # TPDO2 of SYNC 0 not read yet
+    asm.feed(dq, deliver=True, read_until=0.9)                  # the bus is read only up to before SYNC 1
+    assert asm.take_rows()["k"] == [] and asm.stale == 0
+    dq.append((0x285, 0.25, TPDO2.pack(100)))                   # read now, stamped in SYNC 0's window
+    _timed_answer(dq, 101, 1.2)
+    dq.append((MARK, 2, 2.0, 0.0))
+    asm.feed(dq, deliver=True, read_until=2.1)
+    assert asm.take_rows()["pos"] == [100, 101] and asm.stale == 0
+
+
+def test_timed_windows_count_a_frame_of_a_closed_window_as_late_and_a_lone_late_answer_as_ambiguous():
+    asm = SampleAssembler([(0x185, TPDO1), (0x285, TPDO2)], stale_limit=10, stuck_permille=0.0, timed=True)
+    dq: collections.deque = collections.deque()
+    for k in range(4):
+        dq.append((MARK, k, float(k), 0.0))
+    _timed_answer(dq, 100, 0.3)
+    _timed_answer(dq, 101, 2.05)                    # SYNC 1's answer after SYNC 2 went out: maybe 2's
+    _timed_answer(dq, 103, 3.3)
+    asm.feed(dq, deliver=True, read_until=3.5)
+    _timed_answer(dq, 99, 0.5)                      # stamped in window 0, long closed
+    dq.append((MARK, 4, 4.0, 0.0))
+    asm.feed(dq, deliver=True, read_until=4.1)
+    rows = asm.take_rows()
+    assert rows["k"] == [0, 3] and rows["pos"] == [100, 103]
+    assert asm.stale == 2 and asm.ambiguous == 1 and asm.late == 2
+
+
+def test_a_cancelled_sync_gives_its_window_back_to_the_one_before():
+    asm = SampleAssembler([(0x185, TPDO1), (0x285, TPDO2)], stale_limit=10, stuck_permille=0.0, timed=True)
+    dq: collections.deque = collections.deque([(MARK, 0, 0.0, 0.0), (MARK, 1, 1.0, 0.0), (CANCEL, 1)])
+    _timed_answer(dq, 100, 1.1)                     # SYNC 1 never went out: SYNC 0's (late) answer
+    dq.append((MARK, 2, 2.0, 0.0))
+    _timed_answer(dq, 102, 2.1)
+    dq.append((MARK, 3, 3.0, 0.0))
+    asm.feed(dq, deliver=True, read_until=3.1)
+    assert asm.take_rows()["k"] == [0, 2] and asm.stale == 0
+
+
 def _silent_run(host_missed_during: int) -> str:
     """SYNCs without an answer (stale_limit 10) while the host's sender skipped
     ``host_missed_during`` periods; returns the trip's message."""
@@ -511,8 +573,8 @@ def test_drive_refusing_a_mapping_raises_protocol_error(tmp_path):
         return text[:start] + text[start:end].replace("PDOMapping=1", "PDOMapping=0") + text[end:]
     eds = _edited_eds(tmp_path, "drive.eds", unmappable_scale)
     with rig(emulator={"eds": eds}) as (drive, be):
-        with pytest.raises(ProtocolError, match=r"refused writing 0x1A01:01 .*mapping 0x60E4:01 .*TPDO2.*"
-                                                r"cannot be mapped"):
+        with pytest.raises(ProtocolError, match=r"cannot map 0x60E4:01 \(additional position actual value\) into "
+                                                r"TPDO2: SDO abort 0x06040041 \(object cannot be mapped"):
             with be:
                 pass
         assert_drive_safe(drive)

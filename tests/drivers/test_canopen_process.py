@@ -79,25 +79,27 @@ def _assert_drive_left_safe(emu: EmulatorProcess) -> None:
 
 
 # ----- frames on the wire ------------------------------------------------------------------------
-def test_frameio_speaks_python_cans_udp_format_and_sees_its_own_frames_in_bus_order():
+def test_frameio_speaks_python_cans_udp_format_and_does_not_receive_its_own_frames():
     kw = {"interface": "udp_multicast", "channel": GROUP, "port": free_udp_port(), "hop_limit": 0}
     got: list = []
     other, mine = open_bus(kw), open_bus(kw)              # python-can's bus class, confined to this host
     io = FrameIO(mine, got.extend, bus_kwargs=kw).open()
     try:
+        assert not io.own_frames_back
         io.send(0x80, b"")
         other.send(can.Message(arbitration_id=0x185, data=b"\x01\x02\x03", is_extended_id=False))
+        other.send(can.Message(arbitration_id=0x186, data=b"\x04", is_extended_id=False))
         io.send(0x205, b"\x0f\x00\x10\x00")
-        msg = other.recv(1.0)                       # python-can decodes what FrameIO sent
-        while msg is not None and msg.arbitration_id == 0x185:   # (its own frame comes back too)
-            msg = other.recv(1.0)
-        assert msg.arbitration_id == 0x80 and msg.dlc == 0 and not msg.is_extended_id
+        seen = [other.recv(1.0) for _ in range(2)]   # python-can decodes what FrameIO sent, not its own frames
+        assert [(m.arbitration_id, bytes(m.data)) for m in seen] == [(0x80, b""), (0x205, b"\x0f\x00\x10\x00")]
+        assert not seen[0].is_extended_id and other.recv(0.1) is None
         end = time.monotonic() + 2.0
-        while len(got) < 3 and time.monotonic() < end:
+        while len(got) < 2 and time.monotonic() < end:
             io.pump()
-        assert [(cob, bytes(data)) for cob, data, _ in got] == [
-            (0x80, b""), (0x185, b"\x01\x02\x03"), (0x205, b"\x0f\x00\x10\x00")]
-        assert got[0][2] <= got[1][2] <= got[2][2] <= time.monotonic()   # kernel arrival times, monotonic
+        time.sleep(0.05)
+        io.pump()
+        assert [(cob, bytes(data)) for cob, data, _ in got] == [(0x185, b"\x01\x02\x03"), (0x186, b"\x04")]
+        assert got[0][2] <= got[1][2] <= time.monotonic()   # kernel arrival times, monotonic
         assert io.dropped == 0 and io.malformed == 0
     finally:
         io.close()
@@ -115,13 +117,13 @@ def _non_loopback_ipv4() -> str | None:
     return None if ip.startswith("127.") else ip
 
 
-def test_the_emulated_bus_ignores_frames_from_the_network_and_keeps_its_own_on_the_host():
+def test_the_emulated_bus_ignores_frames_from_the_network_and_keeps_those_of_the_host():
     ip = _non_loopback_ipv4()
     if ip is None:
         pytest.skip("this machine has no non-loopback IPv4 address")
     kw = {"interface": "udp_multicast", "channel": GROUP, "port": free_udp_port(), "hop_limit": 1}
     got: list = []
-    mine = open_bus(kw)
+    mine, peer = open_bus(kw), open_bus(kw)
     io = FrameIO(mine, got.extend, bus_kwargs=kw).open()
     try:
         sock = mine._multicast._socket
@@ -136,7 +138,7 @@ def test_the_emulated_bus_ignores_frames_from_the_network_and_keeps_its_own_on_t
                 tx.sendto(evil, (ip, kw["port"]))            # from the LAN side
                 tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(ip))
                 tx.sendto(evil, (GROUP, kw["port"]))
-        io.send(0x80, b"")                                   # and one legitimate frame from this host
+        peer.send(can.Message(arbitration_id=0x80, is_extended_id=False))   # one legitimate frame from this host
         end = time.monotonic() + 1.0
         while not got and time.monotonic() < end:
             io.pump()
@@ -146,6 +148,7 @@ def test_the_emulated_bus_ignores_frames_from_the_network_and_keeps_its_own_on_t
     finally:
         io.close()
         mine.shutdown()
+        peer.shutdown()
 
 
 # ----- the whole product ---------------------------------------------------------------------------

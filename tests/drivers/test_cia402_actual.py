@@ -247,7 +247,9 @@ def test_identity_returns_the_drive_objects_read_at_open():
                              "polarity": 0, "notes": []}
             be.activate()
             assert be.identity() == ident                  # cached: no SDO at tick time
-            # a drive takes no polarity change with its power stage on (SDO abort 0x08000022)
+            # a drive takes no polarity change with its power stage on (SDO abort 0x08000022); the active
+            # backend reads the bus in its loop thread only: a receive thread for this SDO answer
+            be._setup.receive_in_thread()
             with pytest.raises(ProtocolError, match="0x08000022"):
                 be._setup.download(p402.POLARITY, 0, 0x80)
     finally:
