@@ -86,6 +86,18 @@ def test_frameio_speaks_python_cans_udp_format_and_does_not_receive_its_own_fram
     io = FrameIO(mine, got.extend, bus_kwargs=kw).open()
     try:
         assert not io.own_frames_back
+        # the kernel turns receive stamping on lazily (a deferred work item) when the first socket on the
+        # host asks for it: until then a frame is stamped when it is read. Wait for a frame stamped on arrival.
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end:
+            other.send(can.Message(arbitration_id=0x700, data=b"\x05", is_extended_id=False))
+            time.sleep(0.02)
+            began = time.monotonic()
+            io.pump()
+            if got and got[-1][2] < began - 0.01:
+                break
+        assert got and got[-1][2] < began - 0.01, "no frame stamped on arrival within 5 s"
+        got.clear()
         io.send(0x80, b"")
         other.send(can.Message(arbitration_id=0x185, data=b"\x01\x02\x03", is_extended_id=False))
         other.send(can.Message(arbitration_id=0x186, data=b"\x04", is_extended_id=False))
