@@ -72,11 +72,21 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
                      "backend.torque_limit (or commission.torque_share): the axis did not move; check the brake, "
                      "the drive's enable and the motor's power"))
     aborted = [q.aborted for q in pulses if q.aborted]
+    fix_lim = "commission.travel_m / commission.max_speed_m_s"
+    if aborted:
+        # the pushes are sized from [axis]: an axis far livelier per N m passes the limits because of that
+        fits = [abs(q.dynamics(dt)[0]) for q in pulses if q.breakaway_nm is not None]
+        fits = [f for f in fits if math.isfinite(f) and f > 0]
+        acc = float(np.median(fits)) * (p.I1 + p.I2) if fits else math.nan
+        if acc > ACCEL_FACTOR:
+            fix_lim = (f"{_torque_key(cfg)}: the axis accelerates {acc:.3g} x as fast per N m as [axis] says, and "
+                       f"the pulses sized from [axis] passed the limit (if [axis] and the torque are right: "
+                       f"{fix_lim})")
     out.append(check("limits", not aborted, aborted[0] if aborted else
                      f"{max(q.max_travel_m for q in pulses) * 1e3:.3f} mm, "
                      f"{max(q.max_speed_m_s for q in pulses) * 1e3:.2f} mm/s",
                      f"within {cfg.commission.travel_m * 1e3:g} mm and {cfg.commission.max_speed_m_s * 1e3:g} mm/s",
-                     "commission.travel_m / commission.max_speed_m_s"))
+                     fix_lim))
     if still or aborted:
         return out
     s_th = [int(np.sign(q.moved()[0] * q.direction)) for q in pulses]

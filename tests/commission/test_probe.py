@@ -11,7 +11,7 @@ import pytest
 from drivers.sim import SimBackend
 from rt_ident import config
 from rt_ident.commission import probe
-from rt_ident.commission.checks import probe_limits
+from rt_ident.commission.checks import probe_checks, probe_limits
 from rt_ident.compose.build import backend_options
 from rt_ident.compose.offline import VirtualClock
 from tests.commission.test_stages import sim_data
@@ -19,7 +19,8 @@ from tests.commission.test_stages import sim_data
 
 def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float = 0.03, late_s: float = 0.0):
     """Two pulses (+, -); ``stall_at``: the host stalls after its first write of a self-ending brake plan
-    ("plan") or its second write of a braking torque ("lease", the brake's deceleration not yet measured);
+    ("plan") or its second write of a braking torque ("lease", the brake's deceleration not yet measured), or
+    once while pushing, the table past a tenth of the speed limit ("push");
     ``late_s``: every write comes this much later than the tick (a slow host)."""
     cfg = config.from_mapping(sim_data(actual))
     clock = VirtualClock()      # the host's time: a tick's sleep or a stall advances it, the paced sim follows
@@ -32,6 +33,10 @@ def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float =
         write(self, torque, until)
         clock.sleep(late_s)
         if torque * state["direction"] >= 0.0:
+            speed = abs(cfg.axis_params().lead * float(backend.plant.state[3]))
+            if stall_at == "push" and speed > 0.1 * cfg.commission.max_speed_m_s and not state["stalls"]:
+                state["stalls"] += 1
+                clock.sleep(stall_s)
             return
         state["braking"] += 1
         state["planned"] += until is not None
@@ -93,3 +98,29 @@ def test_a_slow_host_probing_a_much_stronger_axis_keeps_the_speed_limit_and_the_
         assert q.aborted is None and q.fault is None and q.breakaway_nm is not None, q.aborted
         assert q.truth["max_speed_m_s"] <= cfg.commission.max_speed_m_s
     assert max(q.truth["max_travel_m"] for q in pulses) <= 0.25 * cfg.commission.travel_m
+
+
+@pytest.mark.parametrize("torque_scale", [1.0, 10.0, 100.0])
+def test_a_host_stalled_mid_push_leaves_the_table_coasting_within_the_speed_limit(monkeypatch, torque_scale):
+    """60 ms without a write while the push accelerates the table: the push's lease runs out, the table
+    coasts (frictionless) at the speed it had, and the pulse brakes it when the host is back."""
+    cfg, pulses, state = run_pulses(monkeypatch, {"torque_scale": torque_scale}, "push", stall_s=0.06)
+    assert state["stalls"] == 1
+    stalled = pulses[0]
+    assert stalled.aborted is None and stalled.fault is None
+    for q in pulses:
+        assert q.truth["max_speed_m_s"] <= 0.8 * cfg.commission.max_speed_m_s
+        assert abs(coast(q)) <= 0.1 * q.max_speed_m_s
+
+
+@pytest.mark.parametrize(("torque_scale", "key"), [(10.0, "axis.I1, axis.I2:"),
+                                                   (1.0, "commission.travel_m / commission.max_speed_m_s")])
+def test_a_limit_passed_on_an_axis_far_livelier_per_newton_metre_names_the_torque_key_first(
+        monkeypatch, torque_scale, key):
+    """The pushes are sized from [axis]: an axis that accelerates ten times as fast per N m passed the
+    limit because of that, and the fix says so; at the nominal scale the limits are named."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {"torque_scale": torque_scale}, None)
+    pulses[0].aborted = "speed limit passed (0.040 mm, 5.40 mm/s)"     # as a late device's overshoot reports
+    checks = probe_checks(cfg, pulses, pulses[0].t[1] - pulses[0].t[0])
+    failed = [c for c in checks if not c["ok"]]
+    assert [c["name"] for c in failed] == ["limits"] and failed[0]["fix"].startswith(key), failed
