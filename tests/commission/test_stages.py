@@ -135,12 +135,14 @@ def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_n
     times: once, the move runs again and passes; twice, the check names the host, not the controller."""
     from rt_ident.compose import run as run_mod
 
-    real, moves = run_mod.run, []
+    real, moves, real_stalls = run_mod.run, [], []
 
     def stalled(cfg, **kw):
         s = real(cfg, **kw)
         if str(cfg.recording.path or "").endswith("move.parquet"):
             moves.append(s)
+            if len(moves) > stalled_runs and s["loop"]["stalls"]["count"]:
+                real_stalls.append(s["loop"]["stalls"]["longest_ms"])
             if len(moves) <= stalled_runs:
                 s["loop"]["stalls"] = {"count": 1, "longest_ms": 500.0, "events": []}
                 s["stop"] = {"cause": "speed-limit", "message": "table too fast (0.03 s after a 500 ms loop stall)"}
@@ -150,6 +152,8 @@ def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_n
     data = sim_data()
     data["commission"] = {"identify_s": 1.0}
     r = commission(config.from_mapping(data), tmp_path / "out")
+    if real_stalls:                 # a busy host stalled the run that was to be clean: the count cannot tell
+        pytest.skip(f"the loop stalled for real in the move run again ({real_stalls[0]:.0f} ms)")
     assert len(moves) == 2 and r["stalled_moves"] == min(stalled_runs, 2)
     if stalled_runs == 1:
         assert r["verdict"] == "pass", r.get("failed")
