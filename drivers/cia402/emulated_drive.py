@@ -12,7 +12,10 @@ n-th SYNC, 254/255 when its data change, not sooner than the inhibit time (0x18x
 after the previous one and at the latest the event timer (0x18xx:05) after it (checked
 with the housekeeping, every 2 ms or when due). Out of the box (the EDS) TPDO1 is the
 statusword and RPDO1 the controlword, both event-driven (255), as drives ship; a master
-maps and sets transmission types itself.
+maps and sets transmission types itself. The SYNC counter (0x1019 = 2..240, set only while
+0x1006 is 0): every SYNC then carries a counter byte, a TPDO of type 1-240 with a start value
+(0x18xx:06) first goes out at the SYNC whose counter equals it; a SYNC of the wrong length is
+ignored (EMCY 0x8240, once until a right one comes).
 On each SYNC in NMT OPERATIONAL the plant (:class:`rt_ident.axis.plant.PlantSimulator`)
 advances one sample with the last target torque if OPERATION ENABLED, else with zero.
 TPDOs carry the measurement taken at that SYNC (the plant measures at the start of
@@ -73,6 +76,7 @@ from rt_ident.errors import ConfigError
 log = logging.getLogger(__name__)
 
 _QUICK_STOP_OPTION = 0x605A
+SYNC_LENGTH = 0x8240           # EMCY: unexpected SYNC data length
 _ANSWER_BINS_US = (100, 200, 300, 500, 1000, 2000, float("inf"))   # upper edges of the answer-time bins
 _PROCESS = (p402.CONTROLWORD, p402.TARGET_TORQUE, p402.MAX_TORQUE, p402.MODES_OF_OPERATION, 0x60B2,
             _QUICK_STOP_OPTION, p402.POLARITY)
@@ -172,6 +176,10 @@ class EmulatedCia402Drive:
         self._tpdo_sent_t: dict[int, float] = {}     # TPDO COB-ID -> when (inhibit time, event timer)
         self._event_due = math.inf                   # next inhibit / event timer expiry
         self._syncs = 0
+        self._sync_overflow = 0                      # 0x1019: 0 no counter in the SYNC, else 2..240
+        self._sync_counter = 0                       # the counter the SYNC being handled carried
+        self._sync_bad = False                       # SYNCs of the wrong length since the last good one
+        self._tpdo_started: dict[int, int] = {}      # TPDO COB-ID -> the SYNC it started at (0x18xx:06)
         self._qs_samples = 0
         self._delayed: list[tuple[float, int, int, bytes]] = []
         self._delay_n = 0
@@ -187,6 +195,7 @@ class EmulatedCia402Drive:
         self.frames_sent = 0
         self.garbage_frames = 0
         self.rpdo_length_errors = 0
+        self.sync_length_errors = 0   # SYNCs ignored: a counter where 0x1019 is 0, or none where it is set
         self.late_syncs = 0           # SYNCs answered by no TPDO: a later SYNC had already arrived
         self._sync_t = 0.0            # arrival time of the SYNC being handled
         self.answer_us = [0] * len(_ANSWER_BINS_US)   # SYNC arrival -> TPDOs sent, histogram
@@ -238,6 +247,9 @@ class EmulatedCia402Drive:
         self._supported = od_value(node, p402.SUPPORTED_MODES)
         for key in ((p402.MAX_TORQUE, 0), (p402.MODES_OF_OPERATION, 0), (_QUICK_STOP_OPTION, 0)):
             self._values[key] = od_value(node, *key)
+        if od.get_variable(p402.SYNC_OVERFLOW) is not None:
+            self._sync_overflow = self.profile.sync_overflow
+            self._values[(p402.SYNC_OVERFLOW, 0)] = self._sync_overflow
         if od.get_variable(p402.POLARITY) is not None:
             self._values[(p402.POLARITY, 0)] = self._polarity0
         elif self._polarity0:
@@ -320,6 +332,15 @@ class EmulatedCia402Drive:
             check_mapping_write(self._node, index, subindex, value)
         if 0x1400 <= index < 0x1C00:
             self._pdo_dirty = True
+        elif index == p402.SYNC_OVERFLOW:
+            if value == 1 or value > 240:
+                raise SdoAbortedError(0x06090030)   # CiA 301: 0, or 2..240
+            assert self._node is not None
+            if self._node.object_dictionary.get_variable(p402.CYCLE_PERIOD) is not None and \
+                    od_value(self._node, p402.CYCLE_PERIOD):
+                raise SdoAbortedError(0x08000022)   # CiA 301: only while 0x1006 is 0
+            self._values[(index, 0)] = self._sync_overflow = value
+            self._tpdo_started.clear()
         elif index == INTERPOLATION_PERIOD and subindex == 2 and not -6 <= _int8(value) <= 0:
             raise SdoAbortedError(0x06090030)       # a time index this drive does not take (1 us .. 1 s)
         elif index == p402.MODES_OF_OPERATION:
@@ -359,6 +380,7 @@ class EmulatedCia402Drive:
         self._rpdos, self._tpdos = rpdos, tpdos
         self._rpdo_by_cob = {lay.cob: lay for lay in rpdos}
         self._tpdo_sent.clear()                           # a changed PDO set: event TPDOs go out afresh
+        self._tpdo_started.clear()
         self._tpdo_sent_t.clear()
         self._pdo_dirty = False
 
@@ -386,6 +408,11 @@ class EmulatedCia402Drive:
         return self._in_window
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) != (1 if self._sync_overflow else 0):
+            self._sync_length_error(len(data))            # as drives do: not a SYNC this drive acts on
+            return
+        self._sync_bad = False
+        self._sync_counter = data[0] if data else 0
         self._sync_t = timestamp
         _count(self.pickup_us, time.monotonic() - timestamp)
         with self._lock:
@@ -393,6 +420,22 @@ class EmulatedCia402Drive:
                 self._on_sync_work()
             except Exception:  # noqa: BLE001 - an emulator must survive its own bugs, visibly
                 log.exception("emulated drive: SYNC processing failed")
+
+    def _sync_length_error(self, n: int) -> None:
+        """A SYNC of the wrong length (CiA 301: one data byte, the counter, where 0x1019 is set; none
+        where it is 0): ignored, and EMCY 0x8240 once until a SYNC of the right length comes."""
+        self.sync_length_errors += 1
+        if self._sync_bad:
+            return
+        self._sync_bad = True
+        log.warning("emulated drive %d: SYNC with %d data bytes ignored (0x1019 = %d)", self.node_id, n,
+                    self._sync_overflow)
+        self.emcy_codes.append(SYNC_LENGTH)
+        try:
+            assert self._node is not None
+            self._node.emcy.send(SYNC_LENGTH, 0x10)      # error register: communication error
+        except Exception as exc:  # noqa: BLE001 - the bus may be closing
+            log.warning("emulated drive: EMCY send failed: %s", exc)
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         lay = self._rpdo_by_cob.get(can_id)
@@ -644,7 +687,7 @@ class EmulatedCia402Drive:
         f, v = self.faults, self._values
         frames, acyclic = [], []
         for lay in self._tpdos:                           # 0: at the SYNC after a change; n: every n-th SYNC
-            if lay.trans_type > 240 or (lay.trans_type and self._syncs % lay.trans_type):
+            if lay.trans_type > 240 or (lay.trans_type and self._sync_skip(lay)):
                 continue
             data = lay.struct.pack(*(v.get(k, 0) for k in lay.keys))
             if lay.trans_type == 0:
@@ -669,6 +712,19 @@ class EmulatedCia402Drive:
         for cob, data in f.garbage(self._rng):
             self._send(cob, data)
             self.garbage_frames += 1
+
+    def _sync_skip(self, lay: PdoLayout) -> bool:
+        """A TPDO of type 1..240 is not due at this SYNC. With the SYNC counter on and a start value
+        (0x18xx:06) it starts at the SYNC whose counter equals it, then every n-th SYNC."""
+        since = self._syncs
+        if self._sync_overflow and lay.sync_start:
+            began = self._tpdo_started.get(lay.cob)
+            if began is None:
+                if self._sync_counter != lay.sync_start:
+                    return True
+                began = self._tpdo_started[lay.cob] = self._syncs
+            since = self._syncs - began
+        return bool(since % lay.trans_type)
 
     def _send(self, cob: int, data: bytes) -> None:
         try:

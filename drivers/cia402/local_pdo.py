@@ -74,6 +74,7 @@ class PdoLayout:
     keys: tuple[tuple[int, int], ...]
     inhibit_s: float = 0.0
     event_s: float = 0.0
+    sync_start: int = 0        # TPDO 0x18xx:06: with the SYNC counter on, the counter value it starts at
 
 
 def _optional(node: canopen.LocalNode, index: int, subindex: int) -> int:
@@ -90,7 +91,8 @@ def _layout(node: canopen.LocalNode, comm: int, mapping: int) -> PdoLayout | Non
     tx = comm >= 0x1800
     return PdoLayout(cob & 0x7FF, od_value(node, comm, 2), st, keys,
                      inhibit_s=1e-4 * _optional(node, comm, 3) if tx else 0.0,
-                     event_s=1e-3 * _optional(node, comm, 5) if tx else 0.0)
+                     event_s=1e-3 * _optional(node, comm, 5) if tx else 0.0,
+                     sync_start=_optional(node, comm, 6) if tx else 0)
 
 
 def pdo_layouts(node: canopen.LocalNode) -> tuple[list[PdoLayout], list[PdoLayout]]:

@@ -582,6 +582,7 @@ class NodeSetup:
         interpolation time period, where the drive has one (some need it for cyclic synchronous modes)."""
         cfg = self.cfg
         period = 1.0 / cfg.sync_rate_hz
+        self._sync_counter_off()
         if self.od.get_variable(p402.CYCLE_PERIOD) is not None:
             try:
                 self.download(p402.CYCLE_PERIOD, 0, int(round(1e6 * period)), " (SYNC period in us)")
@@ -596,6 +597,22 @@ class NodeSetup:
         self.download(p402.INTERPOLATION_PERIOD, 2, power, " (interpolation time index, power of ten)", code=0x02)
         self.download(p402.INTERPOLATION_PERIOD, 1, value, f" (interpolation time period: {value} x 10^{power} s)",
                       code=0x05)
+
+    def _sync_counter_off(self) -> None:
+        """0x1019 = 0 on a drive that expects a counter in every SYNC (ours carry none: it would ignore
+        them). CiA 301 lets it change only while 0x1006 is 0, so that goes first where the drive takes it."""
+        overflow = self.optional_upload(p402.SYNC_OVERFLOW, 0, 0x05)
+        if not overflow:
+            return
+        if self.od.get_variable(p402.CYCLE_PERIOD) is not None:
+            try:
+                self.download(p402.CYCLE_PERIOD, 0, 0, " (0 before 0x1019 can change)")
+            except SdoRefused as exc:
+                if exc.code not in _NOT_TAKEN:
+                    raise
+        self.download(p402.SYNC_OVERFLOW, 0, 0, f" (was {overflow}: this master's SYNCs carry no counter)",
+                      code=0x05)
+        log.info("canopen: node %d expected a SYNC counter (0x1019 = %d); set to 0", self.cfg.node_id, overflow)
 
     def _disable_unused(self, comm_base: int, used: int) -> None:
         n = used

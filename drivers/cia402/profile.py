@@ -31,6 +31,7 @@ SUPPORTED_MODES = 0x6502
 DEVICE_TYPE = 0x1000
 ERROR_REGISTER = 0x1001
 CYCLE_PERIOD = 0x1006
+SYNC_OVERFLOW = 0x1019     # UNSIGNED8; 0: SYNCs carry no counter, 2..240: they carry one, 1..that value
 CONSUMER_HEARTBEAT = 0x1016
 PRODUCER_HEARTBEAT = 0x1017
 
@@ -46,6 +47,7 @@ OBJECT_NAMES = {
     CONSUMER_HEARTBEAT: "consumer heartbeat time", PRODUCER_HEARTBEAT: "producer heartbeat time",
     DEVICE_TYPE: "device type", POLARITY: "polarity", SUPPORTED_MODES: "supported drive modes",
     INTERPOLATION_PERIOD: "interpolation time period", CYCLE_PERIOD: "communication cycle period",
+    SYNC_OVERFLOW: "synchronous counter overflow value",
 }
 
 #: 0x607E bits (CiA 402-2): position polarity reverses position actual, target torque and torque actual
@@ -256,6 +258,7 @@ EMCY_TEXT = {
     0x6320: "parameter error",
     0x7305: "incremental sensor 1 fault", 0x8110: "CAN overrun (objects lost)",
     0x8130: "life guard error or heartbeat error", 0x8210: "PDO not processed due to length error",
+    0x8240: "unexpected SYNC data length",
     0x8611: "following error", 0x8612: "reference limit", 0xFF00: "device specific",
 }
 

@@ -13,7 +13,9 @@ differ:
 * ``interpolation_period``: the drive has 0x60C2 (interpolation time period: sub 1 the value,
   UNSIGNED8; sub 2 the power of ten, INTEGER8, -6..0 accepted, else abort 0x06090030) and
   will not enable a cyclic synchronous mode while it is 0 (FAULT, EMCY 0x6320);
-* ``polarity``: 0x607E at power-up.
+* ``polarity``: 0x607E at power-up;
+* ``sync_overflow``: 0x1019 at power-up (SYNCs must carry a counter; one without is ignored, EMCY
+  0x8240).
 
 :data:`PROFILES` names the variants; ``generic`` is the drive as the EDS describes it.
 """
@@ -43,6 +45,7 @@ class DriveProfile:
     read_only: tuple[int, ...] = ()
     interpolation_period: bool = False
     polarity: int | None = None
+    sync_overflow: int = 0
 
     def apply(self, od: canopen.ObjectDictionary) -> None:
         """Change a drive's object dictionary (imported from the EDS) into this variant's."""
@@ -102,6 +105,7 @@ PROFILES: dict[str, DriveProfile] = {p.name: p for p in (
     DriveProfile("interpolation-period", "cyclic synchronous modes need 0x60C2 set; 0x1006 read-only",
                  read_only=(p402.CYCLE_PERIOD,), interpolation_period=True),
     DriveProfile("polarity-set", "0x607E = 0x80 at power-up (position polarity)", polarity=p402.POLARITY_POSITION),
+    DriveProfile("sync-counter", "0x1019 = 4 at power-up: SYNCs must carry a counter 1..4", sync_overflow=4),
 )}
 
 

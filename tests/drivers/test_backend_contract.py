@@ -46,7 +46,8 @@ STOP_GRACE = 1.0        # s: a stopped device must show zero torque and disabled
 DEVICE_LIMIT = 1.0      # N m: power-stage limit of the emulated devices (above CONTRACT_LIMIT)
 #: Drive variants (drivers.cia402.variants) our CANopen master adapts to, each a rig of its own; the others
 #: it refuses (tests/drivers/test_drive_variants.py)
-CANOPEN_VARIANTS = ["four-objects-per-pdo", "two-objects-per-pdo", "interpolation-period", "polarity-set"]
+CANOPEN_VARIANTS = ["four-objects-per-pdo", "two-objects-per-pdo", "interpolation-period", "polarity-set",
+                    "sync-counter"]
 EMULATED = ["sim", "canopen-emulated", "serial-emulated"] + [f"canopen-emulated:{v}" for v in CANOPEN_VARIANTS]
 
 

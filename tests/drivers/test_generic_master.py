@@ -83,6 +83,8 @@ def _to_cst(m: _Master, profile: str) -> None:
     if PROFILES[profile].interpolation_period:        # not in the generic EDS: written by index
         node.sdo.download(0x60C2, 2, (-3).to_bytes(1, "little", signed=True))
         node.sdo.download(0x60C2, 1, bytes([1]))
+    if node.sdo[0x1019].raw:                          # canopen's periodic SYNC carries no counter
+        node.sdo[0x1019].raw = 0
     m.net.sync.start(0.001)                           # CST: the drive applies torque at each SYNC
 
 
@@ -258,5 +260,54 @@ def test_tpdo_transmission_types_event_timer_and_inhibit_time():
                 _sync_handled(m, drive)
             time.sleep(0.05)
             assert m.count(cob, t0) == 0
+        finally:
+            m.close()
+
+
+def test_a_sync_counter_starts_a_synchronous_tpdo_at_its_start_value_and_a_sync_without_it_is_ignored():
+    """CiA 301: 0x1019 (0, or 2..240, changed only while 0x1006 is 0) makes every SYNC carry a counter; a
+    TPDO of type n with a start value (0x18xx:06) first goes out at the SYNC whose counter equals it, then
+    every n-th; a SYNC without the counter is not acted on (EMCY 0x8240, once until a right one comes)."""
+    kw = _bus("virtual")
+    with _drive(kw) as drive:
+        m = _Master(kw)
+        try:
+            sdo = m.node.sdo
+            with pytest.raises(SdoAbortedError) as err:
+                sdo[0x1019].raw = 1
+            assert err.value.code == 0x06090030
+            sdo[0x1006].raw = 1000
+            with pytest.raises(SdoAbortedError) as err:
+                sdo[0x1019].raw = 4
+            assert err.value.code == 0x08000022
+            sdo[0x1006].raw = 0
+            sdo[0x1019].raw = 4
+            sdo[0x1800][1].raw = 0x80000180 + NODE        # TPDO1 (the statusword): every 2nd SYNC from counter 3
+            sdo[0x1800][2].raw = 2
+            sdo[0x1800][6].raw = 3
+            sdo[0x1800][1].raw = 0x180 + NODE
+            m.node.nmt.state = "OPERATIONAL"
+            cob = 0x180 + NODE
+
+            def sync(data: bytes) -> int:
+                n = drive.stats()["syncs"]
+                m.net.send_message(0x80, data)
+                return n
+
+            sent_at = []
+            for i, counter in enumerate([1, 2, 3, 4, 1, 2, 3, 4], start=1):
+                n = sync(bytes([counter]))
+                assert _until(lambda n=n: drive.stats()["syncs"] > n)
+                if counter in (1, 3) and i >= 3:                         # SYNCs 3, 5, 7
+                    assert _until(lambda k=len(sent_at) + 1: m.count(cob) >= k), (i, counter)
+                    sent_at.append(i)
+            time.sleep(0.1)
+            assert m.count(cob) == 3 and sent_at == [3, 5, 7]
+            for _ in range(2):                                           # no counter: not a SYNC for it
+                n = sync(b"")
+            assert _until(lambda: [e.code for e in m.node.emcy.log] == [0x8240])
+            time.sleep(0.05)
+            assert drive.stats()["syncs"] == n and drive.sync_length_errors == 2
+            assert [e.code for e in m.node.emcy.log] == [0x8240]
         finally:
             m.close()
