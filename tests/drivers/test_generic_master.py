@@ -9,6 +9,7 @@ import threading
 import time
 import uuid
 
+import can
 import canopen
 import numpy as np
 import pytest
@@ -34,10 +35,14 @@ def _bus(interface: str) -> dict:
 
 
 class _Master:
-    """A canopen ``Network`` on the bus (ours for udp_multicast: confined, no echo) with the drive's node."""
+    """A canopen ``Network`` on the bus (for udp_multicast python-can's ``rt_ident_udp`` interface: confined,
+    no echo) with the drive's node."""
 
     def __init__(self, kw: dict) -> None:
-        self.net = canopen.Network(open_bus(kw))
+        # as a user of another CANopen tool connects: python-can's interface of this package (no echo)
+        bus = can.Bus(interface="rt_ident_udp", channel=kw["channel"], port=kw["port"]) \
+            if kw["interface"] == "udp_multicast" else open_bus(kw)
+        self.net = canopen.Network(bus)
         self.net.NOTIFIER_CYCLE = 0.05
         self.net.connect()
         self.node = canopen.BaseNode402(NODE, str(EDS))
