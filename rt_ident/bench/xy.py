@@ -34,6 +34,7 @@ def _trial(summary: dict[str, Any]) -> dict[str, Any]:
     out["idle_poll"] = bool(((summary.get("realtime") or {}).get("idle_poll") or {}).get("running"))
     if "axes" in summary:
         out["per_axis_work_us"] = {n: ax["loop"]["work_us"] for n, ax in summary["axes"].items()}
+        out["per_axis_samples"] = {n: ax["loop"].get("samples") for n, ax in summary["axes"].items()}
         out["compiled_tick"] = {n: ax["loop"].get("compiled_tick") for n, ax in summary["axes"].items()}
     return out
 
