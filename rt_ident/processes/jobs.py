@@ -20,7 +20,7 @@ import numpy as np
 from rt_ident.estimators.streaming import fit_snapshot
 from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
-from rt_ident.processes.shm_ring import MessageRing
+from rt_ident.processes.shm_ring import MessageRing, RingReused
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +74,11 @@ def _job_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing
 
 def _job_process(*args: Any) -> None:
     """The job process: :func:`_job_main`, then out at once (its results are in the ring already)."""
-    _job_main(*args)
+    try:
+        _job_main(*args)
+    except RingReused as exc:               # its parent let go of the rings: nobody to answer
+        log.warning("fit process: %s", exc)
+        quick_exit(1)
     quick_exit()
 
 

@@ -14,7 +14,12 @@ caller decides to drop (telemetry) or wait (recording).
 
 Memory: ``multiprocessing`` ``RawArray``s of the helpers' context (an unlinked file
 mapped in both processes: nothing is left in ``/dev/shm`` when a process is
-killed). The objects are handed to the child as ``Process`` arguments.
+killed). The objects are handed to the child as ``Process`` arguments. Once the
+parent lets go of a ring, ``multiprocessing`` hands the same memory to the next
+ring it makes; a helper still running on the old one (its parent's object gone
+without closing it) would then read and advance another ring's counters. So each
+ring writes a random token into its header and both sides check it before they
+touch the ring: a side whose token is no longer there raises :class:`RingReused`.
 
 Ordering: the producer writes the data, then the counter; the consumer reads
 the counter, then the data. That relies on stores becoming visible in program
@@ -32,6 +37,7 @@ float64, int64 or uint8 (the latter for pickled objects, see
 from __future__ import annotations
 
 import mmap
+import os
 import pickle
 import platform
 import struct
@@ -46,7 +52,8 @@ from numba.extending import intrinsic
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.processes.context import helper_context
 
-__all__ = ["MessageRing", "STRONG_ORDERING", "key_words", "consumer_waits", "put_rows", "put_seq_floats", "put_sums"]
+__all__ = ["MessageRing", "RingReused", "STRONG_ORDERING", "key_words", "consumer_waits", "put_rows", "put_seq_floats",
+           "put_sums"]
 
 #: True where plain stores are seen by other cores in program order (x86-64 / i686).
 STRONG_ORDERING: bool = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
@@ -60,9 +67,15 @@ _OBJECT_KEY = "__pickle__"
 
 # header slots (int64): written by the producer ...
 _W_POS, _W_MSGS, _W_CLOSED = 0, 1, 2
+# ... at creation: whose memory this is
+_TOKEN = 3
 # ... and by the consumer
 _R_POS, _R_MSGS, _R_FLAG = 4, 5, 6
 _HEADER_SLOTS = 8
+
+
+class RingReused(DataError):
+    """This side's ring memory now belongs to another ring (see the module docstring)."""
 
 
 def _pad8(n: int) -> int:
@@ -96,6 +109,8 @@ class MessageRing:
         self.max_messages = max_messages
         self._header = ctx.RawArray("q", _HEADER_SLOTS)
         self._data = ctx.RawArray("b", self.capacity)
+        self._token = int.from_bytes(os.urandom(8), "little") >> 1 | 1
+        self._header[_TOKEN] = self._token
         self._bind()
 
     def _bind(self) -> None:
@@ -109,13 +124,14 @@ class MessageRing:
 
     def __getstate__(self) -> dict[str, Any]:
         return {"capacity": self.capacity, "max_messages": self.max_messages,
-                "header": self._header, "data": self._data}
+                "header": self._header, "data": self._data, "token": self._token}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.capacity = state["capacity"]
         self.max_messages = state["max_messages"]
         self._header = state["header"]
         self._data = state["data"]
+        self._token = state["token"]
         self._bind()
         # Map every page of the ring now (a read per page). Otherwise the child process's resident
         # set grows by a page each time the ring's position first reaches one (a fit process by 8 MB
@@ -125,6 +141,12 @@ class MessageRing:
         int(self._buf[::mmap.PAGESIZE].sum())
 
     # ------------------------------------------------------------ both sides
+    def _mine(self) -> None:
+        """Raise :class:`RingReused` when the memory holds another ring's token now."""
+        if self._h[_TOKEN] != self._token:
+            raise RingReused("this ring's shared memory was given to another ring (the side that made it "
+                             "let go of it): stopping instead of touching it")
+
     @property
     def pending_messages(self) -> int:
         """Messages written and not yet consumed."""
@@ -147,6 +169,7 @@ class MessageRing:
 
     @flag.setter
     def flag(self, value: int) -> None:
+        self._mine()
         self._h[_R_FLAG] = int(value)
 
     # --------------------------------------------------------------- producer
@@ -159,6 +182,7 @@ class MessageRing:
         bytes, or non-numeric data.
         """
         h = self._h
+        self._mine()
         if h[_W_CLOSED]:
             raise DataError("MessageRing.put(): the writer side is closed")
         items = []
@@ -211,6 +235,7 @@ class MessageRing:
                 views[code][o:o + n] = a
                 off += 8 * n
         # publish: data first, then the counters (see the module docstring on ordering)
+        self._mine()
         h[_W_POS] = w + size
         h[_W_MSGS] = h[_W_MSGS] + 1
         return True
@@ -227,12 +252,14 @@ class MessageRing:
 
     def close_writer(self) -> None:
         """Tell the consumer that nothing more will come (it drains what is there, then stops)."""
+        self._mine()
         self._h[_W_CLOSED] = 1
 
     # --------------------------------------------------------------- consumer
     def get(self, max_messages: int | None = None) -> list[dict[str, np.ndarray]]:
         """Copy out and consume up to ``max_messages`` messages (all pending by default)."""
         h = self._h
+        self._mine()
         w = h[_W_POS]
         n_avail = h[_W_MSGS] - h[_R_MSGS]
         if max_messages is not None:
@@ -258,6 +285,7 @@ class MessageRing:
             out.append(msg)
             r += size
         if out:
+            self._mine()
             h[_R_POS] = r
             h[_R_MSGS] = h[_R_MSGS] + len(out)
         return out

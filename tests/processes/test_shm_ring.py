@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rt_ident.errors import ConfigError, DataError
-from rt_ident.processes.shm_ring import MessageRing
+from rt_ident.processes.shm_ring import MessageRing, RingReused
 
 
 def _msg(i: int, n: int) -> dict[str, np.ndarray]:
@@ -172,3 +172,107 @@ def test_a_child_maps_the_whole_ring_when_it_attaches() -> None:
         assert size_kb >= 4 << 10 and rss_kb >= 4 << 10, (rss_kb, size_kb)
     finally:
         proc.join(5.0)
+
+
+def test_a_side_whose_ring_memory_holds_another_rings_token_stops_without_touching_it() -> None:
+    ring = MessageRing(4096)
+    other = MessageRing.__new__(MessageRing)
+    other.__setstate__(ring.__getstate__())          # the other side, as a child process holds it
+    assert ring.put({"x": np.arange(3.0)}) and len(other.get()) == 1
+    ring._h[3] = ring._h[3] ^ 0x5A5A               # a new ring took the memory: its own token there
+    before = list(ring._h)
+    for touch in (other.get, lambda: other.put({"x": np.zeros(1)}), lambda: setattr(other, "flag", 1),
+                  other.close_writer):
+        with pytest.raises(RingReused, match="given to another ring"):
+            touch()
+    assert list(ring._h) == before
+
+
+def _stale_consumer(ring: MessageRing, seconds: float) -> None:
+    """A helper that outlives its parent's ring: it keeps polling, as a job process does."""
+    import os
+    import time
+
+    ring.flag = 1
+    end = time.monotonic() + seconds
+    try:
+        while time.monotonic() < end:
+            ring.get()
+            time.sleep(0.001)
+    except RingReused:
+        os._exit(3)
+    os._exit(0)
+
+
+def test_a_helper_still_running_on_a_ring_its_parent_let_go_of_does_not_consume_the_next_ring() -> None:
+    """multiprocessing hands the freed memory to the next ring at once: without the token the stale
+    helper would take the new ring's messages and write its read position."""
+    import ctypes
+    import gc
+    import time
+
+    ctx = mp.get_context("spawn")
+    old = MessageRing(1 << 14, ctx=ctx)
+    proc = ctx.Process(target=_stale_consumer, args=(old, 30.0), daemon=True)
+    proc.start()
+    try:
+        end = time.monotonic() + 30.0
+        while old.flag != 1 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert old.flag == 1, "the helper did not start"
+        where = ctypes.addressof(old._header), ctypes.addressof(old._data)
+        del old
+        gc.collect()
+        new = MessageRing(1 << 14, ctx=ctx)
+        assert (ctypes.addressof(new._header), ctypes.addressof(new._data)) == where   # the same memory
+        for i in range(5):
+            assert new.put({"v": np.full(3, float(i))})
+        proc.join(10.0)
+        assert proc.exitcode == 3                   # it stopped at its next look
+        assert [float(m["v"][0]) for m in new.get()] == [0.0, 1.0, 2.0, 3.0, 4.0]
+    finally:
+        if proc.is_alive():
+            proc.kill()
+            proc.join(5.0)
+
+
+def test_python_and_compiled_producers_interleaved_deliver_every_message_intact() -> None:
+    """Random sizes, rings of a few kB and message limits, ``put``, ``put_rows`` and ``put_seq_floats`` in
+    any order with partial reads between them: what comes out is what went in, in order."""
+    from rt_ident.processes.shm_ring import key_words, put_rows, put_seq_floats
+
+    rng = np.random.default_rng(5)
+    names = ["t", "x", "y", "z"]
+    for _ in range(40):
+        ring = MessageRing(int(rng.choice([1024, 2048, 4096])), max_messages=int(rng.choice([3, 10, 1 << 30])))
+        h, di, df = ring.compiled_views()
+        sent: list[dict[str, np.ndarray]] = []
+        got: list[dict[str, np.ndarray]] = []
+        for _ in range(300):
+            r = rng.random()
+            if r < 0.3:
+                msg = {"a": rng.standard_normal(int(rng.integers(0, 40))),
+                       "u": rng.integers(0, 255, int(rng.integers(0, 13))).astype(np.uint8)}
+                if ring.put(msg):
+                    sent.append(msg)
+            elif r < 0.5:
+                n, m, nv = int(rng.integers(1, 30)), int(rng.integers(1, 5)), int(rng.integers(0, 6))
+                rows, tv, tail = rng.standard_normal((4, 40)), rng.standard_normal(nv), bool(rng.random() < 0.5)
+                keys = np.concatenate([key_words(k) for k in names[:m]])
+                tk = np.concatenate([key_words("wid"), key_words("win")])
+                if put_rows(h, di, df, ring.capacity, ring.max_messages, keys, np.arange(m), rows, n, tk, 7, tv,
+                            tail) == 1:
+                    sent.append({k: rows[i, :n] for i, k in enumerate(names[:m])}
+                                | ({"wid": np.array([7]), "win": tv} if tail else {}))
+            elif r < 0.65:
+                n, nc = int(rng.integers(0, 20)), int(rng.integers(1, 6))
+                seq, cs = rng.integers(0, 1000, n), [rng.standard_normal(n) for _ in range(5)]
+                keys = np.concatenate([key_words("seq"), key_words("f")])
+                if put_seq_floats(h, di, df, ring.capacity, ring.max_messages, keys, seq, *cs, nc) == 1:
+                    sent.append({"seq": seq, "f": np.concatenate(cs[:nc])})
+            else:
+                got.extend(ring.get(None if rng.random() < 0.5 else int(rng.integers(1, 4))))
+        got.extend(ring.get())
+        assert len(got) == len(sent)
+        for a, b in zip(sent, got):
+            assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
