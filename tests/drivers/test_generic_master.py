@@ -48,6 +48,9 @@ class _Master:
         self.node = canopen.BaseNode402(NODE, str(EDS))
         self.net.add_node(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = 2.0     # the in-process drive answers late on a loaded test worker
+        # canopen's state-change waits (0.2-0.8 s) likewise: a statusword TPDO came later in a CI run
+        self.node.TIMEOUT_SWITCH_STATE_FINAL, self.node.TIMEOUT_SWITCH_STATE_SINGLE = 5.0, 2.0
+        self.node.TIMEOUT_CHECK_TPDO = 1.0
         self.frames: dict[int, list[tuple[float, float]]] = {}   # cob -> [(received, time on the bus)]
         self._lock = threading.Lock()
         self.net.subscribe(0x180 + NODE, self._count)
