@@ -529,6 +529,8 @@ def _print_axes(s: dict) -> None:
         where = f" on axis {stop['axis']}" if stop.get("axis") else ""
         err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {stop.get('message')} - every axis at zero "
                   "torque, disabled")
+    elif stop.get("interrupted"):
+        err.print(_INTERRUPTED.format(ticks=loop.get("ticks", 0)))
 
 
 def _print_stalls(loop: dict) -> None:
@@ -554,10 +556,16 @@ def _print_trust(trust: dict | None, trusted: bool | None = None) -> None:
             out.print(f"  ok: {c['criterion']} {fmt(c['value'])} {c['limit']}", highlight=False, style="dim")
 
 
+_INTERRUPTED = ("stopped early on request (Ctrl-C or SIGTERM) after {ticks} ticks: the figures above cover only "
+                "that part; torque zeroed, drive disabled")
+
+
 def _print_stop(s: dict) -> None:
     stop = s.get("stop") or {}
     if stop.get("cause"):
         err.print(f"[red]stopped by {stop['cause']}:[/red] {stop.get('message')} - torque zeroed, drive disabled")
+    elif stop.get("interrupted"):
+        err.print(_INTERRUPTED.format(ticks=(s.get("loop") or {}).get("ticks", 0)))
 
 
 # --------------------------------------------------------------------------- identify

@@ -136,3 +136,12 @@ def test_an_frf_view_of_a_fit_with_a_wild_covariance_never_raises():
     sp = compute_spectra(blk.theta1, blk.theta2, blk.torque_meas, dt, period=512)
     v = frf_view(sp, np.log([p.I1, p.I2, p.B, p.K]), np.eye(4) * 1e6, "zoh")
     assert all(np.all(np.isfinite(v[k])) for k in ("g1_db", "g1_lo", "g1_hi", "g2_db"))
+
+
+def test_a_run_stopped_by_ctrl_c_or_sigterm_says_it_stopped_early_and_a_full_run_does_not(monkeypatch):
+    buf = io.StringIO()
+    monkeypatch.setattr(cli, "err", Console(file=buf, width=120, soft_wrap=True, color_system=None))
+    cli._print_stop({"stop": {"cause": None, "message": None, "interrupted": True}, "loop": {"ticks": 1428}})
+    cli._print_stop({"stop": {"cause": None, "message": None, "interrupted": False}, "loop": {"ticks": 10000}})
+    assert buf.getvalue().splitlines() == ["stopped early on request (Ctrl-C or SIGTERM) after 1428 ticks: the figures "
+                                           "above cover only that part; torque zeroed, drive disabled"]
