@@ -52,7 +52,7 @@ from rt_ident.outputs.recording_reader import (
 )
 from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import become_helper, quick_exit, start_ignoring_signals
-from rt_ident.processes.shm_ring import MessageRing
+from rt_ident.processes.shm_ring import MessageRing, RingReused
 
 log = logging.getLogger(__name__)
 
@@ -337,6 +337,16 @@ def _recorder_main(
             rec.close()  # keep whatever can still be written
         except Exception:  # noqa: BLE001 - already failing; the journal holds the flushed rows
             pass
+        raise SystemExit(1) from None
+    except RingReused as exc:                    # its parent let go of the ring: nothing more can come
+        if reason is not None:
+            reason.value = str(exc).encode("utf-8", "replace")[: len(reason) - 1]
+        failed.value = 1
+        try:
+            rec.close()
+        except Exception:  # noqa: BLE001 - already failing; the journal holds the flushed rows
+            pass
+        log.warning("recorder: %s; %s finished with %d rows", exc, path, rec.rows_written)
         raise SystemExit(1) from None
     except BaseException as exc:
         if reason is not None:

@@ -62,7 +62,7 @@ from rt_ident.outputs.dashboard import (
 )
 from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
-from rt_ident.processes.shm_ring import MessageRing, key_words, put_rows
+from rt_ident.processes.shm_ring import MessageRing, RingReused, key_words, put_rows
 
 log = logging.getLogger(__name__)
 
@@ -558,7 +558,11 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     last_send = time.monotonic()
     while True:
         closed = ring.writer_closed or watch.gone   # read before draining: nothing can follow a close
-        msgs = ring.get(_MAX_COALESCE)
+        try:
+            msgs = ring.get(_MAX_COALESCE)
+        except RingReused as exc:                   # its parent let go of the ring: finish with what came
+            log.warning("telemetry: %s", exc)
+            msgs, closed = [], True
         for m in msgs:
             if MessageRing.is_object(m):
                 obj = MessageRing.unpickle(m)

@@ -167,6 +167,32 @@ def test_sigkilled_recorder_process_is_readable_up_to_last_flush(tmp_path: Path)
     assert rec.metadata == {"backend": "sim"}
 
 
+def test_a_recorder_whose_ring_was_given_to_another_ring_finishes_its_file_and_says_so_in_one_line(
+        tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "reused.parquet"
+    rp = RecorderProcess(path, {"backend": "sim"}, flush_interval=0.02).start()
+    rp.wait_ready()
+    for k in range(3):
+        rp.put(_signals(np.arange(40 * k, 40 * (k + 1), dtype=np.int64)))
+    deadline = time.monotonic() + 15.0
+    while rp.rows_written < 120 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert rp.rows_written == 120
+    ring = rp._ring
+    assert ring is not None
+    ring._h[3] = ring._h[3] ^ 0x5A5A               # another ring's token: the parent let go of this memory
+    rp._proc.join(15.0)
+    assert rp._proc.exitcode == 1
+    assert "given to another ring" in (rp.failure or "")
+    err = capfd.readouterr().err
+    assert "given to another ring" in err and "Traceback" not in err, err
+    rec = read_recording(path)
+    assert rec.source != "journal" and len(rec) == 120
+    _assert_matches_oracle(rec)
+    ring._h[3] = ring._h[3] ^ 0x5A5A               # this side's own token again, so close() can finish
+    assert rp.close(timeout=2.0)["exitcode"] == 1
+
+
 # ---------------------------------------------------------------- CSV and input errors
 
 

@@ -208,6 +208,31 @@ def test_restarting_a_live_telemetry_process_leaves_no_old_child_behind(tmp_path
         tp.close(timeout=10.0)
 
 
+def test_a_telemetry_process_whose_ring_was_given_to_another_ring_finishes_its_rrd_and_says_so_in_one_line(
+        tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "reused.rrd"
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256, batch_seconds=0.01))
+    tp.start()
+    assert tp.wait_ready(20.0)
+    blocks = [_block(k) for k in range(10)]
+    assert all(tp.publish(b) for b in blocks)
+    deadline = time.monotonic() + 20.0
+    while tp._sent.value < 10 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert tp._sent.value == 10
+    ring = tp._ring
+    assert ring is not None
+    ring._h[3] = ring._h[3] ^ 0x5A5A               # another ring's token: the parent let go of this memory
+    tp._proc.join(20.0)
+    assert tp._proc.exitcode == 0
+    err = capfd.readouterr().err
+    assert "given to another ring" in err and "Traceback" not in err, err
+    t, v = _read_rrd(path)[dashboard.ANGLES]
+    assert np.array_equal(v[:, 0], np.concatenate([b["theta1"] for b in blocks]))
+    ring._h[3] = ring._h[3] ^ 0x5A5A               # this side's own token again, so close() can finish
+    tp.close(timeout=10.0)
+
+
 def test_window_values_need_tick_times_and_tick_signal_names() -> None:
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="/nonexistent/never-started.rrd"))
     with pytest.raises(DataError, match="t_tick"):
