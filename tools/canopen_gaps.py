@@ -51,6 +51,9 @@ def one_run(config: str, duration: float, work: Path, k: int) -> dict[str, Any]:
         return out
     loop, bc = s.get("loop", {}), s.get("backend_counters", {})
     g = gaps(rec) if rec.exists() else []
+    stop = s.get("stop") or {}
+    if stop.get("cause"):
+        out["stop"] = f"{stop.get('cause')}: {stop.get('message', '')}"[:200]
     out.update(longest_gap_ms=max((ms for _, ms in g), default=0.0),
                at_s=max(g, key=lambda x: x[1])[0] if g else None, gaps=len(g),
                lost=loop.get("lost_samples"), sync_overruns=bc.get("sync_overruns"),

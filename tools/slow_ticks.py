@@ -63,6 +63,8 @@ class Hook:
         self.last_cpu: float | None = None
         self.last_ru: Any = None
         self.last_state: tuple[int, ...] = ()
+        self.last_work = 0
+        self.unmatched = 0          # overruns_work not on the tick after a slow tick seen here
 
     def __call__(self, tick: int) -> None:
         cpu = time.thread_time()
@@ -78,6 +80,15 @@ class Hook:
             self.slow.append({"tick": tick, "t_s": round(tick / self.tick_hz, 3),
                               "cpu_us": round((cpu - self.last_cpu) * 1e6), "did": what,
                               "page_faults": faults, "preempted": switches})
+        # an overrun is counted on the tick after the one whose CPU time passed the period: mark that one
+        work = sum(lp.stats.overruns_work for lp in _LOOPS)
+        if work > self.last_work:
+            late = [t for t in self.slow if t["tick"] == tick - 1]
+            if late:
+                late[0]["overrun"] = True
+            else:
+                self.unmatched += work - self.last_work
+        self.last_work = work
         self.last_cpu, self.last_ru, self.last_state = cpu, ru, state
 
 
@@ -90,7 +101,8 @@ def one_run(config: str | None, duration: float, threshold_us: float, work: Path
     return {"run": k, "stop": (s.get("stop") or {}).get("cause"), "overruns_work": loop.get("overruns_work"),
             "work_cpu_max_us": round((loop.get("work_cpu_us") or {}).get("max", 0.0)),
             "steal_ms": (loop.get("host") or {}).get("steal_ms"),
-            "late_compiles": (loop.get("late_compiles") or {}).get("count"), "slow_ticks": hook.slow}
+            "late_compiles": (loop.get("late_compiles") or {}).get("count"), "slow_ticks": hook.slow,
+            "overruns_unmatched": hook.unmatched}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -111,10 +123,12 @@ def main(argv: list[str] | None = None) -> int:
                 f.unlink()
             if not a.json:
                 print(f"run {k}: stop {r['stop']}, overruns_work {r['overruns_work']}, work_cpu max "
-                      f"{r['work_cpu_max_us']} us, steal {r['steal_ms']} ms, late compiles {r['late_compiles']}",
-                      flush=True)
+                      f"{r['work_cpu_max_us']} us, steal {r['steal_ms']} ms, late compiles {r['late_compiles']}"
+                      + (f", {r['overruns_unmatched']} overruns_work not after a tick seen slow"
+                         if r["overruns_unmatched"] else ""), flush=True)
                 for t in r["slow_ticks"]:
-                    print(f"  tick {t['tick']} (t={t['t_s']} s): {t['cpu_us']} us CPU; "
+                    print(f"  tick {t['tick']} (t={t['t_s']} s): {t['cpu_us']} us CPU"
+                          + (" (the next tick overran)" if t.get("overrun") else "") + "; "
                           f"{', '.join(t['did']) or 'nothing of the loop'}; page faults {t['page_faults']}, "
                           f"preempted {t['preempted']}", flush=True)
     if a.json:
