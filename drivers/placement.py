@@ -55,14 +55,19 @@ def place(placement: dict[str, Any] | None) -> dict[str, Any]:
     return report
 
 
-def settle_heap() -> None:
-    """Collect once, then put every object alive now out of the cyclic collector's reach (``gc.freeze``).
+def clear_heap() -> None:
+    """Collect once, before the device starts its threads (call it before :func:`place` too).
 
-    Call it in an emulator's process once its device is up. Importing numba, canopen and the plant
-    leaves a few hundred thousand long-lived objects; the collector's first full pass over them
-    pauses the emulated drive for ~60 ms (docs/measurements.md, "Run endings and faults"): over a
-    hundred SYNCs at 2 kHz it cannot answer, a pause a real drive's firmware never takes. The
-    collector stays on for what the device allocates later: those passes are short.
-    """
+    Importing numba, canopen and the plant leaves a few hundred thousand long-lived objects; the
+    collector's first full pass over them takes ~60 ms and holds the GIL: with the device's threads
+    running, a drive could not answer a SYNC or send a heartbeat for that long, a pause a real drive's
+    firmware never takes. Before they start, nothing waits on it."""
     gc.collect()
+
+
+def settle_heap() -> None:
+    """Once the device is up: put every object alive now out of the cyclic collector's reach
+    (``gc.freeze``) without a collection: a full pass then would hold the GIL for 20-50 ms against the
+    device's threads. What starting the device left for garbage (~2 300 objects for the CiA 402 drive)
+    stays. The collector stays on for what the device allocates later: those passes are short."""
     gc.freeze()

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
 from drivers.cia402.variants import drive_profile
-from drivers.placement import device_placement, place, settle_heap
+from drivers.placement import clear_heap, device_placement, place, settle_heap
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
 
@@ -243,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     # the placement the loop gives its own emulator child: off the loop's CPU, SCHED_FIFO below the
     # loop (before the drive starts its threads: they inherit it). Without it a real-time loop on
     # the same CPU starves this process and trips its watchdog on stale data.
+    clear_heap()
     placed = place(device_placement(not args.no_realtime))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -537,8 +537,9 @@ def main(argv: list[str] | None = None) -> int:
         data["backend"]["sample_rate_hz"] = args.rate
     if args.seed is not None:
         data["emulator"]["seed"] = args.seed
-    from drivers.placement import device_placement, place, settle_heap
+    from drivers.placement import clear_heap, device_placement, place, settle_heap
 
+    clear_heap()
     placed = place(device_placement(not args.no_realtime))   # as the loop places its own emulator child
     logging.getLogger(__name__).info("placement: %s", placed or "none")
     board = start_emulator_for(data)

@@ -28,7 +28,7 @@ import socket
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
-from drivers.placement import device_placement, place, settle_heap
+from drivers.placement import clear_heap, device_placement, place, settle_heap
 from rt_ident.errors import RtIdentError
 from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import ParentWatch, start_with_helper_env
@@ -54,12 +54,13 @@ def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dic
     parent = ParentWatch(every_s=0.0)
     try:
         mod = importlib.import_module(module)
+        clear_heap()
         placed.update(place({"fifo_priority": placement.get("fifo_priority")}))
         dev = mod.start_emulator_for(config)
     except Exception as exc:  # noqa: BLE001 - reported to the parent
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    settle_heap()                            # no full collection stalls the device later (see there)
+    settle_heap()                            # no full pass of the collector stalls the device later
     try:
         conn.send(("ready", {"port": getattr(dev, "port", None), "placement": placed}))
         while True:
