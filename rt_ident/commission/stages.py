@@ -281,7 +281,10 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
     if got["stop"] is None and (s.get("files") or {}).get("recording"):
         got |= _move_metrics(s["files"]["recording"], lead, origin_m, move, t_arrive)
         want |= _move_metrics(p["files"]["recording"], lead, origin_p, move, t_arrive)
-    result["verification"] = {"move_m": move, "measured": got, "model": want, "stalls": stalls,
+    loop = s.get("loop") or {}
+    timing = {"overruns": loop.get("overruns"), "lost_samples": loop.get("lost_samples"),
+              "lateness_max_us": (loop.get("lateness_us") or {}).get("max")}
+    result["verification"] = {"move_m": move, "measured": got, "model": want, "stalls": stalls, "timing": timing,
                               "recordings": [s.get("files", {}).get("recording"), p.get("files", {}).get("recording")]}
     ok = (got["stop"] is None and not got["fallbacks"] and got.get("max_error_m") is not None
           and want.get("max_error_m") is not None

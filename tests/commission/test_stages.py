@@ -93,6 +93,8 @@ def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path
                       "axis_toml"}
     assert all(set(c) >= {"name", "ok", "measured", "expected", "fix"} for c in r["checks"])
     assert r["device_truth"]["max_travel_m"] <= 2e-3 and r["device_truth"]["max_speed_m_s"] <= 5e-3
+    timing = r["verification"]["timing"]        # what the host's timing was while the move ran
+    assert timing["lost_samples"] == 0 and timing["overruns"] >= 0 and timing["lateness_max_us"] >= 0
     assert r["parameters"]["I2"] == pytest.approx(8.3e-6, rel=0.05)
     html = Path(r["report"]).read_text()
     assert "<svg" in html and "PASS" in html and "verification move" in html
