@@ -329,23 +329,11 @@ def _recorder_main(
             log.warning("recorder: the run's main process died; %s finished with %d rows", path, rec.rows_written)
     except OSError as exc:                       # a full disk, a file that cannot be written
         why = _os_reason(exc, path)
-        if reason is not None:
-            reason.value = why.encode("utf-8", "replace")[: len(reason) - 1]
-        failed.value = 1
         log.info("recorder: %s", why)          # the parent names it in the run's stop (one line)
-        try:
-            rec.close()  # keep whatever can still be written
-        except Exception:  # noqa: BLE001 - already failing; the journal holds the flushed rows
-            pass
+        _end_failed(rec, why, failed, reason)
         raise SystemExit(1) from None
     except RingReused as exc:                    # its parent let go of the ring: nothing more can come
-        if reason is not None:
-            reason.value = str(exc).encode("utf-8", "replace")[: len(reason) - 1]
-        failed.value = 1
-        try:
-            rec.close()
-        except Exception:  # noqa: BLE001 - already failing; the journal holds the flushed rows
-            pass
+        _end_failed(rec, str(exc), failed, reason)
         log.warning("recorder: %s; %s finished with %d rows", exc, path, rec.rows_written)
         raise SystemExit(1) from None
     except BaseException as exc:
@@ -358,6 +346,18 @@ def _recorder_main(
         except Exception:  # noqa: BLE001 - already failing; the journal holds the flushed rows
             log.exception("recorder close after failure")
         raise
+
+
+def _end_failed(rec: Recorder, why: str, failed: Any, reason: Any) -> None:
+    """A failure the parent reports in one line: its reason and the flag set, whatever can still be
+    written kept."""
+    if reason is not None:
+        reason.value = why.encode("utf-8", "replace")[: len(reason) - 1]
+    failed.value = 1
+    try:
+        rec.close()
+    except Exception:  # noqa: BLE001 - already failing; the journal holds the flushed rows
+        pass
 
 
 def _recorder_process(*args: Any) -> None:
