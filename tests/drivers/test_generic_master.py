@@ -79,8 +79,9 @@ def _drive(kw: dict, profile: str = "generic", faults: FaultConfig | None = None
 
 
 def _to_cst(m: _Master, profile: str) -> None:
-    """What a user of a generic master does before enabling: the 402 set-up, CST, and on a drive that
-    needs it the interpolation time period (1 ms, the SYNC below: 1 x 10^-3 s); SYNC running."""
+    """What a user of a generic master does before enabling: the 402 set-up, CST, the statusword's event
+    timer, and on a drive that needs it the interpolation time period (1 ms, the SYNC below: 1 x 10^-3 s);
+    SYNC running."""
     node = m.node
     node.nmt.state = "PRE-OPERATIONAL"
     node.setup_402_state_machine()                    # reads the PDO configuration by SDO
@@ -88,6 +89,9 @@ def _to_cst(m: _Master, profile: str) -> None:
     assert node.rpdo[1].trans_type == 255 and [v.index for v in node.rpdo[1]] == [p402.CONTROLWORD]
     node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
     assert node.op_mode == "CYCLIC SYNCHRONOUS TORQUE"
+    # BaseNode402 checks a state change by waiting for the *next* statusword TPDO; one that arrives before
+    # it starts to wait is missed, and an event-driven TPDO then never comes again. The event timer resends.
+    node.sdo[0x1800][5].raw = 50
     if PROFILES[profile].interpolation_period:        # not in the generic EDS: written by index
         node.sdo.download(0x60C2, 2, (-3).to_bytes(1, "little", signed=True))
         node.sdo.download(0x60C2, 1, bytes([1]))
