@@ -32,27 +32,49 @@ def device_placement(realtime: bool = True) -> dict[str, Any]:
     return {"cpus": helper_cpus(realtime), "fifo_priority": EMULATOR_FIFO_PRIORITY if realtime else None}
 
 
-def place(placement: dict[str, Any] | None) -> dict[str, Any]:
-    """Apply ``{"cpus": [...], "fifo_priority": n}`` to the calling thread (call it before starting any
-    other thread: new threads inherit it). Returns what was applied, or why not ("denied: ...")."""
-    report: dict[str, Any] = {}
-    if not placement:
-        return report
-    cpus = placement.get("cpus")
-    if cpus:
-        try:
-            os.sched_setaffinity(0, set(cpus))
-            report["cpus"] = sorted(cpus)
-        except (AttributeError, OSError) as exc:
-            report["cpus"] = f"denied: {exc}"
-    prio = placement.get("fifo_priority")
-    if prio:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(prio)))
-            report["sched_fifo"] = int(prio)
-        except (AttributeError, OSError) as exc:
-            report["sched_fifo"] = f"denied: {exc}"
-    return report
+def keep_to(cpus: list[int] | None) -> dict[str, Any]:
+    """Keep the calling thread to ``cpus`` (call it before starting any other thread: new threads
+    inherit it). Returns what was applied, or why not ("denied: ...")."""
+    if not cpus:
+        return {}
+    try:
+        os.sched_setaffinity(0, set(cpus))
+    except (AttributeError, OSError) as exc:
+        return {"cpus": f"denied: {exc}"}
+    return {"cpus": sorted(cpus)}
+
+
+def process_threads() -> set[int]:
+    """The native ids of this process's threads now."""
+    try:
+        return {int(t) for t in os.listdir("/proc/self/task")}
+    except OSError:
+        return set()
+
+
+def turn_realtime(priority: int | None, threads: set[int]) -> dict[str, Any]:
+    """SCHED_FIFO at ``priority`` for ``threads``: those the device started (``process_threads()`` after
+    its start less before it), once it has started them at ordinary scheduling.
+
+    Only the device's streaming is real-time. Building the device (its object dictionary, its plant, the
+    first calls of its compiled kernels: tens of ms of CPU, over 100 ms on a busy host), its report and
+    the interpreter's exit stay in the calling thread at ordinary scheduling: at SCHED_FIFO they would
+    hold the CPU against the other emulated devices there, which share the priority and are never
+    time-sliced against it. Threads started before (numpy's BLAS pool, spinning when it works) keep
+    theirs too. Returns what was applied, or why not ("denied: ...")."""
+    if not priority:
+        return {}
+    if not threads:
+        return {"sched_fifo": "no device thread"}
+    try:
+        for tid in sorted(threads):
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(int(priority)))
+            except ProcessLookupError:                # the thread ended meanwhile
+                pass
+    except (AttributeError, OSError) as exc:
+        return {"sched_fifo": f"denied: {exc}"}
+    return {"sched_fifo": int(priority)}
 
 
 def clear_heap() -> None:

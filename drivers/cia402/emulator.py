@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
 from drivers.cia402.variants import drive_profile
-from drivers.placement import clear_heap, device_placement, place, settle_heap
+from drivers.placement import clear_heap, device_placement, keep_to, process_threads, settle_heap, turn_realtime
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
 
@@ -240,19 +240,22 @@ def main(argv: list[str] | None = None) -> int:
             backend[key] = getattr(args, key)
     if backend.get("interface") == "virtual":
         log.warning("the virtual bus is in-process only: nothing outside this process can reach this drive")
-    # the placement the loop gives its own emulator child: off the loop's CPU, SCHED_FIFO below the
-    # loop (before the drive starts its threads: they inherit it). Without it a real-time loop on
-    # the same CPU starves this process and trips its watchdog on stale data.
+    # the placement the loop gives its own emulator child: off the loop's CPU (before the drive starts
+    # its threads: they inherit it), its threads SCHED_FIFO below the loop once started. Without it a
+    # real-time loop on the same CPU starves this process and trips its watchdog on stale data.
     clear_heap()
-    placed = place(device_placement(not args.no_realtime))
+    placement = device_placement(not args.no_realtime)
+    placed = keep_to(placement["cpus"])
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    before = process_threads()
     try:
         drive = start_emulator_for(data)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    placed.update(turn_realtime(placement["fifo_priority"], process_threads() - before))
     settle_heap()
     where = f"{backend.get('interface')}:{backend.get('channel')}" + (f" port {backend['port']}"
                                                                       if backend.get("port") else "")

@@ -28,7 +28,7 @@ import socket
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
-from drivers.placement import clear_heap, device_placement, place, settle_heap
+from drivers.placement import clear_heap, device_placement, keep_to, process_threads, settle_heap, turn_realtime
 from rt_ident.errors import RtIdentError
 from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import ParentWatch, start_with_helper_env
@@ -42,24 +42,26 @@ EMULATORS = {"canopen": "drivers.cia402.emulator", "serial": "drivers.encoder_bo
 
 
 def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dict[str, Any] | None) -> None:
-    """Child process: leave the loop's CPU, import the device's code, turn real-time, start the device,
-    report, wait for "stop" (or the parent's end), stop.
+    """Child process: leave the loop's CPU, import the device's code, start the device, turn its threads
+    real-time, report, wait for "stop" (or the parent's end), stop.
 
-    The import (numba, canopen, the plant: most of the start-up's CPU time) runs before SCHED_FIFO: at
-    SCHED_FIFO it would hold its CPU against every other thread there, and a slower start-up would
-    run into the kernel's RT throttle. The device's threads are started after the switch and inherit it.
+    Only the device's threads run at SCHED_FIFO (drivers.placement.turn_realtime). The import (numba,
+    canopen, the plant: most of the start-up's CPU time), building the device, its report and the exit
+    run in this thread at ordinary scheduling: at SCHED_FIFO they would hold the CPU against every other
+    thread there, other emulated devices at the same priority included.
     """
     placement = placement or {}
-    placed = place({"cpus": placement.get("cpus")})
+    placed = keep_to(placement.get("cpus"))
     parent = ParentWatch(every_s=0.0)
     try:
         mod = importlib.import_module(module)
         clear_heap()
-        placed.update(place({"fifo_priority": placement.get("fifo_priority")}))
+        before = process_threads()
         dev = mod.start_emulator_for(config)
     except Exception as exc:  # noqa: BLE001 - reported to the parent
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    placed.update(turn_realtime(placement.get("fifo_priority"), process_threads() - before))
     settle_heap()                            # no full pass of the collector stalls the device later
     try:
         conn.send(("ready", {"port": getattr(dev, "port", None), "placement": placed}))
