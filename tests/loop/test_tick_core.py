@@ -278,7 +278,7 @@ def test_the_kernels_snapshot_message_is_the_python_paths_for_the_fit_worker():
         assert np.array_equal(back.S1, ss.S1) and np.array_equal(back.S2, ss.S2) and back.W2 == 2.5
 
 
-def test_a_run_hands_every_snapshot_to_the_fit_worker_from_the_kernel(monkeypatch):
+def test_a_run_hands_its_snapshots_to_the_fit_worker_from_the_kernel_unless_the_tick_is_pythons(monkeypatch):
     from rt_ident.compose import run as run_mod
     from rt_ident.processes.jobs import JobProcess
 
@@ -300,9 +300,11 @@ def test_a_run_hands_every_snapshot_to_the_fit_worker_from_the_kernel(monkeypatc
     # machine the (niced) jobs may not have answered yet, so its estimates are not counted on here
     (jobs,) = workers
     assert jobs._in.compiled_views()[0][1] >= 1
-    # the tick after a loop stall is the Python path's (it re-plans), and a snapshot due on it goes through
-    # the Python put: at most one per stall; none without one
-    assert submitted.count("SpectraSums") <= s["loop"]["stalls"]["count"], (submitted, s["loop"]["stalls"])
+    # a snapshot goes through the Python put only on a tick the kernel left to the Python path whole: the
+    # first, the one after a loop stall (it re-plans), one with a gap, or one whose block the recorder's full
+    # ring did not take (a busy host): at most one per such tick
+    python_ticks = s["loop"]["compiled_tick"]["python_ticks"]
+    assert submitted.count("SpectraSums") <= python_ticks, (submitted, s["loop"]["compiled_tick"])
 
 
 def test_a_recorder_that_dies_under_the_compiled_tick_stops_the_run(tmp_path):
