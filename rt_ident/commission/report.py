@@ -116,6 +116,12 @@ def write(result: dict[str, Any], cfg: RunConfig, path: Path) -> None:
             ["parameter", "value", "95 % interval"],
             [[k, fmt(v), f"{fmt(ci[k][0])} .. {fmt(ci[k][1])}" if ci.get(k) else "-"]
              for k, v in ident["parameters"].items()]))
+        tries = ident.get("attempts") or []
+        if len(tries) > 1:
+            first = tries[0]
+            parts.append(f"<p>Identified in a second run of {tries[-1]['duration_s']:g} s: the first, of "
+                         f"{first['duration_s']:g} s, was not trusted ({html.escape('; '.join(first['reasons']))}; "
+                         f"{first['lost_samples']} samples lost).</p>")
         parts.append("<h2>Frequency response</h2>" + _frf_svg(result, cfg))
     if result.get("design"):
         parts.append("<h2>Controller design</h2>" + table(["", "value"], [

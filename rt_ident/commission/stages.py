@@ -166,22 +166,58 @@ def _derived(cfg: RunConfig, **sections: dict[str, Any]) -> RunConfig:
     return from_mapping(data, source=cfg.source)
 
 
+#: stage c runs once more, this much longer at most, when only its intervals were too wide
+IDENTIFY_LONGER_MAX = 4.0
+
+
+def _longer(s: dict[str, Any], duration: float) -> float | None:
+    """How long to identify again when the one criterion that failed is the intervals' width, finite:
+    long enough for the widest interval to narrow to the limit with 30 % to spare (half-widths shrink
+    as 1/sqrt(duration)), at most IDENTIFY_LONGER_MAX x and the config's 120 s. None: another run
+    would not help (an impossible value, a missing interval, a stop)."""
+    import math
+
+    from rt_ident.estimators.uncertainty import MAX_REL_HALFWIDTH
+
+    failed = [c for c in (s.get("trust") or {}).get("criteria") or [] if not c.get("passed")]
+    if len(failed) != 1 or not str(failed[0].get("criterion", "")).startswith("widest 95 % interval"):
+        return None
+    ratio = float(failed[0].get("value") or math.inf) / (100.0 * MAX_REL_HALFWIDTH)
+    if not math.isfinite(ratio) or ratio <= 1.0:
+        return None
+    longer = min(duration * max(2.0, (1.3 * ratio) ** 2), duration * IDENTIFY_LONGER_MAX, 120.0)
+    return longer if longer > duration else None
+
+
 def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progress) -> dict[str, Any] | None:
-    """Stage c: the run's summary (identification, trust), or None when it did not pass."""
+    """Stage c: the run's summary (identification, trust), or None when it did not pass. A run whose
+    only shortfall is intervals wider than the limit runs once more, longer (``_longer``); the verdict
+    is the second run's alone."""
     from rt_ident.compose.run import run as run_loop
 
-    progress(f"c: identify for {cfg.commission.identify_s:g} s, holding with the conservative controller")
     result["stage_reached"] = "c"
-    c = _derived(cfg, control={"mode": "conservative"}, reference={"kind": "hold", "origin": "enable"},
-                 loop={"duration": cfg.commission.identify_s}, telemetry={"sink": "off"},
-                 recording={"enabled": True, "path": str(out / "identify.parquet")})
-    s = run_loop(c, sink="off", overwrite=True)
-    if (s.get("stop") or {}).get("interrupted"):
-        raise KeyboardInterrupt                    # Ctrl-C or SIGTERM during the run: commissioning ends
-    stop = (s.get("stop") or {}).get("cause")
-    trusted = bool(s.get("trusted"))
-    reasons = (s.get("trust") or {}).get("reasons") or []
+    duration = cfg.commission.identify_s
+    attempts: list[dict[str, Any]] = []
+    progress(f"c: identify for {duration:g} s, holding with the conservative controller")
+    while True:
+        c = _derived(cfg, control={"mode": "conservative"}, reference={"kind": "hold", "origin": "enable"},
+                     loop={"duration": duration}, telemetry={"sink": "off"},
+                     recording={"enabled": True, "path": str(out / "identify.parquet")})
+        s = run_loop(c, sink="off", overwrite=True)
+        if (s.get("stop") or {}).get("interrupted"):
+            raise KeyboardInterrupt                # Ctrl-C or SIGTERM during the run: commissioning ends
+        stop = (s.get("stop") or {}).get("cause")
+        trusted = bool(s.get("trusted"))
+        reasons = (s.get("trust") or {}).get("reasons") or []
+        attempts.append({"duration_s": duration, "trusted": trusted, "stop": stop, "reasons": reasons,
+                         "lost_samples": (s.get("loop") or {}).get("lost_samples")})
+        longer = _longer(s, duration) if not trusted and stop is None and len(attempts) == 1 else None
+        if longer is None:
+            break
+        progress(f"c: {reasons[0]}: identifying again for {longer:g} s")
+        duration = longer
     result["identification"] = {k: s.get(k) for k in ("parameters", "ci95", "trusted", "trust", "friction")}
+    result["identification"]["attempts"] = attempts
     result["parameters"] = s.get("parameters")
     result["checks"].append(check("identification trusted", trusted and stop is None,
                                   "trusted" if trusted else f"not trusted: {'; '.join(reasons) or stop}",

@@ -162,3 +162,56 @@ def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_n
     else:
         assert r["verdict"] == "fail" and r["failed"]["check"] == "verification move"
         assert r["failed"]["fix"].startswith("loop.realtime"), r["failed"]
+
+
+def _summary(criteria: list[dict], stop: str | None = None) -> dict:
+    """A run summary as stage c reads it: its trust criteria and how it ended."""
+    trusted = all(c["passed"] for c in criteria) and stop is None
+    return {"trusted": trusted, "stop": {"cause": stop},
+            "trust": {"trusted": trusted, "criteria": criteria,
+                      "reasons": [c["why"] for c in criteria if not c["passed"]]},
+            "parameters": {"I1": 2.7e-5}, "ci95": {}, "loop": {"lost_samples": 12}}
+
+
+WIDE_B = {"criterion": "widest 95 % interval of I1, I2, B, K (half-width, relative)", "passed": False,
+          "value": 13.9, "limit": "<= 10 %", "why": "95 % interval of B is +-13.9 % (> 10 %)"}
+FIT_OK = {"criterion": "fit converged", "passed": True, "value": None, "limit": "", "why": ""}
+
+
+@pytest.mark.parametrize(("first", "runs", "verdict"), [
+    ([WIDE_B, FIT_OK], 2, True),                                   # only too wide: once more, longer
+    ([WIDE_B | {"value": float("inf"), "why": "95 % interval of B: no interval"}, FIT_OK], 1, False),
+    ([WIDE_B, FIT_OK | {"passed": False, "why": "I2 < 0"}], 1, False),   # an impossible value: no retry
+])
+def test_stage_c_identifies_once_more_and_longer_only_when_its_intervals_alone_were_too_wide(
+        tmp_path, monkeypatch, first, runs, verdict):
+    from rt_ident.commission import stages
+    from rt_ident.compose import run as run_mod
+
+    durations: list[float] = []
+
+    def fake_run(cfg, **_):
+        durations.append(cfg.loop.duration)
+        return _summary(first if len(durations) == 1 else [c | {"passed": True} for c in first])
+
+    monkeypatch.setattr(run_mod, "run", fake_run)
+    cfg = config.from_mapping(sim_data())
+    result: dict = {"checks": []}
+    got = stages._identify(cfg, tmp_path, result, lambda msg: None)
+    assert len(durations) == runs and (got is not None) == verdict
+    assert [a["duration_s"] for a in result["identification"]["attempts"]] == durations
+    if runs == 2:        # 13.9 % -> 10 % with 30 % to spare: (1.3 x 1.39)^2 = 3.27 x the configured time
+        assert durations[1] == pytest.approx(cfg.commission.identify_s * 3.27, rel=0.01)
+    (check,) = result["checks"]
+    assert check["name"] == "identification trusted" and check["ok"] == verdict
+
+
+def test_stage_c_tries_a_second_time_at_most(tmp_path, monkeypatch):
+    from rt_ident.commission import stages
+    from rt_ident.compose import run as run_mod
+
+    durations: list[float] = []
+    monkeypatch.setattr(run_mod, "run", lambda cfg, **_: durations.append(cfg.loop.duration) or _summary([WIDE_B]))
+    result: dict = {"checks": []}
+    assert stages._identify(config.from_mapping(sim_data()), tmp_path, result, lambda msg: None) is None
+    assert len(durations) == 2 and "commission.identify_s" in result["checks"][0]["fix"]
