@@ -57,7 +57,7 @@ def turn_realtime(priority: int | None, threads: set[int]) -> dict[str, Any]:
     its start less before it), once it has started them at ordinary scheduling.
 
     Only the device's streaming is real-time. Building the device (its object dictionary, its plant, the
-    first calls of its compiled kernels: tens of ms of CPU, over 100 ms on a busy host), its report and
+    first calls of its compiled kernels: tens of ms of CPU, more on a busy host), its report and
     the interpreter's exit stay in the calling thread at ordinary scheduling: at SCHED_FIFO they would
     hold the CPU against the other emulated devices there, which share the priority and are never
     time-sliced against it. Threads started before (numpy's BLAS pool, spinning when it works) keep

@@ -22,6 +22,7 @@ import datetime as _dt
 import gc
 import json
 import logging
+import math
 import os
 import signal
 import threading
@@ -175,8 +176,6 @@ def _longer(s: dict[str, Any], duration: float) -> float | None:
     long enough for the widest interval to narrow to the limit with 30 % to spare (half-widths shrink
     as 1/sqrt(duration)), at most IDENTIFY_LONGER_MAX x and the config's 120 s. None: another run
     would not help (an impossible value, a missing interval, a stop)."""
-    import math
-
     from rt_ident.estimators.uncertainty import MAX_REL_HALFWIDTH
 
     failed = [c for c in (s.get("trust") or {}).get("criteria") or [] if not c.get("passed")]

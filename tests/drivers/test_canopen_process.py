@@ -281,9 +281,9 @@ def test_during_a_run_only_the_loop_and_its_sync_sender_are_real_time_on_the_loo
 
 
 def test_an_emulator_process_turns_only_its_devices_threads_real_time(tmp_path, monkeypatch):
-    # importing numba, canopen and the plant and building the device is most of the start-up's CPU time,
-    # and the interpreter's exit ~0.1 s more: at SCHED_FIFO 40 they held the CPU for 139 ms against another
-    # run's drive, which then sent nothing. A thread from before the device (numpy's BLAS pool) stays as it is.
+    # importing numba, canopen and the plant and building the device is most of the start-up's CPU time, and
+    # the interpreter's exit adds more: at SCHED_FIFO they would hold the CPU against another run's drive at
+    # the same priority, which then sends nothing. A thread from before the device (numpy's BLAS pool) stays.
     (tmp_path / "fake_device_for_placement.py").write_text(
         "import os, threading\n"
         "AT_IMPORT = os.sched_getscheduler(0)\n"
