@@ -219,7 +219,8 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
     result["identification"]["attempts"] = attempts
     result["parameters"] = s.get("parameters")
     result["checks"].append(check("identification trusted", trusted and stop is None,
-                                  "trusted" if trusted else f"not trusted: {'; '.join(reasons) or stop}",
+                                  (f"trusted, but the run stopped: {stop}" if stop is not None else "trusted")
+                                  if trusted else f"not trusted: {'; '.join(reasons) or stop}",
                                   "trusted, run ended normally",
                                   "commission.identify_s (longer), excitation.peak / excitation.band"
                                   if stop is None else
