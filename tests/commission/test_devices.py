@@ -1,6 +1,6 @@
 """``rt-ident commission`` against the emulated devices: each miswiring or misscaling of the host's picture
 fails the check that names its key, within the travel budget and the speed limit (as the host's two
-sensors measure them: in each case one of them is right), and a right picture passes from off centre."""
+sensors measure them: in each case one of them is right), and a right picture passes."""
 
 from __future__ import annotations
 
@@ -79,21 +79,3 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
         slack = 1.0 if all(c["ok"] for c in r["checks"] if c["name"] == "limits") else 1.25
         assert r["max_travel_m"] <= slack * cfg.commission.travel_m
         assert r["max_speed_m_s"] <= slack * cfg.commission.max_speed_m_s
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["serial-virtual.toml", "canopen-virtual.toml"], ids=["serial", "canopen"])
-def test_an_emulated_device_wired_as_the_host_is_told_passes_from_off_centre_within_limits(tmp_path, name,
-                                                                                          restore_scheduling):
-    cfg = device_cfg(name, {"x0": 0.01}, loop={"realtime": True})
-    r = commission(cfg, tmp_path / "out")
-    failed = [(c["name"], c["measured"], c["fix"]) for c in r["checks"] if not c["ok"]]
-    last = ((r.get("identification") or {}).get("attempts") or [{}])[-1]
-    if last.get("stop") is not None and (last.get("lost_samples") or 0) > 0:
-        # the device's link lost samples and the run stopped: the host starved the emulated device (a real
-        # one has its own processor), which the shipped limits are there to catch
-        pytest.skip(f"the emulated device lost {last['lost_samples']} samples and stage c stopped: {failed}")
-    assert r["verdict"] == "pass" and r["stage_reached"] == "e", (failed, r.get("verification", {}).get("timing"))
-    assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
-    assert r["parameters"]["I2"] == pytest.approx(8.3e-6, rel=0.1)
-    assert (tmp_path / "out").is_dir() and Path(r["report"]).is_file() and Path(r["axis_toml"]).is_file()
