@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import gc
 import os
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 #: SCHED_FIFO priority of an emulated device when the loop is real-time (the loop has 50).
 EMULATOR_FIFO_PRIORITY = 40
@@ -44,7 +47,7 @@ def keep_to(cpus: list[int] | None) -> dict[str, Any]:
     return {"cpus": sorted(cpus)}
 
 
-def process_threads() -> set[int]:
+def _threads() -> set[int]:
     """The native ids of this process's threads now."""
     try:
         return {int(t) for t in os.listdir("/proc/self/task")}
@@ -52,20 +55,24 @@ def process_threads() -> set[int]:
         return set()
 
 
-def turn_realtime(priority: int | None, threads: set[int]) -> dict[str, Any]:
-    """SCHED_FIFO at ``priority`` for ``threads``: those the device started (``process_threads()`` after
-    its start less before it), once it has started them at ordinary scheduling.
+def start_realtime(start: Callable[[], T], priority: int | None) -> tuple[T, dict[str, Any]]:
+    """``start()`` (which builds a device and starts its threads) at ordinary scheduling, then
+    SCHED_FIFO at ``priority`` for the threads it started. Returns the device and what was applied, or
+    why not ("denied: ...").
 
     Only the device's streaming is real-time. Building the device (its object dictionary, its plant, the
     first calls of its compiled kernels: tens of ms of CPU, more on a busy host), its report and
     the interpreter's exit stay in the calling thread at ordinary scheduling: at SCHED_FIFO they would
     hold the CPU against the other emulated devices there, which share the priority and are never
     time-sliced against it. Threads started before (numpy's BLAS pool, spinning when it works) keep
-    theirs too. Returns what was applied, or why not ("denied: ...")."""
+    theirs too."""
+    before = _threads()
+    device = start()
     if not priority:
-        return {}
+        return device, {}
+    threads = _threads() - before
     if not threads:
-        return {"sched_fifo": "no device thread"}
+        return device, {"sched_fifo": "no device thread"}
     try:
         for tid in sorted(threads):
             try:
@@ -73,8 +80,8 @@ def turn_realtime(priority: int | None, threads: set[int]) -> dict[str, Any]:
             except ProcessLookupError:                # the thread ended meanwhile
                 pass
     except (AttributeError, OSError) as exc:
-        return {"sched_fifo": f"denied: {exc}"}
-    return {"sched_fifo": int(priority)}
+        return device, {"sched_fifo": f"denied: {exc}"}
+    return device, {"sched_fifo": int(priority)}
 
 
 def clear_heap() -> None:

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
 from drivers.cia402.variants import drive_profile
-from drivers.placement import clear_heap, device_placement, keep_to, process_threads, settle_heap, turn_realtime
+from drivers.placement import clear_heap, device_placement, keep_to, settle_heap, start_realtime
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
 from rt_ident.errors import ConfigError
 
@@ -249,13 +249,12 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    before = process_threads()
     try:
-        drive = start_emulator_for(data)
+        drive, rt = start_realtime(lambda: start_emulator_for(data), placement["fifo_priority"])
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    placed.update(turn_realtime(placement["fifo_priority"], process_threads() - before))
+    placed.update(rt)
     settle_heap()
     where = f"{backend.get('interface')}:{backend.get('channel')}" + (f" port {backend['port']}"
                                                                       if backend.get("port") else "")

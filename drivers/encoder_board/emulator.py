@@ -537,14 +537,13 @@ def main(argv: list[str] | None = None) -> int:
         data["backend"]["sample_rate_hz"] = args.rate
     if args.seed is not None:
         data["emulator"]["seed"] = args.seed
-    from drivers.placement import clear_heap, device_placement, keep_to, process_threads, settle_heap, turn_realtime
+    from drivers.placement import clear_heap, device_placement, keep_to, settle_heap, start_realtime
 
     clear_heap()
     placement = device_placement(not args.no_realtime)       # as the loop places its own emulator child
     placed = keep_to(placement["cpus"])
-    before = process_threads()
-    board = start_emulator_for(data)
-    placed.update(turn_realtime(placement["fifo_priority"], process_threads() - before))
+    board, rt = start_realtime(lambda: start_emulator_for(data), placement["fifo_priority"])
+    placed.update(rt)
     logging.getLogger(__name__).info("placement: %s", placed or "none")
     settle_heap()
     print(board.port, flush=True)   # the one line a caller reads (CLI output, not logging)

@@ -176,10 +176,10 @@ def _longer(s: dict[str, Any], duration: float) -> float | None:
     long enough for the widest interval to narrow to the limit with 30 % to spare (half-widths shrink
     as 1/sqrt(duration)), at most IDENTIFY_LONGER_MAX x and the config's 120 s. None: another run
     would not help (an impossible value, a missing interval, a stop)."""
-    from rt_ident.estimators.uncertainty import MAX_REL_HALFWIDTH
+    from rt_ident.estimators.uncertainty import INTERVAL_CRITERION, MAX_REL_HALFWIDTH
 
     failed = [c for c in (s.get("trust") or {}).get("criteria") or [] if not c.get("passed")]
-    if len(failed) != 1 or not str(failed[0].get("criterion", "")).startswith("widest 95 % interval"):
+    if len(failed) != 1 or not str(failed[0].get("criterion", "")).startswith(INTERVAL_CRITERION):
         return None
     ratio = float(failed[0].get("value") or math.inf) / (100.0 * MAX_REL_HALFWIDTH)
     if not math.isfinite(ratio) or ratio <= 1.0:
@@ -215,12 +215,14 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
             break
         progress(f"c: {reasons[0]}: identifying again for {longer:g} s")
         duration = longer
-    result["identification"] = {k: s.get(k) for k in ("parameters", "ci95", "trusted", "trust", "friction")}
-    result["identification"]["attempts"] = attempts
+    result["identification"] = {**{k: s.get(k) for k in ("parameters", "ci95", "trusted", "trust", "friction")},
+                                "attempts": attempts}
     result["parameters"] = s.get("parameters")
-    result["checks"].append(check("identification trusted", trusted and stop is None,
-                                  (f"trusted, but the run stopped: {stop}" if stop is not None else "trusted")
-                                  if trusted else f"not trusted: {'; '.join(reasons) or stop}",
+    if not trusted:
+        measured = f"not trusted: {'; '.join(reasons) or stop}"
+    else:
+        measured = "trusted" if stop is None else f"trusted, but the run stopped: {stop}"
+    result["checks"].append(check("identification trusted", trusted and stop is None, measured,
                                   "trusted, run ended normally",
                                   "commission.identify_s (longer), excitation.peak / excitation.band"
                                   if stop is None else

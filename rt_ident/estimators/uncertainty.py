@@ -59,6 +59,8 @@ Z95 = 1.959963984540054          # two-sided 95 % quantile of the normal distrib
 MIN_EIG = 1e-4                   # smallest eigenvalue of the normalized information matrix
 MAX_COND = 1e6                   # largest condition number of the normalized information matrix
 MAX_REL_HALFWIDTH = 0.10         # widest accepted 95 % half-width, relative, on I1, I2, B, K
+#: how the interval criterion's name starts (``interval_criterion``); readers match on it
+INTERVAL_CRITERION = "widest 95 % interval"
 _MODAL_STEP = 1e-5               # central-difference step in log-parameter space
 
 
@@ -191,7 +193,7 @@ def interval_criterion(values: Mapping[str, float], ci: Mapping[str, tuple[float
     """The interval criterion: every key of ``values`` has a finite 95 % interval containing its value,
     with half-width <= ``max_rel_halfwidth`` of the value. A missing, NaN, infinite or negative-width
     interval fails it (the value reported is then infinite)."""
-    name = f"widest 95 % interval of {', '.join(values)} (half-width, relative)"
+    name = f"{INTERVAL_CRITERION} of {', '.join(values)} (half-width, relative)"
     limit = f"<= {100 * max_rel_halfwidth:g} %"
     got: Mapping[str, tuple[float, float]] = {} if ci is None else ci
     for k, v in values.items():

@@ -28,7 +28,7 @@ import socket
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
-from drivers.placement import clear_heap, device_placement, keep_to, process_threads, settle_heap, turn_realtime
+from drivers.placement import clear_heap, device_placement, keep_to, settle_heap, start_realtime
 from rt_ident.errors import RtIdentError
 from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import ParentWatch, start_with_helper_env
@@ -45,7 +45,7 @@ def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dic
     """Child process: leave the loop's CPU, import the device's code, start the device, turn its threads
     real-time, report, wait for "stop" (or the parent's end), stop.
 
-    Only the device's threads run at SCHED_FIFO (drivers.placement.turn_realtime). The import (numba,
+    Only the device's threads run at SCHED_FIFO (drivers.placement.start_realtime). The import (numba,
     canopen, the plant: most of the start-up's CPU time), building the device, its report and the exit
     run in this thread at ordinary scheduling: at SCHED_FIFO they would hold the CPU against every other
     thread there, other emulated devices at the same priority included.
@@ -56,12 +56,11 @@ def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dic
     try:
         mod = importlib.import_module(module)
         clear_heap()
-        before = process_threads()
-        dev = mod.start_emulator_for(config)
+        dev, rt = start_realtime(lambda: mod.start_emulator_for(config), placement.get("fifo_priority"))
     except Exception as exc:  # noqa: BLE001 - reported to the parent
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    placed.update(turn_realtime(placement.get("fifo_priority"), process_threads() - before))
+    placed.update(rt)
     settle_heap()                            # no full pass of the collector stalls the device later
     try:
         conn.send(("ready", {"port": getattr(dev, "port", None), "placement": placed}))
