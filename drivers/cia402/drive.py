@@ -302,6 +302,9 @@ class Cia402Backend(Backend):
     def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
         self._plan.plan(torques, start_seq + self._k0)
 
+    def _write_leased_plan(self, torques: np.ndarray, start_seq: int, lease: int) -> None:
+        self._plan.plan(torques, start_seq + self._k0, lease)
+
     def _wait_state(self, accept: tuple[str, ...], timeout: float) -> bool:
         """Poll the TPDO stream (not delivering samples) until the drive reports one of ``accept``."""
         end = time.monotonic() + timeout

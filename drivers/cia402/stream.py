@@ -68,6 +68,7 @@ ECHO = -2                      # this host's SYNC read back from the bus: (ECHO,
 CANCEL = -3                    # SYNC k was not sent after all (bus error): (CANCEL, k)
 SKIP = -4                      # (SKIP, n): this deque's markers start after the n-th SYNC of its bus connection
 _MAX_PENDING = 4096            # SYNC records waiting for their echo before echoes count as missing
+_ZERO = np.zeros(1)            # a lease's end: one value of 0
 _RPDO = struct.Struct("<Hh")   # controlword (UNSIGNED16), target torque (INTEGER16, per mille)
 
 
@@ -97,28 +98,36 @@ class TorquePlan:
             self._values = self._values[:0]
             self._last = float(torque)
 
-    def plan(self, values: np.ndarray, start: int) -> None:
+    def plan(self, values: np.ndarray, start: int, lease: int | None = None) -> None:
+        """``lease``: the torque drops to 0 that many SYNCs after the plan ends (one lock with the plan:
+        the sender never takes a plan without its end)."""
         vals = np.asarray(values, dtype=float)
         if vals.size == 0:
             return
         with self._lock:
-            nxt = self._next
-            if start < nxt:
-                late = min(nxt - start, vals.size)
-                self.late += late
-                if late == vals.size:
-                    self._values = self._values[:0]
-                    self._last = float(vals[-1])
-                    return
-                vals, start = vals[late:], nxt
-            old, os_ = self._values, self._start
-            if old.size and os_ < start:
-                keep = old[: max(0, min(old.size, start - os_))]
-                gap = start - (os_ + keep.size)
-                self._values = np.concatenate((keep, np.full(gap, old[-1]), vals))
-            else:
-                self._values, os_ = vals.copy(), start
-            self._start = os_
+            self._plan(vals, start)
+            if lease is not None:
+                self._plan(_ZERO, start + vals.size + lease)
+
+    def _plan(self, vals: np.ndarray, start: int) -> None:
+        """Under the lock: ``vals`` from SYNC ``start`` on, replacing the rest of an older plan."""
+        nxt = self._next
+        if start < nxt:
+            late = min(nxt - start, vals.size)
+            self.late += late
+            if late == vals.size:
+                self._values = self._values[:0]
+                self._last = float(vals[-1])
+                return
+            vals, start = vals[late:], nxt
+        old, os_ = self._values, self._start
+        if old.size and os_ < start:
+            keep = old[: max(0, min(old.size, start - os_))]
+            gap = start - (os_ + keep.size)
+            self._values = np.concatenate((keep, np.full(gap, old[-1]), vals))
+        else:
+            self._values, os_ = vals.copy(), start
+        self._start = os_
 
     def take(self, k: int) -> float:
         """The torque for SYNC ``k`` (called by the sender, with increasing ``k``)."""

@@ -116,6 +116,10 @@ class LoopStats:
 #: values are the same in both plans.
 SIM_AHEAD_MARGIN_S = 100e-6
 
+#: After a stall the loop has caught up with the device once the newest sample read trails the host's
+#: clock by at most this many ticks more than it does when the loop keeps up (rt_ident.loop.stall).
+CATCH_UP_TICKS = 2
+
 
 def _stall_before(loops: list[IdentificationLoop], blocks: list[SampleBlock], stats: LoopStats,
                   policy: StallPolicy, stall_s: float, now: float) -> None:
@@ -216,6 +220,12 @@ class IdentificationLoop(TelemetryWindow):
         self.stats = LoopStats()
         self.stall_policy = stall or StallPolicy()
         self._resume: float | None = None   # a stall's length [s] until the tick that resumes from it
+        self._catching_up = False           # after a stall, still reading the device's backlog (_catch_up)
+        self._catch_up_ticks = 0
+        # the host's clock at this tick's read (the run loops set it), and the floor of the newest sample's
+        # offset from it while the loop keeps up (_track_sample_clock)
+        self._t_read: float | None = None
+        self._offset_floor = math.inf
         self.identification: Identification | None = None   # latest (None before the first period)
         # the fit whose parameters the torque estimate uses: the last trusted one (see torque_estimate)
         self.torque_ident: Identification | None = None
@@ -299,7 +309,7 @@ class IdentificationLoop(TelemetryWindow):
                 t_read = clock()
                 if t_read - last_read > period + policy.max_s:
                     _stall_before([self], [block], stats, policy, t_read - last_read - period, t_read)
-                last_read = t_read
+                last_read = self._t_read = t_read
                 self._process(block, info.lateness_s)
                 self._write_plan()
                 t1 = clock()
@@ -325,6 +335,8 @@ class IdentificationLoop(TelemetryWindow):
     def _process(self, block: SampleBlock, lateness_s: float = 0.0) -> None:
         if len(block):
             self._recent.append(block)
+            if self._resume is None:
+                self._track_sample_clock(block)
         try:
             core = self._core
             if core is not None:
@@ -355,15 +367,20 @@ class IdentificationLoop(TelemetryWindow):
         """The tick's processing step by step (the compiled tick's reference, and its fallback)."""
         n = len(block)
         stats = self.stats
+        resume = self._resume is not None
+        self._catching_up = resume and not (n and self._behind(block) <= CATCH_UP_TICKS / self.tick_hz)
         if n == 0:
             self.safety.check(0, 0.0, 0.0, 0.0, True)
+            if resume:
+                self._catch_up()
             return
         stats.samples += n
         stats.lost_samples += block.lost
         if self.on_block is not None:               # record first: a block that trips a check is kept
             self.on_block(block)
+        if self._catching_up:
+            self._catch_up()
         torque = block.torque
-        resume = self._resume is not None
         states = self.kf.filter_block(block.theta1, block.theta2, block.seq)
         if resume:                                      # the stall's samples: no excitation, a coasting table
             self.est.skip(int(block.seq[-1]) + 1 - self._next_seq)
@@ -375,8 +392,8 @@ class IdentificationLoop(TelemetryWindow):
             ctl.observe(block.theta1, block.theta2, torque,
                         resume or block.lost > 0 or int(block.seq[0]) != self._next_seq,
                         trace if self._feeds_svf else None)
-        elif resume:
-            self._resume = None
+        elif resume and not self._catching_up:
+            self._resumed()
         if self.friction is not None:
             self._friction(block, torque, ctl, stats.ticks)
         if self.jobs is not None:
@@ -388,6 +405,41 @@ class IdentificationLoop(TelemetryWindow):
         self._torque_estimate(trace)
         if self.on_telemetry is not None:
             self._collect_telemetry(block, trace, lateness_s)
+
+    def _offset(self, t_read: float, block: SampleBlock) -> float:
+        """The host's time of the read less the newest sample's time on the device's sample clock."""
+        return t_read - int(block.seq[-1]) * self.backend.sample_period
+
+    def _track_sample_clock(self, block: SampleBlock) -> None:
+        """The floor of :meth:`_offset` while the loop keeps up: it follows a fresher read at once and a
+        staler one slowly (clock drift), so a late tick's read does not raise it."""
+        if self._t_read is None:
+            return
+        off, floor = self._offset(self._t_read, block), self._offset_floor
+        self._offset_floor = off if off < floor else floor + 1e-3 * (off - floor)
+
+    def _behind(self, block: SampleBlock) -> float:
+        """How far [s] the newest sample read trails where a read that keeps up would be: a device that
+        kept sampling through a stall hands its backlog over in pieces over several ticks."""
+        if self._t_read is None or not math.isfinite(self._offset_floor):
+            return 0.0
+        return self._offset(self._t_read, block) - self._offset_floor
+
+    def _catch_up(self) -> None:
+        """A tick after a stall before the loop has caught up with the device: nothing is written (the
+        torque stays at the zero the lease left) and nothing re-planned from samples that are not the
+        newest. Stall and catch-up together longer than ``max_stall_stop_s`` stop the loop."""
+        self._catch_up_ticks += 1
+        stall_s, wait_s = float(self._resume or 0.0), self._catch_up_ticks / self.tick_hz
+        limit = self.stall_policy.stop_s
+        if stall_s + wait_s > limit:
+            raise LoopStall(f"loop stalled for {stall_s * 1e3:.0f} ms and had not caught up with the device's "
+                            f"samples {wait_s * 1e3:.0f} ms later (safety.max_stall_stop_s = {limit * 1e3:g} ms)")
+
+    def _resumed(self) -> None:
+        self._resume = None
+        self.stats.stalls.caught_up(self._catch_up_ticks / self.tick_hz)
+        self._catch_up_ticks = 0
 
     def _torque_estimate(self, trace: np.ndarray) -> None:
         """The block's samples into the torque estimate's running sums, once there is a trusted fit."""
@@ -488,6 +540,9 @@ class IdentificationLoop(TelemetryWindow):
     def _control(self, ctl, block: SampleBlock, states) -> None:
         """The controller's torque from the newest sample's state estimate; it lands ``delay`` ticks
         after that sample (the delay the controller was designed with)."""
+        if self._catching_up:                           # the newest sample read is not the device's newest
+            tk.clear_schedule(self.book_i, self.book_f)
+            return
         last = int(block.seq[-1])
         th, om = states.theta[-1], states.omega[-1]
         seq0 = self._seq0
@@ -501,7 +556,8 @@ class IdentificationLoop(TelemetryWindow):
         elif self._resume is not None:                  # the drive dropped the torque during the stall
             ctl.resume(t, *state, self._resume)
             tk.clear_schedule(self.book_i, self.book_f)
-        self._resume = None
+        if self._resume is not None:
+            self._resumed()
         u = ctl.tick(t, *state)
         if self.control_turn(self.stats.ticks):
             ctl.poll()
@@ -524,6 +580,8 @@ class IdentificationLoop(TelemetryWindow):
         return (tick - self.control_phase) % 2 == 0
 
     def _write_plan(self) -> None:
+        if self._catching_up:
+            return
         start, core = self._plan_start, self._core
         if start is not None and core is not None:      # the compiled tick built it
             self._plan_start = None
@@ -618,6 +676,7 @@ class MultiAxisLoop:
                     _stall_before(axes, blocks, stats, policy, t_read - last_read - period, t_read)
                 last_read = t_read
                 for cur, (ax, block) in enumerate(zip(axes, blocks)):
+                    ax._t_read = t_read
                     _count_tick(ax.stats, info, last_cpu, period)
                     t1 = clock()
                     ax._process(block, info.lateness_s)

@@ -6,7 +6,10 @@ coasts. The tick after the stall must not act on the error the coasting built up
 tracking all along: acting on it drives a frictionless table at the torque limit into its travel limit. So a
 stall longer than ``[safety] max_stall_s`` is handled, as ``[safety] on_stall`` says:
 
-* ``resume`` (default): the controller re-plans from where the table is (a jerk-limited rejoin of the
+* ``resume`` (default): once the loop has caught up with the device (a device that kept sampling
+  hands its backlog over in pieces over several ticks; until the reads are back to a tick's worth the
+  newest sample read is tens of ms old, and the torque stays at the zero the lease left), the
+  controller re-plans from where the table is (a jerk-limited rejoin of the
   path, :mod:`rt_ident.control.anchor`), nothing in flight, its integral re-seeded; the estimators
   skip the stretch (the per-sample estimator restarts its filters, the frequency fit leaves out the
   excitation periods the stall touched);
@@ -58,6 +61,10 @@ class StallLog:
     events: list[tuple[float, float, str]] = field(default_factory=list)    # (t, length [s], action)
     count: int = 0
     longest_s: float = 0.0
+    catch_up_longest_s: float = 0.0     # the longest wait, after a stall, for the device's backlog
+
+    def caught_up(self, wait_s: float) -> None:
+        self.catch_up_longest_s = max(self.catch_up_longest_s, wait_s)
 
     def note(self, t: float, stall_s: float, action: str) -> None:
         self.count += 1
@@ -76,6 +83,7 @@ class StallLog:
 
     def as_dict(self) -> dict[str, Any]:
         return {"count": self.count, "longest_ms": self.longest_s * 1e3,
+                "catch_up_longest_ms": self.catch_up_longest_s * 1e3,
                 "events": [{"t": round(t, 4), "ms": round(s * 1e3, 1), "action": a} for t, s, a in self.events[-20:]]}
 
 

@@ -141,6 +141,23 @@ def test_torque_plan_follows_the_base_class_semantics():
     assert [plan.take(k) for k in (12, 13, 14, 15)] == [1.0, 1.0, 5.0, 5.0]
 
 
+def test_a_leased_plan_ends_in_zero_taken_under_one_lock_with_the_plan():
+    plan = TorquePlan()
+    taken = []
+
+    class Lock:                       # counts the sender's view: how often the plan was changed under it
+        def __enter__(self):
+            taken.append(1)
+
+        def __exit__(self, *exc):
+            return False
+
+    plan._lock = Lock()
+    plan.plan(np.array([1.0, 2.0]), start=0, lease=3)
+    assert len(taken) == 1             # the sender can never take the plan without its end
+    assert [plan.take(k) for k in range(7)] == [1.0, 2.0, 2.0, 2.0, 2.0, 0.0, 0.0]
+
+
 # ----- window assembly with echoed SYNCs (udp_multicast) ---------------------------------------
 TPDO1, TPDO2 = struct.Struct("<Hih"), struct.Struct("<i")
 SW_ENABLED = 0x0237

@@ -270,3 +270,44 @@ def test_nothing_compiles_after_the_first_tick_through_the_rare_paths(tmp_path, 
     rc, s, _, err = _sigstop_run(tmp_path, config)
     assert s["loop"]["stalls"]["count"] >= 1, err[-2000:]
     assert s["loop"]["late_compiles"] == {"count": 0, "functions": []}
+
+
+def _piecewise_run(monkeypatch, piece: int, stall_s: float = 0.1):
+    """The stalled offline run on a device that hands a backlog over ``piece`` samples per read (as a tty
+    does, 4 KiB at a time): after the stall the loop reads samples tens of ms old for several ticks."""
+    from drivers.base import SampleBlock
+    from drivers.sim import SimBackend
+
+    real_read = SimBackend.read
+    queue: list[SampleBlock] = []
+    fields = ("t", "seq", "theta1", "theta2", "torque_cmd", "torque_meas")
+
+    def read(self):
+        new = real_read(self)
+        if len(new):
+            queue.append(new)
+        if not queue:
+            return new
+        cols = {f: np.concatenate([getattr(b, f) for b in queue]) for f in fields}
+        head = SampleBlock(**{f: c[:piece] for f, c in cols.items()})
+        queue[:] = [SampleBlock(**{f: c[piece:] for f, c in cols.items()})] if cols["t"].size > piece else []
+        return head
+
+    monkeypatch.setattr(SimBackend, "read", read)
+    return _stalled_run(stall_s)
+
+
+def test_after_a_stall_the_loop_catches_up_with_the_devices_backlog_before_it_re_plans(monkeypatch):
+    out, rows = _piecewise_run(monkeypatch, piece=80)          # 4 ticks' samples per read
+    assert out["stop"] is None
+    st = out["loop"]["stalls"]
+    assert st["count"] == 1 and st["catch_up_longest_ms"] >= 20   # 100 ms of backlog at 3 ticks' gain per tick
+    assert out["control"]["fallbacks"] == 0 and out["control"]["max_error_m"] < 1e-4
+
+
+def test_re_planning_from_the_first_piece_of_a_backlog_lunges(monkeypatch):
+    from rt_ident.loop import loop as loop_mod
+
+    monkeypatch.setattr(loop_mod, "CATCH_UP_TICKS", 10**9)     # resume on the first block after the stall
+    out, _ = _piecewise_run(monkeypatch, piece=80)
+    assert out["stop"] is not None or out["control"]["max_error_m"] > 4e-4     # the catching-up run: < 1e-4
