@@ -74,6 +74,7 @@ class SerialBoardBackend(Backend):
         self.plan_late = 0
         self.torque_limited = 0
         self.tx_overflow = 0
+        self.write_retries = 0     # writes sent once more after a timeout (_send)
 
     # ----- properties ---------------------------------------------------------------------
     @property
@@ -92,17 +93,24 @@ class SerialBoardBackend(Backend):
                 "backsteps": self._unwrap.backsteps, "bytes_read": self.bytes_read,
                 "heartbeats": self._heartbeats, "plan_late": self.plan_late,
                 "torque_limited": self.torque_limited, "tx_overflow": self.tx_overflow,
-                "clamped": self.clamped}
+                "clamped": self.clamped, "write_retries": self.write_retries}
 
     # ----- I/O helpers --------------------------------------------------------------------
     def _send(self, data: bytes) -> None:
-        try:
-            self._ser.write(data)
-        except serial.SerialTimeoutException as exc:
-            raise DeviceTimeout(f"serial port {self.port!r}: write timed out after "
-                                f"{self.config.write_timeout} s") from exc
-        except (serial.SerialException, OSError) as exc:
-            raise DeviceConnectionError(f"serial port {self.port!r}: write failed: {exc}") from exc
+        # pyserial checks its deadline after each os.write: a host stalled inside write() reads as a
+        # timeout though every byte went out. So a timeout is written once more (frames are whole and
+        # idempotent; a partial one is garbage the board skips); a board that does not read times out twice.
+        for retry in (False, True):
+            try:
+                self._ser.write(data)
+                break
+            except serial.SerialTimeoutException as exc:
+                if retry:
+                    raise DeviceTimeout(f"serial port {self.port!r}: write timed out after "
+                                        f"{self.config.write_timeout} s, twice") from exc
+                self.write_retries += 1
+            except (serial.SerialException, OSError) as exc:
+                raise DeviceConnectionError(f"serial port {self.port!r}: write failed: {exc}") from exc
         self._last_tx = self.clock()
 
     def _recv(self) -> bytes:
@@ -319,15 +327,24 @@ class SerialBoardBackend(Backend):
         self._send(sp.encode_torque_hold(torque))
 
     def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
+        if torques.size:
+            self._send(self._plan_frames(torques, start_seq, int(torques.size)))
+
+    def _write_leased_plan(self, torques: np.ndarray, start_seq: int, lease: int) -> None:
+        """The plan and its lease's zero in one write: a host stalled between two writes would leave
+        the board holding the plan's last value with no end."""
         n = int(torques.size)
-        if n == 0:
-            return
+        if n:
+            self._send(self._plan_frames(torques, start_seq, n + lease + 1)
+                       + sp.encode_torque_plan(start_seq + n + lease, (0.0,)))
+
+    def _plan_frames(self, torques: np.ndarray, start_seq: int, span: int) -> bytes:
         cap = self.config.plan_capacity
-        ahead = start_seq + n - (self._last_seq if self._last_seq is not None else start_seq)
+        ahead = start_seq + span - (self._last_seq if self._last_seq is not None else start_seq)
         if ahead > cap:
             raise DriverError(f"torques: plan reaches {ahead} samples past the last one read; "
                               f"the board queues at most plan_capacity={cap}")
-        self._send(sp.encode_torque_plan(start_seq, torques))
+        return sp.encode_torque_plan(start_seq, torques)
 
     def _safe_stop(self) -> None:
         if not self._stop_frames() or self.config.stop_timeout <= 0:

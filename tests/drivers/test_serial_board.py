@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import serial
 
 from drivers import make_backend
 from drivers.encoder_board import protocol as sp
@@ -187,6 +188,50 @@ def test_a_newer_plan_replaces_the_rest_of_an_older_one(rig):
     assert seq[i] == s and len(seq) > i + 120
     assert np.all(cmd[i:i + 50] == np.float32(0.01))
     assert np.all(cmd[i + 50:i + 120] == np.float32(0.02))   # 20 planned, then the last value held
+
+
+def test_a_leased_plan_reaches_the_board_in_one_write_with_its_end(rig):
+    # a host that stalls between two writes would leave the board holding the plan's last value
+    board, be = rig(hold=False)
+    s = int(read_for(be, 0.01)[-1].seq[-1]) + 800
+    writes = []
+    real = be._ser.write
+
+    def write(data):
+        writes.append(bytes(data))
+        return real(data)
+
+    be._ser.write = write
+    be.write(np.full(30, 0.01), start_seq=s, lease=40)
+    assert len(writes) == 1
+    frames = [f for f in sp.FrameDecoder().feed(writes[0]) if isinstance(f, sp.TorquePlan)]
+    assert [(f.start_seq, len(f.torques)) for f in frames] == [(s, 30), (s + 70, 1)]
+    blocks = read_for(be, 0.08)
+    seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
+    i = int(np.searchsorted(seq, s))
+    assert seq[i] == s and np.all(cmd[i:i + 70] == np.float32(0.01)) and np.all(cmd[i + 70:i + 200] == 0.0)
+
+
+def test_a_write_that_times_out_once_is_sent_again_and_twice_is_a_device_timeout(rig):
+    # pyserial checks its deadline after the bytes went out: a host stalled inside write() reads as a timeout
+    board, be = rig(hold=False)
+    calls = []
+
+    def timing_out(n):
+        def write(data):
+            calls.append(1)
+            if len(calls) <= n:
+                raise serial.SerialTimeoutException("Write timeout")
+            return len(data)
+        return write
+
+    be._ser.write = timing_out(1)
+    be.write(0.0)
+    assert len(calls) == 2 and be.stats()["write_retries"] == 1
+    calls.clear()
+    be._ser.write = timing_out(2)
+    with pytest.raises(DeviceTimeout, match="write timed out after .* twice"):
+        be.write(0.0)
 
 
 def test_commands_are_clamped_to_the_torque_limit_before_leaving_the_host(rig):
