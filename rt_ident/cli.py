@@ -536,8 +536,10 @@ def _print_axes(s: dict) -> None:
 def _print_stalls(loop: dict) -> None:
     st = loop.get("stalls") or {}
     if st.get("count"):
+        wait = st.get("catch_up_longest_ms") or 0.0
+        caught = f"; it then read the device's backlog for up to {wait:.0f} ms before re-planning" if wait else ""
         out.print(f"[yellow]loop stalls: {st['count']}[/], longest {st['longest_ms']:.0f} ms (the host stopped ticking "
-                  "that long; safety.on_stall says what the loop did)")
+                  f"that long; safety.on_stall says what the loop did{caught})")
 
 
 def _print_trust(trust: dict | None, trusted: bool | None = None) -> None:

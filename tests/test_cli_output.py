@@ -72,6 +72,15 @@ def test_run_table_has_units_and_cuts_no_value_at_80_columns(monkeypatch):
     assert "trusted: no" in text and "95 % interval of I2 is +-12 % (> 10 %)" in text
 
 
+def test_the_stall_line_says_how_long_the_loop_read_the_backlog_before_re_planning(monkeypatch):
+    buf = _capture(monkeypatch, 200)
+    cli._print_stalls({"stalls": {"count": 1, "longest_ms": 90.0, "catch_up_longest_ms": 15.0}})
+    cli._print_stalls({"stalls": {"count": 2, "longest_ms": 40.0, "catch_up_longest_ms": 0.0}})
+    first, second = buf.getvalue().splitlines()
+    assert "longest 90 ms" in first and "backlog for up to 15 ms before re-planning" in first
+    assert "longest 40 ms" in second and "backlog" not in second
+
+
 def test_file_hints_stay_on_one_line_when_piped(monkeypatch):
     buf = _capture(monkeypatch, 80)
     long = "runs/" + "a-very-long-directory-name/" * 3 + "run-20261125-022806-5971"
