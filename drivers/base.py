@@ -297,7 +297,9 @@ class Backend(ABC):
 
     def _write_leased_plan(self, torques: np.ndarray, start_seq: int, lease: int) -> None:
         """A plan and its lease (``write(..., lease=)``): the plan, then a one-value plan of 0 ``lease``
-        samples after its end. A backend may do both at once (the sim does, in one compiled call)."""
+        samples after its end. A backend whose device or sender can act between the two calls does both
+        as one step (the sim in one compiled call, the board in one write, CANopen under the sender's
+        lock): a host that stops in between would leave the plan's last value held with no end."""
         self._write_plan(torques, start_seq)
         self._write_plan(_ZERO, start_seq + torques.size + lease)
 

@@ -7,8 +7,8 @@ tracking all along: acting on it drives a frictionless table at the torque limit
 stall longer than ``[safety] max_stall_s`` is handled, as ``[safety] on_stall`` says:
 
 * ``resume`` (default): once the loop has caught up with the device (a device that kept sampling
-  hands its backlog over in pieces over several ticks; until the reads are back to a tick's worth the
-  newest sample read is tens of ms old, and the torque stays at the zero the lease left), the
+  hands its backlog over in pieces over several ticks; until the newest sample read is as recent as
+  when the loop keeps up, it is tens of ms old, and the torque stays at the zero the lease left), the
   controller re-plans from where the table is (a jerk-limited rejoin of the
   path, :mod:`rt_ident.control.anchor`), nothing in flight, its integral re-seeded; the estimators
   skip the stretch (the per-sample estimator restarts its filters, the frequency fit leaves out the
