@@ -197,6 +197,12 @@ class Backend(ABC):
     #: a simulation in this process (the loop reports its stepping apart from the tick's work)
     simulated = False
 
+    @property
+    def samples_in_real_time(self) -> bool:
+        """Whether the device samples on a clock that runs on while the host stalls (so a stalled host
+        has a backlog to read); False for a simulation that makes samples only when read."""
+        return True
+
     def step_ahead(self, seconds: float) -> None:  # noqa: B027 - optional: a real device needs nothing
         """Called by the loop after each tick with the time to its next deadline: a simulated device
         may produce the samples due by then now, so that read() only hands them out (the sim does,

@@ -173,6 +173,10 @@ class SimBackend(Backend):
     name = "sim"
     simulated = True
 
+    @property
+    def samples_in_real_time(self) -> bool:
+        return bool(self.config.paced)
+
     def __init__(self, config: Mapping[str, Any] | None = None, *,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         cfg = _validate(config)

@@ -226,6 +226,7 @@ class IdentificationLoop(TelemetryWindow):
         # offset from it while the loop keeps up (_track_sample_clock)
         self._t_read: float | None = None
         self._offset_floor = math.inf
+        self._backlog_possible = bool(getattr(backend, "samples_in_real_time", True))
         self.identification: Identification | None = None   # latest (None before the first period)
         # the fit whose parameters the torque estimate uses: the last trusted one (see torque_estimate)
         self.torque_ident: Identification | None = None
@@ -421,7 +422,7 @@ class IdentificationLoop(TelemetryWindow):
     def _behind(self, block: SampleBlock) -> float:
         """How far [s] the newest sample read trails where a read that keeps up would be: a device that
         kept sampling through a stall hands its backlog over in pieces over several ticks."""
-        if self._t_read is None or not math.isfinite(self._offset_floor):
+        if self._t_read is None or not math.isfinite(self._offset_floor) or not self._backlog_possible:
             return 0.0
         return self._offset(self._t_read, block) - self._offset_floor
 

@@ -311,3 +311,18 @@ def test_re_planning_from_the_first_piece_of_a_backlog_lunges(monkeypatch):
     monkeypatch.setattr(loop_mod, "CATCH_UP_TICKS", 10**9)     # resume on the first block after the stall
     out, _ = _piecewise_run(monkeypatch, piece=80)
     assert out["stop"] is not None or out["control"]["max_error_m"] > 4e-4     # the catching-up run: < 1e-4
+
+
+def test_a_device_that_samples_only_when_read_resumes_at_once_after_a_stall():
+    # the free-running sim has no backlog: its sample clock falls behind the host's for good, which
+    # must not read as a catch-up that never ends (a loop-stall stop after max_stall_stop_s)
+    cfg = load(None, **{**FAST, "loop.duration": 2.5}).model_copy(update={"reference": MOVES})
+
+    def hook(loop):
+        if loop.stats.ticks == 700:
+            loop.clock.now += 0.05
+
+    out = run_offline(cfg, tick_hook=hook, paced=False)
+    assert out["stop"] is None, out["stop"]
+    assert out["loop"]["stalls"]["count"] == 1 and out["loop"]["stalls"]["catch_up_longest_ms"] == 0.0
+    assert any(e["kind"] == "stall" for e in out["control"]["events"])     # re-planned on the next tick
