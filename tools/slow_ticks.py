@@ -61,7 +61,20 @@ _CPU = _LoopCpu()
 _orig_init = loop_mod.IdentificationLoop.__init__
 
 
-_PHASES = ("read", "process", "plan", "sim step")
+_PHASES = ("read", "process", "plan", "sim step",
+           # inside "process": the compiled kernel and the Python steps around it
+           "kernel", "fit exchange", "snapshot", "supervisor", "telemetry", "Python finish", "redesign poll")
+_INNER = (("_core", "kernel", 4), (None, "_fit_exchange", 5), (None, "_snapshot_due", 6), (None, "assess_turn", 7),
+          (None, "_flush_telemetry", 8), ("_core", "_telemetry_sent", 8), ("_core", "_finish_in_python", 9),
+          ("control", "poll", 10))
+
+
+def _wrap_inner(lp: Any) -> None:
+    """Time the steps inside a loop's processing (once its compiled tick and controller exist)."""
+    for owner_name, attr, i in _INNER:
+        owner = lp if owner_name is None else getattr(lp, owner_name, None)
+        if owner is not None and hasattr(owner, attr):
+            setattr(owner, attr, _timed(lp.tool_phases, i, getattr(owner, attr)))
 
 
 def _timed(phases: list[float], i: int, fn: Any) -> Any:
@@ -166,11 +179,16 @@ class Hook:
         self.last_work = 0
         self.unmatched = 0          # overruns_work not on the tick after a slow tick seen here
         self.kernel = KernelCounts()
+        self.wrapped = False
         self.cpu: int | None = None
         self.typical: list[dict[str, int]] = []     # the counts of every 100th tick, for comparison
         self.typical_parts: list[dict[str, int]] = []
 
     def __call__(self, tick: int) -> None:
+        if not self.wrapped:
+            for lp in _LOOPS:
+                _wrap_inner(lp)
+            self.wrapped = True
         cpu = time.thread_time()
         work = _CPU.last[1] - _CPU.last[0]
         ru = resource.getrusage(resource.RUSAGE_THREAD)
@@ -272,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
                           + (" (the next tick overran)" if t.get("overrun") else "") + "; "
                           f"{', '.join(t['did']) or 'nothing of the loop'}; page faults {t['page_faults']}, "
                           f"preempted {t['preempted']}; kernel: {_counts_text(t['kernel'])}", flush=True)
-                    print("    by part [us]: " + ", ".join(f"{k} {v}" for k, v in list(t["parts_us"].items())[:4]),
+                    print("    by part [us]: " + ", ".join(f"{k} {v}" for k, v in list(t["parts_us"].items())[:6]),
                           flush=True)
     if a.json:
         print(json.dumps(rows, indent=1))

@@ -55,3 +55,19 @@ def test_timed_charges_the_calls_cpu_time_to_its_own_part_and_passes_results_and
     assert parts[0] == 0.0 and parts[1] > 0.0
     with pytest.raises(ZeroDivisionError):
         slow_ticks._timed(parts, 0, lambda: 1 / 0)()
+
+
+def test_the_steps_inside_processing_are_timed_each_into_its_own_part_and_missing_ones_are_skipped():
+    from types import SimpleNamespace
+
+    def busy() -> int:
+        return sum(i * i for i in range(100_000))
+
+    lp = SimpleNamespace(tool_phases=[0.0] * len(slow_ticks._PHASES), _core=SimpleNamespace(kernel=busy),
+                         control=None, assess_turn=busy)
+    slow_ticks._wrap_inner(lp)
+    lp._core.kernel()
+    lp.assess_turn()
+    names = dict(zip(slow_ticks._PHASES, lp.tool_phases))
+    assert names["kernel"] > 0.0 and names["supervisor"] > 0.0
+    assert all(v == 0.0 for k, v in names.items() if k not in ("kernel", "supervisor"))
