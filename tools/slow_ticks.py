@@ -4,10 +4,12 @@ Runs ``rt_ident.compose.run.run`` in this process (real time, as ``rt-ident run`
 a tick hook that reads, after every tick, the loop thread's CPU time and its resource usage
 (``getrusage(RUSAGE_THREAD)``: page faults, involuntary context switches) and what the loop did on that
 tick: a fit result unpacked (the loop's ``estimates`` count), a redesign asked for, adopted or
-rejected, a fallback, a tick left to the Python path, a friction feedforward update. A slow tick on
-which none of these happened, with no fault and no context switch, is time the thread did not run
-while it thought it did: the hypervisor took the vCPU (the run's ``loop.host.steal_ms`` then rises,
-in 10 ms steps).
+rejected, a fallback, a tick left to the Python path, a friction feedforward update. Each slow tick
+also gets its CPU time by part: the read, the processing, the plan and a simulated device's stepping,
+and inside the processing the compiled tick, the supervisor's look at the estimate, the fit exchange,
+the telemetry hand-off, the Python path's finish and the redesign poll. A part far above its median
+(printed per run) is where the time went; a tick slow in every part, with no fault, no context switch
+and no extra interrupt, ran slow as a whole: the host.
 
     python tools/slow_ticks.py                          # 5 default runs of 10 s
     python tools/slow_ticks.py --config configs/xy-sim.toml -n 3 --json
@@ -63,7 +65,7 @@ _orig_init = loop_mod.IdentificationLoop.__init__
 
 _PHASES = ("read", "process", "plan", "sim step",
            # inside "process": the compiled kernel and the Python steps around it
-           "kernel", "fit exchange", "snapshot", "supervisor", "telemetry", "Python finish", "redesign poll")
+           "compiled tick", "fit exchange", "snapshot", "supervisor", "telemetry", "Python finish", "redesign poll")
 _INNER = (("_core", "kernel", 4), (None, "_fit_exchange", 5), (None, "_snapshot_due", 6), (None, "assess_turn", 7),
           (None, "_flush_telemetry", 8), ("_core", "_telemetry_sent", 8), ("_core", "_finish_in_python", 9),
           ("control", "poll", 10))
