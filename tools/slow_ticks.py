@@ -175,7 +175,6 @@ class Hook:
         self.tick_hz = tick_hz
         self.threshold = threshold_us * 1e-6
         self.slow: list[dict[str, Any]] = []
-        self.last_cpu: float | None = None
         self.last_ru: Any = None
         self.last_state: tuple[int, ...] = ()
         self.last_work = 0
@@ -191,7 +190,6 @@ class Hook:
             for lp in _LOOPS:
                 _wrap_inner(lp)
             self.wrapped = True
-        cpu = time.thread_time()
         work = _CPU.last[1] - _CPU.last[0]
         ru = resource.getrusage(resource.RUSAGE_THREAD)
         state = _state()
@@ -203,7 +201,7 @@ class Hook:
             self.typical_parts.append(_parts())
             if self.cpu >= 0:
                 self.typical.append(self.kernel.delta(self.cpu))
-        if self.last_cpu is not None and work > self.threshold:
+        if self.last_ru is not None and work > self.threshold:
             what = [f"{_NAMES[i % len(_NAMES)]}" + (f" ({'xy'[i // len(_NAMES)]})" if len(_LOOPS) > 1 else "")
                     for i, (a, b) in enumerate(zip(self.last_state, state)) if a != b]
             if _LOOPS and _LOOPS[0].friction is not None and tick % _LOOPS[0]._FRICTION_EVERY == 0:
@@ -223,7 +221,7 @@ class Hook:
             else:
                 self.unmatched += overruns - self.last_work
         self.last_work = overruns
-        self.last_cpu, self.last_ru, self.last_state = cpu, ru, state
+        self.last_ru, self.last_state = ru, state
         for lp in _LOOPS:
             lp.tool_phases[:] = [0.0] * len(_PHASES)
 
