@@ -33,6 +33,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numba
@@ -43,6 +44,7 @@ from rt_ident.control.anchor import Anchor, ReferenceOptions
 from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_gain_view, loop_margins
 from rt_ident.control.law import C_INERTIA, Controller, StateFeedback
 from rt_ident.errors import RtIdentError
+from rt_ident.estimators.svf import interval_halves
 
 log = logging.getLogger(__name__)
 
@@ -107,19 +109,86 @@ def _tolerance(key: str, tol: float) -> float:
     return max(tol, DAMPING_TOLERANCE) if key == "B" else tol
 
 
-def _narrow(ci95: dict[str, tuple[float, float]] | None, tol: float) -> bool:
-    """Whether every 95 % interval is finite and its half-width within ``tol`` of its centre (B: within
-    DAMPING_TOLERANCE)."""
-    if not ci95:
-        return False
-    for k in KEYS:
-        lo, hi = ci95[k]
-        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-        if not (math.isfinite(lo) and math.isfinite(hi) and mid > 0.0 and half >= 0.0):
-            return False
-        if half > _tolerance(k, tol) * mid:
-            return False
-    return True
+# Supervisor.assess's compiled look (window_look): the window's mean, the estimate now and its 95 %
+# half-widths, and (trusted) the parameter of the mean that moved most from the design in force and by how much ...
+LOOK_MEAN, LOOK_NOW, LOOK_HALF, LOOK_WORST, LOOK_CHANGE, LOOK_SIZE = 0, 4, 8, 12, 13, 14
+# ... its verdicts ...
+WINDOW_FILLING, WINDOW_UNPHYSICAL, WINDOW_UNTRUSTED, WINDOW_TRUSTED = range(4)
+# ... and what it compares with (Supervisor._trust_consts): nominal I1, I2, B, K, the plausible box's
+# factors, settle_tolerance, interval_tolerance, the relative change of I1, I2, B, K that asks for a redesign
+TC_NOMINAL, TC_LO, TC_HI, TC_SETTLE, TC_INTERVAL, TC_THRESHOLD, TC_SIZE = 0, 4, 5, 6, 7, 8, 12
+
+
+@numba.njit(cache=True)
+def largest_change(values, model, tc):
+    """(the parameter of ``values`` that moved most from ``model`` against its own redesign threshold,
+    its relative change); the first of equals. A model's B may be 0: any estimate has then moved."""
+    worst, score, change = 0, -1.0, 0.0
+    for j in range(4):
+        c = abs(values[j] / max(model[j], 1e-300) - 1.0)
+        if c / tc[TC_THRESHOLD + j] > score:
+            worst, score, change = j, c / tc[TC_THRESHOLD + j], c
+    return worst, change
+
+
+@numba.njit(cache=True)
+def window_look(win, n, vetoed, tc, R, Sigma, acc, p, scale, model, look):
+    """One look at the per-sample estimate's own evidence (see the module docstring): the estimate
+    now goes into row ``n`` (mod its length) of the window; once the window is full, it is trusted when
+    every estimate in it is positive and finite (else WINDOW_UNPHYSICAL), I1, I2, K within
+    settle_tolerance of the window's mean (B within DAMPING_TOLERANCE), the mean inside the plausible
+    box, no audit veto, and every 95 % interval (:func:`rt_ident.estimators.svf.interval_halves`)
+    within interval_tolerance of its centre (B: DAMPING_TOLERANCE). ``look`` receives the mean, the
+    estimate now, its half-widths and the mean's :func:`largest_change` from ``model`` (the design in
+    force). Compiled, in one call: each numpy call of a tick costs it microseconds."""
+    m = win.shape[0]
+    row = n % m
+    for j in range(4):
+        v = p[j] * scale[j]
+        win[row, j] = v
+        look[LOOK_NOW + j] = v
+    if n + 1 < m:
+        return WINDOW_FILLING
+    for i in range(m):
+        for j in range(4):
+            if not (win[i, j] > 0.0 and math.isfinite(win[i, j])):
+                return WINDOW_UNPHYSICAL
+    trusted = not vetoed
+    for j in range(4):
+        s, lo, hi = 0.0, win[0, j], win[0, j]
+        for i in range(m):
+            s += win[i, j]
+            lo = min(lo, win[i, j])
+            hi = max(hi, win[i, j])
+        mean = s / m
+        look[LOOK_MEAN + j] = mean
+        tol = DAMPING_TOLERANCE if j == 2 else tc[TC_SETTLE]
+        if not (hi - lo) / mean <= tol:
+            trusted = False
+        nom = tc[TC_NOMINAL + j]
+        if not tc[TC_LO] * nom <= mean <= tc[TC_HI] * nom:
+            trusted = False
+    if not trusted:
+        return WINDOW_UNTRUSTED
+    half = look[LOOK_HALF:LOOK_HALF + 4]
+    if not interval_halves(R, Sigma, acc, scale, half):
+        return WINDOW_UNTRUSTED
+    for j in range(4):
+        tol = max(tc[TC_INTERVAL], DAMPING_TOLERANCE) if j == 2 else tc[TC_INTERVAL]
+        c = look[LOOK_NOW + j]
+        lo, hi = c - half[j], c + half[j]
+        mid, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        if not (math.isfinite(lo) and math.isfinite(hi) and mid > 0.0 and h >= 0.0 and h <= tol * mid):
+            return WINDOW_UNTRUSTED
+    worst, change = largest_change(look[LOOK_MEAN:LOOK_MEAN + 4], model, tc)
+    look[LOOK_WORST], look[LOOK_CHANGE] = worst, change
+    return WINDOW_TRUSTED
+
+
+def _intervals(look: np.ndarray) -> dict[str, tuple[float, float]]:
+    """The 95 % intervals a window look saw (its estimate now +- its half-widths)."""
+    return {k: (float(look[LOOK_NOW + i] - look[LOOK_HALF + i]), float(look[LOOK_NOW + i] + look[LOOK_HALF + i]))
+            for i, k in enumerate(KEYS)}
 
 
 def worst_difference(p: AxisParams, q: AxisParams, tol: float) -> tuple[str, float, bool]:
@@ -339,7 +408,7 @@ class Supervisor:
         self._held: Controller | None = None     # the model controller to go back to at the recovery
         self._last_request_t = -math.inf
         self._pending = False
-        self._due: tuple[AxisParams, Any, str] | None = None   # a request offer() decided on
+        self._due: tuple[np.ndarray, Any, str] | None = None   # a request _consider() decided on
         self._taken: list | None = None                     # a result taken, unpickled on the next poll
         self._result: dict[str, Any] | None = None          # an accepted design waiting for a quiet tick
         self._result_t = 0.0
@@ -353,6 +422,18 @@ class Supervisor:
         # whether the estimate is trusted now, the audit's veto and its run of disagreements
         self._win = np.zeros((max(int(settings.trust_window), 2), 4))
         self._win_n = 0
+        self._look = np.zeros(LOOK_SIZE)
+        s = settings
+        thresholds = np.maximum([s.min_change, s.min_change, s.min_change_damping, s.min_change], 1e-12)  # divisors
+        self._trust_consts = np.array([*(float(getattr(nominal, k)) for k in KEYS), *s.plausible,
+                                       s.settle_tolerance, s.interval_tolerance, *thresholds])
+        self._model_of: tuple[Controller | None, np.ndarray] = (None, np.ones(4))  # (controller, its model's values)
+        if per_sample is not None and s.mode == "adaptive" and s.trust == "per-sample":   # assess's look:
+            # compiled (or loaded) now, not in the loop's first tick
+            R, Sigma, acc, p, scale = per_sample.evidence
+            window_look(np.zeros((2, 4)), 0, False, self._trust_consts, R, Sigma, acc, p, scale, np.ones(4),
+                        np.zeros(LOOK_SIZE))
+        largest_change(np.ones(4), np.ones(4), self._trust_consts)      # offer's, likewise
         self._changes_seen = 0
         self._frozen_seen = 0       # the estimator's dead-zone count at the last look
         self._change_t: float | None = None
@@ -561,36 +642,31 @@ class Supervisor:
         if not est.ready or frozen != self._frozen_seen:     # unexcited rows held back: nothing new to trust
             self._win_n = 0
             return
-        v = est.values_array()
         if self._following:
+            v = est.values_array()
             self._follow_inertia(float(v[0] + v[1]))
         if not window:
             return
-        win = self._win
-        win[self._win_n % win.shape[0]] = v
+        R, Sigma, acc, p, scale = est.evidence
+        verdict = window_look(self._win, self._win_n, self._vetoed, self._trust_consts, R, Sigma, acc, p, scale,
+                              self._model_values(), self._look)
         self._win_n += 1
-        if self._win_n < win.shape[0]:
+        if verdict == WINDOW_FILLING:
             return
-        mean = win.mean(axis=0)
-        if not bool(np.all(win > 0.0)) or not bool(np.all(np.isfinite(win))):
+        if verdict == WINDOW_UNPHYSICAL:
             self.own_trust = False              # an estimate outside physics is no evidence (diverged)
             self.probe_scale = 1.0
             return
-        spread = (win.max(axis=0) - win.min(axis=0)) / mean
-        tol = self.s.settle_tolerance
-        steady = bool(spread[0] <= tol and spread[1] <= tol and spread[3] <= tol and spread[2] <= DAMPING_TOLERANCE)
-        p = AxisParams(**{k: float(v) for k, v in zip(KEYS, mean)}, lead=self.lead)
-        trusted = steady and not self._vetoed and self.diverged(p) is None
-        ci95 = est.ci95() if trusted else None         # a 4 x 4 inverse: only for a steady window
-        if trusted and not _narrow(ci95, self.s.interval_tolerance):
-            trusted = False
+        trusted = verdict == WINDOW_TRUSTED
         if trusted and not self.own_trust:
             st.trusted_at.append(self.t)
             del st.trusted_at[:-20]
         self.own_trust = trusted
         self.probe_scale = self.s.probe_scale_trusted if trusted else 1.0
         if trusted:
-            self._consider(p, ci95)
+            look = self._look
+            self._consider(look[LOOK_MEAN:LOOK_MEAN + 4], partial(_intervals, look.copy()),
+                           int(look[LOOK_WORST]), float(look[LOOK_CHANGE]))
 
     @property
     def following(self) -> bool:
@@ -643,7 +719,8 @@ class Supervisor:
             return
         if params is None or not trusted or per_sample:
             return
-        self._consider(params, ci95)
+        values = np.array([float(getattr(params, k)) for k in KEYS])
+        self._consider(values, ci95, *largest_change(values, self._model_values(), self._trust_consts))
 
     def _audit(self, agreed: bool, why: str | None) -> None:
         """The frequency fit's verdict on the per-sample estimate: agreeing lifts a veto; disagreeing
@@ -681,17 +758,15 @@ class Supervisor:
         else:
             self._fall_back(self.t, "audit veto: " + detail)
 
-    def _consider(self, params: AxisParams, ci95: Any) -> None:
-        """A trusted estimate: decide on a redesign (sent on the next :meth:`poll`)."""
+    def _consider(self, values: np.ndarray, ci95: Any, worst: int, change: float) -> None:
+        """A trusted estimate of (I1, I2, B, K) whose parameter ``worst`` moved most from the design in
+        force (:func:`largest_change`, by ``change``): decide on a redesign (sent on the next :meth:`poll`)."""
         if self.jobs is None or self._pending:
             return
         if not self._urgent and self.t - self._last_request_t < self.s.redesign_interval_s:
             return
-        cur = self.controller.model
         # each parameter's change against its own threshold (B's is wider: ControlSettings.min_change_damping)
-        moved = max(KEYS, key=lambda k: abs(getattr(params, k) / getattr(cur, k) - 1.0) / self._threshold(k))
-        if self.controller.kind == "model" and \
-                abs(getattr(params, moved) / getattr(cur, moved) - 1.0) < self._threshold(moved):
+        if self.controller.kind == "model" and change < self._trust_consts[TC_THRESHOLD + worst]:
             self._urgent = False
             return
         if not self.jobs.ready:
@@ -702,10 +777,10 @@ class Supervisor:
         if self.controller.kind == "model":     # the estimate moved: the fit lags behind it for a while
             self._change_t = self.t
         self._urgent = False
-        self._due = (params, ci95, moved)
+        self._due = (values.copy(), ci95, KEYS[worst])
 
-    def _request(self, params: AxisParams, ci95: Any, moved: str) -> None:
-        """Ask the control process for a design for ``params`` (decided by :meth:`offer`)."""
+    def _request(self, values: np.ndarray, ci95: Any, moved: str) -> None:
+        """Ask the control process for a design for ``values`` (I1, I2, B, K; decided by :meth:`_consider`)."""
         assert self.jobs is not None                  # offer() decides only with a control process
         if not self.jobs.ready:
             self._pending = False
@@ -714,7 +789,7 @@ class Supervisor:
         if callable(ci95):
             ci95 = ci95()
         req = {"conservative": [float(v) for v in self.conservative.gains],
-               "params": {**{k: float(getattr(params, k)) for k in KEYS}, "lead": float(params.lead)},
+               "params": {**{k: float(v) for k, v in zip(KEYS, values)}, "lead": self.lead},
                "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}
         if not self.jobs.submit(req):
@@ -726,10 +801,12 @@ class Supervisor:
         why = moved if self.controller.kind == "model" else self.controller.kind
         st.why_requested[why] = st.why_requested.get(why, 0) + 1
 
-    def _threshold(self, key: str) -> float:
-        """The relative change of ``key`` that asks for a redesign (never 0: a division above)."""
-        t = self.s.min_change_damping if key == "B" else self.s.min_change
-        return max(t, 1e-12)
+    def _model_values(self) -> np.ndarray:
+        """(I1, I2, B, K) of the model the controller in force was designed for."""
+        ctrl = self.controller
+        if self._model_of[0] is not ctrl:
+            self._model_of = (ctrl, np.array([float(getattr(ctrl.model, k)) for k in KEYS]))
+        return self._model_of[1]
 
     def poll(self) -> None:
         """One step per tick while a redesign is under way: send the request :meth:`offer` decided on;

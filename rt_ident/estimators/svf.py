@@ -312,6 +312,25 @@ def _detect_change(q, tq2, acc, R, r):
     acc[ACC_REARM] = acc[ACC_REARM_N]
 
 
+@numba.njit(cache=True)
+def interval_halves(R, Sigma, acc, scale, out):
+    """The 95 % half-widths of (I1, I2, B, K), physical units, into ``out``: from the bias-compensated
+    information matrix and the residual variance, under a white-residual assumption (the filtered
+    residuals are coloured, so these are optimistic). False with too little data or a singular matrix."""
+    W, sse, W2 = acc[ACC_W], acc[ACC_SSE], acc[ACC_W2]
+    if W <= 4.0:
+        return False
+    try:
+        Rinv = np.linalg.inv(R - W * Sigma)
+    except Exception:  # noqa: BLE001 - singular or not finite; compiled code catches only Exception
+        return False
+    sigma2 = sse / (2.0 * W)
+    for i in range(4):
+        var = sigma2 * Rinv[i, i] * (W2 / W) * W / max(W - 4.0, 1.0)
+        out[i] = 1.96 * math.sqrt(max(var, 0.0)) * scale[i]
+    return True
+
+
 class SvfEstimator:
     """The per-sample estimator the adaptive loop feeds (see the module docstring).
 
@@ -333,9 +352,10 @@ class SvfEstimator:
                        else np.zeros((4, 4)))
         self._prior = np.ones(4)
         self.reset()
-        z = np.zeros(2)                     # compile (or load) the kernel now, not in the loop's first tick
+        z = np.zeros(2)                     # compile (or load) the kernels now, not in the loop's first tick
         self.update_block(z, z, z, np.zeros((2, TR_COLS)))
         self.reset()
+        self.ci95()
 
     def reset(self) -> None:
         """Start over. The arrays are changed in place, never replaced: the compiled tick
@@ -401,23 +421,19 @@ class SvfEstimator:
         return self._p * self._scale
 
     def ci95(self) -> dict[str, tuple[float, float]] | None:
-        """Approximate 95 % intervals from the weighted information matrix and the residual variance
-        (white-residual assumption: the filtered residuals are coloured, so these are optimistic)."""
-        W, sse, W2 = self._acc[0], self._acc[1], self._acc[2]
-        if W <= 4:
+        """Approximate 95 % intervals (:func:`interval_halves`) around the estimate now; None with too
+        little data or a singular information matrix."""
+        half = np.empty(4)
+        if not interval_halves(self._R, self._Sigma, self._acc, self._scale, half):
             return None
-        try:
-            Rinv = np.linalg.inv(self._R - W * self._Sigma)
-        except np.linalg.LinAlgError:
-            return None
-        sigma2 = sse / (2.0 * W)
-        cov = sigma2 * Rinv * (W2 / W) * W / max(W - 4.0, 1.0)
-        out = {}
-        for i, k in enumerate(KEYS):
-            half = 1.96 * math.sqrt(max(cov[i, i], 0.0)) * self._scale[i]
-            v = self._p[i] * self._scale[i]
-            out[k] = (float(v - half), float(v + half))
-        return out
+        v = self._p * self._scale
+        return {k: (float(v[i] - half[i]), float(v[i] + half[i])) for i, k in enumerate(KEYS)}
+
+    @property
+    def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(R, Sigma, accumulators, scaled estimate, scale): what a compiled look at the estimate and its
+        intervals reads (rt_ident.control.adaptation.window_look). Changed in place, never replaced."""
+        return self._R, self._Sigma, self._acc, self._p, self._scale
 
     @property
     def changes(self) -> int:

@@ -16,7 +16,7 @@ from rt_ident.control import adaptation as A
 from rt_ident.control.adaptation import ControlSettings, Supervisor, model_controller
 from rt_ident.control.law import C_INERTIA
 from rt_ident.control.reference import Hold
-from rt_ident.estimators.svf import SvfEstimator, SvfSettings
+from rt_ident.estimators.svf import ACC_SIZE, ACC_SSE, ACC_W, ACC_W2, SvfEstimator, SvfSettings, interval_halves
 from tests.estimators.test_svf import FakeControlProcess
 
 P = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110.0)
@@ -26,7 +26,8 @@ S = ControlSettings()
 
 
 class _Estimate:
-    """A per-sample estimator whose estimate, intervals, change count and dead-zone count a test sets."""
+    """A per-sample estimator whose estimate, intervals (+- ``half`` x each value), change count and
+    dead-zone count a test sets; its evidence arrays are laid out as SvfEstimator's."""
     ready = True
 
     def __init__(self, p: AxisParams, half: float = 0.002):
@@ -39,6 +40,15 @@ class _Estimate:
     def params(self):
         return self.p
 
+    @property
+    def evidence(self):
+        W = 1000.0
+        acc = np.zeros(ACC_SIZE)
+        acc[ACC_W] = acc[ACC_W2] = W
+        acc[ACC_SSE] = 2.0 * W                               # residual variance 1
+        r = W / (W - 4.0) * (1.96 / self.half) ** 2          # interval_halves then gives half x value
+        return r * np.eye(4), np.zeros((4, 4)), acc, np.ones(4), self.values_array()
+
     def ci95(self):
         return {k: (getattr(self.p, k) * (1 - self.half), getattr(self.p, k) * (1 + self.half))
                 for k in ("I1", "I2", "B", "K")}
@@ -47,6 +57,15 @@ class _Estimate:
         return {}
 
     counters: dict = {}
+
+
+def test_the_fake_estimators_evidence_gives_the_intervals_it_states():
+    est = _Estimate(HEAVY, half=0.03)
+    R, Sigma, acc, p, scale = est.evidence
+    half = np.empty(4)
+    assert interval_halves(R, Sigma, acc, scale, half)
+    want = np.array([hi - lo for lo, hi in est.ci95().values()]) / 2
+    assert np.allclose(half, want, rtol=1e-12)
 
 
 def _supervisor(est, **settings):
@@ -244,3 +263,14 @@ def test_the_svf_without_its_detector_takes_several_memory_constants_for_the_sam
     trail = _feed(est, _excited(sim, 0.2))
     at_60_ms = trail[int(round(0.06 / (34 * DT)))][1]
     assert est.changes == 0 and abs(at_60_ms[1] / HEAVY.I2 - 1.0) > 0.1, at_60_ms
+
+
+def test_largest_change_weighs_each_parameter_against_its_own_redesign_threshold():
+    tc = _supervisor(_Estimate(P))[0]._trust_consts           # min_change 2 %, B's min_change_damping 10 %
+    model = np.array([1.0, 1.0, 1.0, 1.0])
+    worst, change = A.largest_change(np.array([1.0, 1.05, 1.2, 1.0]), model, tc)
+    assert (worst, change) == (1, pytest.approx(0.05))        # I2: 2.5 thresholds; B's 20 % is 2
+    worst, change = A.largest_change(np.array([1.0, 1.03, 1.4, 1.0]), model, tc)
+    assert (worst, change) == (2, pytest.approx(0.4))         # B: 4 thresholds against I2's 1.5
+    worst, change = A.largest_change(np.array([1.0, 1.0, 1e-3, 1.0]), np.array([1.0, 1.0, 0.0, 1.0]), tc)
+    assert worst == 2 and change > 1e6                         # a model without damping: any B has moved

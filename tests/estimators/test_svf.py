@@ -16,7 +16,7 @@ from rt_ident.config import from_mapping, load
 from rt_ident.control.adaptation import ControlSettings, Supervisor
 from rt_ident.control.reference import Hold
 from rt_ident.errors import ConfigError
-from rt_ident.estimators.svf import SvfEstimator, SvfSettings, make_svf, regressor_noise
+from rt_ident.estimators.svf import ACC_SSE, ACC_W, ACC_W2, SvfEstimator, SvfSettings, make_svf, regressor_noise
 
 P = AxisParams(I1=2.7e-5, I2=8.3e-6, B=2.1e-3, K=110.0)
 DT = 2.9481e-5
@@ -52,6 +52,23 @@ def test_svf_follows_a_plant_it_was_not_told_about():
     _feed(est, b.theta1, b.theta2, b.torque_meas)
     for k, v in est.values().items():
         assert v == pytest.approx(getattr(p, k), rel=0.01), k
+
+
+def test_svf_intervals_are_none_before_data_then_the_information_matrix_formula_compiled():
+    b = _clean_block(0.5)
+    est = SvfEstimator(DT, P, SvfSettings())
+    assert est.ci95() is None                       # no rows yet
+    _feed(est, b.theta1, b.theta2, b.torque_meas)
+    R, Sigma, acc, p, scale = est.evidence
+    W, sse, W2 = acc[ACC_W], acc[ACC_SSE], acc[ACC_W2]
+    cov = sse / (2 * W) * np.linalg.inv(R - W * Sigma) * (W2 / W) * W / max(W - 4, 1)
+    half = 1.96 * np.sqrt(np.diag(cov)) * scale
+    ci = est.ci95()
+    for i, k in enumerate(("I1", "I2", "B", "K")):
+        lo, hi = ci[k]
+        assert (lo + hi) / 2 == pytest.approx(p[i] * scale[i], rel=1e-12), k
+        assert (hi - lo) / 2 == pytest.approx(half[i], rel=1e-9), k
+        assert 0 < (hi - lo) / 2 < 0.01 * getattr(P, k), k       # clean data: narrow
 
 
 def test_svf_skips_non_finite_samples_and_counts_them():
