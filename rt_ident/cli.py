@@ -456,7 +456,8 @@ def _print_run(s: dict) -> None:
         cpu = loop.get("work_cpu_us") or {}
         out.print(f"tick work: p50 {fmt(work.get('p50'))} us, p99 {fmt(work.get('p99'))} us, "
                   f"max {fmt(work.get('max'))} us (CPU time max {fmt(cpu.get('max'))} us); overruns from the "
-                  f"tick's own work {loop.get('overruns_work', 0)}, from a late start or a stolen CPU "
+                  f"tick's own work {loop.get('overruns_work', 0)}, from a stall's backlog "
+                  f"{loop.get('overruns_backlog', 0)}, from a late start or a stolen CPU "
                   f"{loop.get('overruns_late_start', 0)}")
     rt = s.get("realtime") or {}
     if rt:

@@ -13,6 +13,7 @@ and no extra interrupt, ran slow as a whole: the host.
 
     python tools/slow_ticks.py                          # 5 default runs of 10 s
     python tools/slow_ticks.py --config configs/xy-sim.toml -n 3 --json
+    python tools/slow_ticks.py -n 3 --part supervisor   # that part's CPU time over every tick, p50..max
 
 A tick's CPU time is the loop's own measure, the one its ``overruns_work`` is charged by (the
 loop thread's CPU time from the end of the wait to the end of the tick, a simulated device's
@@ -171,7 +172,9 @@ class KernelCounts:
 
 
 class Hook:
-    def __init__(self, threshold_us: float, tick_hz: float) -> None:
+    def __init__(self, threshold_us: float, tick_hz: float, part: str | None = None) -> None:
+        self.part = None if part is None else _PHASES.index(part)
+        self.part_us: list[list[float]] = []        # per axis, the part's CPU time on every tick
         self.tick_hz = tick_hz
         self.threshold = threshold_us * 1e-6
         self.slow: list[dict[str, Any]] = []
@@ -184,6 +187,8 @@ class Hook:
         self.cpu: int | None = None
         self.typical: list[dict[str, int]] = []     # the counts of every 100th tick, for comparison
         self.typical_parts: list[dict[str, int]] = []
+        self.last_samples = 0
+        self.typical_samples: list[dict[str, int]] = []
 
     def __call__(self, tick: int) -> None:
         if not self.wrapped:
@@ -193,12 +198,16 @@ class Hook:
         work = _CPU.last[1] - _CPU.last[0]
         ru = resource.getrusage(resource.RUSAGE_THREAD)
         state = _state()
+        samples = [lp.stats.samples for lp in _LOOPS]
+        n = sum(samples) - self.last_samples       # samples the tick processed (both axes)
+        self.last_samples = sum(samples)
         self.kernel.read()
         if self.cpu is None:
             mine = os.sched_getaffinity(0)
             self.cpu = next(iter(mine)) if len(mine) == 1 else -1
         if tick % 100 == 50:
             self.typical_parts.append(_parts())
+            self.typical_samples.append({"samples": n})
             if self.cpu >= 0:
                 self.typical.append(self.kernel.delta(self.cpu))
         if self.last_ru is not None and work > self.threshold:
@@ -209,7 +218,7 @@ class Hook:
             faults = ru.ru_minflt - self.last_ru.ru_minflt + ru.ru_majflt - self.last_ru.ru_majflt
             switches = ru.ru_nivcsw - self.last_ru.ru_nivcsw
             self.slow.append({"tick": tick, "t_s": round(tick / self.tick_hz, 3),
-                              "cpu_us": round(work * 1e6), "did": what, "parts_us": _parts(),
+                              "cpu_us": round(work * 1e6), "did": what, "parts_us": _parts(), "samples": n,
                               "page_faults": faults, "preempted": switches,
                               "kernel": self.kernel.delta(self.cpu) if self.cpu is not None and self.cpu >= 0 else {}})
         # an overrun is counted on the tick after the one whose CPU time passed the period: mark that one
@@ -222,26 +231,44 @@ class Hook:
                 self.unmatched += overruns - self.last_work
         self.last_work = overruns
         self.last_ru, self.last_state = ru, state
+        if self.part is not None:
+            while len(self.part_us) < len(_LOOPS):
+                self.part_us.append([])
+            for j, lp in enumerate(_LOOPS):
+                self.part_us[j].append(lp.tool_phases[self.part] * 1e6)
         for lp in _LOOPS:
             lp.tool_phases[:] = [0.0] * len(_PHASES)
 
 
-def one_run(config: str | None, duration: float, threshold_us: float, work: Path, k: int) -> dict[str, Any]:
+def _spread(values: list[float]) -> dict[str, float]:
+    """p50, p90, p99 and max of ``values`` [us], rounded."""
+    if not values:
+        return {}
+    v = sorted(values)
+    return {k: round(v[min(len(v) - 1, int(q * len(v)))], 1) for k, q in (("p50", 0.5), ("p90", 0.9), ("p99", 0.99))} \
+        | {"max": round(v[-1], 1)}
+
+
+def one_run(config: str | None, duration: float, threshold_us: float, work: Path, k: int,
+            part: str | None = None) -> dict[str, Any]:
     _LOOPS.clear()
     cfg = load(config, **{"loop.duration": duration})
-    hook = Hook(threshold_us, cfg.loop.tick_hz)
+    hook = Hook(threshold_us, cfg.loop.tick_hz, part)
     try:
         s = run_mod.run(cfg, rrd=str(work / f"run{k}.rrd"), record=str(work / f"run{k}.parquet"), tick_hook=hook)
     finally:
         hook.kernel.close()
     loop = s.get("loop") or {}
     return {"run": k, "stop": (s.get("stop") or {}).get("cause"), "overruns_work": loop.get("overruns_work"),
+            "overruns_backlog": loop.get("overruns_backlog"),
             "work_cpu_max_us": round((loop.get("work_cpu_us") or {}).get("max", 0.0)),
             "steal_ms": (loop.get("host") or {}).get("steal_ms"),
             "late_compiles": (loop.get("late_compiles") or {}).get("count"), "slow_ticks": hook.slow,
             "stalls": [(e["t"], e["ms"]) for e in (loop.get("stalls") or {}).get("events", [])],
             "overruns_unmatched": hook.unmatched, "loop_cpu": hook.cpu, "typical_kernel": _median_counts(hook.typical),
-            "typical_parts_us": _median_counts(hook.typical_parts)}
+            "typical_parts_us": _median_counts(hook.typical_parts),
+            "typical_samples": _median_counts(hook.typical_samples).get("samples", 0),
+            "part_us": [_spread(v) for v in hook.part_us]}
 
 
 def _median_counts(rows: list[dict[str, int]]) -> dict[str, float]:
@@ -267,26 +294,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--threshold-us", type=float, default=1000.0)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--part", choices=_PHASES, default=None,
+                    help="also print this part's CPU time over every tick (p50, p90, p99, max per axis)")
     a = ap.parse_args(argv)
     loop_mod.IdentificationLoop.__init__ = _capturing_init      # type: ignore[method-assign]
     loop_mod.time = _CPU                                        # type: ignore[assignment]
     rows = []
     with tempfile.TemporaryDirectory(prefix="slow-ticks-") as d:
         for k in range(a.n):
-            r = one_run(a.config, a.duration, a.threshold_us, Path(d), k)
+            r = one_run(a.config, a.duration, a.threshold_us, Path(d), k, a.part)
             rows.append(r)
             for f in Path(d).glob(f"run{k}*"):
                 f.unlink()
             if not a.json:
-                print(f"run {k}: stop {r['stop']}, overruns_work {r['overruns_work']}, work_cpu max "
+                print(f"run {k}: stop {r['stop']}, overruns_work {r['overruns_work']}, overruns_backlog "
+                      f"{r['overruns_backlog']}, work_cpu max "
                       f"{r['work_cpu_max_us']} us, steal {r['steal_ms']} ms, late compiles {r['late_compiles']}, "
                       f"stalls {', '.join(f'{ms} ms at {t} s' for t, ms in r['stalls']) or 'none'}; "
                       f"a median tick's kernel work on CPU {r['loop_cpu']}: {_counts_text(r['typical_kernel'])}, "
-                      f"its parts [us]: {_counts_text(r['typical_parts_us'])}"
+                      f"its samples {r['typical_samples']:g}, its parts [us]: {_counts_text(r['typical_parts_us'])}"
                       + (f", {r['overruns_unmatched']} overruns_work not after a tick seen slow"
                          if r["overruns_unmatched"] else ""), flush=True)
+                for j, sp in enumerate(r["part_us"]):
+                    axis = f" ({'xy'[j]})" if len(r["part_us"]) > 1 else ""
+                    print(f"  {a.part}{axis} over every tick [us]: {_counts_text(sp)}", flush=True)
                 for t in r["slow_ticks"]:
-                    print(f"  tick {t['tick']} (t={t['t_s']} s): {t['cpu_us']} us CPU"
+                    print(f"  tick {t['tick']} (t={t['t_s']} s): {t['cpu_us']} us CPU, {t['samples']} samples"
                           + (" (the next tick overran)" if t.get("overrun") else "") + "; "
                           f"{', '.join(t['did']) or 'nothing of the loop'}; page faults {t['page_faults']}, "
                           f"preempted {t['preempted']}; kernel: {_counts_text(t['kernel'])}", flush=True)

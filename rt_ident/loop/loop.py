@@ -68,16 +68,18 @@ log = logging.getLogger(__name__)
 class LoopStats:
     """Counters of one run. An overrun is a tick that found its deadline passed by whole periods;
     it is put down to the work of the tick before (``overruns_work``: that tick's own computation,
-    measured as the loop thread's CPU time, took longer than the period) or else to a late start
-    (``overruns_late_start``: the host or the scheduler took the CPU before or during the tick, or
-    the tick waited on I/O; the wall-clock work time ``work_us`` then exceeds the CPU time
-    ``work_cpu_us``)."""
+    measured as the loop thread's CPU time, took longer than the period), to a stall's backlog
+    (``overruns_backlog``: the tick before worked through the samples the device kept during a
+    stall, work the stall made) or else to a late start (``overruns_late_start``: the host or the
+    scheduler took the CPU before or during the tick, or the tick waited on I/O; the wall-clock work
+    time ``work_us`` then exceeds the CPU time ``work_cpu_us``)."""
 
     ticks: int = 0
     samples: int = 0
     lost_samples: int = 0
     overruns: int = 0
     overruns_work: int = 0
+    overruns_backlog: int = 0
     overruns_late_start: int = 0
     skipped_periods: int = 0
     estimates: int = 0
@@ -96,6 +98,7 @@ class LoopStats:
         cpu = self.work_cpu.summary()
         return {"ticks": self.ticks, "samples": self.samples, "lost_samples": self.lost_samples,
                 "overruns": self.overruns, "overruns_work": self.overruns_work,
+                "overruns_backlog": self.overruns_backlog,
                 "overruns_late_start": self.overruns_late_start, "skipped_periods": self.skipped_periods,
                 "estimates": self.estimates,
                 "lateness_us": {"p50": lat["p50"], "p99": lat["p99"], "max": lat["max"]},
@@ -149,14 +152,17 @@ def _note_stall(exc: BaseException, stats: LoopStats, now: float) -> None:
         exc.after_stall = stats.stalls.before(now)      # type: ignore[attr-defined]
 
 
-def _count_tick(stats: LoopStats, info, last_cpu: float, period: float) -> None:
+def _count_tick(stats: LoopStats, info, last_cpu: float, period: float, backlog: bool = False) -> None:
     """A tick's timing counters: an overrun is charged to the previous tick's CPU time when that
-    exceeded the period (its own work), else to a late start."""
+    exceeded the period (its own work, or a stall's backlog when it worked through one), else to a
+    late start."""
     stats.ticks += 1
     if info.skipped:
         stats.overruns += 1
         stats.skipped_periods += info.skipped
-        if last_cpu > period:
+        if last_cpu > period and backlog:
+            stats.overruns_backlog += 1
+        elif last_cpu > period:
             stats.overruns_work += 1
         else:
             stats.overruns_late_start += 1
@@ -294,7 +300,7 @@ class IdentificationLoop(TelemetryWindow):
         period = 1.0 / self.tick_hz
         clock = self.clock
         cpu_clock = time.thread_time
-        last_cpu = 0.0
+        last_cpu, backlog = 0.0, False      # the tick before: its CPU time, whether it had a stall's backlog
         policy = self.stall_policy
         stats.compiles.start()
         last_read = self.ticker.start()
@@ -305,12 +311,13 @@ class IdentificationLoop(TelemetryWindow):
                 info = self.ticker.wait_next()
                 t0 = clock()
                 c0 = cpu_clock()
-                _count_tick(stats, info, last_cpu, period)
+                _count_tick(stats, info, last_cpu, period, backlog)
                 block = backend.read()
                 t_read = clock()
                 if t_read - last_read > period + policy.max_s:
                     _stall_before([self], [block], stats, policy, t_read - last_read - period, t_read)
                 last_read = self._t_read = t_read
+                resuming = self._resume is not None
                 self._process(block, info.lateness_s)
                 self._write_plan()
                 t1 = clock()
@@ -320,7 +327,7 @@ class IdentificationLoop(TelemetryWindow):
                 backend.step_ahead(self.ticker.next_deadline() - t1 + SIM_AHEAD_MARGIN_S)
                 if backend.simulated:
                     stats.sim_ahead.record(clock() - t1)
-                last_cpu = cpu_clock() - c0
+                last_cpu, backlog = cpu_clock() - c0, resuming
                 stats.work_cpu.record(last_cpu)
                 if self.tick_hook is not None:
                     self.tick_hook(stats.ticks)
@@ -651,7 +658,7 @@ class MultiAxisLoop:
             ax.fit_phase = 2 + (4 * i) % 10
             # ... and their supervisors' redesign steps (a few hundred microseconds each) on alternate ticks
             ax.control_phase = i % 2
-        last_cpu = 0.0
+        last_cpu, backlog = 0.0, False      # the tick before: its CPU time, whether it had a stall's backlog
         spent = [0.0] * len(axes)
         any_simulated = any(ax.backend.simulated for ax in axes)
         policy = self.stall_policy
@@ -663,7 +670,7 @@ class MultiAxisLoop:
                     break
                 info = self.ticker.wait_next()
                 t0, c0 = clock(), cpu_clock()
-                _count_tick(stats, info, last_cpu, period)
+                _count_tick(stats, info, last_cpu, period, backlog)
                 # every axis's samples of this tick first; each axis's share of the work is timed
                 # (its read, its processing, its plan) into its own ``work_us``
                 blocks = []
@@ -676,9 +683,10 @@ class MultiAxisLoop:
                 if t_read - last_read > period + policy.max_s:
                     _stall_before(axes, blocks, stats, policy, t_read - last_read - period, t_read)
                 last_read = t_read
+                resuming = any(ax._resume is not None for ax in axes)
                 for cur, (ax, block) in enumerate(zip(axes, blocks)):
                     ax._t_read = t_read
-                    _count_tick(ax.stats, info, last_cpu, period)
+                    _count_tick(ax.stats, info, last_cpu, period, backlog)
                     t1 = clock()
                     ax._process(block, info.lateness_s)
                     spent[cur] += clock() - t1
@@ -698,7 +706,7 @@ class MultiAxisLoop:
                         ax.stats.sim_ahead.record(clock() - t2)
                 if any_simulated:
                     stats.sim_ahead.record(clock() - t1)
-                last_cpu = cpu_clock() - c0
+                last_cpu, backlog = cpu_clock() - c0, resuming
                 stats.work_cpu.record(last_cpu)
                 cur = -1
                 if self.tick_hook is not None:

@@ -166,6 +166,7 @@ def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
     stalls = s["loop"]["stalls"]
     assert stalls["count"] >= 1 and stalls["longest_ms"] >= 400, stalls
     assert s["loop"]["late_compiles"]["count"] == 0, s["loop"]["late_compiles"]
+    assert s["loop"]["overruns_backlog"] >= 1, s["loop"]       # the 0.5 s of samples took the resume > a tick
     t_resume = max(e["t"] for e in s["control"]["events"] if e["kind"] == "stall")
     # the table's speed over whole probe periods (the probe's own motion averages out exactly)
     per = 512
@@ -326,3 +327,15 @@ def test_a_device_that_samples_only_when_read_resumes_at_once_after_a_stall():
     assert out["stop"] is None, out["stop"]
     assert out["loop"]["stalls"]["count"] == 1 and out["loop"]["stalls"]["catch_up_longest_ms"] == 0.0
     assert any(e["kind"] == "stall" for e in out["control"]["events"])     # re-planned on the next tick
+
+
+def test_an_overrun_after_a_tick_that_worked_through_a_stalls_backlog_is_put_down_to_the_stall():
+    from types import SimpleNamespace
+
+    from rt_ident.loop.loop import LoopStats, _count_tick
+
+    st, late = LoopStats(), SimpleNamespace(skipped=1, lateness_s=0.002)
+    _count_tick(st, late, 0.0015, 0.001, backlog=True)        # the resume's tick took 1.5 ms: the stall's
+    _count_tick(st, late, 0.0015, 0.001)                      # an ordinary tick's 1.5 ms: our work
+    _count_tick(st, late, 0.0002, 0.001, backlog=True)        # 0.2 ms and still late: a late start
+    assert (st.overruns, st.overruns_backlog, st.overruns_work, st.overruns_late_start) == (3, 1, 1, 1)

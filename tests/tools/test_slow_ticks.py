@@ -71,3 +71,9 @@ def test_the_steps_inside_processing_are_timed_each_into_its_own_part_and_missin
     names = dict(zip(slow_ticks._PHASES, lp.tool_phases))
     assert names["compiled tick"] > 0.0 and names["supervisor"] > 0.0
     assert all(v == 0.0 for k, v in names.items() if k not in ("compiled tick", "supervisor"))
+
+
+def test_spread_gives_the_nearest_rank_percentiles_and_the_max_of_a_parts_cpu_time():
+    sp = slow_ticks._spread([float(v) for v in range(1, 101)])       # 1..100 us
+    assert sp == {"p50": 51.0, "p90": 91.0, "p99": 100.0, "max": 100.0}
+    assert slow_ticks._spread([]) == {}
