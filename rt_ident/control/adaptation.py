@@ -113,7 +113,7 @@ def _tolerance(key: str, tol: float) -> float:
 # half-widths, and (trusted) the parameter of the mean that moved most from the design in force and by how much ...
 LOOK_MEAN, LOOK_NOW, LOOK_HALF, LOOK_WORST, LOOK_CHANGE, LOOK_SIZE = 0, 4, 8, 12, 13, 14
 # ... its verdicts ...
-WINDOW_FILLING, WINDOW_UNPHYSICAL, WINDOW_UNTRUSTED, WINDOW_TRUSTED = range(4)
+WINDOW_FILLING, WINDOW_UNTRUSTED, WINDOW_TRUSTED = range(3)
 # ... and what it compares with (Supervisor._trust_consts): nominal I1, I2, B, K, the plausible box's
 # factors, settle_tolerance, interval_tolerance, the relative change of I1, I2, B, K that asks for a redesign
 TC_NOMINAL, TC_LO, TC_HI, TC_SETTLE, TC_INTERVAL, TC_THRESHOLD, TC_SIZE = 0, 4, 5, 6, 7, 8, 12
@@ -135,7 +135,7 @@ def largest_change(values, model, tc):
 def window_look(win, n, vetoed, tc, R, Sigma, acc, p, scale, model, look):
     """One look at the per-sample estimate's own evidence (see the module docstring): the estimate
     now goes into row ``n`` (mod its length) of the window; once the window is full, it is trusted when
-    every estimate in it is positive and finite (else WINDOW_UNPHYSICAL), I1, I2, K within
+    every estimate in it is positive and finite (one outside physics is no evidence), I1, I2, K within
     settle_tolerance of the window's mean (B within DAMPING_TOLERANCE), the mean inside the plausible
     box, no audit veto, and every 95 % interval (:func:`rt_ident.estimators.svf.interval_halves`)
     within interval_tolerance of its centre (B: DAMPING_TOLERANCE). ``look`` receives the mean, the
@@ -152,7 +152,7 @@ def window_look(win, n, vetoed, tc, R, Sigma, acc, p, scale, model, look):
     for i in range(m):
         for j in range(4):
             if not (win[i, j] > 0.0 and math.isfinite(win[i, j])):
-                return WINDOW_UNPHYSICAL
+                return WINDOW_UNTRUSTED
     trusted = not vetoed
     for j in range(4):
         s, lo, hi = 0.0, win[0, j], win[0, j]
@@ -652,10 +652,6 @@ class Supervisor:
                               self._model_values(), self._look)
         self._win_n += 1
         if verdict == WINDOW_FILLING:
-            return
-        if verdict == WINDOW_UNPHYSICAL:
-            self.own_trust = False              # an estimate outside physics is no evidence (diverged)
-            self.probe_scale = 1.0
             return
         trusted = verdict == WINDOW_TRUSTED
         if trusted and not self.own_trust:

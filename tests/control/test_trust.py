@@ -27,8 +27,10 @@ S = ControlSettings()
 
 class _Estimate:
     """A per-sample estimator whose estimate, intervals (+- ``half`` x each value), change count and
-    dead-zone count a test sets; its evidence arrays are laid out as SvfEstimator's."""
+    dead-zone count a test sets (``nan``: its I2 not finite); its evidence arrays are laid out as
+    SvfEstimator's."""
     ready = True
+    nan = False
 
     def __init__(self, p: AxisParams, half: float = 0.002):
         self.p, self.half, self.changes, self.frozen = p, half, 0, 0
@@ -47,7 +49,8 @@ class _Estimate:
         acc[ACC_W] = acc[ACC_W2] = W
         acc[ACC_SSE] = 2.0 * W                               # residual variance 1
         r = W / (W - 4.0) * (1.96 / self.half) ** 2          # interval_halves then gives half x value
-        return r * np.eye(4), np.zeros((4, 4)), acc, np.ones(4), self.values_array()
+        p = np.array([1.0, math.nan if self.nan else 1.0, 1.0, 1.0])      # scaled
+        return r * np.eye(4), np.zeros((4, 4)), acc, p, self.values_array()
 
     def ci95(self):
         return {k: (getattr(self.p, k) * (1 - self.half), getattr(self.p, k) * (1 + self.half))
@@ -92,6 +95,20 @@ def test_a_steady_narrow_per_sample_estimate_asks_for_a_redesign_with_no_frequen
     sup.poll()
     assert len(w.requests) == 1 and w.requests[0]["params"]["I2"] == pytest.approx(HEAVY.I2)
     assert sup.stats.trusted_at and sup.stats.checks_agreed == 0
+
+
+def test_a_steady_narrow_estimate_outside_the_plausible_box_or_not_finite_is_not_trusted():
+    far = AxisParams(I1=P.I1, I2=6 * P.I2, B=P.B, K=P.K)      # plausible: nominal x 0.2..5
+    est = _Estimate(far)
+    sup, w = _supervisor(est)
+    _looks(sup, 8)
+    assert not sup.own_trust and not sup._pending and not w.requests
+    est.p = HEAVY
+    _looks(sup, S.trust_window)
+    assert sup.own_trust                                       # the same supervisor trusts a plausible one
+    est.nan = True
+    _looks(sup, 1)
+    assert not sup.own_trust and sup.probe_scale == 1.0       # a NaN in the window: no evidence at once
 
 
 def test_a_moving_estimate_wide_intervals_or_a_frozen_estimator_are_no_evidence():
