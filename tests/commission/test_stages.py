@@ -86,9 +86,10 @@ def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path
     env = {**os.environ, "RT_IDENT_STATE_DIR": str(state_dir)}
     p = subprocess.run([sys.executable, "-m", "rt_ident", "commission", str(cfg_path), "--out", str(tmp_path / "c"),
                         "--json"], capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
-    assert p.returncode == 0, p.stderr[-3000:]
+    assert p.stdout, p.stderr[-3000:]
     r = json.loads(p.stdout)
-    assert r["verdict"] == "pass" and r["stage_reached"] == "e"
+    assert p.returncode == 0 and r["verdict"] == "pass" and r["stage_reached"] == "e", (
+        r["failed"], [(c["name"], c["measured"]) for c in r["checks"] if not c["ok"]])
     assert set(r) >= {"verdict", "stage_reached", "checks", "max_travel_m", "max_speed_m_s", "parameters", "report",
                       "axis_toml"}
     assert all(set(c) >= {"name", "ok", "measured", "expected", "fix"} for c in r["checks"])
@@ -215,3 +216,27 @@ def test_stage_c_tries_a_second_time_at_most(tmp_path, monkeypatch):
     result: dict = {"checks": []}
     assert stages._identify(config.from_mapping(sim_data()), tmp_path, result, lambda msg: None) is None
     assert len(durations) == 2 and "commission.identify_s" in result["checks"][0]["fix"]
+
+
+@pytest.mark.parametrize(("loop", "names_host"), [
+    ({"stalls": {"count": 1, "longest_ms": 106.0}, "lost_samples": 0}, True),
+    ({"stalls": {"count": 0}, "lost_samples": 1787}, True),
+    ({"stalls": {"count": 0}, "lost_samples": 0}, False),
+])
+def test_stage_c_stopped_after_a_stall_or_lost_samples_names_the_host_not_the_axis(tmp_path, monkeypatch, loop,
+                                                                                   names_host):
+    from rt_ident.commission import stages
+    from rt_ident.compose import run as run_mod
+
+    def stopped(cfg, **_):
+        s = _summary([FIT_OK], stop="speed-limit")
+        s["loop"] = loop
+        s["stop"]["message"] = "table at -58.2 mm/s, faster than safety.max_speed_m_s"
+        return s
+
+    monkeypatch.setattr(run_mod, "run", stopped)
+    result: dict = {"checks": []}
+    assert stages._identify(config.from_mapping(sim_data()), tmp_path, result, lambda msg: None) is None
+    (check,) = result["checks"]
+    assert check["ok"] is False and check["fix"].startswith("loop.realtime") == names_host, check["fix"]
+    assert "speed-limit" in check["fix"]
