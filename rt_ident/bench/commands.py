@@ -98,7 +98,7 @@ def _print_control(json_out: bool, quick: bool, figure: Path | None, cases: int,
         return
     tab = Table(title="table tracking error from the plant change on, µm: RMS / max")
     for col in ("scenario", "fixed", "adaptive", "oracle", "adaptive / oracle", "adaptive / fixed",
-                "change to redesign, ms"):
+                "change to redesign, ms", "first act, ms", "oracle that late / oracle, max"):
         tab.add_column(col, justify="right")
     c = res["control"]
     for r in c["scenarios"] + c["cases"]:
@@ -107,13 +107,15 @@ def _print_control(json_out: bool, quick: bool, figure: Path | None, cases: int,
             e = r[m]
             cell = f"{fmt(um(e['rms_error_m']))} / {fmt(um(e['max_error_m']))}"
             cells.append(cell + (" (stopped)" if e.get("stop") else ""))
-        lat = r.get("change_to_redesign_s")
+        lat, act = r.get("change_to_redesign_s"), r.get("first_response_s")
         tab.add_row(r["name"], *cells, fmt(r.get("adaptive_over_oracle")), fmt(r.get("adaptive_over_fixed")),
-                    "never" if lat is None else f"{1e3 * lat:.0f}")
+                    "never" if lat is None else f"{1e3 * lat:.0f}", "never" if act is None else f"{1e3 * act:.1f}",
+                    fmt(r.get("late_oracle_over_oracle_max")))
     out.print(tab)
     sm = c["summary"]
     for key, label in (("adaptive_over_oracle", "adaptive / oracle RMS"), ("adaptive_over_oracle_max",
-                       "adaptive / oracle max"), ("adaptive_over_fixed", "adaptive / fixed RMS")):
+                       "adaptive / oracle max"), ("adaptive_over_fixed", "adaptive / fixed RMS"),
+                       ("late_oracle_over_oracle_max", "oracle as late as the adaptive first acted / oracle, max")):
         out.print(f"{label} over {sm['n']} changes: median {fmt(sm[key]['median'])}, worst {fmt(sm[key]['worst'])}")
     for p in c["perturbed"]:
         out.print(f"{p['name']} under other noise seeds: adaptive / oracle "

@@ -50,3 +50,27 @@ def test_after_i2_x3_with_a_50_ms_design_the_adaptive_loop_redesigns_within_150_
     assert row["change_to_redesign_s"] is not None and row["change_to_redesign_s"] <= 0.15, row
     assert row["adaptive_over_oracle"] <= 1.1 and row["adaptive_over_fixed"] <= 0.7, row
     assert row["adaptive"]["fallbacks"] == 0 and row["adaptive"]["stop"] is None
+
+
+def test_first_response_is_the_earlier_of_the_change_detector_and_a_model_design_after_the_change():
+    control = {"events": [{"t": 1.0, "kind": "change detected"}, {"t": 4.0037, "kind": "change detected"},
+                          {"t": 4.2, "kind": "accepted"}],
+               "applied": [_applied(0.2, "model"), _applied(4.002, "conservative"), _applied(4.09, "model")]}
+    assert cb.first_response(control, 4.0) == pytest.approx(0.0037)
+    assert cb.first_response({"events": [], "applied": [_applied(4.077, "model")]}, 4.0) == pytest.approx(0.077)
+    assert cb.first_response({"events": [{"t": 1.0, "kind": "change detected"}], "applied": []}, 4.0) is None
+
+
+def test_the_max_error_target_names_each_case_over_it_with_the_late_oracles_figure():
+    def row(name, a_max, late=None, resp=None):
+        return {"name": name, "factors": {"I2": 2.0}, "adaptive_over_oracle_max": a_max, "adaptive_over_fixed": 0.5,
+                "late_oracle_over_oracle_max": late, "first_response_s": resp}
+    rows = [row("case 1", 1.2), row("case 2", 2.95, 2.43, 0.0037)]
+    summary = {"change_to_redesign_s": {"median": 0.1, "worst": 0.2, "missing": 0},
+               "adaptive_over_oracle": {"median": 1.0, "worst": 1.1}, "stops": 0, "adaptive_fallbacks": 0}
+    result = {"control": {"summary": summary, "scenarios": rows, "cases": [], "perturbed": [],
+                          "random_plants": {"n": 1, "unstable": 0}}}
+    (line,) = [t for t in cb.targets(result) if t[0].startswith("adaptive max error")]
+    said = "case 2: 2.95, the oracle's design switched in 3.7 ms after the change (the adaptive loop's first act) 2.43"
+    assert line[1] is False and said in line[2]
+    assert "case 1" not in line[2]
