@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -314,16 +316,20 @@ def test_a_recorder_that_dies_under_the_compiled_tick_stops_the_run(tmp_path):
 
     from rt_ident.compose import run as run_mod
 
-    killed: dict[str, int] = {}
+    killed: dict[str, float] = {}
+    seen: list[float] = []                          # the wall time each tick's hook ran
 
     def hook(n: int) -> None:
+        seen.append(time.monotonic())
         if n == 300:                                # the compiled tick writes the recorder's ring itself
             (rec,) = [p for p in multiprocessing.active_children() if p.name == "rt_ident-recorder"]
             os.kill(rec.pid, signal.SIGKILL)
-            killed["tick"] = n
+            killed["tick"], killed["t"] = n, time.monotonic()
 
     cfg = load(None, **{**FAST, "loop.duration": 3.0, "recording.enabled": True})
     s = run_mod.run(cfg, record=str(tmp_path / "r.parquet"), tick_hook=hook)
     assert killed and s["stop"]["cause"] is not None and "recorder" in s["stop"]["message"]
-    assert s["loop"]["ticks"] < killed["tick"] + 300                   # seen within the 0.1 s rate limit and a bit
+    # seen within the 0.1 s rate limit of the liveness check, plus the kernel's delivery of the death on a
+    # loaded host (ticks are no measure: this loop is not paced and runs as fast as the host lets it)
+    assert seen[-1] - killed["t"] < 1.0, (seen[-1] - killed["t"], s["loop"]["ticks"], killed)
     assert s["loop"]["compiled_tick"]["ticks"] > 250
