@@ -65,6 +65,10 @@ class Cia402Config(BaseModel):
     # supervision
     heartbeat_ms: int = Field(100, ge=1, le=65535)  # producer time of the drive (0x1017) and of this host
     heartbeat_consumer_ms: int | None = Field(None, ge=1, le=65535)  # None: 3 x heartbeat_ms
+    # RPDO1's deadline (0x1400:05, ms; 0: off): a drive that gets no torque for this long faults and takes
+    # the torque off (EMCY 0x8250), where without it a stalled host's last torque stays until the
+    # heartbeat consumer trips. A drive without the object: a warning (an error if set here explicitly)
+    rpdo_deadline_ms: int = Field(20, ge=0, le=65535)
     sdo_timeout: float = Field(0.5, gt=0, le=10)    # s per SDO request
     stale_limit: int = Field(10, ge=1)              # consecutive samples without fresh TPDO data tolerated
     stuck_torque_min: float | None = Field(None, ge=0)  # N m applied + frozen encoder = stuck; None: 5 %

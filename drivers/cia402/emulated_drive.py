@@ -17,7 +17,16 @@ maps and sets transmission types itself. The SYNC counter (0x1019 = 2..240, set 
 (0x18xx:06) first goes out at the SYNC whose counter equals it; a SYNC of the wrong length is
 ignored (EMCY 0x8240, once until a right one comes).
 On each SYNC in NMT OPERATIONAL the plant (:class:`rt_ident.axis.plant.PlantSimulator`)
-advances one sample with the last target torque if OPERATION ENABLED, else with zero.
+advances one sample with the last target torque if OPERATION ENABLED, else with zero. When the
+SYNCs stop (a stalled master), time does not: the next SYNC, or a fault (the heartbeat consumer's),
+first runs the plant through the silence with the torque in force, as a real drive holds its last
+target torque while the table moves on (``silent_samples`` counts those samples). Time the emulator
+itself was not run (a paused VM: the master paused with it) is no silence: the emulated world stood
+still (``paused_s``). RPDO deadline
+monitoring (CiA 301: an RPDO's event timer 0x14xx:05, in ms, from its first reception on): an RPDO
+not received within it while OPERATION ENABLED is a fault (EMCY 0x8250, torque 0 from that instant;
+the table coasts on). Checked with the housekeeping and on each RPDO's arrival (a host and a drive in
+one stalled VM: the drive would have seen the silence).
 TPDOs carry the measurement taken at that SYNC (the plant measures at the start of
 the sample) and the torque applied from that SYNC on.
 
@@ -98,6 +107,14 @@ def _int8(v: int) -> int:
 
 def _int16(v: float) -> int:
     return max(-32768, min(32767, int(round(v))))
+
+
+#: the longest silence of a master the table is stepped through [s]
+SILENCE_MAX_S = 1.0
+#: EMCY: an RPDO missed its deadline (CiA 301 "RPDO timeout")
+RPDO_TIMEOUT = 0x8250
+#: the emulator itself not run for this long (its housekeeping runs every 2 ms): it was paused with its host
+OWN_PAUSE_S = 0.010
 
 
 class EmulatedCia402Drive:
@@ -198,6 +215,15 @@ class EmulatedCia402Drive:
         self.sync_length_errors = 0   # SYNCs ignored: a counter where 0x1019 is 0, or none where it is set
         self.late_syncs = 0           # SYNCs answered by no TPDO: a later SYNC had already arrived
         self._sync_t = 0.0            # arrival time of the SYNC being handled
+        self._sync_period: float | None = None   # the SYNC interval seen while they come regularly [s]
+        self._plant_wall: float | None = None    # monotonic time the plant has been advanced to
+        self.silent_samples = 0       # samples the plant ran with no SYNC (a stalled master)
+        self.longest_silence_s = 0.0             # the longest interval between two SYNCs [s]
+        self.paused_s = 0.0                      # time the emulator itself was not run (not the master's silence)
+        self._alive_t: float | None = None       # when the emulator last ran (housekeeping, SYNC, RPDO)
+        self._rpdo_t: float | None = None        # arrival of the newest RPDO with a deadline (monotonic)
+        self._deadline_s = 0.0                   # the shortest RPDO deadline (0x14xx:05) set, 0: none
+        self._last_sample = (0.0, 0.0, 0.0, 0.0)   # the plant's newest (theta1, theta2, applied, measured)
         self.answer_us = [0] * len(_ANSWER_BINS_US)   # SYNC arrival -> TPDOs sent, histogram
         self.pickup_us = [0] * len(_ANSWER_BINS_US)   # SYNC arrival -> its handling starts, histogram
 
@@ -226,7 +252,9 @@ class EmulatedCia402Drive:
         with self._lock:
             return {"state": self._state, "enabled": self.enabled, "applied_torque": self.applied_torque,
                     "nmt_state": self.nmt_state, "samples": self.samples, "syncs": self._syncs,
-                    "late_syncs": self.late_syncs, "frames_sent": self.frames_sent,
+                    "late_syncs": self.late_syncs, "silent_samples": self.silent_samples,
+                    "longest_silence_s": self.longest_silence_s, "paused_s": self.paused_s,
+                    "frames_sent": self.frames_sent,
                     "emcy_codes": list(self.emcy_codes), "pickup_time": dict(zip(edges, self.pickup_us)),
                     "answer_time": dict(zip(edges, self.answer_us))}
 
@@ -379,6 +407,9 @@ class EmulatedCia402Drive:
             net.subscribe(lay.cob, self._on_rpdo)
         self._rpdos, self._tpdos = rpdos, tpdos
         self._rpdo_by_cob = {lay.cob: lay for lay in rpdos}
+        deadlines = [lay.event_s for lay in rpdos if lay.event_s > 0.0]
+        self._deadline_s = min(deadlines) if deadlines else 0.0
+        self._rpdo_t = None                               # monitoring starts at the next reception
         self._tpdo_sent.clear()                           # a changed PDO set: event TPDOs go out afresh
         self._tpdo_started.clear()
         self._tpdo_sent_t.clear()
@@ -439,6 +470,11 @@ class EmulatedCia402Drive:
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         lay = self._rpdo_by_cob.get(can_id)
+        if lay is not None and lay.event_s > 0.0:
+            with self._lock:
+                self._note_alive(time.monotonic())
+                self._check_deadline(timestamp)           # the silence before this one, if it was too long
+                self._rpdo_t = timestamp
         if lay is None or lay.trans_type <= 240:          # synchronous: applied at the next SYNC
             self._rpdo_data[can_id] = bytes(data)
             return
@@ -501,10 +537,15 @@ class EmulatedCia402Drive:
         if state != p402.OPERATION_ENABLED:
             self.applied_torque = 0.0
 
-    def _fault(self, code: int, reason: str) -> None:
+    def _fault(self, code: int, reason: str, at: float | None = None) -> None:
+        """Into FAULT (torque off) with EMCY ``code``; the plant first runs through a silence of the master
+        up to ``at`` (default now) with the torque in force until then."""
         if self._state == p402.FAULT:
             return
-        log.warning("emulated drive %d: fault %s: %s", self.node_id, p402.emcy_text(code), reason)
+        self._run_through_silence(time.monotonic() if at is None else at)
+        st, lead = self.plant.state, self.plant.params.lead
+        log.warning("emulated drive %d: fault %s: %s (table at x = %.3f mm, %.1f mm/s)", self.node_id,
+                    p402.emcy_text(code), reason, 1e3 * lead * st[2], 1e3 * lead * st[3])
         register = 0x01 | (0x10 if code & 0xFF00 == 0x8100 else 0x02 if code & 0xF000 == 0x2000 else 0)
         self._values[(p402.ERROR_CODE, 0)] = code
         self._values[(p402.ERROR_REGISTER, 0)] = register
@@ -520,6 +561,7 @@ class EmulatedCia402Drive:
         node = self._node
         assert node is not None                      # the worker runs after start()
         now = time.monotonic()
+        self._note_alive(now)
         while self._delayed and self._delayed[0][0] <= now:
             _, _, cob, data = heapq.heappop(self._delayed)
             self._send(cob, data)
@@ -530,6 +572,7 @@ class EmulatedCia402Drive:
                 self._fault(0x8130, f"no heartbeat from node {master} for {now - self._master_hb:.3f} s")
         elif self._master_lost and self._master_hb is not None and now - self._master_hb < ms / 1000.0:
             self._master_lost = False
+        self._check_deadline(now)
         f = self.faults
         if (f.heartbeat_stop_at_s is not None and not self._hb_stopped and self._t_enabled is not None
                 and now - self._t_enabled >= f.heartbeat_stop_at_s):
@@ -583,6 +626,8 @@ class EmulatedCia402Drive:
         if self._pdo_dirty:
             self._rebuild_pdos()
         self._syncs += 1
+        self._note_alive(time.monotonic())
+        self._note_sync_time(self._sync_t or time.monotonic())    # when it came, not when it was handled
         v = self._values
         for lay in self._rpdos:                           # synchronous RPDOs take effect now
             data = self._rpdo_data.pop(lay.cob, None)
@@ -594,18 +639,15 @@ class EmulatedCia402Drive:
             for key, value in zip(lay.keys, lay.struct.unpack(data)):
                 v[key] = value
         self._step_state_machine(v[(p402.CONTROLWORD, 0)])
-        enabled = self._state == p402.OPERATION_ENABLED
-        torque = 0.0                                      # what the drive believes it applies, its frame
+        enabled, torque = self._torque_in_force()
         if enabled:
-            limit = v[(p402.MAX_TORQUE, 0)]
-            permille = max(-limit, min(limit, v[(p402.TARGET_TORQUE, 0)] + v[(0x60B2, 0)]))
-            torque = permille * self.rated_torque / 1000.0
             self.samples += 1
         gain = self._torque_gain()
         self._use_controller(enabled)
-        blk = self.plant.step_block(np.array([gain * torque]))
-        self.applied_torque = float(blk.torque_applied[0]) if enabled else 0.0
-        counts, scale = self._encoders(float(blk.theta1[0]), float(blk.theta2[0]))
+        self._step(np.array([gain * torque]))
+        theta1, theta2, applied, meas = self._last_sample
+        self.applied_torque = applied if enabled else 0.0
+        counts, scale = self._encoders(theta1, theta2)
         f, n = self.faults, self.samples
         if f.stuck_encoder_at_sample is not None and n >= f.stuck_encoder_at_sample:
             if self._stuck_counts is None:
@@ -613,7 +655,7 @@ class EmulatedCia402Drive:
             counts = self._stuck_counts
         v[(p402.POSITION_ACTUAL, 0)] = counts
         v[self.scale_key] = scale
-        meas = float(blk.torque_meas[0]) / gain if enabled else 0.0      # 0x6077: the believed torque
+        meas = meas / gain if enabled else 0.0                          # 0x6077: the believed torque
         v[(p402.TORQUE_ACTUAL, 0)] = _int16(meas * 1000.0 / self.rated_torque)
         if enabled and f.emcy_at_sample is not None and n == f.emcy_at_sample:
             self._fault(f.emcy_code, f"injected at sample {n}")
@@ -622,6 +664,77 @@ class EmulatedCia402Drive:
         self._set_state(self._state)                      # refresh the statusword
         self._send_tpdos(enabled, n)
         self._event_tpdos()
+
+    def _note_alive(self, now: float) -> None:
+        """The emulator runs at ``now``. Not run for longer than OWN_PAUSE_S before: it was paused itself (a
+        paused VM, a starved process), and the emulated world with it - a drive has a processor of its own.
+        That time is taken out of the master's silence and the RPDO deadline (``paused_s`` counts it)."""
+        last, self._alive_t = self._alive_t, now
+        if last is None or now - last <= OWN_PAUSE_S:
+            return
+        gap = now - last
+        self.paused_s += gap
+        if self._plant_wall is not None:
+            self._plant_wall += gap
+        if self._rpdo_t is not None:
+            self._rpdo_t += gap
+
+    def _check_deadline(self, now: float) -> None:
+        """An RPDO deadline passed by ``now`` while OPERATION ENABLED: the plant first runs through the
+        silence with the torque held up to the deadline, then the fault (the torque off from there on)."""
+        d, t = self._deadline_s, self._rpdo_t
+        if not d or t is None or now - t <= d or self._state != p402.OPERATION_ENABLED:
+            return
+        self._fault(RPDO_TIMEOUT, f"no RPDO for {1e3 * (now - t):.0f} ms (deadline 0x1400:05 = {1e3 * d:.0f} ms)",
+                    at=t + d)
+
+    def _torque_in_force(self) -> tuple[bool, float]:
+        """(enabled, the torque the drive believes it applies [N m], its own frame): the last target torque
+        plus the offset 0x60B2 within 0x6072 while OPERATION ENABLED, else 0."""
+        if self._state != p402.OPERATION_ENABLED:
+            return False, 0.0
+        v = self._values
+        limit = v[(p402.MAX_TORQUE, 0)]
+        permille = max(-limit, min(limit, v[(p402.TARGET_TORQUE, 0)] + v[(0x60B2, 0)]))
+        return True, permille * self.rated_torque / 1000.0
+
+    def _step(self, torques: np.ndarray) -> None:
+        blk = self.plant.step_block(torques)
+        self._last_sample = (float(blk.theta1[-1]), float(blk.theta2[-1]), float(blk.torque_applied[-1]),
+                             float(blk.torque_meas[-1]))
+
+    def _note_sync_time(self, t: float) -> None:
+        """A SYNC that came at ``t``: the plant first runs through the time since the last one beyond
+        this SYNC's own sample (a master that went silent), then the interval estimate (regular
+        intervals only). By arrival times: SYNCs that waited in this drive's queue are no silence."""
+        last, p = self._plant_wall, self._sync_period
+        if last is not None and self._syncs > 1:
+            gap = t - last
+            self.longest_silence_s = max(self.longest_silence_s, gap)
+            if p is None:
+                self._sync_period = gap
+            elif gap < 1.5 * p:
+                self._sync_period = p + 0.05 * (gap - p)
+        self._run_through_silence(t, pending=1)
+        self._plant_wall = t if self._plant_wall is None else max(t, self._plant_wall)
+
+    def _run_through_silence(self, now: float, pending: int = 0) -> None:
+        """The plant advances through the samples since the last SYNC up to ``now`` (less the ``pending``
+        ones a SYNC steps itself) with the torque in force then, when they are two or more: a drive
+        holds its last target torque while its master is silent, and the table moves on."""
+        p, last = self._sync_period, self._plant_wall
+        if p is None or last is None or self._node is None or self._node.nmt.state != "OPERATIONAL":
+            return
+        k = int((now - last) / p + 0.5) - pending
+        if k < 2:
+            return
+        enabled, torque = self._torque_in_force()
+        k = min(k, int(SILENCE_MAX_S / p))   # a deadline or the heartbeat consumer has ended it long before
+        self._use_controller(enabled)
+        self._step(np.full(k, self._torque_gain() * torque) if enabled else np.zeros(k))   # disabled: it coasts
+        self.applied_torque = self._last_sample[2] if enabled else 0.0
+        self._plant_wall = max(last + k * p, now - p)
+        self.silent_samples += k
 
     def _position_polarity(self) -> int:
         """-1 while 0x607E bit 7 (position polarity) is set. Bit 6 (velocity polarity) is stored only:
@@ -680,8 +793,10 @@ class EmulatedCia402Drive:
     def _warm_plant(self) -> None:
         """Step a copy of the plant one sample before going on the bus: the first call of each compiled
         kernel a SYNC runs loads or compiles it (milliseconds), and that SYNC would go unanswered.
-        The axis itself does not move."""
-        self._plant_with(self.plant.controller).step_block(np.zeros(1))
+        The axis itself does not move. A silent master's samples (several at once) are warmed too."""
+        for controller in {id(c): c for c in (self.plant.controller, self._controller)}.values():
+            for n in (1, 3):
+                self._plant_with(controller).step_block(np.zeros(n))
 
     def _send_tpdos(self, enabled: bool, n: int) -> None:
         f, v = self.faults, self._values

@@ -66,7 +66,8 @@ def check_mapping_write(node: canopen.LocalNode, index: int, subindex: int, valu
 @dataclass(frozen=True)
 class PdoLayout:
     """One valid PDO: 11-bit COB-ID, transmission type, packing, mapped (index, subindex) keys; for a
-    TPDO its inhibit time (0x18xx:03, 100 us units) and event timer (0x18xx:05, ms) in seconds."""
+    TPDO its inhibit time (0x18xx:03, 100 us units) and event timer (0x18xx:05, ms) in seconds, for an
+    RPDO its deadline (the event timer 0x14xx:05, ms) in seconds."""
 
     cob: int
     trans_type: int
@@ -91,7 +92,7 @@ def _layout(node: canopen.LocalNode, comm: int, mapping: int) -> PdoLayout | Non
     tx = comm >= 0x1800
     return PdoLayout(cob & 0x7FF, od_value(node, comm, 2), st, keys,
                      inhibit_s=1e-4 * _optional(node, comm, 3) if tx else 0.0,
-                     event_s=1e-3 * _optional(node, comm, 5) if tx else 0.0,
+                     event_s=1e-3 * _optional(node, comm, 5),
                      sync_start=_optional(node, comm, 6) if tx else 0)
 
 

@@ -466,8 +466,32 @@ class NodeSetup:
         self.download(p402.MAX_TORQUE, 0, permille, " (drive-side torque limit, per mille of rated torque)")
         self.download(p402.PRODUCER_HEARTBEAT, 0, cfg.heartbeat_ms)
         self.download(p402.CONSUMER_HEARTBEAT, 1, (cfg.master_node_id << 16) | cfg.consumer_ms)
+        deadline_note = self._set_rpdo_deadline()
         self.identity = self.identity_objects()
+        self.identity["rpdo_deadline_ms"] = self.rpdo_deadline_ms
+        if deadline_note:
+            self.identity["notes"].append(deadline_note)
         return rated
+
+    def _set_rpdo_deadline(self) -> str | None:
+        """RPDO1's deadline monitoring (0x1400:05), so the drive itself ends a silence of the host's
+        torques. A drive that refuses it: a note (an error when the config asked for it), and
+        :attr:`rpdo_deadline_ms` None."""
+        cfg = self.cfg
+        self.rpdo_deadline_ms: int | None = cfg.rpdo_deadline_ms
+        if not cfg.rpdo_deadline_ms:
+            return None
+        try:
+            self.download(0x1400, 5, cfg.rpdo_deadline_ms, " (RPDO1 deadline monitoring)", code=0x06)
+        except SdoRefused as exc:
+            if "rpdo_deadline_ms" in cfg.model_fields_set:
+                raise ConfigError("backend.rpdo_deadline_ms", f"{exc}; set 0 to run without it") from exc
+            self.rpdo_deadline_ms = None
+            note = (f"0x1400:05: no RPDO deadline ({p402.abort_text(exc.code)}): a stalled host's last torque "
+                    f"stays until the heartbeat consumer trips ({cfg.consumer_ms} ms)")
+            log.warning("canopen: node %d: %s", cfg.node_id, note)
+            return note
+        return None
 
     def optional_upload(self, index: int, subindex: int = 0, code: int = 0x07) -> int | None:
         """An object the drive may lack, read by SDO whether or not the EDS lists it (its data type from

@@ -258,7 +258,7 @@ EMCY_TEXT = {
     0x6320: "parameter error",
     0x7305: "incremental sensor 1 fault", 0x8110: "CAN overrun (objects lost)",
     0x8130: "life guard error or heartbeat error", 0x8210: "PDO not processed due to length error",
-    0x8240: "unexpected SYNC data length",
+    0x8240: "unexpected SYNC data length", 0x8250: "RPDO timeout",
     0x8611: "following error", 0x8612: "reference limit", 0xFF00: "device specific",
 }
 

@@ -146,10 +146,23 @@ def _stall_before(loops: list[IdentificationLoop], blocks: list[SampleBlock], st
         lp._resume = stall_s
 
 
-def _note_stall(exc: BaseException, stats: LoopStats, now: float) -> None:
-    """A stop shortly after a stall says so (``exc.after_stall``, added to the stop message)."""
-    if stats.stalls.count and not isinstance(exc, LoopStall):
+def _note_stall(exc: BaseException, stats: LoopStats, now: float, since_read: float = 0.0) -> None:
+    """A stop shortly after a stall says so (``exc.after_stall``, added to the stop message). ``since_read``:
+    the host's silence before the read or tick that raised, less a period; longer than the stall limit, it is
+    a stall that ended in this stop (a device that faulted while the host was silent) and is counted."""
+    if isinstance(exc, LoopStall):
+        return
+    if since_read > 0.0:
+        stats.stalls.note(now, since_read, "stopped")
+    if stats.stalls.count:
         exc.after_stall = stats.stalls.before(now)      # type: ignore[attr-defined]
+
+
+def _stall_length(t0: float, last_read: float, period: float, policy: StallPolicy) -> float:
+    """The host's silence from the last read to the start of the tick that raised (``t0``, before its read:
+    waiting on a device is no stall), less a period, when it exceeds the stall limit; else 0."""
+    gap = t0 - last_read - period
+    return gap if gap > policy.max_s else 0.0
 
 
 def _count_tick(stats: LoopStats, info, last_cpu: float, period: float, backlog: bool = False) -> None:
@@ -303,7 +316,7 @@ class IdentificationLoop(TelemetryWindow):
         last_cpu, backlog = 0.0, False      # the tick before: its CPU time, whether it had a stall's backlog
         policy = self.stall_policy
         stats.compiles.start()
-        last_read = self.ticker.start()
+        last_read = t0 = self.ticker.start()
         try:
             for _ in range(n_ticks):
                 if self.stop_event.is_set():
@@ -332,7 +345,7 @@ class IdentificationLoop(TelemetryWindow):
                 if self.tick_hook is not None:
                     self.tick_hook(stats.ticks)
         except RtIdentError as exc:
-            _note_stall(exc, stats, clock())
+            _note_stall(exc, stats, clock(), _stall_length(t0, last_read, period, policy))
             raise
         finally:
             stats.compiles.stop()
@@ -663,7 +676,7 @@ class MultiAxisLoop:
         any_simulated = any(ax.backend.simulated for ax in axes)
         policy = self.stall_policy
         stats.compiles.start()
-        last_read = self.ticker.start()
+        last_read = t0 = self.ticker.start()
         try:
             for _ in range(int(round(self.duration * self.tick_hz))):
                 if self.stop_event.is_set():
@@ -713,7 +726,7 @@ class MultiAxisLoop:
                     self.tick_hook(stats.ticks)
         except BaseException as exc:
             self.failed_axis = names[cur] if cur >= 0 else None
-            _note_stall(exc, stats, clock())
+            _note_stall(exc, stats, clock(), _stall_length(t0, last_read, period, policy))
             raise
         finally:
             stats.compiles.stop()

@@ -2,8 +2,10 @@
 process): the run stops with a cause, zero torque, the device disabled, and a readable recording that
 holds every sample the loop read.
 
-The loop runs without real-time scheduling here (it would make the pytest process SCHED_FIFO), so the
-CANopen watchdog gets a longer stale limit than a bench would use.
+The CANopen runs are real-time (the loop thread leaves SCHED_FIFO when the run ends): a SYNC sender that
+is not leaves gaps of several periods, in which a drive in torque mode holds its last torque while the
+table moves on, and the loop's own control then trips on speed before the injected fault. The watchdog
+gets a longer stale limit than a bench would use, for a loaded test host.
 """
 
 from __future__ import annotations
@@ -42,10 +44,9 @@ def _check_stopped(summary: dict, emulators: list, causes: set) -> None:
 CANOPEN = [
     ("emcy", {"emcy_at_sample": 300, "emcy_code": 0x2310}, {"device-fault"}),
     ("heartbeat-loss", {"heartbeat_stop_at_s": 0.3}, {"device-fault"}),
-    # a stuck motor encoder takes the host's omega1 damping away: on a starved host (the suite runs the
-    # loop without real-time scheduling, watchdog at 200 ticks for that) the table can speed up past
-    # safety.max_speed_m_s, or reach the travel limit's stopping distance, before the watchdog sees the
-    # encoder stuck. Each is a safe stop; the checks below hold for all three.
+    # a stuck motor encoder takes the host's omega1 damping away: with the watchdog at 200 ticks the table
+    # can speed up past safety.max_speed_m_s, or reach the travel limit's stopping distance, before the
+    # watchdog sees the encoder stuck. Each is a safe stop; the checks below hold for all three.
     ("stuck-encoder", {"stuck_encoder_at_sample": 300}, {"watchdog", "speed-limit", "travel-limit"}),
     ("tpdos-dropped", {"drop_tpdo_every": 1, "tpdo_faults_from_sample": 300}, {"watchdog"}),
     ("tpdos-corrupted", {"corrupt_tpdo_every": 1, "tpdo_faults_from_sample": 300}, {"watchdog", "protocol"}),
@@ -56,7 +57,7 @@ CANOPEN = [
 def test_canopen_fault_stops_at_zero_torque_disabled_with_the_recording_intact(name, faults, causes, emulators,
                                                                                 tmp_path):
     cfg = load(CONFIG_DIR / "canopen-virtual.toml",
-               **{"loop.duration": 3.0, "loop.realtime": False, "telemetry.sink": "off",
+               **{"loop.duration": 3.0, "loop.realtime": True, "telemetry.sink": "off",
                   "backend.stale_limit": 200, "safety.watchdog_ticks": 200, "emulator.faults": faults})
     rec = tmp_path / "r.parquet"
     summary = run_mod.run(cfg, record=str(rec))

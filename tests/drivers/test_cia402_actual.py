@@ -233,7 +233,7 @@ def test_effective_scale_sign_is_the_configured_one_reversed_by_0x607E_bit_7_onl
             drive.stop()
 
 
-def test_identity_returns_the_drive_objects_read_at_open():
+def test_identity_returns_the_drive_objects_read_at_open_and_the_rpdo_deadline_set():
     cfg = _rig_cfg(None, None, {})
     drive = start_emulator_for(cfg)
     try:
@@ -244,7 +244,7 @@ def test_identity_returns_the_drive_objects_read_at_open():
             ident = be.identity()
             assert ident == {"node_id": 5, "device_type": 0x00020192, "supported_drive_modes": 0x3AD,
                              "rated_torque_nm": pytest.approx(RATED), "max_torque_permille": 1562,
-                             "polarity": 0, "notes": []}
+                             "polarity": 0, "notes": [], "rpdo_deadline_ms": 200}
             be.activate()
             assert be.identity() == ident                  # cached: no SDO at tick time
             # a drive takes no polarity change with its power stage on (SDO abort 0x08000022); the active
@@ -274,3 +274,30 @@ def test_a_drive_without_0x607E_reads_as_polarity_none_and_keeps_the_configured_
     with pytest.raises(ConfigError) as err:             # an emulator cannot set what its EDS lacks
         start_emulator_for(_rig_cfg(None, {"eds": str(eds), "polarity": 0x80}, {}))
     assert err.value.field == "emulator.polarity"
+
+
+def test_a_drive_without_an_rpdo_deadline_is_named_in_the_notes_or_refused_when_the_config_asks_for_one(
+        tmp_path, monkeypatch):
+    from drivers.cia402 import node as node_mod
+
+    real = node_mod.NodeSetup.download
+
+    def no_deadline(self, index, subindex, value, what="", code=None):
+        if (index, subindex) == (0x1400, 5):
+            raise node_mod.SdoRefused(0x06090011, "node 5 refused writing RPDO1 0x1400:05: sub-index does not exist")
+        return real(self, index, subindex, value, what, code)
+
+    monkeypatch.setattr(node_mod.NodeSetup, "download", no_deadline)
+    cfg = _rig_cfg(None, None, {})
+    default = {k: v for k, v in cfg["backend"].items() if k != "rpdo_deadline_ms"}    # the default deadline
+    drive = start_emulator_for(cfg)
+    try:
+        with Cia402Backend(default) as be:
+            ident = be.identity()
+        assert ident["rpdo_deadline_ms"] is None
+        assert any(n.startswith("0x1400:05: no RPDO deadline") and "heartbeat consumer" in n for n in ident["notes"])
+        with pytest.raises(ConfigError) as err, Cia402Backend({**cfg["backend"], "rpdo_deadline_ms": 20}):
+            pass
+        assert err.value.field == "backend.rpdo_deadline_ms"
+    finally:
+        drive.stop()

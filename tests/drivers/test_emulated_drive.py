@@ -129,7 +129,8 @@ def test_drive_does_not_answer_a_sync_once_the_next_one_has_arrived():
     channel = f"w-{uuid.uuid4().hex[:8]}"
     backend = {"interface": "virtual", "channel": channel, "node_id": 5, "sync_rate_hz": 1000, "torque_limit": 1.0,
                "rated_torque": 0.64, "counts_per_rev": 131072, "scale_resolution": 1e-7, "heartbeat_ms": 50,
-               "stale_limit": 50, "startup_timeout": 3.0}
+               "stale_limit": 50, "startup_timeout": 3.0,
+               "rpdo_deadline_ms": 0}                 # the test hands the frames over itself, in its own time
     drive = start_emulator_for({"backend": backend, "emulator": {"position_hold": True}})
     try:
         with Cia402Backend(backend) as be:
@@ -212,9 +213,10 @@ scale_resolution = 1e-7
 heartbeat_ms = 50
 sdo_timeout = 0.5
 stale_limit = 50
+rpdo_deadline_ms = 200
 [emulator]
 position_hold = true
-""")
+""")                                # this process's SYNC thread is not real-time: a wide RPDO deadline
     import tomllib
     backend_cfg = tomllib.loads(toml.read_text())["backend"]
     child = subprocess.Popen([sys.executable, "-m", "drivers.cia402.emulator", "--config", str(toml)],
@@ -238,3 +240,57 @@ position_hold = true
     finally:
         child.terminate()
         assert child.wait(10) == 0
+
+
+def _silent_drive(deadline_s: float) -> tuple[EmulatedCia402Drive, list[int]]:
+    """A drive in OPERATION ENABLED at 1 kHz holding 0.32 N m (500 per mille of 0.64 N m), its master's last
+    SYNC and RPDO at t = 10 s, off the bus (the state a silence finds it in; no threads, no clock)."""
+    from types import SimpleNamespace
+
+    plant = PlantSimulator(thomson_x(), 1e-3, sensors=SensorConfig())
+    drive = EmulatedCia402Drive(5, EDS, {"interface": "virtual"}, plant, rated_torque=0.64)
+    sent: list[int] = []
+    drive._node = SimpleNamespace(nmt=SimpleNamespace(state="OPERATIONAL"),
+                                  emcy=SimpleNamespace(send=lambda code, reg: sent.append(code)))
+    drive._values.update({(p402.TARGET_TORQUE, 0): 500, (0x60B2, 0): 0, (p402.MAX_TORQUE, 0): 1000})
+    drive._state = p402.OPERATION_ENABLED
+    drive._sync_period, drive._plant_wall, drive._syncs = 1e-3, 10.0, 100
+    drive._deadline_s, drive._rpdo_t = deadline_s, 10.0
+    return drive, sent
+
+
+def _momentum(drive: EmulatedCia402Drive) -> float:
+    p, s = drive.plant.params, drive.plant.state
+    return p.I1 * s[1] + p.I2 * s[3]            # of the free two-inertia axis: grows by the torque's impulse
+
+
+def test_a_master_silent_past_the_rpdo_deadline_faults_the_drive_after_the_torque_held_that_long():
+    drive, sent = _silent_drive(0.020)
+    m0 = _momentum(drive)
+    drive._check_deadline(10.015)               # within the deadline: nothing happens yet
+    assert drive.state == p402.OPERATION_ENABLED and drive.silent_samples == 0
+    drive._check_deadline(10.300)               # the housekeeping sees the silence 300 ms on
+    assert drive.state == p402.FAULT and sent == [0x8250] and drive.applied_torque == 0.0
+    held = drive.silent_samples
+    assert held == 20                           # the torque stayed in force up to the deadline only
+    assert _momentum(drive) - m0 == pytest.approx(0.32 * held * 1e-3, rel=0.02)
+    drive._run_through_silence(10.300)          # the rest of the silence (the next SYNC): coasting, no torque
+    assert drive.silent_samples > held and _momentum(drive) - m0 == pytest.approx(0.32 * held * 1e-3, rel=0.02)
+
+
+def test_without_an_rpdo_deadline_a_silent_master_leaves_the_last_torque_in_force():
+    drive, sent = _silent_drive(0.0)
+    m0 = _momentum(drive)
+    drive._check_deadline(10.300)
+    assert drive.state == p402.OPERATION_ENABLED and sent == []
+    drive._run_through_silence(10.300)          # the next SYNC: 300 ms of the held torque
+    assert drive.silent_samples == 300
+    assert _momentum(drive) - m0 == pytest.approx(0.32 * 0.300, rel=0.02)
+
+
+def test_an_rpdo_that_arrives_after_a_silence_past_the_deadline_faults_the_drive_first():
+    # the host and the emulated drive stalled together (one VM): the RPDO's arrival shows the silence
+    drive, sent = _silent_drive(0.020)
+    drive._rpdo_by_cob = {0x205: type("L", (), {"event_s": 0.020, "trans_type": 1})()}
+    drive._on_rpdo(0x205, bytearray(4), 10.100)
+    assert drive.state == p402.FAULT and sent == [0x8250] and drive.silent_samples == 20

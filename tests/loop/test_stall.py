@@ -119,9 +119,11 @@ def test_the_frequency_estimator_leaves_out_the_periods_a_stall_touched():
     assert fed(3 * N + 48).periods == 7
 
 
-def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok: bool = False):
+def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok: bool = False,
+                 journal_bytes: int = 2_000_000):
     """``rt-ident run`` (the quick start's command, real time) stopped for 0.5 s mid-run with SIGSTOP, then
-    SIGCONT: the summary and the recording (``journal_of``: the recording that shows the loop is running)."""
+    SIGCONT: the summary and the recording (``journal_of``: the recording that shows the loop is running
+    once it holds ``journal_bytes``)."""
     import json
     import os
     import signal
@@ -138,7 +140,7 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
     try:
         journal = rec.with_name(journal_of + ".arrows")
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 2_000_000) \
+        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < journal_bytes) \
                 and proc.poll() is None:
             time.sleep(0.05)                        # ~1.5 s of samples recorded: the loop is well under way
         if proc.poll() is not None and early_ok:     # a stall of its own (a busy machine) came first
@@ -178,6 +180,23 @@ def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
     # from the coasting speed the rejoin brakes; back to the hold position at most at its v_max (20 mm/s)
     assert after.max() <= max(coast, 0.02) * 1.15 + 2e-3, (after.max(), coast)
     assert s["control"]["max_error_m"] < 2e-3
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("realtime")
+def test_a_sigstop_of_a_canopen_run_ends_on_the_drives_rpdo_deadline_not_a_lunge(tmp_path):
+    """The whole process stops: no SYNC, no RPDO. A CiA 402 drive in torque mode holds its last target
+    torque; the RPDO deadline the host set (backend.rpdo_deadline_ms) ends that within 20 ms, where the
+    heartbeat consumer (250 ms here) would let the table run on."""
+    rc, s, r, err = _sigstop_run(tmp_path, "configs/canopen-virtual.toml", journal_bytes=150_000)
+    assert rc == 3 and s["stop"]["cause"] == "device-fault", (s["stop"], err[-2000:])
+    assert "0x8250" in s["stop"]["message"] and "stall" in s["stop"]["message"], (s["stop"], s["loop"]["stalls"])
+    # the drive's own account: the torque held 20 ms at most, so the table's speed at the fault is bounded
+    # by the torque limit's impulse (1 N m x 20 ms on I1 + I2)
+    fault = re.search(r"fault EMCY 0x8250.*table at x = (-?[\d.]+) mm, (-?[\d.]+) mm/s", err)
+    assert fault is not None, err[-3000:]
+    bound = 1.0 * 0.020 / (2.7e-5 + 8.3e-6) * 7.96e-4
+    assert abs(float(fault.group(2))) * 1e-3 <= bound, (fault.group(0), bound)
 
 
 @pytest.mark.slow
