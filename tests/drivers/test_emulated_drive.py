@@ -294,3 +294,15 @@ def test_an_rpdo_that_arrives_after_a_silence_past_the_deadline_faults_the_drive
     drive._rpdo_by_cob = {0x205: type("L", (), {"event_s": 0.020, "trans_type": 1})()}
     drive._on_rpdo(0x205, bytearray(4), 10.100)
     assert drive.state == p402.FAULT and sent == [0x8250] and drive.silent_samples == 20
+
+
+def test_time_the_emulator_itself_was_not_run_is_no_silence_of_its_master():
+    # a paused VM stops the host and the emulated drive together: a drive with its own processor saw nothing
+    drive, sent = _silent_drive(0.020)
+    drive._alive_t = 10.0
+    m0 = _momentum(drive)
+    drive._note_alive(10.300)                   # the emulator runs again, 300 ms after it last did
+    drive._check_deadline(10.301)
+    drive._run_through_silence(10.301)
+    assert drive.state == p402.OPERATION_ENABLED and sent == [] and drive.paused_s == pytest.approx(0.3)
+    assert drive.silent_samples == 0 and _momentum(drive) == m0
