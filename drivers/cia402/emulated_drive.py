@@ -131,7 +131,8 @@ class EmulatedCia402Drive:
     ``counts_per_rev``, ``scale_resolution``, ``rated_torque`` (0x6076): the drive's true values;
     ``torque_sign``, ``motor_encoder_sign``, ``scale_sign`` (+-1), ``torque_scale`` (> 0): how the
     motor and the encoders are truly wired (see the module docstring); ``polarity``: 0x607E at power-up
-    (0: the profile's); ``profile``: the vendor variant (:mod:`drivers.cia402.variants`).
+    (0: the profile's); ``profile``: the vendor variant (:mod:`drivers.cia402.variants`);
+    ``run_through_silence``: False steps the table on SYNCs only (a silent master freezes it).
     """
 
     def __init__(self, node_id: int, eds_path: str | Path, bus: Mapping[str, Any], plant: PlantSimulator,
@@ -139,7 +140,8 @@ class EmulatedCia402Drive:
                  scale_resolution: float = 1e-7, scale_index: int = 0x60E4, scale_subindex: int = 1,
                  rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto",
                  torque_sign: int = 1, motor_encoder_sign: int = 1, scale_sign: int = 1, torque_scale: float = 1.0,
-                 polarity: int = 0, profile: str | DriveProfile = "generic") -> None:
+                 polarity: int = 0, profile: str | DriveProfile = "generic",
+                 run_through_silence: bool = True) -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node_id must be 1..127, got {node_id!r}")
         self.node_id = int(node_id)
@@ -218,6 +220,7 @@ class EmulatedCia402Drive:
         self._sync_period: float | None = None   # the SYNC interval seen while they come regularly [s]
         self._plant_wall: float | None = None    # monotonic time the plant has been advanced to
         self.silent_samples = 0       # samples the plant ran with no SYNC (a stalled master)
+        self.run_through_silence = bool(run_through_silence)   # False: the table steps on SYNCs only
         self.longest_silence_s = 0.0             # the longest interval between two SYNCs [s]
         self.paused_s = 0.0                      # time the emulator itself was not run (not the master's silence)
         self._alive_t: float | None = None       # when the emulator last ran (housekeeping, SYNC, RPDO)
@@ -723,7 +726,8 @@ class EmulatedCia402Drive:
         ones a SYNC steps itself) with the torque in force then, when they are two or more: a drive
         holds its last target torque while its master is silent, and the table moves on."""
         p, last = self._sync_period, self._plant_wall
-        if p is None or last is None or self._node is None or self._node.nmt.state != "OPERATIONAL":
+        if p is None or last is None or self._node is None or self._node.nmt.state != "OPERATIONAL" or \
+                not self.run_through_silence:
             return
         k = int((now - last) / p + 0.5) - pending
         if k < 2:

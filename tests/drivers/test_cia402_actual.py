@@ -58,8 +58,10 @@ def _rig_cfg(actual: dict | None, emulator: dict | None, over: dict, channel: st
     # a starved drive may take many SYNC periods to deliver the samples a test needs; heartbeats may be
     # late by as much (the watchdogs are not what these tests are about)
     over = {"sync_rate_hz": 250, "heartbeat_consumer_ms": 2000, **over}
+    # the two drives are compared SYNC by SYNC: each stepping its table through this process's SYNC gaps on
+    # its own clock would set them apart
     return {"backend": backend_cfg(channel or f"a-{uuid.uuid4().hex[:10]}", node_id=node_id, **over),
-            "emulator": {"travel": None, "actual": actual or {}, **(emulator or {})}}
+            "emulator": {"travel": None, "actual": actual or {}, "run_through_silence": False, **(emulator or {})}}
 
 
 def compare(actual: dict | None = None, emulator: dict | None = None, **over) -> Pair:
