@@ -217,7 +217,8 @@ class EmulatedCia402Drive:
         self.sync_length_errors = 0   # SYNCs ignored: a counter where 0x1019 is 0, or none where it is set
         self.late_syncs = 0           # SYNCs answered by no TPDO: a later SYNC had already arrived
         self._sync_t = 0.0            # arrival time of the SYNC being handled
-        self._sync_period: float | None = None   # the SYNC interval seen while they come regularly [s]
+        self._sync_period: float | None = None   # the SYNC period the master set (0x1006 or 0x60C2) [s]
+        self._ip = [0, 0]                        # 0x60C2 as written: period value, index (power of ten)
         self._plant_wall: float | None = None    # monotonic time the plant has been advanced to
         self.silent_samples = 0       # samples the plant ran with no SYNC (a stalled master)
         self.run_through_silence = bool(run_through_silence)   # False: the table steps on SYNCs only
@@ -374,6 +375,12 @@ class EmulatedCia402Drive:
             self._tpdo_started.clear()
         elif index == INTERPOLATION_PERIOD and subindex == 2 and not -6 <= _int8(value) <= 0:
             raise SdoAbortedError(0x06090030)       # a time index this drive does not take (1 us .. 1 s)
+        elif index == p402.CYCLE_PERIOD:
+            self._sync_period = 1e-6 * value if value else None
+        elif index == INTERPOLATION_PERIOD and subindex in (1, 2):
+            self._ip[subindex - 1] = value if subindex == 1 else _int8(value)
+            if self._ip[0] and (self._sync_period is None or not self._cycle_set_directly()):
+                self._sync_period = self._ip[0] * 10.0 ** self._ip[1]
         elif index == p402.MODES_OF_OPERATION:
             self._values[(index, 0)] = value
             bit = p402.MODE_BITS.get(value)
@@ -706,18 +713,20 @@ class EmulatedCia402Drive:
         self._last_sample = (float(blk.theta1[-1]), float(blk.theta2[-1]), float(blk.torque_applied[-1]),
                              float(blk.torque_meas[-1]))
 
+    def _cycle_set_directly(self) -> bool:
+        """0x1006 holds a period (it takes precedence over 0x60C2)."""
+        node = self._node
+        return node is not None and node.object_dictionary.get_variable(p402.CYCLE_PERIOD) is not None and \
+            bool(od_value(node, p402.CYCLE_PERIOD))
+
     def _note_sync_time(self, t: float) -> None:
         """A SYNC that came at ``t``: the plant first runs through the time since the last one beyond
-        this SYNC's own sample (a master that went silent), then the interval estimate (regular
-        intervals only). By arrival times: SYNCs that waited in this drive's queue are no silence."""
-        last, p = self._plant_wall, self._sync_period
+        this SYNC's own sample (a master that went silent), counted in the SYNC period the master set (no
+        period set: nothing is run through). By arrival times: SYNCs that waited in this drive's queue are
+        no silence."""
+        last = self._plant_wall
         if last is not None and self._syncs > 1:
-            gap = t - last
-            self.longest_silence_s = max(self.longest_silence_s, gap)
-            if p is None:
-                self._sync_period = gap
-            elif gap < 1.5 * p:
-                self._sync_period = p + 0.05 * (gap - p)
+            self.longest_silence_s = max(self.longest_silence_s, t - last)
         self._run_through_silence(t, pending=1)
         self._plant_wall = t if self._plant_wall is None else max(t, self._plant_wall)
 

@@ -306,3 +306,19 @@ def test_time_the_emulator_itself_was_not_run_is_no_silence_of_its_master():
     drive._run_through_silence(10.301)
     assert drive.state == p402.OPERATION_ENABLED and sent == [] and drive.paused_s == pytest.approx(0.3)
     assert drive.silent_samples == 0 and _momentum(drive) == m0
+
+
+def test_a_silence_is_counted_in_the_sync_period_the_master_set_not_in_arrival_gaps():
+    # two SYNCs that arrive together (a burst after a late send) are no clock: a period learnt from them
+    # once ran the table 100 samples through every ordinary SYNC
+    drive, _ = _silent_drive(0.0)
+    drive._sync_period = None
+    drive._written(p402.CYCLE_PERIOD, 0, 1000)          # the master's 0x1006: 1000 us
+    assert drive._sync_period == pytest.approx(1e-3)
+    for t in (10.00001, 10.00101, 10.00201):             # a burst, then the ordinary pace
+        drive._syncs += 1
+        drive._note_sync_time(t)
+    assert drive.silent_samples == 0
+    drive._syncs += 1
+    drive._note_sync_time(10.02201)                      # 20 ms silent: 19 samples besides this SYNC's own
+    assert drive.silent_samples == 19
