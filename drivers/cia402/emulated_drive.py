@@ -22,11 +22,10 @@ SYNCs stop (a stalled master), time does not: the next SYNC, or a fault (the hea
 first runs the plant through the silence with the torque in force, as a real drive holds its last
 target torque while the table moves on (``silent_samples`` counts those samples). Time the emulator
 itself was not run (a paused VM: the master paused with it) is no silence: the emulated world stood
-still (``paused_s``). RPDO deadline
-monitoring (CiA 301: an RPDO's event timer 0x14xx:05, in ms, from its first reception on): an RPDO
-not received within it while OPERATION ENABLED is a fault (EMCY 0x8250, torque 0 from that instant;
-the table coasts on). Checked with the housekeeping and on each RPDO's arrival (a host and a drive in
-one stalled VM: the drive would have seen the silence).
+still (``paused_s``). A silence is counted in the SYNC period the master set (0x1006, else 0x60C2).
+RPDO deadline monitoring (CiA 301: an RPDO's event timer 0x14xx:05, in ms, from its first reception
+on): an RPDO not received within it while OPERATION ENABLED is a fault (EMCY 0x8250, torque 0 from
+that instant; the table coasts on). Checked with the housekeeping and on each RPDO's arrival.
 TPDOs carry the measurement taken at that SYNC (the plant measures at the start of
 the sample) and the torque applied from that SYNC on.
 
