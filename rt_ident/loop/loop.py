@@ -158,10 +158,10 @@ def _note_stall(exc: BaseException, stats: LoopStats, now: float, since_read: fl
         exc.after_stall = stats.stalls.before(now)      # type: ignore[attr-defined]
 
 
-def _stall_length(t0: float, last_read: float, period: float, policy: StallPolicy) -> float:
-    """The host's silence from the last read to the start of the tick that raised (``t0``, before its read:
-    waiting on a device is no stall), less a period, when it exceeds the stall limit; else 0."""
-    gap = t0 - last_read - period
+def _stall_length(t: float, last_read: float, period: float, policy: StallPolicy) -> float:
+    """The host's silence from the last read to ``t``, less a period, when it exceeds the stall limit; else 0.
+    For a tick that raised, ``t`` is its start, before its read: waiting on a device is no stall."""
+    gap = t - last_read - period
     return gap if gap > policy.max_s else 0.0
 
 
@@ -327,8 +327,9 @@ class IdentificationLoop(TelemetryWindow):
                 _count_tick(stats, info, last_cpu, period, backlog)
                 block = backend.read()
                 t_read = clock()
-                if t_read - last_read > period + policy.max_s:
-                    _stall_before([self], [block], stats, policy, t_read - last_read - period, t_read)
+                stall_s = _stall_length(t_read, last_read, period, policy)
+                if stall_s:
+                    _stall_before([self], [block], stats, policy, stall_s, t_read)
                 last_read = self._t_read = t_read
                 resuming = self._resume is not None
                 self._process(block, info.lateness_s)
@@ -693,8 +694,9 @@ class MultiAxisLoop:
                     spent[cur] = clock() - t1
                 cur = -1
                 t_read = clock()
-                if t_read - last_read > period + policy.max_s:
-                    _stall_before(axes, blocks, stats, policy, t_read - last_read - period, t_read)
+                stall_s = _stall_length(t_read, last_read, period, policy)
+                if stall_s:
+                    _stall_before(axes, blocks, stats, policy, stall_s, t_read)
                 last_read = t_read
                 resuming = any(ax._resume is not None for ax in axes)
                 for cur, (ax, block) in enumerate(zip(axes, blocks)):
