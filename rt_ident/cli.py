@@ -123,6 +123,12 @@ def _summary_table(title: str, s: dict) -> Table:
     return tab
 
 
+def _kept(redesigns: dict) -> str:
+    """' (3 more kept the design in force)' when some accepted results kept it, else ''."""
+    n = redesigns.get("kept") or 0
+    return f" ({n} more kept the design in force)" if n else ""
+
+
 def _interval(ci) -> str:
     return "-" if not ci else f"{fmt(ci[0])} .. {fmt(ci[1])}"
 
@@ -438,7 +444,7 @@ def _print_run(s: dict) -> None:
                 f"max {fmt(um(ctl.get('max_error_m')))} um")
         if ctl.get("rms_error_after_change_m") is not None:
             line += f", rms after the plant change {fmt(um(ctl['rms_error_after_change_m']))} um"
-        line += (f"; redesigns accepted {rd.get('accepted', 0)}, rejected {rd.get('rejected', 0)}; "
+        line += (f"; redesigns accepted {rd.get('accepted', 0)}{_kept(rd)}, rejected {rd.get('rejected', 0)}; "
                  f"fallbacks {ctl.get('fallbacks', 0)}; running the {ctl.get('controller')} controller")
         out.print(line)
         for reason in rd.get("rejected_reasons") or []:
@@ -491,7 +497,8 @@ def _print_axes(s: dict) -> None:
         if ctl.get("mode") not in (None, "off"):
             rd = ctl.get("redesigns") or {}
             out.print(f"control {name}: {ctl['mode']}, table error rms {fmt(um(ctl.get('rms_error_m')))} um, "
-                      f"max {fmt(um(ctl.get('max_error_m')))} um; redesigns accepted {rd.get('accepted', 0)}, "
+                      f"max {fmt(um(ctl.get('max_error_m')))} um; redesigns accepted {rd.get('accepted', 0)}"
+                      f"{_kept(rd)}, "
                       f"rejected {rd.get('rejected', 0)}; running the {ctl.get('controller')} controller")
         files = ax.get("files") or {}
         for key, what in (("rrd", "dashboard"), ("recording", "recording")):

@@ -151,6 +151,8 @@ class ControlConfig(_Section):
     settle_tolerance: float = Field(0.02, gt=0)       # per-sample: I1, I2, K steady within this over the window
     interval_tolerance: float = Field(0.05, gt=0)     # per-sample: 95 % half-widths of I1, I2, K within this
     audit_grace_s: float = Field(1.0, ge=0)           # the frequency fit's lag after a detected change
+    keep_margin: float = Field(0.05, ge=0, le=1)     # a new design is switched in only if its predicted error
+                                                      # beats the one in force by this (0: always switched in)
     probe_scale_trusted: float = Field(1.0, gt=0, le=1)  # probing amplitude x this while the estimate is trusted
     delay_ticks: int = Field(1, ge=1, le=5)           # ticks from the newest sample until the torque lands
     drive_holds: bool = False                         # a real drive holds the axis itself (a position mode):

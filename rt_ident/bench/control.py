@@ -94,10 +94,11 @@ def changed_plant(nominal: AxisParams, factors: dict[str, float]) -> AxisParams:
 
 
 def change_to_redesign(control: dict[str, Any], truth: AxisParams, change_at: float) -> float | None:
-    """Seconds from the change to the first model design switched in whose every parameter is within
-    NEW_PLANT_TOLERANCE of the new plant ``truth`` (None: none was)."""
+    """Seconds from the change to the first model design switched in, or kept after the family check on
+    the new estimate, whose model (kept: that estimate) is within NEW_PLANT_TOLERANCE of the new plant
+    ``truth`` on every parameter (None: none was)."""
     for a in control.get("applied") or ():
-        if a["t"] < change_at or a["kind"] != "model":
+        if a["t"] < change_at or a["kind"] not in ("model", "kept"):
             continue
         if all(abs(a["model"][k] / getattr(truth, k) - 1.0) <= NEW_PLANT_TOLERANCE for k in ("I1", "I2", "B", "K")):
             return float(a["t"]) - change_at
@@ -105,10 +106,10 @@ def change_to_redesign(control: dict[str, Any], truth: AxisParams, change_at: fl
 
 
 def first_response(control: dict[str, Any], change_at: float) -> float | None:
-    """Seconds from the change to the adaptive loop's first act on it: its change detector firing or a
-    model design switched in, whichever came first (None: neither)."""
+    """Seconds from the change to the adaptive loop's first act on it: its change detector firing, or a
+    model design switched in or kept for a new estimate, whichever came first (None: none)."""
     ts = [e["t"] for e in control.get("events") or () if e["kind"] == "change detected" and e["t"] >= change_at]
-    ts += [a["t"] for a in control.get("applied") or () if a["kind"] == "model" and a["t"] >= change_at]
+    ts += [a["t"] for a in control.get("applied") or () if a["kind"] in ("model", "kept") and a["t"] >= change_at]
     return min(ts) - change_at if ts else None
 
 

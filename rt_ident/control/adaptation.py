@@ -38,10 +38,19 @@ from typing import Any
 
 import numba
 import numpy as np
+import scipy.linalg
 
 from rt_ident.axis.params import AxisParams
 from rt_ident.control.anchor import Anchor, ReferenceOptions
-from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_gain_view, loop_margins
+from rt_ident.control.design import (
+    check_family,
+    delay_of,
+    design_lqr,
+    design_rigid,
+    loop_gain_view,
+    loop_margins,
+    sampled_model,
+)
 from rt_ident.control.law import C_INERTIA, Controller, StateFeedback
 from rt_ident.errors import RtIdentError
 from rt_ident.estimators.svf import interval_halves
@@ -83,6 +92,9 @@ class ControlSettings:
     interval_tolerance: float = 0.05         # 95 % interval half-widths of I1, I2, K within this (B: DAMPING_TOLERANCE)
     audit_grace_s: float = 1.0               # after a detected change the frequency fit still lags this long
     audit_vetoes: int = 2                    # consecutive disagreements of the fit (past the grace) that veto
+    # a model design in force is kept for a new estimate (no switch) while its predicted error is within
+    # this of the new design's (keep_design); 0: every accepted design is switched in
+    keep_margin: float = 0.05
 
 
 #: ticks between two looks at the per-sample estimate's evidence (Supervisor.assess)
@@ -257,16 +269,75 @@ def _redesign(request: dict[str, Any]) -> dict[str, Any]:
         ctrl = model_controller(p, tick, s)
     except Exception as exc:  # noqa: BLE001 - a design that fails is a rejected design, with its reason
         return {"accepted": False, "reason": f"design failed: {exc}", "seq": request.get("seq")}
-    check = check_family(ctrl.gains, p, tick, gm_db=s.gain_margin_db, pm_deg=s.phase_margin_deg,
-                         factors=tuple(s.family_factors), ci95=request.get("ci95"))
-    out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": request.get("seq")}
+    in_force = request.get("in_force")
+    kept = None if in_force is None else keep_design(np.asarray(in_force["gains"], dtype=float),
+                                                     AxisParams(**in_force["model"], lead=p.lead), ctrl.gains,
+                                                     p, tick, s, request.get("ci95"))
+    if kept is not None:
+        check, why = kept
+        out = {"accepted": True, "kept_for": p, "reason": why, "check": check.as_dict(), "seq": request.get("seq")}
+    else:
+        check = check_family(ctrl.gains, p, tick, gm_db=s.gain_margin_db, pm_deg=s.phase_margin_deg,
+                             factors=tuple(s.family_factors), ci95=request.get("ci95"))
+        out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": request.get("seq")}
     if check.ok:
-        out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict(), ctrl.loop_view)
+        if kept is None:
+            out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict(),
+                                           ctrl.loop_view)
         cons = request.get("conservative")
         if cons is not None:
             out["fallback"], out["fallback_reason"] = _fallback_for(np.asarray(cons, dtype=float), p, tick, s,
                                                                     request.get("ci95"))
     return out
+
+
+def error_norm(G: np.ndarray, p: AxisParams, tick: float) -> float:
+    """H2 norm of the closed loop ``G`` on ``p`` (:func:`rt_ident.control.design.sampled_model`) from
+    a torque disturbance at the motor to the table-angle error: how much the loop lets the torques it
+    does not know (the probe, friction, a feedforward's error) move the table. inf when unstable."""
+    Az, Bz = sampled_model(p, tick, delay_of(G))
+    Acl = Az - Bz @ np.asarray(G, dtype=float).reshape(1, -1)
+    if not np.abs(np.linalg.eigvals(Acl)).max() < 1.0:
+        return math.inf
+    bw = Az[:, 4:5].copy()                      # the disturbance enters where the landing torque does
+    bw[4:] = 0.0
+    # the bilinear method: the direct one (a Kronecker system) is ill-conditioned on these state scales
+    W = scipy.linalg.solve_discrete_lyapunov(Acl, bw @ bw.T, method="bilinear")
+    return math.sqrt(max(float(W[2, 2]), 0.0))
+
+
+def reference_error(gains: np.ndarray, model: AxisParams, p: AxisParams) -> float:
+    """The share of the torque the reference needs (I1 + I2) alpha that a law built on ``model`` gets
+    wrong on the axis ``p`` (rigid body): the inertia feedforward's error, and the motor-angle
+    reference's twist I2 alpha / K (:mod:`rt_ident.control.law`) off by I2 alpha |1/K - 1/K'|, which
+    the motor-angle gain turns into torque."""
+    J = p.I1 + p.I2
+    twist = abs(float(gains[0])) * p.I2 * abs(1.0 / model.K - 1.0 / p.K)
+    return abs(model.I1 + model.I2 - J) / J + twist / J
+
+
+def keep_design(gains: np.ndarray, model: AxisParams, new_gains: np.ndarray, p: AxisParams, tick: float,
+                s: ControlSettings, ci95) -> tuple[Any, str] | None:
+    """(its family check, why) when the model design in force (``gains``, designed for ``model``)
+    should stay for the estimate ``p`` instead of the design ``new_gains`` made for it; else None.
+
+    Every switch has a transient of its own (the re-seeded integral decays through the new loop), so a
+    design is switched in only where it is predicted to do better by more than ``keep_margin``
+    (hysteresis: an estimate near the edge does not flip between switching and not). Kept when its
+    :func:`reference_error` on ``p`` is within ``min_change``, its :func:`error_norm` on ``p`` within
+    ``keep_margin`` of the new design's, and it passes the family check on ``p`` with the margins, as
+    a new design must."""
+    if s.keep_margin <= 0.0 or not reference_error(gains, model, p) <= s.min_change:
+        return None
+    old, new = error_norm(gains, p, tick), error_norm(new_gains, p, tick)
+    if not old <= (1.0 + s.keep_margin) * new:
+        return None
+    check = check_family(gains, p, tick, gm_db=s.gain_margin_db, pm_deg=s.phase_margin_deg,
+                         factors=tuple(s.family_factors), ci95=ci95)
+    if not check.ok:
+        return None
+    return check, (f"the design in force kept: its error norm on the estimate is {old / new:.3f} x the new "
+                   f"design's (switching takes more than {100 * s.keep_margin:g} %)")
 
 
 def _fallback_for(gains: np.ndarray, p: AxisParams, tick: float, s: ControlSettings,
@@ -307,6 +378,7 @@ ERR_SQ, ERR_N, ERR_MAX = range(3)
 class ControlStats:
     accepted: int = 0
     rejected: int = 0
+    kept: int = 0                # accepted results that kept the design in force (keep_design)
     fallbacks: int = 0
     reasons: list[str] = field(default_factory=list)
     events: list[tuple[float, str, str]] = field(default_factory=list)   # (t, kind, detail)
@@ -784,7 +856,11 @@ class Supervisor:
         self._req += 1
         if callable(ci95):
             ci95 = ci95()
-        req = {"conservative": [float(v) for v in self.conservative.gains],
+        ctrl = self.controller
+        in_force = ({"gains": [float(v) for v in ctrl.gains],
+                     "model": {k: float(getattr(ctrl.model, k)) for k in KEYS}}
+                    if ctrl.kind == "model" and not self.in_fallback else None)
+        req = {"conservative": [float(v) for v in self.conservative.gains], "in_force": in_force,
                "params": {**{k: float(v) for k, v in zip(KEYS, values)}, "lead": self.lead},
                "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}
@@ -815,7 +891,7 @@ class Supervisor:
             self._request(*due)
             return
         if self._result is not None:
-            stale = self._stale(self._result["controller"].model)
+            stale = self._stale(_designed_for(self._result))
             if stale is not None or self._quiet(self._result["controller"]):
                 res, self._result = self._result, None
                 self._pending = False
@@ -834,14 +910,14 @@ class Supervisor:
         st.latency_s.append(self.t - self._last_request_t)
         if res.get("cpu_s") is not None:
             st.cpu_s.append(float(res["cpu_s"]))
-        stale = self._stale(res["controller"].model) if res.get("accepted") else None
+        stale = self._stale(_designed_for(res)) if res.get("accepted") else None
         if stale is not None:
             # a design can take ~1 s on a loaded host, and the axis it was made for may have changed
             # since: a design for the inertia before a load change, applied after it, can drive the
             # table hundreds of um off and into the fallback. The next trusted look asks again at once.
             res = {"accepted": False, "reason": stale}
             self._urgent = True
-        if res.get("accepted") and not self.in_fallback:
+        if res.get("accepted") and not self.in_fallback and "controller" in res:
             self._result_t = self.t
             if not self._quiet(res["controller"]):
                 self._result = res
@@ -864,7 +940,9 @@ class Supervisor:
         """A redesign's result: switch to an accepted design (hold it through a fallback), or count the
         rejection."""
         st = self.stats
-        if res.get("accepted"):
+        if res.get("accepted") and "kept_for" in res:
+            self._keep(res)
+        elif res.get("accepted"):
             st.accepted += 1
             text = _params_text(res["controller"].model)
             st.events.append((self.t, "accepted", text + (" (not applied: in fallback)" if self.in_fallback else "")))
@@ -887,6 +965,20 @@ class Supervisor:
             reason = str(res.get("reason"))
             st.reasons.append(reason)
             st.events.append((self.t, "rejected", reason))
+
+    def _keep(self, res: dict[str, Any]) -> None:
+        """The design in force checked and kept for the estimate ``res["kept_for"]`` (:func:`keep_design`):
+        later changes are measured from that estimate, the feedforward goes back to the design's."""
+        st, p = self.stats, res["kept_for"]
+        st.kept += 1
+        st.events.append((self.t, "kept", f"{_params_text(p)}: {res.get('reason')}"))
+        if self.in_fallback or self.controller.kind != "model":    # a fallback came while the job ran
+            return
+        self._model_of = (self.controller, np.array([float(getattr(p, k)) for k in KEYS]))
+        self._following = False
+        self.law.consts[C_INERTIA] = self.controller.inertia
+        st.applied.append((self.t, "kept", p))
+        del st.applied[:-50]
 
     def _stale(self, model: AxisParams) -> str | None:
         """Why a finished design no longer fits the axis (the per-sample estimate now differs from the
@@ -921,7 +1013,7 @@ class Supervisor:
         return {"mode": self.s.mode, "rms_error_m": rms, "max_error_m": st.max_err if st.n_err else None,
                 "rms_error_after_change_m": after,
                 "max_error_after_change_m": st.max_err_after if st.n_err_after else None,
-                "redesigns": {"accepted": st.accepted, "rejected": st.rejected,
+                "redesigns": {"accepted": st.accepted, "rejected": st.rejected, "kept": st.kept,
                               "rejected_reasons": st.reasons[-10:], "requested": st.requests,
                               "requested_for": dict(st.why_requested),
                               "latency_s": _spread(st.latency_s), "worker_cpu_s": _spread(st.cpu_s)},
@@ -936,6 +1028,11 @@ class Supervisor:
                               "rejoins": self.anchor.rejoins, "last_rejoin": self.anchor.last_rejoin},
                 "per_sample": self._per_sample_summary(),
                 "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
+
+
+def _designed_for(res: dict[str, Any]) -> AxisParams:
+    """The model an accepted result is for: its new design's, or the estimate the design in force was kept for."""
+    return res["kept_for"] if "kept_for" in res else res["controller"].model
 
 
 def _spread(values: list[float]) -> dict[str, float] | None:

@@ -16,13 +16,16 @@ def _applied(t, kind, **f):
     return {"t": t, "kind": kind, "model": {k: getattr(P, k) * f.get(k, 1.0) for k in ("I1", "I2", "B", "K")}}
 
 
-def test_change_to_redesign_is_the_first_model_design_near_the_new_plant_after_the_change():
+def test_change_to_redesign_is_the_first_model_design_switched_in_or_kept_near_the_new_plant_after_the_change():
     new = cb.changed_plant(P, {"I2": 3.0})
     control = {"applied": [_applied(0.2, "model"), _applied(4.05, "conservative", I2=3.0),
                            _applied(4.06, "model", I2=2.0), _applied(4.12, "model", I2=3.05),
                            _applied(4.5, "model", I2=3.0)]}
     assert cb.change_to_redesign(control, new, 4.0) == pytest.approx(0.12)
     assert cb.change_to_redesign({"applied": [_applied(4.06, "model", I2=2.0)]}, new, 4.0) is None
+    soft = cb.changed_plant(P, {"K": 0.6})                # the design in force kept for the new estimate
+    kept = {"applied": [_applied(0.2, "model"), _applied(4.03, "kept", K=0.7), _applied(4.08, "kept", K=0.61)]}
+    assert cb.change_to_redesign(kept, soft, 4.0) == pytest.approx(0.08)
 
 
 def test_random_cases_are_reproducible_and_inside_the_stated_ranges():
@@ -52,12 +55,13 @@ def test_after_i2_x3_with_a_50_ms_design_the_adaptive_loop_redesigns_within_150_
     assert row["adaptive"]["fallbacks"] == 0 and row["adaptive"]["stop"] is None
 
 
-def test_first_response_is_the_earlier_of_the_change_detector_and_a_model_design_after_the_change():
+def test_first_response_is_the_earlier_of_the_change_detector_and_a_model_design_switched_in_or_kept():
     control = {"events": [{"t": 1.0, "kind": "change detected"}, {"t": 4.0037, "kind": "change detected"},
                           {"t": 4.2, "kind": "accepted"}],
                "applied": [_applied(0.2, "model"), _applied(4.002, "conservative"), _applied(4.09, "model")]}
     assert cb.first_response(control, 4.0) == pytest.approx(0.0037)
     assert cb.first_response({"events": [], "applied": [_applied(4.077, "model")]}, 4.0) == pytest.approx(0.077)
+    assert cb.first_response({"events": [], "applied": [_applied(4.08, "kept")]}, 4.0) == pytest.approx(0.08)
     assert cb.first_response({"events": [{"t": 1.0, "kind": "change detected"}], "applied": []}, 4.0) is None
 
 
@@ -74,3 +78,23 @@ def test_the_max_error_target_names_each_case_over_it_with_the_late_oracles_figu
     said = "case 2: 2.95, the oracle's design switched in 3.7 ms after the change (the adaptive loop's first act) 2.43"
     assert line[1] is False and said in line[2]
     assert "case 1" not in line[2]
+
+
+def test_after_k_x06_the_adaptive_loop_keeps_its_design_checked_on_the_new_estimate():
+    row = cb.run_case(load("sim-load-change.toml"), "K x 0.6", {"K": 0.6}, change_at=2.0, duration=2.6,
+                      modes=("adaptive",), cpu_latency=False)
+    rd = row["adaptive"]["redesigns"]
+    assert rd["kept"] >= 1 and row["change_to_redesign_s"] is not None and row["change_to_redesign_s"] <= 0.15, row
+    assert row["adaptive"]["fallbacks"] == 0 and row["adaptive"]["stop"] is None
+    out = cb.run_offline(cb._with_mode(cb.scenario_config(load("sim-load-change.toml"), {"K": 0.6}, change_at=2.0,
+                                                          duration=2.6), "adaptive"), error_after_s=2.0)
+    applied = out["control"]["applied"]
+    assert [a for a in applied if a["t"] >= 2.0 and a["kind"] == "kept"], applied
+    assert not [a for a in applied if a["t"] >= 2.0 and a["kind"] == "model"], applied   # no switch after it
+
+
+def test_the_run_summary_counts_the_results_that_kept_the_design_in_force():
+    from rt_ident.cli import _kept
+
+    assert _kept({"accepted": 2, "kept": 3}) == " (3 more kept the design in force)"
+    assert _kept({"accepted": 2, "kept": 0}) == "" and _kept({"accepted": 2}) == ""

@@ -14,6 +14,7 @@ from rt_ident.axis.params import AxisParams
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.control import adaptation as A
 from rt_ident.control.adaptation import ControlSettings, Supervisor, model_controller
+from rt_ident.control.design import check_family, sampled_model
 from rt_ident.control.law import C_INERTIA
 from rt_ident.control.reference import Hold
 from rt_ident.estimators.svf import ACC_SIZE, ACC_SSE, ACC_W, ACC_W2, SvfEstimator, SvfSettings, interval_halves
@@ -291,3 +292,83 @@ def test_largest_change_weighs_each_parameter_against_its_own_redesign_threshold
     assert (worst, change) == (2, pytest.approx(0.4))         # B: 4 thresholds against I2's 1.5
     worst, change = A.largest_change(np.array([1.0, 1.0, 1e-3, 1.0]), np.array([1.0, 1.0, 0.0, 1.0]), tc)
     assert worst == 2 and change > 1e6                         # a model without damping: any B has moved
+
+
+SOFT = AxisParams(I1=P.I1, I2=P.I2, B=P.B, K=0.6 * P.K)
+
+
+def _answered_by_the_job(sup, w):
+    """The supervisor's pending request answered by the real redesign job, taken and applied."""
+    sup.poll()
+    w.result = res = A.redesign(w.requests[-1])
+    sup.poll()
+    sup.poll()
+    return res
+
+
+def test_a_design_in_force_is_kept_for_a_stiffness_change_the_loop_hardly_feels_and_later_looks_measure_from_it():
+    est = _Estimate(SOFT)
+    sup, w = _supervisor(est)
+    before = sup.controller
+    _looks(sup, S.trust_window)
+    assert sup._pending
+    res = _answered_by_the_job(sup, w)
+    assert w.requests[-1]["in_force"]["model"]["K"] == P.K and res["kept_for"] == SOFT
+    assert sup.controller is before and not sup._pending
+    assert sup.stats.kept == 1 and sup.stats.accepted == 0 and sup.stats.max_step_nm == 0.0
+    assert sup.stats.applied[-1][1:] == ("kept", SOFT)
+    sup.t += S.redesign_interval_s
+    _looks(sup, 2 * S.trust_window)
+    assert not sup._pending and len(w.requests) == 1    # K's 40 % is measured from the kept estimate now
+
+
+def test_an_inertia_change_is_switched_in_not_kept():
+    sup, w = _supervisor(_Estimate(HEAVY))
+    before = sup.controller
+    _looks(sup, S.trust_window)
+    res = _answered_by_the_job(sup, w)
+    assert "kept_for" not in res and res["accepted"]
+    assert sup.controller is not before and sup.controller.model == HEAVY and sup.stats.kept == 0
+
+
+def test_keep_margin_0_switches_in_every_accepted_design():
+    sup, w = _supervisor(_Estimate(SOFT), keep_margin=0.0)
+    before = sup.controller
+    _looks(sup, S.trust_window)
+    _answered_by_the_job(sup, w)
+    assert sup.controller is not before and sup.controller.model == SOFT and sup.stats.kept == 0
+
+
+def test_keep_design_needs_the_reference_error_the_error_norm_and_the_family_check_each():
+    g = model_controller(P, 1e-3, S).gains
+
+    def keep(p, **over):
+        return A.keep_design(g, P, model_controller(p, 1e-3, S).gains, p, 1e-3, ControlSettings(**over), None)
+
+    assert keep(SOFT) is not None and keep(SOFT)[0].ok
+    light = AxisParams(I1=P.I1 * 1.03, I2=P.I2, B=P.B, K=P.K)          # the feedforward 2.3 % short
+    assert A.reference_error(g, P, light) > S.min_change and keep(light) is None
+    floppy = AxisParams(I1=P.I1, I2=P.I2, B=P.B, K=0.02 * P.K)        # the twist reference far off
+    assert A.reference_error(g, P, floppy) > S.min_change and keep(floppy) is None
+    assert keep(SOFT, keep_margin=0.0) is None
+    ratio = A.error_norm(g, SOFT, 1e-3) / A.error_norm(model_controller(SOFT, 1e-3, S).gains, SOFT, 1e-3)
+    assert 1.0 < ratio < 1.01
+    assert keep(SOFT, keep_margin=(ratio - 1.0) / 2) is None          # the new design is better by more
+    moved = AxisParams(I1=0.385 * P.I1, I2=3 * P.I2, B=P.B, K=0.7 * P.K)   # same I1 + I2, mode at ~320 Hz
+    new = model_controller(moved, 1e-3, S).gains
+    assert A.reference_error(g, P, moved) < S.min_change                 # only the family check refuses it
+    assert A.error_norm(g, moved, 1e-3) < (1 + S.keep_margin) * A.error_norm(new, moved, 1e-3)
+    assert not check_family(g, moved, 1e-3).ok and keep(moved) is None
+
+
+def test_error_norm_is_the_impulse_responses_energy_and_inf_for_an_unstable_loop():
+    g = model_controller(P, 1e-3, S).gains
+    Az, Bz = sampled_model(P, 1e-3, 1)
+    Acl = Az - Bz @ g.reshape(1, -1)
+    x, energy = Az[:, 4].copy(), 0.0
+    x[4:] = 0.0
+    for _ in range(20000):
+        energy += x[2] ** 2
+        x = Acl @ x
+    assert A.error_norm(g, P, 1e-3) == pytest.approx(math.sqrt(energy), rel=1e-8)
+    assert A.error_norm(-g, P, 1e-3) == math.inf
