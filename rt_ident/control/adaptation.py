@@ -337,7 +337,7 @@ def keep_design(gains: np.ndarray, model: AxisParams, new_gains: np.ndarray, p: 
     if not check.ok:
         return None
     return check, (f"the design in force kept: its error norm on the estimate is {old / new:.3f} x the new "
-                   f"design's (switching takes more than {100 * s.keep_margin:g} %)")
+                   f"design's (a switch needs it better by more than {100 * s.keep_margin:g} %)")
 
 
 def _fallback_for(gains: np.ndarray, p: AxisParams, tick: float, s: ControlSettings,
