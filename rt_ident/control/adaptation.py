@@ -38,18 +38,17 @@ from typing import Any
 
 import numba
 import numpy as np
-import scipy.linalg
 
 from rt_ident.axis.params import AxisParams
 from rt_ident.control.anchor import Anchor, ReferenceOptions
 from rt_ident.control.design import (
     check_family,
-    delay_of,
     design_lqr,
     design_rigid,
+    error_norm,
     loop_gain_view,
     loop_margins,
-    sampled_model,
+    reference_error,
 )
 from rt_ident.control.law import C_INERTIA, Controller, StateFeedback
 from rt_ident.errors import RtIdentError
@@ -289,31 +288,6 @@ def _redesign(request: dict[str, Any]) -> dict[str, Any]:
             out["fallback"], out["fallback_reason"] = _fallback_for(np.asarray(cons, dtype=float), p, tick, s,
                                                                     request.get("ci95"))
     return out
-
-
-def error_norm(G: np.ndarray, p: AxisParams, tick: float) -> float:
-    """H2 norm of the closed loop ``G`` on ``p`` (:func:`rt_ident.control.design.sampled_model`) from
-    a torque disturbance at the motor to the table-angle error: how much the loop lets the torques it
-    does not know (the probe, friction, a feedforward's error) move the table. inf when unstable."""
-    Az, Bz = sampled_model(p, tick, delay_of(G))
-    Acl = Az - Bz @ np.asarray(G, dtype=float).reshape(1, -1)
-    if not np.abs(np.linalg.eigvals(Acl)).max() < 1.0:
-        return math.inf
-    bw = Az[:, 4:5].copy()                      # the disturbance enters where the landing torque does
-    bw[4:] = 0.0
-    # the bilinear method: the direct one (a Kronecker system) is ill-conditioned on these state scales
-    W = scipy.linalg.solve_discrete_lyapunov(Acl, bw @ bw.T, method="bilinear")
-    return math.sqrt(max(float(W[2, 2]), 0.0))
-
-
-def reference_error(gains: np.ndarray, model: AxisParams, p: AxisParams) -> float:
-    """The share of the torque the reference needs (I1 + I2) alpha that a law built on ``model`` gets
-    wrong on the axis ``p`` (rigid body): the inertia feedforward's error, and the motor-angle
-    reference's twist I2 alpha / K (:mod:`rt_ident.control.law`) off by I2 alpha |1/K - 1/K'|, which
-    the motor-angle gain turns into torque."""
-    J = p.I1 + p.I2
-    twist = abs(float(gains[0])) * p.I2 * abs(1.0 / model.K - 1.0 / p.K)
-    return abs(model.I1 + model.I2 - J) / J + twist / J
 
 
 def keep_design(gains: np.ndarray, model: AxisParams, new_gains: np.ndarray, p: AxisParams, tick: float,

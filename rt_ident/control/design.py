@@ -38,6 +38,10 @@ gain and phase margins from ``1 + L = det(zI - A_cl) / det(zI - A_z)`` on the un
 lightly damped mode give crossings that are not there; a crossing at z = -1 counts). The loop
 is conditionally stable (a double integrator plus the integral action), so there is a *lower*
 gain margin (how much the gain may drop) as well as an upper one; both are checked.
+
+:func:`error_norm` and :func:`reference_error` weigh a design on a plant it was not made for (the
+supervisor keeps the design in force where a new one would not pay:
+:func:`rt_ident.control.adaptation.keep_design`).
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ from dataclasses import dataclass, field
 
 import control as ct
 import numpy as np
+import scipy.linalg
 
 from rt_ident.axis.model import state_space
 from rt_ident.axis.params import AxisParams
@@ -284,6 +289,31 @@ def _crossing_margins(mu: np.ndarray, lam: np.ndarray, tick: float) -> tuple[flo
 
 
 _REFINE_STEPS = 8   # Illinois steps: a grid bracket (< 1 % of w) to round-off
+
+
+def error_norm(G: np.ndarray, p: AxisParams, tick: float) -> float:
+    """H2 norm of the closed loop ``G`` on ``p`` (:func:`sampled_model`) from
+    a torque disturbance at the motor to the table-angle error: how much the loop lets the torques it
+    does not know (the probe, friction, a feedforward's error) move the table. inf when unstable."""
+    Az, Bz = sampled_model(p, tick, delay_of(G))
+    Acl = Az - Bz @ np.asarray(G, dtype=float).reshape(1, -1)
+    if not np.abs(np.linalg.eigvals(Acl)).max() < 1.0:
+        return math.inf
+    bw = Az[:, 4:5].copy()                      # the disturbance enters where the landing torque does
+    bw[4:] = 0.0
+    # the bilinear method: the direct one (a Kronecker system) is ill-conditioned on these state scales
+    W = scipy.linalg.solve_discrete_lyapunov(Acl, bw @ bw.T, method="bilinear")
+    return math.sqrt(max(float(W[2, 2]), 0.0))
+
+
+def reference_error(gains: np.ndarray, model: AxisParams, p: AxisParams) -> float:
+    """The share of the torque the reference needs (I1 + I2) alpha that a law built on ``model`` gets
+    wrong on the axis ``p`` (rigid body): the inertia feedforward's error, and the motor-angle
+    reference's twist I2 alpha / K (:mod:`rt_ident.control.law`) off by I2 alpha |1/K - 1/K'|, which
+    the motor-angle gain turns into torque."""
+    J = p.I1 + p.I2
+    twist = abs(float(gains[0])) * p.I2 * abs(1.0 / model.K - 1.0 / p.K)
+    return abs(model.I1 + model.I2 - J) / J + twist / J
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from rt_ident.axis.params import AxisParams
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.control import adaptation as A
 from rt_ident.control.adaptation import ControlSettings, Supervisor, model_controller
-from rt_ident.control.design import check_family, sampled_model
+from rt_ident.control.design import check_family, error_norm, reference_error, sampled_model
 from rt_ident.control.law import C_INERTIA
 from rt_ident.control.reference import Hold
 from rt_ident.estimators.svf import ACC_SIZE, ACC_SSE, ACC_W, ACC_W2, SvfEstimator, SvfSettings, interval_halves
@@ -347,17 +347,17 @@ def test_keep_design_needs_the_reference_error_the_error_norm_and_the_family_che
 
     assert keep(SOFT) is not None and keep(SOFT)[0].ok
     light = AxisParams(I1=P.I1 * 1.03, I2=P.I2, B=P.B, K=P.K)          # the feedforward 2.3 % short
-    assert A.reference_error(g, P, light) > S.min_change and keep(light) is None
+    assert reference_error(g, P, light) > S.min_change and keep(light) is None
     floppy = AxisParams(I1=P.I1, I2=P.I2, B=P.B, K=0.02 * P.K)        # the twist reference far off
-    assert A.reference_error(g, P, floppy) > S.min_change and keep(floppy) is None
+    assert reference_error(g, P, floppy) > S.min_change and keep(floppy) is None
     assert keep(SOFT, keep_margin=0.0) is None
-    ratio = A.error_norm(g, SOFT, 1e-3) / A.error_norm(model_controller(SOFT, 1e-3, S).gains, SOFT, 1e-3)
+    ratio = error_norm(g, SOFT, 1e-3) / error_norm(model_controller(SOFT, 1e-3, S).gains, SOFT, 1e-3)
     assert 1.0 < ratio < 1.01
     assert keep(SOFT, keep_margin=(ratio - 1.0) / 2) is None          # the new design is better by more
     moved = AxisParams(I1=0.385 * P.I1, I2=3 * P.I2, B=P.B, K=0.7 * P.K)   # same I1 + I2, mode at ~320 Hz
     new = model_controller(moved, 1e-3, S).gains
-    assert A.reference_error(g, P, moved) < S.min_change                 # only the family check refuses it
-    assert A.error_norm(g, moved, 1e-3) < (1 + S.keep_margin) * A.error_norm(new, moved, 1e-3)
+    assert reference_error(g, P, moved) < S.min_change                 # only the family check refuses it
+    assert error_norm(g, moved, 1e-3) < (1 + S.keep_margin) * error_norm(new, moved, 1e-3)
     assert not check_family(g, moved, 1e-3).ok and keep(moved) is None
 
 
@@ -370,5 +370,5 @@ def test_error_norm_is_the_impulse_responses_energy_and_inf_for_an_unstable_loop
     for _ in range(20000):
         energy += x[2] ** 2
         x = Acl @ x
-    assert A.error_norm(g, P, 1e-3) == pytest.approx(math.sqrt(energy), rel=1e-8)
-    assert A.error_norm(-g, P, 1e-3) == math.inf
+    assert error_norm(g, P, 1e-3) == pytest.approx(math.sqrt(energy), rel=1e-8)
+    assert error_norm(-g, P, 1e-3) == math.inf
