@@ -30,7 +30,7 @@ from rt_ident.errors import ConfigError
 if TYPE_CHECKING:
     from pydantic_core import ErrorDetails
 
-    from rt_ident.control.adaptation import ControlSettings
+    from rt_ident.control.job import ControlSettings
 
 
 class _Section(BaseModel):
@@ -159,7 +159,7 @@ class ControlConfig(_Section):
                                                       # the only way mode = "off" runs on a real drive
 
     def settings(self) -> ControlSettings:
-        from rt_ident.control.adaptation import ControlSettings
+        from rt_ident.control.job import ControlSettings
 
         return ControlSettings(**{k: v for k, v in self.model_dump().items()
                                   if k in ControlSettings.__dataclass_fields__})

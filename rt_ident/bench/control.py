@@ -33,8 +33,8 @@ import numpy as np
 from rt_ident.axis.params import AxisParams
 from rt_ident.compose.offline import run_offline
 from rt_ident.config import RunConfig, from_mapping, load
-from rt_ident.control.adaptation import model_controller
 from rt_ident.control.design import delay_of, design_lqr, sampled_model
+from rt_ident.control.job import model_controller
 from rt_ident.loop.loop import IdentificationLoop
 
 #: (name, factors applied at the change)

@@ -272,7 +272,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
     """Stage d: design on the identified axis (its margins), then the move, measured and predicted."""
     from rt_ident.axis.params import AxisParams
     from rt_ident.compose.run import run as run_loop
-    from rt_ident.control.adaptation import model_controller
+    from rt_ident.control.job import model_controller
     from rt_ident.control.reference import Moves
 
     progress("d: design on the identified model, then a verification move")

@@ -10,7 +10,8 @@ from __future__ import annotations
 from typing import Any
 
 from rt_ident.axis.params import AxisParams
-from rt_ident.control.adaptation import ControlFallbackStop, ControlSettings, Supervisor, redesign
+from rt_ident.control.adaptation import ControlFallbackStop, Supervisor
+from rt_ident.control.job import ControlSettings, redesign
 
 
 def make_controller(settings: ControlSettings, nominal: AxisParams, *, tick: float, torque_limit: float,

@@ -41,7 +41,7 @@ gain margin (how much the gain may drop) as well as an upper one; both are check
 
 :func:`error_norm` and :func:`reference_error` weigh a design on a plant it was not made for (the
 supervisor keeps the design in force where a new one would not pay:
-:func:`rt_ident.control.adaptation.keep_design`).
+:func:`rt_ident.control.job.keep_design`).
 """
 
 from __future__ import annotations

@@ -48,7 +48,7 @@ def _supervisor(**kw) -> Supervisor:
 
 
 def _model(sup: Supervisor) -> None:
-    from rt_ident.control.adaptation import model_controller
+    from rt_ident.control.job import model_controller
     sup.adopt(model_controller(P, 1e-3, sup.s))
 
 

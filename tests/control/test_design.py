@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from rt_ident.axis.params import AxisParams, thomson_x
-from rt_ident.control.adaptation import ControlSettings, redesign
 from rt_ident.control.design import check_family, design_lqr, design_rigid, loop_margins, plant_family, sampled_model
+from rt_ident.control.job import ControlSettings, redesign
 from rt_ident.control.law import Controller, StateFeedback
 from rt_ident.errors import ConfigError
 
@@ -238,7 +238,7 @@ def test_a_redesign_reports_the_worker_cpu_it_took():
 
 
 def test_asked_for_a_workpiece_the_conservative_controller_keeps_its_margins_with_it():
-    from rt_ident.control.adaptation import rigid_controller
+    from rt_ident.control.job import rigid_controller
 
     s = ControlSettings(conservative_load=3.0)
     cy = rigid_controller(Y, 1e-3, s)                  # Y at 10 Hz is unstable with I2 x 3: the bandwidth comes down

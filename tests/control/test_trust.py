@@ -13,8 +13,10 @@ from rt_ident.axis.excitation import schroeder_multisine
 from rt_ident.axis.params import AxisParams
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.control import adaptation as A
-from rt_ident.control.adaptation import ControlSettings, Supervisor, model_controller
+from rt_ident.control import job as J
+from rt_ident.control.adaptation import Supervisor
 from rt_ident.control.design import check_family, error_norm, reference_error, sampled_model
+from rt_ident.control.job import ControlSettings, model_controller
 from rt_ident.control.law import C_INERTIA
 from rt_ident.control.reference import Hold
 from rt_ident.estimators.svf import ACC_SIZE, ACC_SSE, ACC_W, ACC_W2, SvfEstimator, SvfSettings, interval_halves
@@ -300,7 +302,7 @@ SOFT = AxisParams(I1=P.I1, I2=P.I2, B=P.B, K=0.6 * P.K)
 def _answered_by_the_job(sup, w):
     """The supervisor's pending request answered by the real redesign job, taken and applied."""
     sup.poll()
-    w.result = res = A.redesign(w.requests[-1])
+    w.result = res = J.redesign(w.requests[-1])
     sup.poll()
     sup.poll()
     return res
@@ -343,7 +345,7 @@ def test_keep_design_needs_the_reference_error_the_error_norm_and_the_family_che
     g = model_controller(P, 1e-3, S).gains
 
     def keep(p, **over):
-        return A.keep_design(g, P, model_controller(p, 1e-3, S).gains, p, 1e-3, ControlSettings(**over), None)
+        return J.keep_design(g, P, model_controller(p, 1e-3, S).gains, p, 1e-3, ControlSettings(**over), None)
 
     assert keep(SOFT) is not None and keep(SOFT)[0].ok
     light = AxisParams(I1=P.I1 * 1.03, I2=P.I2, B=P.B, K=P.K)          # the feedforward 2.3 % short

@@ -13,7 +13,8 @@ from rt_ident.axis.params import AxisParams
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.bench import estimator as svf_bench
 from rt_ident.config import from_mapping, load
-from rt_ident.control.adaptation import ControlSettings, Supervisor
+from rt_ident.control.adaptation import Supervisor
+from rt_ident.control.job import ControlSettings
 from rt_ident.control.reference import Hold
 from rt_ident.errors import ConfigError
 from rt_ident.estimators.svf import ACC_SSE, ACC_W, ACC_W2, SvfEstimator, SvfSettings, make_svf, regressor_noise
@@ -208,7 +209,7 @@ def test_a_diverging_frequency_fit_withholds_trust_but_does_not_trigger_a_fallba
 def test_a_finished_design_for_an_axis_that_has_since_changed_is_not_applied():
     # a design requested before a load change and finished after it is stale: applied, it can drive the
     # table hundreds of um off and into the fallback (docs/measurements.md, "Position control")
-    from rt_ident.control.adaptation import model_controller
+    from rt_ident.control.job import model_controller
 
     est = _fake_svf(P)
     sup, w = _supervisor(est)
@@ -226,7 +227,7 @@ def test_a_finished_design_for_an_axis_that_has_since_changed_is_not_applied():
 
 
 def test_a_fallback_that_no_longer_suits_the_axis_is_replaced_and_the_held_design_applied_on_recovery():
-    from rt_ident.control.adaptation import model_controller, rigid_controller
+    from rt_ident.control.job import model_controller, rigid_controller
 
     heavy = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
     est = _fake_svf(heavy)
@@ -245,7 +246,7 @@ def test_a_fallback_that_no_longer_suits_the_axis_is_replaced_and_the_held_desig
 
 
 def test_a_tracking_error_fallback_goes_back_to_the_model_controller_that_still_fits_at_recovery():
-    from rt_ident.control.adaptation import model_controller
+    from rt_ident.control.job import model_controller
 
     est = _fake_svf(P)
     sup, w = _supervisor(est)
@@ -264,7 +265,7 @@ def test_a_tracking_error_fallback_goes_back_to_the_model_controller_that_still_
 
 def test_the_summary_reports_each_redesign_request_its_cause_and_its_latency():
     # the adaptation latency after a load change is request -> answer; the summary carries it
-    from rt_ident.control.adaptation import model_controller
+    from rt_ident.control.job import model_controller
 
     moved = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
     sup, w = _supervisor(_fake_svf(moved))
@@ -281,7 +282,7 @@ def test_the_summary_reports_each_redesign_request_its_cause_and_its_latency():
 
 
 def test_a_small_move_of_b_alone_asks_for_no_redesign_but_the_same_move_of_i2_does():
-    from rt_ident.control.adaptation import model_controller
+    from rt_ident.control.job import model_controller
 
     for moved, asked in ((AxisParams(I1=P.I1, I2=P.I2, B=1.06 * P.B, K=P.K), False),    # B's scatter
                          (AxisParams(I1=P.I1, I2=1.06 * P.I2, B=P.B, K=P.K), True),
@@ -294,7 +295,7 @@ def test_a_small_move_of_b_alone_asks_for_no_redesign_but_the_same_move_of_i2_do
 
 def test_a_redesign_is_asked_for_taken_and_adopted_on_three_ticks_not_one():
     # each step is a few hundred microseconds of Python: one tick holding them all passed its period
-    from rt_ident.control.adaptation import model_controller
+    from rt_ident.control.job import model_controller
 
     moved = AxisParams(I1=P.I1, I2=3 * P.I2, B=P.B, K=P.K)
     sup, w = _supervisor(_fake_svf(moved))
