@@ -86,6 +86,9 @@ def _oracle_hook(cfg: RunConfig, late_s: float = 0.0) -> Callable[[Any], None]:
 
 #: a design is "for the new plant" when every parameter of its model is within this of the true value
 NEW_PLANT_TOLERANCE = 0.10
+#: the adaptive loop's acts on a new estimate in ``control.applied``: a design switched in, or the one in
+#: force kept after its check on the estimate
+REDESIGN_KINDS = ("model", "kept")
 
 
 def changed_plant(nominal: AxisParams, factors: dict[str, float]) -> AxisParams:
@@ -98,7 +101,7 @@ def change_to_redesign(control: dict[str, Any], truth: AxisParams, change_at: fl
     the new estimate, whose model (kept: that estimate) is within NEW_PLANT_TOLERANCE of the new plant
     ``truth`` on every parameter (None: none was)."""
     for a in control.get("applied") or ():
-        if a["t"] < change_at or a["kind"] not in ("model", "kept"):
+        if a["t"] < change_at or a["kind"] not in REDESIGN_KINDS:
             continue
         if all(abs(a["model"][k] / getattr(truth, k) - 1.0) <= NEW_PLANT_TOLERANCE for k in ("I1", "I2", "B", "K")):
             return float(a["t"]) - change_at
@@ -109,7 +112,7 @@ def first_response(control: dict[str, Any], change_at: float) -> float | None:
     """Seconds from the change to the adaptive loop's first act on it: its change detector firing, or a
     model design switched in or kept for a new estimate, whichever came first (None: none)."""
     ts = [e["t"] for e in control.get("events") or () if e["kind"] == "change detected" and e["t"] >= change_at]
-    ts += [a["t"] for a in control.get("applied") or () if a["kind"] in ("model", "kept") and a["t"] >= change_at]
+    ts += [a["t"] for a in control.get("applied") or () if a["kind"] in REDESIGN_KINDS and a["t"] >= change_at]
     return min(ts) - change_at if ts else None
 
 

@@ -174,7 +174,7 @@ ERR_SQ, ERR_N, ERR_MAX = range(3)
 class ControlStats:
     accepted: int = 0
     rejected: int = 0
-    kept: int = 0                # accepted results that kept the design in force (keep_design)
+    kept: int = 0                # accepted results that kept the design in force (job.keep_design)
     fallbacks: int = 0
     reasons: list[str] = field(default_factory=list)
     events: list[tuple[float, str, str]] = field(default_factory=list)   # (t, kind, detail)
@@ -713,7 +713,7 @@ class Supervisor:
             # table hundreds of um off and into the fallback. The next trusted look asks again at once.
             res = {"accepted": False, "reason": stale}
             self._urgent = True
-        if res.get("accepted") and not self.in_fallback and "controller" in res:
+        if res.get("accepted") and not self.in_fallback and "kept_for" not in res:
             self._result_t = self.t
             if not self._quiet(res["controller"]):
                 self._result = res
@@ -763,7 +763,8 @@ class Supervisor:
             st.events.append((self.t, "rejected", reason))
 
     def _keep(self, res: dict[str, Any]) -> None:
-        """The design in force checked and kept for the estimate ``res["kept_for"]`` (:func:`keep_design`):
+        """The design in force checked and kept for the estimate ``res["kept_for"]``
+        (:func:`rt_ident.control.job.keep_design`):
         later changes are measured from that estimate, the feedforward goes back to the design's."""
         st, p = self.stats, res["kept_for"]
         st.kept += 1
