@@ -4,7 +4,7 @@ The host closes the position loop at the *tick* rate (default 1 kHz). The plant 
 the loop is Eq. (8) behind a zero-order hold, with one tick of computation delay: the
 torque computed from the samples of tick k is applied from tick k+1 on. Table 1's mode
 (662 Hz) lies above the 500 Hz Nyquist frequency of a 1 kHz loop and aliases into it
-(to 338 Hz); the exact sampled model (``control.c2d(..., "zoh")``) carries it, so the
+(to 338 Hz); the exact sampled model (zero-order hold, :func:`zoh`) carries it, so the
 design sees the alias where the loop will.
 
 State of the design model (one tick, period ``T``, a delay of ``d`` ticks, default 1)
@@ -22,7 +22,7 @@ reference (:mod:`rt_ident.control.law`).
 
 Two designs:
 
-* :func:`design_lqr` - the *model* controller: discrete LQR (``control.dlqr``) on the full
+* :func:`design_lqr` - the *model* controller: discrete LQR (:func:`dlqr`) on the full
   two-inertia model identified for the axis, weights from a target bandwidth (Bryson's rule:
   the table-angle error, its integral and the torque scaled by what the bandwidth asks of
   them). It feeds back both angles and both velocities, so it sees the flexible mode.
@@ -51,7 +51,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import control as ct
 import numpy as np
 import scipy.linalg
 
@@ -80,6 +79,25 @@ def _augment(Ad: np.ndarray, Bd: np.ndarray, tick: float, delay: int, pos: int) 
     return Az, Bz
 
 
+def zoh(A: np.ndarray, B: np.ndarray, tick: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A_d, B_d) of ``x' = A x + B u`` under a zero-order hold of ``tick``: the exponential of the
+    augmented matrix ``[[A, B], [0, 0]] tick``. python-control's ``c2d(..., "zoh")`` gives the same
+    (a test compares them); it is not imported here, since with it come scipy.signal and matplotlib,
+    a second of start-up in every control process."""
+    n, m = A.shape[0], B.shape[1]
+    M = np.zeros((n + m, n + m))
+    M[:n, :n], M[:n, n:] = A, B
+    E = scipy.linalg.expm(M * tick)
+    return E[:n, :n], E[:n, n:]
+
+
+def dlqr(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Discrete LQR gain ``K = (R + B' P B)^-1 B' P A``, ``P`` the stabilizing solution of the discrete
+    algebraic Riccati equation (as ``control.dlqr``, which a test compares it with)."""
+    P = scipy.linalg.solve_discrete_are(A, B, Q, R)
+    return np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+
+
 def _check_delay(delay: int) -> int:
     if isinstance(delay, bool) or not isinstance(delay, (int, np.integer)) or not 1 <= delay <= 5:
         raise ConfigError("control.delay_ticks", f"must be an integer 1..5, got {delay!r}")
@@ -89,14 +107,14 @@ def _check_delay(delay: int) -> int:
 def sampled_model(p: AxisParams, tick: float, delay: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(A_z, B_z) of the design model: Eq. (8) under a ZOH of one tick, the delay and the integral."""
     A, b = state_space(p)                                # Eq. (8), input column +1/I1 (see model.py)
-    sysd = ct.c2d(ct.ss(A, b.reshape(-1, 1), np.eye(4), np.zeros((4, 1))), tick, "zoh")
-    return _augment(np.asarray(sysd.A), np.asarray(sysd.B), tick, _check_delay(delay), 2)
+    Ad, Bd = zoh(A, b.reshape(-1, 1), tick)
+    return _augment(Ad, Bd, tick, _check_delay(delay), 2)
 
 
 def _rigid_model(J: float, tick: float, delay: int) -> tuple[np.ndarray, np.ndarray]:
     Ar = np.array([[0.0, 1.0], [0.0, 0.0]])
-    sysd = ct.c2d(ct.ss(Ar, np.array([[0.0], [1.0 / J]]), np.eye(2), np.zeros((2, 1))), tick, "zoh")
-    return _augment(np.asarray(sysd.A), np.asarray(sysd.B), tick, _check_delay(delay), 0)
+    Ad, Bd = zoh(Ar, np.array([[0.0], [1.0 / J]]), tick)
+    return _augment(Ad, Bd, tick, _check_delay(delay), 0)
 
 
 def _weights(J: float, bandwidth_hz: float, effort: float, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -126,8 +144,7 @@ def design_lqr(p: AxisParams, tick: float, bandwidth_hz: float, effort: float = 
     Az, Bz = sampled_model(p, tick, delay)
     q, R = _weights(p.I1 + p.I2, bandwidth_hz, effort, Az.shape[0])
     q[2] = 1.0 / _ANGLE_SCALE**2                         # table angle
-    G, _, _ = ct.dlqr(Az, Bz, np.diag(q), R)
-    return np.asarray(G, dtype=float).ravel()
+    return dlqr(Az, Bz, np.diag(q), R).ravel()
 
 
 def design_rigid(J: float, tick: float, bandwidth_hz: float, effort: float = 1.0, delay: int = 1) -> np.ndarray:
@@ -138,8 +155,7 @@ def design_rigid(J: float, tick: float, bandwidth_hz: float, effort: float = 1.0
     Az, Bz = _rigid_model(J, tick, delay)
     q, R = _weights(J, bandwidth_hz, effort, Az.shape[0])
     q[0] = 1.0 / _ANGLE_SCALE**2
-    Gr, _, _ = ct.dlqr(Az, Bz, np.diag(q), R)
-    Gr = np.asarray(Gr, dtype=float).ravel()             # (theta, omega, u's..., xi)
+    Gr = dlqr(Az, Bz, np.diag(q), R).ravel()             # (theta, omega, u's..., xi)
     return np.concatenate(([0.0, Gr[1], Gr[0], 0.0], Gr[2:]))
 
 

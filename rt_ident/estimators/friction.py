@@ -55,10 +55,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+# scipy.signal is imported by the functions that use it, not here: its import takes ~0.6 s of every run's start
 import numba
 import numpy as np
 import scipy.linalg
-import scipy.signal
 
 from rt_ident.errors import ConfigError, DataError, EstimationError
 from rt_ident.estimators.uncertainty import (
@@ -190,6 +190,7 @@ def _sign_note(c: tuple[float, float] | None) -> str:
 def _svf_filters(lam: float, dt: float) -> tuple[list[tuple[np.ndarray, np.ndarray]], tuple[np.ndarray, np.ndarray]]:
     """Discrete s^k lam^3/(s+lam)^3, k = 0, 1, 2, for a first-order-hold input (angles), and F for a
     zero-order-hold input (torque). Exact: the continuous filter's state-space model sampled."""
+    import scipy.signal
     A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-lam**3, -3 * lam**2, -3 * lam]])
     b = np.array([0.0, 0.0, lam**3])
     # ZOH and FOH input integrals via one expm of the augmented matrix
@@ -218,10 +219,12 @@ def _svf_filters(lam: float, dt: float) -> tuple[list[tuple[np.ndarray, np.ndarr
 
 
 def _lfilter(nd: tuple[np.ndarray, np.ndarray], x: np.ndarray) -> np.ndarray:
+    import scipy.signal
     return scipy.signal.lfilter(nd[0], nd[1], x)
 
 
 def _impulse(nd: tuple[np.ndarray, np.ndarray], n: int) -> np.ndarray:
+    import scipy.signal
     u = np.zeros(n)
     u[0] = 1.0
     return scipy.signal.lfilter(nd[0], nd[1], u)
@@ -241,6 +244,7 @@ def detect_quantum(x: np.ndarray) -> float:
 
 
 def _zero_phase_velocity(x: np.ndarray, dt: float, hz: float) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    import scipy.signal
     v = np.gradient(x, dt)
     wn = min(0.9, 2.0 * hz * dt)
     b, a = scipy.signal.butter(2, wn)
@@ -249,6 +253,7 @@ def _zero_phase_velocity(x: np.ndarray, dt: float, hz: float) -> tuple[np.ndarra
 
 def _velocity_noise_std(q: float, dt: float, ba: tuple[np.ndarray, np.ndarray], n: int = 20000,
                         seed: int = 12345) -> float:
+    import scipy.signal
     if q <= 0.0:
         return 0.0
     e = np.random.default_rng(seed).uniform(-q / 2, q / 2, n)

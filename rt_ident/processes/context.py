@@ -1,6 +1,6 @@
 """The multiprocessing context every helper process and emulated device is started from.
 
-A spawned child imports numpy, numba, scipy, python-control, rerun and pyarrow again (seconds of CPU
+A spawned child imports numpy, numba, scipy, rerun and pyarrow again (seconds of CPU
 per run on a small machine, and the imports of several helpers compete with the loop's start). On
 Linux the helpers can be forked instead from one forkserver per main process that has imported those
 modules once (:data:`PRELOAD`). Each child still starts from a clean, single-threaded process: the
@@ -25,7 +25,7 @@ from multiprocessing.context import ForkServerContext, SpawnContext
 
 #: modules the forkserver imports once (one missing is skipped by multiprocessing). Not rerun nor pyarrow:
 #: they start threads at import (tokio's workers, jemalloc's), and a process with threads must not fork
-PRELOAD = ("numpy", "scipy.linalg", "scipy.signal", "numba", "control", "can", "canopen", "serial",
+PRELOAD = ("numpy", "scipy.linalg", "scipy.signal", "numba", "can", "canopen", "serial",
            "rt_ident.processes.jobs", "rt_ident.processes.recorder", "rt_ident.processes.telemetry",
            "rt_ident.processes.emulation", "rt_ident.estimators.streaming", "rt_ident.control.design")
 

@@ -30,6 +30,28 @@ def test_sampled_model_aliases_the_662_hz_mode_to_338_hz_at_1_khz():
     assert np.allclose(np.abs(flex), 0.848, atol=0.002)
 
 
+def test_zoh_and_dlqr_equal_python_controls_c2d_and_dlqr_on_random_axes_delays_and_bandwidths():
+    import control as ct
+
+    from rt_ident.axis.model import state_space
+    from rt_ident.control.design import _weights, dlqr, zoh
+
+    rng = np.random.default_rng(3)
+    for _ in range(12):
+        p = _scaled(P, **{k: float(np.exp(rng.uniform(np.log(0.3), np.log(3.0)))) for k in ("I1", "I2", "B", "K")})
+        tick = float(rng.choice([2.5e-4, 5e-4, 1e-3, 2e-3]))
+        A, b = state_space(p)
+        ref = ct.c2d(ct.ss(A, b.reshape(-1, 1), np.eye(4), np.zeros((4, 1))), tick, "zoh")
+        Ad, Bd = zoh(A, b.reshape(-1, 1), tick)
+        assert np.allclose(Ad, ref.A, rtol=1e-10, atol=1e-12) and np.allclose(Bd, ref.B, rtol=1e-10, atol=1e-14)
+        delay = int(rng.integers(1, 4))
+        Az, Bz = sampled_model(p, tick, delay)
+        q, R = _weights(p.I1 + p.I2, float(rng.uniform(5.0, 40.0)), float(rng.uniform(0.3, 3.0)), Az.shape[0])
+        q[2] = 1e8
+        G_ref, _, _ = ct.dlqr(Az, Bz, np.diag(q), R)
+        assert np.allclose(dlqr(Az, Bz, np.diag(q), R), G_ref, rtol=1e-7), (p, tick, delay)
+
+
 def test_model_design_for_table1_meets_6db_and_40deg_over_its_family():
     G = design_lqr(P, T, 20.0)
     check = check_family(G, P, T, gm_db=6.0, pm_deg=40.0)

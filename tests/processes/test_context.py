@@ -20,7 +20,7 @@ FORKSERVER = pytest.mark.skipif("forkserver" not in mp.get_all_start_methods(), 
 def _child_report(q) -> None:
     sig = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     q.put((sig[signal.SIGINT] == signal.SIG_IGN, sig[signal.SIGTERM] == signal.SIG_IGN,
-           os.environ.get("OPENBLAS_NUM_THREADS"), "control" in sys.modules))
+           os.environ.get("OPENBLAS_NUM_THREADS"), "rt_ident.control.design" in sys.modules))
 
 
 def test_every_preloaded_module_exists_so_none_is_silently_skipped():
