@@ -15,6 +15,11 @@ import os
 
 import pytest
 
+# One BLAS thread in the test processes, as ``rt-ident`` has in its own (rt_ident/cli.py) and the helpers in
+# theirs: a second OpenBLAS thread spins after each small matrix product, doubling a test's CPU on a 2-core
+# machine where the other xdist worker needs it. Read at numpy's import, which comes after this file's.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("hardware", "tests against real devices")

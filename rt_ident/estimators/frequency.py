@@ -630,30 +630,33 @@ def fit_spectra(sp: Spectra, hold: str = "zoh", *, transient: bool = True, x0: n
     converged = False
     it = 0
     model = _evaluate(x, sp, hold, True)
-    for it in range(1, max_iter + 1):  # noqa: B007 - the count is read after the loop
-        Li = _whitener(model.G, sp)
-        r, J = _residual(model, x, sp, Li, True)
-        cost = float(r @ r)
-        scale = np.linalg.norm(J, axis=0)
-        scale[scale == 0.0] = 1.0
-        step = -np.linalg.lstsq(J / scale, r, rcond=None)[0] / scale
-        big = float(np.max(np.abs(step[:4])))
-        if big > 2.0:                      # at most a factor e^2 per iteration on any parameter
-            step *= 2.0 / big
-        t = 1.0
-        while t >= 1e-6:
-            trial = _evaluate(x + t * step, sp, hold, True)
-            r_new, _ = _residual(trial, x + t * step, sp, Li, False)
-            if float(r_new @ r_new) <= cost:
+    # an iterate or trial far off (data without excitation) may overflow: inf is no descent, and a
+    # diverged fit is refused below
+    with np.errstate(over="ignore", invalid="ignore"):
+        for it in range(1, max_iter + 1):  # noqa: B007 - the count is read after the loop
+            Li = _whitener(model.G, sp)
+            r, J = _residual(model, x, sp, Li, True)
+            cost = float(r @ r)
+            scale = np.linalg.norm(J, axis=0)
+            scale[scale == 0.0] = 1.0
+            step = -np.linalg.lstsq(J / scale, r, rcond=None)[0] / scale
+            big = float(np.max(np.abs(step[:4])))
+            if big > 2.0:                      # at most a factor e^2 per iteration on any parameter
+                step *= 2.0 / big
+            t = 1.0
+            while t >= 1e-6:
+                trial = _evaluate(x + t * step, sp, hold, True)
+                r_new, _ = _residual(trial, x + t * step, sp, Li, False)
+                if float(r_new @ r_new) <= cost:
+                    break
+                t *= 0.5
+            if t < 1e-6:
+                converged = True               # no descent left at machine precision
                 break
-            t *= 0.5
-        if t < 1e-6:
-            converged = True               # no descent left at machine precision
-            break
-        x, model = x + t * step, trial
-        if float(np.max(np.abs(t * step[:4]))) < tol:
-            converged = True
-            break
+            x, model = x + t * step, trial
+            if float(np.max(np.abs(t * step[:4]))) < tol:
+                converged = True
+                break
     if not np.all(np.isfinite(x)):
         raise EstimationError("frequency: the fit diverged")
     r, J = _residual(model, x, sp, _whitener(model.G, sp), True)
