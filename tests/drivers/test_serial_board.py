@@ -55,9 +55,10 @@ def rig():
         # watchdog that delays data instead of losing it or tripping the board
         opts = {"tx_buffer": 1 << 24, "heartbeat_timeout": 0.5, **emulator}
         board = start_emulator_for({"emulator": opts})
-        # and the host's read timeout widened from the shipped 0.05 s for the same reason (the tests of the
-        # timeout itself pass their own)
-        be = SerialBoardBackend({"port": board.port, "read_timeout": 0.5, **(backend_opts or {})})
+        # and the host's read and start-up timeouts widened from the shipped 0.05 s and 1 s for the same reason
+        # (the tests of the timeouts themselves pass their own)
+        be = SerialBoardBackend({"port": board.port, "read_timeout": 0.5, "startup_timeout": 5.0,
+                                 **(backend_opts or {})})
         made.append((board, be))
         be.open()
         be.activate()
