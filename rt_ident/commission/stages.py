@@ -315,8 +315,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
                               "telemetry": {"sink": "off"}, "safety": {"stuck_torque": stuck}}
     meas = _derived(cfg, **common, recording={"enabled": True, "path": str(out / "move.parquet")})
     for _ in range(1 + STALLED_MOVE_RETRIES):
-        with _quiet():
-            s = run_loop(meas, sink="off", overwrite=True)
+        s = run_loop(meas, sink="off", overwrite=True)
         if (s.get("stop") or {}).get("interrupted"):
             raise KeyboardInterrupt
         stalls = (s.get("loop") or {}).get("stalls") or {}
@@ -330,8 +329,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
            "counts_per_rev": opts.get("counts_per_rev", 2**17), "scale_resolution": opts.get("scale_resolution", 1e-7)}
     pred = _derived(cfg, **{**common, "loop": {**common["loop"], "realtime": False}}, backend=sim, plant={},
                     emulator={}, recording={"enabled": True, "path": str(out / "move-model.parquet")})
-    with _quiet():
-        p = run_loop(pred, sink="off", overwrite=True)
+    p = run_loop(pred, sink="off", overwrite=True)
     lead = cfg.axis_params().lead
     sc = s.get("control") or {}
     got: dict[str, Any] = {"stop": (s.get("stop") or {}).get("cause"), "rms_error_m": sc.get("rms_error_m"),
@@ -362,21 +360,6 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
         else "control.bandwidth_hz (lower) - the axis does not move as the identified model predicts"
         if got["stop"] is None else f"the move stopped: {got['stop']}"))
     return ok
-
-
-@contextlib.contextmanager
-def _quiet() -> Any:
-    """A move without excitation: the run's frequency fits have nothing to fit, and say so."""
-    loggers = [logging.getLogger(n) for n in ("rt_ident.compose.build", "rt_ident.estimators.frequency")]
-    levels = [lg.level for lg in loggers]
-    for lg in loggers:
-        lg.setLevel(logging.ERROR)
-    try:
-        with np.errstate(all="ignore"):
-            yield
-    finally:
-        for lg, level in zip(loggers, levels):
-            lg.setLevel(level)
 
 
 def _arrival(path: Any, move: float) -> float:

@@ -207,8 +207,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             for ax in axes.values():
                 ax.backend.safe_stop()                   # every axis at zero torque before the (slower) final fits
             realtime.end()                               # the final fits and the files are no real-time work
-            for name, ax in axes.items():
-                ax.final_fit_error = final_fit(loops[name], loops[name].est)
+            for ax in axes.values():
+                ax.final_fit_error = _final_fit(ax)
     except RtIdentError as exc:
         if isinstance(exc, ConfigError) and not enabled:
             refused = exc                                # refused before enabling: a one-line error, exit 2
@@ -221,7 +221,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         log.info("run stopped: %s", exc)                 # the summary carries it (the CLI prints it once)
         for ax in axes.values():                         # nothing lost: still fit what was measured
             if ax.loop is not None:
-                ax.final_fit_error = final_fit(ax.loop, ax.loop.est)
+                ax.final_fit_error = _final_fit(ax)
     finally:
         for sig, handler in old_signals.items():
             signal.signal(sig, handler)
@@ -292,8 +292,9 @@ def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port
         meta = {**recording_metadata(acfg, dt), **({"axis_name": name} if several else {})}
         h.recorder = RecorderProcess(ax.recording, meta, overwrite=overwrite).start()
     kf, est = state_and_streaming(acfg, dt)
-    h.fit = make_fit_process(acfg.estimator.method, lead=truth.lead).start()
-    stack.callback(h.fit.close)
+    if acfg.excitation.kind != "none":                   # without the probing multisine there is nothing to fit
+        h.fit = make_fit_process(acfg.estimator.method, lead=truth.lead).start()
+        stack.callback(h.fit.close)
     warmup(kf, est, (acfg.loop.warmup_periods + 2) * acfg.excitation.period_samples)
     control, h.control = start_controller(acfg, ax.backend, stack)
     tel, rec = h.telemetry, h.recorder
@@ -303,6 +304,14 @@ def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port
         on_fit=tel.publish_fit if tel else None, on_loop_gain=tel.publish_loop_gain if tel else None,
         stop_event=stop, tick_hz=cfg.loop.tick_hz, duration=cfg.loop.duration)
     return ax.loop
+
+
+def _final_fit(ax: _Axis) -> str | None:
+    """The final fit of what the axis measured: None, or why there is no estimate."""
+    if ax.cfg.excitation.kind == "none":
+        return "nothing to identify: no probing excitation (excitation.kind = \"none\")"
+    assert ax.loop is not None                           # built before any run ends with a fit
+    return final_fit(ax.loop, ax.loop.est)
 
 
 def _start_emulator(cfg: RunConfig, axes_cfg: dict[str, RunConfig], several: bool) -> Any:
