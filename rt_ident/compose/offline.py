@@ -138,7 +138,8 @@ def run_offline(cfg: RunConfig, *, tick_hook: Callable[[IdentificationLoop], Non
     truth = cfg.axis_params()
     ex = cfg.excitation
     kf, est = state_and_streaming(cfg, dt)
-    fit = InlineJobs(partial(fit_snapshot, cfg.estimator.method, lead=truth.lead), clock, latency=fit_latency)
+    fit = None if ex.kind == "none" else \
+        InlineJobs(partial(fit_snapshot, cfg.estimator.method, lead=truth.lead), clock, latency=fit_latency)
     ctl = controller_for(cfg, backend, InlineJobs(redesign, clock, latency=0.05, min_interval=0.0,
                                                   cpu_latency=design_cpu_latency),
                          error_after_s=error_after_s)

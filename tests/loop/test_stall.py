@@ -145,7 +145,10 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
             time.sleep(0.05)                        # ~1.5 s of samples recorded: the loop is well under way
         if proc.poll() is not None and early_ok:     # a stall of its own (a busy machine) came first
             out, err = proc.communicate(timeout=60)
-            return proc.returncode, json.loads(out), read_recording(rec.with_name(journal_of)), err
+            s = json.loads(out)
+            assert rec.with_name(journal_of).exists() or journal.exists(), (
+                f"the run ended before it recorded (rc {proc.returncode}): {s.get('stop')} {err[-3000:]}")
+            return proc.returncode, s, read_recording(rec.with_name(journal_of)), err
         if not journal.exists() or proc.poll() is not None:
             out, err = proc.communicate(timeout=60)
             raise AssertionError(f"the run never started recording (rc {proc.returncode}): {out[-1500:]} {err[-3000:]}")
