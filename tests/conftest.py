@@ -30,12 +30,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    # real-time tests run on one xdist worker, one after another ("--dist loadgroup"): every real-time loop
-    # takes the last CPU at SCHED_FIFO (rt_ident.loop.host.loop_cpu), so two workers' loops would starve each
-    # other there, as two probes and their devices side by side on a 2-CPU machine did
+    # the commissioning tests that probe an emulated device run on one xdist worker, one after another: two
+    # probes and their devices side by side on a 2-CPU machine starved each other's devices ("--dist loadgroup")
     for item in items:
         realtime = "restore_scheduling" in getattr(item, "fixturenames", ())
-        if realtime or item.nodeid.startswith("tests/commission/test_devices.py"):
+        if item.nodeid.startswith("tests/commission/test_devices.py") or (
+                realtime and item.nodeid.startswith("tests/commission/")):
             item.add_marker(pytest.mark.xdist_group("realtime"))
     if config.getoption("--hardware"):
         return
