@@ -188,13 +188,11 @@ def _xy_canopen(**over):
     # not the watchdogs or the speed limit (tests/drivers/test_canopen_backend.py and
     # tests/compose/test_xy.py cover those):
     # on a loaded machine's udp_multicast exchange, a stale stretch, a host heartbeat later than the shipped
-    # 250 ms (both drives can fault on it at once; why is not known), a 20 ms gap in the RPDOs (the drives'
-    # deadline, tested in test_emulated_drive.py and test_stall.py) or 200 ticks without a sample must not
+    # 250 ms (both drives can fault on it at once; why is not known) or 200 ticks without a sample must not
     # end the run
     return load("configs/xy-canopen-virtual.toml", **{"loop.realtime": True, "telemetry.sink": "off",
                                                       "recording.enabled": False, "backend.stale_limit": 1000,
                                                       "backend.heartbeat_consumer_ms": 1000,
-                                                      "backend.rpdo_deadline_ms": 200,
                                                       "safety.watchdog_ticks": 500,
                                                       "safety.max_speed_m_s": 1.0, **over})
 
