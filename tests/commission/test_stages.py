@@ -62,28 +62,14 @@ def test_a_miswired_sim_fails_the_check_that_names_its_key_within_budget_and_spe
     assert ledger.lookup(cfg)["verdict"] == "fail"
 
 
-def _identified_as_configured(cfg, out, result, progress):
-    """Stage c standing in: the sim's axis is the configured one, identified exactly (these tests are about
-    the stages around it)."""
-    result["stage_reached"] = "c"
-    result["parameters"] = {k: getattr(cfg.axis_params(), k) for k in ("I1", "I2", "B", "K")}
-    result["checks"].append({"name": "identification trusted", "ok": True, "measured": "stand-in",
-                             "expected": "", "fix": ""})
-    return {"parameters": result["parameters"]}
-
-
-def test_the_hosts_matching_sign_settings_pass_the_probe_checks_and_go_on_to_identify(tmp_path, monkeypatch):
-    from rt_ident.commission import stages
-
-    reached: list[str] = []
-    monkeypatch.setattr(stages, "_identify", lambda *a: reached.append("c"))    # stage b is the subject
+def test_the_hosts_matching_sign_settings_pass_the_probe_checks(tmp_path):
     data = sim_data({"torque_sign": -1, "scale_sign": -1})
     data["backend"] |= {"torque_sign": -1, "scale_sign": -1}
+    data["commission"] = {"identify_s": 1.0}
     r = commission(config.from_mapping(data), tmp_path / "out")
     probe = [c for c in r["checks"] if c["name"] in ("torque moves theta1 positive", "scale follows the motor",
                                                    "scale ratio x/theta1", "acceleration per N m")]
     assert len(probe) == 4 and all(c["ok"] for c in probe), r["checks"]
-    assert reached == ["c"]
 
 
 def test_a_table_that_starts_where_the_budget_leaves_the_window_is_refused_before_enabling(tmp_path):
@@ -150,7 +136,6 @@ def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_n
                                                                                               stalled_runs):
     """The measured move's summary reports a 500 ms stall and the speed trip that followed, ``stalled_runs``
     times: once, the move runs again and passes; twice, the check names the host, not the controller."""
-    from rt_ident.commission import stages
     from rt_ident.compose import run as run_mod
 
     real, moves, real_stalls = run_mod.run, [], []
@@ -167,8 +152,9 @@ def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_n
         return s
 
     monkeypatch.setattr(run_mod, "run", stalled)
-    monkeypatch.setattr(stages, "_identify", _identified_as_configured)
-    r = commission(config.from_mapping(sim_data()), tmp_path / "out")
+    data = sim_data()
+    data["commission"] = {"identify_s": 1.0}
+    r = commission(config.from_mapping(data), tmp_path / "out")
     if real_stalls:                 # a busy host stalled the run that was to be clean: the count cannot tell
         pytest.skip(f"the loop stalled for real in the move run again ({real_stalls[0]:.0f} ms)")
     assert len(moves) == 2 and r["stalled_moves"] == min(stalled_runs, 2)
