@@ -178,6 +178,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             realtime = LoopRealtime(cfg)
             stack.callback(realtime.end)                 # on an error: after every backend's safe stop and close
             realtime.prepare()                           # slow, and before the devices watch our heartbeat
+            # restored after every backend's exit: an error's safe stop needs the short switch interval too
+            stack.callback(sys.setswitchinterval, sys.getswitchinterval())
             for ax in axes.values():                     # open as late as possible: a device streams from open()
                 stack.enter_context(ax.backend)          # on exit (any axis's error too): safe stop, close
             for name, ax in axes.items():                # nothing energized that would trip on its first ticks
@@ -190,8 +192,6 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             summary["realtime"] = realtime.begin([runner.ticker])
             # a backend's I/O threads (python-can's receiver, a SYNC sender) share this process's GIL: hand
             # it back within 50 us, not 5 ms (the hand-offs to helper processes use no thread: shared rings)
-            switch_interval = sys.getswitchinterval()
-            stack.callback(sys.setswitchinterval, switch_interval)
             sys.setswitchinterval(5e-5)
             enabled = True
             for ax in axes.values():

@@ -16,13 +16,13 @@ from typing import Any
 _PACKAGES = ("rt_ident.", "drivers.")
 
 
-def _dispatchers() -> dict[str, Any]:
-    """Every numba dispatcher a module of ours holds, by ``module.name``."""
+def _dispatchers(skip: frozenset[str] = frozenset()) -> dict[str, Any]:
+    """Every numba dispatcher a module of ours (other than those named in ``skip``) holds, by ``module.name``."""
     from numba.core.dispatcher import Dispatcher
 
     found: dict[str, Any] = {}
     for name, module in list(sys.modules.items()):
-        if not name.startswith(_PACKAGES) or module is None:
+        if not name.startswith(_PACKAGES) or module is None or name in skip:
             continue
         for attr, value in list(vars(module).items()):
             if isinstance(value, Dispatcher):
@@ -31,26 +31,51 @@ def _dispatchers() -> dict[str, Any]:
 
 
 class CompileWatch:
-    """``start()`` before the loop, ``stop()`` after it: the signatures compiled or loaded in between."""
+    """``start()`` before the loop, ``stop()`` after it: the signatures compiled or loaded in between.
+
+    ``stop()`` runs while the devices still stream (on an error, before their safe stop), beside I/O
+    threads that need the GIL and the CPU every period: it only counts the signatures of the dispatchers
+    found at ``start()``. The modules imported during the run (rarely any) are scanned when the result is
+    read (:meth:`as_dict`), after the run: a scan of every module held the loop's CPU for 5-15 ms there.
+    """
 
     def __init__(self) -> None:
+        self._found: dict[str, Any] = {}
         self._before: dict[str, int] = {}
-        self.late: list[str] = []
+        self._after: dict[str, int] = {}
+        self._modules: frozenset[str] = frozenset()
+        self._n_modules = 0
+        self._new_modules = False
+        self._late: list[str] | None = None
 
     def start(self) -> None:
-        self._before = {k: len(d.signatures) for k, d in _dispatchers().items()}
+        self._modules = frozenset(sys.modules)
+        self._n_modules = len(sys.modules)
+        self._found = _dispatchers()
+        self._before = {k: len(d.signatures) for k, d in self._found.items()}
+        self._after, self._new_modules, self._late = {}, False, None
 
-    def stop(self) -> list[str]:
-        late = []
-        for key, d in _dispatchers().items():
-            sigs = list(d.signatures)
-            for sig in sigs[self._before.get(key, 0):]:
-                late.append(f"{key}{tuple(str(t) for t in sig)}")
-        self.late = late
-        return late
+    def stop(self) -> None:
+        self._after = {k: len(d.signatures) for k, d in self._found.items()}
+        self._new_modules = len(sys.modules) != self._n_modules
+
+    @property
+    def late(self) -> list[str]:
+        """``module.function(argument types)`` of every signature added between ``start()`` and ``stop()``."""
+        if self._late is None:
+            late = []
+            for key, d in self._found.items():
+                for sig in list(d.signatures)[self._before[key]:self._after.get(key, self._before[key])]:
+                    late.append(f"{key}{tuple(str(t) for t in sig)}")
+            if self._new_modules:
+                for key, d in _dispatchers(self._modules).items():
+                    late.extend(f"{key}{tuple(str(t) for t in sig)}" for sig in d.signatures)
+            self._late = late
+        return self._late
 
     def as_dict(self) -> dict[str, Any]:
-        return {"count": len(self.late), "functions": self.late[:20]}
+        late = self.late
+        return {"count": len(late), "functions": late[:20]}
 
 
 __all__ = ["CompileWatch"]
