@@ -83,6 +83,8 @@ class LoopConfig(_Section):
                                                # ticker then sleeps in one piece unless max_sleep_us is set
     compiled_tick: bool = True                 # each axis's tick in one compiled call where its parts allow
                                                # (rt_ident/loop/tick_core.py); false: the Python path, step by step
+    cpu_wait_s: float = Field(60.0, ge=0, le=3600)  # real time: how long to wait for another rt-ident loop
+                                               # to free this one's CPU before refusing (rt_ident/loop/cpu_claim.py)
 
     @field_validator("tick_hz")
     @classmethod

@@ -68,7 +68,9 @@ def test_a_serial_board_that_dies_mid_run_is_reported_once_without_traceback(tmp
     assert len(stops) == 1, res.stderr
     cause = re.match(r"stopped by [\w-]+: (.*) - torque zeroed", stops[0]).group(1)
     assert text.count(cause) == 1                      # the cause, once
-    warnings = [ln for ln in res.stderr.splitlines() if ln.startswith(("WARNING", "ERROR"))]
+    # the final fit of the few seconds measured may warn about its own convergence: not the board's failure
+    warnings = [ln for ln in res.stderr.splitlines() if ln.startswith(("WARNING", "ERROR"))
+                and "rt_ident.estimators" not in ln]
     assert len(warnings) <= 1, warnings                # at most: the stop frames could not be sent
 
 

@@ -175,7 +175,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
                 runner.tick_hook = hooks
             helpers.ready()                              # files exist, rings mapped: before the devices move
             summary["helper_processes"] = helpers.place(cfg.loop.realtime, getattr(emulator, "pid", None))
-            realtime = LoopRealtime(cfg)
+            realtime = LoopRealtime(cfg, stop)
             stack.callback(realtime.end)                 # on an error: after every backend's safe stop and close
             realtime.prepare()                           # slow, and before the devices watch our heartbeat
             # restored after every backend's exit: an error's safe stop needs the short switch interval too

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from typing import Any
 
 from rt_ident.config import RunConfig
+from rt_ident.loop.cpu_claim import CpuClaim
 
 log = logging.getLogger(__name__)
 
@@ -186,19 +188,26 @@ class LoopRealtime:
     rt_ident.loop.idle_poll); on a normal end call it after ``safe_stop()``.
     """
 
-    def __init__(self, cfg: RunConfig) -> None:
+    def __init__(self, cfg: RunConfig, stop: threading.Event | None = None) -> None:
         self.cfg = cfg
+        self.stop = stop
         self.report: dict[str, Any] = {"requested": False}
         self.poller: Any = None
         self._prepared: tuple[Any, str | None] | None = None     # (idle poller, why it failed)
         self._saved: tuple[int, Any, set[int]] | None = None
+        self._claim: CpuClaim | None = None
 
     def prepare(self) -> None:
-        """The slow part, as an ordinary thread and before the device is opened (idempotent)."""
+        """The slow part, as an ordinary thread and before the device is opened (idempotent). First the
+        claim on the loop's CPU (rt_ident.loop.cpu_claim): it may wait for another loop, and may refuse."""
         if self._prepared is not None or not self.cfg.loop.realtime:
             return
         poller, failed = None, None
         cpu = loop_cpu()
+        if cpu is not None and self._claim is None:
+            claim = CpuClaim(cpu, self.cfg.loop.cpu_wait_s, self.stop)
+            claim.acquire()
+            self._claim = claim
         if self.cfg.loop.idle_poll and cpu is not None:
             from rt_ident.loop.idle_poll import IdlePoller
 
@@ -229,26 +238,30 @@ class LoopRealtime:
         except (AttributeError, OSError):
             self._saved = None
         self.report = apply_run_realtime(cfg)
+        if self._claim is not None:
+            self.report["cpu_claim"] = {"cpu": self._claim.cpu, "waited_s": round(self._claim.waited_s, 3)}
         self.poller = start_idle_poll(cfg, self.report, tickers, poller=poller, failed=failed)
         return self.report
 
     def end(self) -> None:
-        """Stop the idle poller and leave real time (idempotent; never raises)."""
+        """Stop the idle poller, leave real time and free the CPU (idempotent; never raises)."""
         poller, self.poller = self.poller, None
         if poller is not None:
             poller.stop()
         saved, self._saved = self._saved, None
-        if saved is None:
-            return
-        policy, param, cpus = saved
-        try:
-            os.sched_setscheduler(0, policy, param)
-        except (AttributeError, OSError) as exc:
-            log.warning("the loop thread could not leave SCHED_FIFO: %s", exc)
-        try:
-            os.sched_setaffinity(0, cpus)
-        except (AttributeError, OSError) as exc:
-            log.warning("the loop thread could not leave its CPU: %s", exc)
+        if saved is not None:
+            policy, param, cpus = saved
+            try:
+                os.sched_setscheduler(0, policy, param)
+            except (AttributeError, OSError) as exc:
+                log.warning("the loop thread could not leave SCHED_FIFO: %s", exc)
+            try:
+                os.sched_setaffinity(0, cpus)
+            except (AttributeError, OSError) as exc:
+                log.warning("the loop thread could not leave its CPU: %s", exc)
+        claim, self._claim = self._claim, None
+        if claim is not None:
+            claim.release()
 
 
 def start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, *, poller: Any = None,
