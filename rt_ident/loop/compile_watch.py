@@ -36,7 +36,8 @@ class CompileWatch:
     ``stop()`` runs while the devices still stream (on an error, before their safe stop), beside I/O
     threads that need the GIL and the CPU every period: it only counts the signatures of the dispatchers
     found at ``start()``. The modules imported during the run (rarely any) are scanned when the result is
-    read (:meth:`as_dict`), after the run: a scan of every module held the loop's CPU for 5-15 ms there.
+    read (:meth:`as_dict`), after the run: a scan of every module there, memory the run has not touched
+    since its start, holds the loop's CPU and the GIL for milliseconds.
     """
 
     def __init__(self) -> None:

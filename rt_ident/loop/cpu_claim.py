@@ -5,7 +5,7 @@ Every real-time loop takes the host's last CPU at SCHED_FIFO (rt_ident.loop.host
 cycle waits for the other's, and their spins together pass the kernel's RT budget (95 % of each second),
 after which both are paused for the rest of the second, up to 50 ms. A drive watching its RPDOs then
 faults, and an axis coasts. So a loop claims its CPU before it turns real-time: an ``flock`` on a file
-named after the CPU in the system's temporary directory, which the kernel drops when the process ends,
+named after the CPU in /run/lock (else the temporary directory), which the kernel drops when the process ends,
 however it ends. A second loop waits for the first to end (``[loop] cpu_wait_s``), saying once whom it
 waits for, and then refuses to start, before anything is energized.
 """
@@ -34,9 +34,16 @@ class CpuWaitInterrupted(RtIdentError):
     cause = None
 
 
+#: Where the claims live: the host's lock directory (one for every user and every TMPDIR), when writable.
+LOCK_DIR = Path("/run/lock")
+
+
 def claim_path(cpu: int, directory: str | os.PathLike[str] | None = None) -> Path:
-    """The file whose lock is the claim on ``cpu``."""
-    return Path(directory or tempfile.gettempdir()) / f"rt-ident-loop-cpu{int(cpu)}.lock"
+    """The file whose lock is the claim on ``cpu``: in ``directory``, else /run/lock, else the temporary
+    directory."""
+    if directory is None:
+        directory = LOCK_DIR if LOCK_DIR.is_dir() and os.access(LOCK_DIR, os.W_OK) else tempfile.gettempdir()
+    return Path(directory) / f"rt-ident-loop-cpu{int(cpu)}.lock"
 
 
 def holder(path: Path) -> str | None:

@@ -199,7 +199,9 @@ def _xy_canopen(**over):
 
 @pytest.mark.slow
 def test_two_emulated_drives_on_one_bus_run_both_axes_in_one_loop(restore_scheduling):
-    s = run_axes(_xy_canopen(**{"loop.duration": 3.0}))
+    # nor a host stall past the drives' 20 ms RPDO deadline (a drive's fault stop below keeps it: the healthy
+    # drive must end disabled, not faulted by a stop that starved its RPDOs)
+    s = run_axes(_xy_canopen(**{"loop.duration": 3.0, "backend.rpdo_deadline_ms": 200}))
     assert s["stop"]["cause"] is None, s["stop"]
     assert run_mod.exit_code(s) == 0
     cx, cy = s["axes"]["x"]["backend_counters"], s["axes"]["y"]["backend_counters"]
