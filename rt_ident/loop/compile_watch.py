@@ -45,20 +45,18 @@ class CompileWatch:
         self._before: dict[str, int] = {}
         self._after: dict[str, int] = {}
         self._modules: frozenset[str] = frozenset()
-        self._n_modules = 0
         self._new_modules = False
         self._late: list[str] | None = None
 
     def start(self) -> None:
         self._modules = frozenset(sys.modules)
-        self._n_modules = len(sys.modules)
         self._found = _dispatchers()
         self._before = {k: len(d.signatures) for k, d in self._found.items()}
         self._after, self._new_modules, self._late = {}, False, None
 
     def stop(self) -> None:
         self._after = {k: len(d.signatures) for k, d in self._found.items()}
-        self._new_modules = len(sys.modules) != self._n_modules
+        self._new_modules = len(sys.modules) != len(self._modules)
 
     @property
     def late(self) -> list[str]:

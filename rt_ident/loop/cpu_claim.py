@@ -69,8 +69,8 @@ def holder(path: Path) -> str | None:
 class CpuClaim:
     """The claim on one CPU: :meth:`acquire` (waits up to ``wait_s``), :meth:`release` (idempotent).
 
-    Within one process the claim is counted, not locked twice: a nested real-time section (a
-    commissioning stage inside a run) shares its caller's claim.
+    Within one process the claim is counted, not locked twice: a real-time section started before
+    another of the same process has ended shares its claim instead of waiting on itself.
     """
 
     _held: dict[Path, tuple[int, int]] = {}          # path -> (fd, count), this process's claims
@@ -107,6 +107,9 @@ class CpuClaim:
             CpuClaim._held[self.path] = (fd, 1)
             return True
 
+    def _who(self) -> str:
+        return holder(self.path) or "another process"
+
     def acquire(self) -> None:
         """Hold the CPU, or raise: :class:`ConfigError` (``loop.cpu_wait_s``) after ``wait_s``,
         :class:`CpuWaitInterrupted` when ``stop`` is set while waiting."""
@@ -116,17 +119,16 @@ class CpuClaim:
         said = False
         while not self._try():
             waited = time.monotonic() - t0
-            who = holder(self.path) or "another process"
             if self.stop is not None and self.stop.is_set():
-                raise CpuWaitInterrupted(f"stopped while waiting for CPU {self.cpu}, which {who} holds for its "
-                                         "real-time loop; nothing was energized")
+                raise CpuWaitInterrupted(f"stopped while waiting for CPU {self.cpu}, which {self._who()} holds "
+                                         "for its real-time loop; nothing was energized")
             if waited >= self.wait_s:
-                raise ConfigError("loop.cpu_wait_s", f"CPU {self.cpu} is still held by the real-time loop of {who} "
-                                  f"after {waited:.1f} s: let that run end first, give this one longer "
+                raise ConfigError("loop.cpu_wait_s", f"CPU {self.cpu} is still held by the real-time loop of "
+                                  f"{self._who()} after {waited:.1f} s: let that run end first, give this one longer "
                                   "(loop.cpu_wait_s) or run it without real time (loop.realtime = false)")
             if not said:
                 log.warning("CPU %d is held by the real-time loop of %s: waiting up to %g s for it "
-                            "(loop.cpu_wait_s)", self.cpu, who, self.wait_s)
+                            "(loop.cpu_wait_s)", self.cpu, self._who(), self.wait_s)
                 said = True
             time.sleep(POLL_S)
         self.waited_s = time.monotonic() - t0
