@@ -29,14 +29,16 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                     help="run config (TOML) naming a real backend; repeat or comma-separate for several")
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: two workers per CPU, at most four. A worker spends most of its time in runs paced in
+    real time, not on a CPU, so one worker per CPU leaves the CPUs idle much of the time. The real-time
+    parts of all workers' runs take turns on the one CPU the loop takes (a run claims it:
+    rt_ident/loop/cpu_claim.py): more workers would only queue there, some past a run's
+    ``loop.cpu_wait_s``."""
+    return min(2 * len(os.sched_getaffinity(0)), 4)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    # the commissioning tests that probe an emulated device run on one xdist worker, one after another: two
-    # probes and their devices side by side on a 2-CPU machine starved each other's devices ("--dist loadgroup")
-    for item in items:
-        realtime = "restore_scheduling" in getattr(item, "fixturenames", ())
-        if item.nodeid.startswith("tests/commission/test_devices.py") or (
-                realtime and item.nodeid.startswith("tests/commission/")):
-            item.add_marker(pytest.mark.xdist_group("realtime"))
     if config.getoption("--hardware"):
         return
     skip = pytest.mark.skip(reason="real device: run with --hardware (and --hardware-config PATH)")

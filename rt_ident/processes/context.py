@@ -6,13 +6,14 @@ Linux the helpers can be forked instead from one forkserver per main process tha
 modules once (:data:`PRELOAD`). Each child still starts from a clean, single-threaded process: the
 forkserver runs no threads (a test checks) and holds nothing of the run.
 
-What the spawned children got from their parent at ``start()`` they get from the forkserver, so the
+What spawned children got from their parent at ``start()`` they get from the forkserver, so the
 forkserver is started the way helpers must be born: SIGINT and SIGTERM ignored (its children inherit
 that, with no window before :func:`rt_ident.processes.guard.become_helper`) and
 :data:`~rt_ident.processes.guard.HELPER_ENV` in its environment (one BLAS thread; it is read at
-numpy's import, which the forkserver does). It exits once the main process and every child have
-ended. It is opt-in (``RT_IDENT_START_METHOD=forkserver``) until its effect on the emulated devices'
-timing is understood (docs: measurements, "The test suite"); spawn is the default.
+numpy's import, which the forkserver does). Each child takes its starter's current stdout, stderr and
+environment as it starts (:func:`rt_ident.processes.guard.start_with_helper_env`). The forkserver exits
+once the main process and every child have ended. ``RT_IDENT_START_METHOD=spawn`` spawns the helpers
+instead (the default where the platform has no forkserver).
 """
 
 from __future__ import annotations
@@ -33,15 +34,14 @@ _lock = threading.Lock()
 
 
 def start_method() -> str:
-    """``spawn`` unless ``RT_IDENT_START_METHOD=forkserver`` (where the platform has it)."""
+    """``forkserver`` where the platform has it, unless ``RT_IDENT_START_METHOD=spawn``."""
     wanted = os.environ.get("RT_IDENT_START_METHOD", "").strip().lower()
-    available = mp.get_all_start_methods()
+    usable = [m for m in ("forkserver", "spawn") if m in mp.get_all_start_methods()]
     if wanted:
-        usable = [m for m in ("forkserver", "spawn") if m in available]
         if wanted not in usable:
             raise ValueError(f"RT_IDENT_START_METHOD={wanted!r}: use one of {', '.join(usable)}")
         return wanted
-    return "spawn"
+    return usable[0]
 
 
 def helper_context() -> ForkServerContext | SpawnContext:

@@ -39,15 +39,54 @@ HELPER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THRE
 
 def start_with_helper_env(proc: Any) -> None:
     """``proc.start()`` with :data:`HELPER_ENV` in the environment the child is spawned with (a
-    variable the user set is kept); this process's environment is restored afterwards."""
+    variable the user set is kept); this process's environment is restored afterwards. A child forked
+    by the forkserver gets this process's stdout, stderr and environment too (:class:`_StartersStdio`)."""
     added = [k for k in HELPER_ENV if k not in os.environ]
     for k in added:
         os.environ[k] = HELPER_ENV[k]
+    if getattr(proc, "_start_method", None) == "forkserver":
+        proc._starters_stdio = _StartersStdio()
     try:
         proc.start()
     finally:
         for k in added:
             os.environ.pop(k, None)
+
+
+class _StartersStdio:
+    """Carries the starting process's stdout, stderr and environment to a child of the forkserver.
+
+    A forked child inherits the forkserver's fds 1 and 2 and environment, from whenever the forkserver
+    was started: a later redirection (a log file, pytest's capture) or variable would not reach it, as
+    it reaches a spawned child. Pickled with the process object, this sends the current fds 1 and 2
+    (``multiprocessing.reduction.DupFd``: passed over the forkserver's socket) and ``os.environ``, and
+    the child installs them as it unpickles its process object, before the helper's code runs.
+    Variables read at import (BLAS threads, numba's) keep the forkserver's values: it preloaded them."""
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        from multiprocessing import reduction
+
+        fds: list[Any] = []
+        for fd in (1, 2):
+            try:
+                os.fstat(fd)
+            except OSError:             # closed here: the child keeps the forkserver's
+                fds.append(None)
+                continue
+            fds.append(reduction.DupFd(fd))
+        return _adopt_starters_stdio, (fds[0], fds[1], dict(os.environ))
+
+
+def _adopt_starters_stdio(out: Any, err: Any, env: dict[str, str]) -> None:
+    for fd, dup in ((1, out), (2, err)):
+        if dup is None:
+            continue
+        got = dup.detach()
+        if got != fd:
+            os.dup2(got, fd)
+            os.close(got)
+    os.environ.clear()
+    os.environ.update(env)
 
 
 def end_helper(proc: Any, term_wait_s: float = 1.0, kill_wait_s: float = 1.0) -> None:

@@ -37,9 +37,10 @@ RATED = 0.64
 def backend_cfg(channel: str, **over) -> dict:
     cfg = dict(interface="virtual", channel=channel, bitrate=1_000_000, node_id=5, eds="cia402_generic.eds",
                sync_rate_hz=1000, torque_limit=1.0, rated_torque=RATED, counts_per_rev=131072,
-               scale_resolution=1e-7, heartbeat_ms=50, heartbeat_consumer_ms=250, sdo_timeout=0.3,
+               scale_resolution=1e-7, heartbeat_ms=50, heartbeat_consumer_ms=250, sdo_timeout=1.0,
                stale_limit=400, startup_timeout=3.0,
-               rpdo_deadline_ms=200)     # the test's SYNC thread is not real-time: 20 ms gaps beside a busy loop
+               rpdo_deadline_ms=200)     # the test's SYNC thread is not real-time: 20 ms gaps beside a busy loop;
+    # the emulated drive is an ordinary process too: its SDO answers come late beside busy workers (sdo_timeout)
     cfg.update(over)
     return cfg
 

@@ -56,8 +56,8 @@ def _rig_cfg(actual: dict | None, emulator: dict | None, over: dict, channel: st
              node_id: int = 5) -> dict:
     # 250 Hz: two drives, two hosts and the SYNC producer share this process's CPU time. No travel window:
     # a starved drive may take many SYNC periods to deliver the samples a test needs; heartbeats may be
-    # late by as much (the watchdogs are not what these tests are about)
-    over = {"sync_rate_hz": 250, "heartbeat_consumer_ms": 2000, **over}
+    # late by as much, and so may an SDO answer (the watchdogs and timeouts are not what these tests are about)
+    over = {"sync_rate_hz": 250, "heartbeat_consumer_ms": 2000, "sdo_timeout": 2.0, **over}
     # the two drives are compared SYNC by SYNC: each stepping its table through this process's SYNC gaps on
     # its own clock would set them apart
     return {"backend": backend_cfg(channel or f"a-{uuid.uuid4().hex[:10]}", node_id=node_id, **over),

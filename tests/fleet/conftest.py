@@ -6,7 +6,9 @@ three series wear from day 6 on - one K alone (-0.5 %/day), one B alone (+2 %/da
 from __future__ import annotations
 
 import copy
+import fcntl
 import json
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,19 +44,35 @@ class WearFleet:
 
 
 @pytest.fixture(scope="session")
-def wear_fleet(tmp_path_factory) -> WearFleet:
+def wear_fleet(tmp_path_factory, worker_id) -> WearFleet:
+    """Made by the first xdist worker that asks (under a lock in the workers' shared temporary folder) and
+    read back by the others: each worker making its own cost 5-15 s of CPU the other workers needed."""
+    root = tmp_path_factory.getbasetemp()
+    root = root if worker_id == "master" else root.parent
+    out = root / "wear-fleet"
+    with open(root / "wear-fleet.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (out / "rows.pickle").is_file():
+            _make_wear_fleet(out)
+    rows = pickle.loads((out / "rows.pickle").read_bytes())
+    return WearFleet(out, json.loads((out / "truth.json").read_text()), rows)
+
+
+def _make_wear_fleet(out: Path) -> None:
     from rt_ident.fleet.identify import identify_recording
     from rt_ident.fleet.make import make_fleet
     from rt_ident.fleet.manifest import read_manifest
 
-    out = tmp_path_factory.mktemp("wear-fleet")
+    out.mkdir(parents=True, exist_ok=True)
     make_fleet(out, machines=4, axes=("x",), days=10, worn=0.75, wear=("k", "b", "load"), duration=0.3, seed=5)
     rows = [identify_recording({"path": e.path, "machine": e.machine, "axis": e.axis, "time": e.time})
             for e in read_manifest(out / "manifest.csv")]
     assert all(r["status"] == "ok" and r["trusted"] for r in rows), [r["error"] or r["reasons"] for r in rows]
     truth = json.loads((out / "truth.json").read_text())
     assert sorted(str(s["wear"]) for s in truth["series"]) == ["None", "b", "k", "load"]
-    return WearFleet(out, truth, rows)
+    tmp = out / "rows.pickle.part"
+    tmp.write_bytes(pickle.dumps(rows))
+    tmp.replace(out / "rows.pickle")        # the others read a whole file or none
 
 
 def local_cluster(workers: int):

@@ -1,5 +1,6 @@
 """The helpers' start context: a forkserver that preloads, runs no threads and starts children as helpers
-must be born (SIGINT/SIGTERM ignored, one BLAS thread), or spawn when asked."""
+must be born (SIGINT/SIGTERM ignored, one BLAS thread, its starter's stdio and environment), or spawn when
+asked."""
 
 from __future__ import annotations
 
@@ -52,9 +53,35 @@ def test_the_forkserver_runs_a_single_thread_so_forking_it_is_safe(monkeypatch):
     assert len(os.listdir(f"/proc/{pid}/task")) == 1
 
 
-def test_helpers_are_spawned_unless_the_forkserver_is_asked_for(monkeypatch):
+def _child_writes(tag: str) -> None:
+    sys.stdout.write(f"out {tag} {os.environ.get('RT_IDENT_TEST_LATE')}\n")
+    sys.stdout.flush()
+    os.write(2, f"err {tag}\n".encode())
+
+
+@FORKSERVER
+def test_a_forked_helper_writes_to_its_starters_current_stdout_and_stderr_and_sees_its_environment(
+        monkeypatch, capfd):
+    from rt_ident.processes.guard import start_with_helper_env
+
+    monkeypatch.setenv("RT_IDENT_START_METHOD", "forkserver")
+    with capfd.disabled():                      # the forkserver started (if it was not) outside this capture
+        ctx = context.helper_context()
+    monkeypatch.setenv("RT_IDENT_TEST_LATE", "set-later")
+    p = ctx.Process(target=_child_writes, args=("a",))
+    start_with_helper_env(p)
+    p.join(60)
+    assert p.exitcode == 0
+    out, err = capfd.readouterr()
+    assert "out a set-later" in out and "err a" in err
+
+
+def test_helpers_are_forked_where_the_platform_can_and_spawned_when_asked(monkeypatch):
     monkeypatch.delenv("RT_IDENT_START_METHOD", raising=False)
+    assert context.start_method() == ("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
+    monkeypatch.setenv("RT_IDENT_START_METHOD", "spawn")
     assert context.start_method() == "spawn"
+    assert context.helper_context().get_start_method() == "spawn"
 
 
 def test_an_unknown_start_method_is_refused_in_one_line():
