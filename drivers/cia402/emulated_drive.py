@@ -25,7 +25,8 @@ itself was not run (a paused VM: the master paused with it) is no silence: the e
 still (``paused_s``). A silence is counted in the SYNC period the master set (0x1006, else 0x60C2).
 RPDO deadline monitoring (CiA 301: an RPDO's event timer 0x14xx:05, in ms, from its first reception
 on): an RPDO not received within it while OPERATION ENABLED is a fault (EMCY 0x8250, torque 0 from
-that instant; the table coasts on). Checked with the housekeeping and on each RPDO's arrival.
+that instant; the table coasts on). Checked on each RPDO's arrival, and by the housekeeping up to
+where the receive thread has read the bus.
 TPDOs carry the measurement taken at that SYNC (the plant measures at the start of
 the sample) and the torque applied from that SYNC on.
 
@@ -482,7 +483,7 @@ class EmulatedCia402Drive:
         if lay is not None and lay.event_s > 0.0:
             with self._lock:
                 self._note_alive(time.monotonic())
-                self._check_deadline(timestamp)           # the silence before this one, if it was too long
+                self._check_deadline(timestamp, "next RPDO")   # the silence before this one, if too long
                 self._rpdo_t = timestamp
         if lay is None or lay.trans_type <= 240:          # synchronous: applied at the next SYNC
             self._rpdo_data[can_id] = bytes(data)
@@ -574,14 +575,17 @@ class EmulatedCia402Drive:
         while self._delayed and self._delayed[0][0] <= now:
             _, _, cob, data = heapq.heappop(self._delayed)
             self._send(cob, data)
+        # a silence is known only as far as the receive thread has read the bus: frames that arrived on
+        # time but wait in this process's socket (its receive thread starved) are not a silence
+        heard = min(now, self._io.read_until) if self._io is not None else now
         master, ms = self._master
         if master and ms and self._master_hb is not None and not self._master_lost:
-            if now - self._master_hb > ms / 1000.0:
+            if heard - self._master_hb > ms / 1000.0:
                 self._master_lost = True
-                self._fault(0x8130, f"no heartbeat from node {master} for {now - self._master_hb:.3f} s")
+                self._fault(0x8130, f"no heartbeat from node {master} for {heard - self._master_hb:.3f} s")
         elif self._master_lost and self._master_hb is not None and now - self._master_hb < ms / 1000.0:
             self._master_lost = False
-        self._check_deadline(now)
+        self._check_deadline(heard)
         f = self.faults
         if (f.heartbeat_stop_at_s is not None and not self._hb_stopped and self._t_enabled is not None
                 and now - self._t_enabled >= f.heartbeat_stop_at_s):
@@ -688,14 +692,15 @@ class EmulatedCia402Drive:
         if self._rpdo_t is not None:
             self._rpdo_t += gap
 
-    def _check_deadline(self, now: float) -> None:
+    def _check_deadline(self, now: float, seen_by: str = "housekeeping") -> None:
         """An RPDO deadline passed by ``now`` while OPERATION ENABLED: the plant first runs through the
-        silence with the torque held up to the deadline, then the fault (the torque off from there on)."""
+        silence with the torque held up to the deadline, then the fault (the torque off from there on).
+        ``seen_by`` goes into the fault's text (which check found the silence)."""
         d, t = self._deadline_s, self._rpdo_t
         if not d or t is None or now - t <= d or self._state != p402.OPERATION_ENABLED:
             return
-        self._fault(RPDO_TIMEOUT, f"no RPDO for {1e3 * (now - t):.0f} ms (deadline 0x1400:05 = {1e3 * d:.0f} ms)",
-                    at=t + d)
+        self._fault(RPDO_TIMEOUT, f"no RPDO for {1e3 * (now - t):.0f} ms (deadline 0x1400:05 = {1e3 * d:.0f} ms; "
+                                  f"seen by the {seen_by})", at=t + d)
 
     def _torque_in_force(self) -> tuple[bool, float]:
         """(enabled, the torque the drive believes it applies [N m], its own frame): the last target torque

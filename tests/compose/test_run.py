@@ -109,14 +109,17 @@ def test_rrd_true_value_series_holds_the_plant_stiffness(recorded):
     from rerun.chunk import RrdReader
 
     s, _, rrd = recorded
-    values = []
+    values, seen = [], []
     for chunk in RrdReader(str(rrd)).stream():
+        if str(chunk.entity_path).startswith("/params/K"):
+            batch = chunk.to_record_batch()
+            seen.append((str(chunk.entity_path), batch.num_rows, batch.column_names))
         if str(chunk.entity_path) == "/params/K/true":
             batch = chunk.to_record_batch()
             if "Scalars:scalars" not in batch.column_names:
                 continue                 # the static series-style chunk
             values += [float(np.ravel(x)[0]) for x in batch.column("Scalars:scalars").to_pylist()]
-    assert values and all(v == pytest.approx(110.0) for v in values)
+    assert values and all(v == pytest.approx(110.0) for v in values), (seen, s["telemetry"], s.get("parameters"))
 
 
 def test_injected_slow_tick_is_counted_as_an_overrun():

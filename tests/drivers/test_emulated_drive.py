@@ -278,6 +278,29 @@ def test_a_master_silent_past_the_rpdo_deadline_faults_the_drive_after_the_torqu
     assert drive.silent_samples > held and _momentum(drive) - m0 == pytest.approx(0.32 * held * 1e-3, rel=0.02)
 
 
+@pytest.mark.parametrize(("read_until", "faults"), [(10.010, False), (10.200, True)],
+                         ids=["frames-not-read-yet", "silence-read"])
+def test_the_housekeeping_counts_a_silence_only_as_far_as_the_bus_was_read(monkeypatch, read_until, faults):
+    """A receive thread starved in a loaded host leaves RPDOs that came on time waiting in the socket: the
+    housekeeping 300 ms on must not call that a silence (a real drive reads every frame as it comes); a
+    silence the reader has seen through past the deadline faults the drive as before."""
+    from types import SimpleNamespace
+
+    from drivers.cia402 import emulated_drive as mod
+
+    drive, sent = _silent_drive(0.020)
+    drive._node.nmt.state = "OPERATIONAL"
+    drive._io = SimpleNamespace(read_until=read_until)
+    drive._pdo_dirty = False
+    monkeypatch.setattr(drive, "_event_tpdos", lambda: None)
+    monkeypatch.setattr(mod.time, "monotonic", lambda: 10.300)
+    drive._alive_t = 10.299                     # the emulator itself ran (no pause of its own)
+    drive._housekeeping()
+    assert (drive.state == p402.FAULT, sent) == ((True, [0x8250]) if faults else (False, []))
+    if faults:
+        assert drive.silent_samples == 20       # the torque held up to the deadline only, as before
+
+
 def test_without_an_rpdo_deadline_a_silent_master_leaves_the_last_torque_in_force():
     drive, sent = _silent_drive(0.0)
     m0 = _momentum(drive)
