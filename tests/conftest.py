@@ -29,13 +29,27 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                     help="run config (TOML) naming a real backend; repeat or comma-separate for several")
 
 
-def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """``-n auto``: two workers per CPU, at most four. A worker spends most of its time in runs paced in
-    real time, not on a CPU, so one worker per CPU leaves the CPUs idle much of the time. The real-time
-    parts of all workers' runs take turns on the one CPU the loop takes (a run claims it:
-    rt_ident/loop/cpu_claim.py): more workers would only queue there, some past a run's
-    ``loop.cpu_wait_s``."""
-    return min(2 * len(os.sched_getaffinity(0)), 4)
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """With xdist workers and a cold kernel cache (a fresh clone): one short run in the controller, before
+    the workers start, compiles the loop's kernels into numba's cache (beside the package). Otherwise
+    every worker, and the helper processes of their first runs, compile the same kernels at once."""
+    config = session.config
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
+        return
+    import glob
+    import subprocess
+    import sys
+    import tempfile
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if glob.glob(os.path.join(root, "rt_ident", "loop", "__pycache__", "tick_kernel.axis_tick-*.nbi")):
+        return                  # compiled before (a stale entry is compiled again where it is used)
+    with tempfile.TemporaryDirectory() as tmp:
+        r = subprocess.run([sys.executable, "-m", "rt_ident.cli", "run", os.path.join(root, "configs", "sim.toml"),
+                            "--duration", "0.3", "--no-realtime", "--no-telemetry"],
+                           cwd=tmp, capture_output=True, text=True, timeout=600)
+    if r.returncode != 0:       # the tests that run the loop say why; this only fills a cache
+        print(f"conftest: the cache-filling run exited {r.returncode}: {r.stderr.strip()[-300:]}", file=sys.stderr)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -144,7 +144,9 @@ def _landing(delay: int) -> np.ndarray:
     from types import SimpleNamespace
 
     from drivers.sim import SimBackend
+    from rt_ident.compose.offline import VirtualClock
     from rt_ident.loop.loop import IdentificationLoop
+    from rt_ident.loop.scheduler import Ticker
 
     class Recorder:
         law = SimpleNamespace(delay=delay)
@@ -167,12 +169,15 @@ def _landing(delay: int) -> np.ndarray:
         def start(self, *a):
             pass
 
-    backend = SimBackend({"paced": False, "samples_per_read": 34, "position_hold": False})
+    # on virtual time: a host stall (a busy machine) cannot make the loop catch up or resume here
+    clock = VirtualClock()
+    backend = SimBackend({"paced": False, "samples_per_read": 34, "position_hold": False}, clock=clock)
     rec = Recorder()
     blocks = []
     loop = IdentificationLoop(backend, tick_hz=1000, excitation=lambda s: np.zeros(s.shape),
                               state_estimator=_KF(), estimator=_Est(), safety=_Safe(), duration=0.01,
-                              on_block=lambda b: blocks.append(b), control=rec)
+                              on_block=lambda b: blocks.append(b), control=rec, clock=clock,
+                              ticker=Ticker(1e-3, clock=clock, sleeper=clock.sleep, spin_s=0.0, max_sleep_s=None))
     with backend:
         backend.activate()
         loop.run()

@@ -116,9 +116,11 @@ def _canopen_rig(stack: ExitStack, profile: str = "generic") -> Rig:
     data = _toml("canopen-virtual.toml")
     backend = {k: v for k, v in data["backend"].items() if k not in ("emulate", "port", "bus_options")}
     # own in-process bus per test; 500 Hz SYNC and lenient watchdogs (0.5 s of stale TPDOs, 1 s of heartbeat
-    # silence) so that stalls on a loaded 2-core machine do not trip them: the drive shares this process
+    # silence, 200 ms between RPDOs) so that stalls on a loaded 2-core machine do not trip them: the drive
+    # and the host's SYNC thread share this process, which is not real-time
     backend.update(interface="virtual", channel=f"contract-{uuid.uuid4().hex[:12]}", torque_limit=CONTRACT_LIMIT,
-                   sync_rate_hz=500, stale_limit=250, startup_timeout=3.0, heartbeat_consumer_ms=1000)
+                   sync_rate_hz=500, stale_limit=250, startup_timeout=3.0, heartbeat_consumer_ms=1000,
+                   rpdo_deadline_ms=200)
     emulator = {**data.get("emulator", {}), "position_hold": False, "travel": None, "faults": {},
                 "torque_limit": DEVICE_LIMIT, "profile": profile}
     drive = start_emulator_for({"backend": backend, "emulator": emulator, "axis": data["axis"]})
