@@ -2,7 +2,7 @@
 
 A spawned child imports numpy, numba, scipy, rerun and pyarrow again (seconds of CPU
 per run on a small machine, and the imports of several helpers compete with the loop's start). On
-Linux the helpers can be forked instead from one forkserver per main process that has imported those
+Linux the helpers are forked instead from one forkserver per main process that has imported those
 modules once (:data:`PRELOAD`). Each child still starts from a clean, single-threaded process: the
 forkserver runs no threads (a test checks) and holds nothing of the run.
 
