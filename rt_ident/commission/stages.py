@@ -46,24 +46,31 @@ VERIFY_FACTOR, VERIFY_FLOOR_M = 2.0, 10e-6
 #: rejoin or lost samples are not the axis's response
 STALLED_MOVE_RETRIES = 1
 
+#: lost samples that disturb a run (``host_trouble``): this share of the samples, or one gap this long (the
+#: loop's default stall limit)
+LOST_SHARE, LOST_GAP_S = 0.01, 0.01
+
 Progress = Callable[[str], None]
 
 #: a check a run failed while the host disturbed it names the host, not the axis's settings
 HOST_FIX = "loop.realtime = true (or a less busy host): "
 
 
-def host_trouble(summary: dict[str, Any]) -> str | None:
-    """What the host did to a run that no axis setting explains: a loop stall, samples lost on the device's
-    link (a move or a fit over such a run measures the host, not the axis), or None. Single overruns are
-    left out: a non-real-time loop has a few in most runs."""
+def host_trouble(summary: dict[str, Any], sample_period: float) -> str | None:
+    """What the host did to a run that no axis setting explains: a loop stall, or samples lost on the
+    device's link enough to change what the run measures (more than ``LOST_SHARE`` of them, or one gap
+    of ``LOST_GAP_S`` or longer); else None. Single overruns, and a few short gaps, are left out: a
+    non-real-time loop has some in most runs, and a move or a fit over them measures the axis all the same."""
     loop = summary.get("loop") or {}
     stalls = loop.get("stalls") or {}
     said = []
     if stalls.get("count"):
         said.append(f"the loop stalled {stalls['count']} time(s), for {float(stalls.get('longest_ms') or 0):.0f} ms "
                     "at longest")
-    if loop.get("lost_samples"):
-        said.append(f"the device's link lost {loop['lost_samples']} samples")
+    lost = int(loop.get("lost_samples") or 0)
+    longest = int(loop.get("lost_longest", lost) or 0)      # a summary without it: as if all in one gap
+    if lost > LOST_SHARE * int(loop.get("samples") or 0) or longest * sample_period >= LOST_GAP_S:
+        said.append(f"the device's link lost {lost} samples ({1e3 * longest * sample_period:.1f} ms at longest)")
     return " and ".join(said) or None
 
 
@@ -241,7 +248,7 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
         measured = f"not trusted: {'; '.join(reasons) or stop}"
     else:
         measured = "trusted" if stop is None else f"trusted, but the run stopped: {stop}"
-    host = host_trouble(s)
+    host = host_trouble(s, result.get("sample_period") or _sample_period(cfg))
     if stop is None:
         fix = "commission.identify_s (longer), excitation.peak / excitation.band"
     elif host is not None:
@@ -319,7 +326,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
         if (s.get("stop") or {}).get("interrupted"):
             raise KeyboardInterrupt
         stalls = (s.get("loop") or {}).get("stalls") or {}
-        host = host_trouble(s)
+        host = host_trouble(s, result.get("sample_period") or _sample_period(cfg))
         if host is None:
             break
         result["stalled_moves"] = result.get("stalled_moves", 0) + 1   # the host's doing, not the axis's

@@ -77,6 +77,7 @@ class LoopStats:
     ticks: int = 0
     samples: int = 0
     lost_samples: int = 0
+    lost_longest: int = 0       # the most samples one read found missing: the longest gap in the device's stream
     overruns: int = 0
     overruns_work: int = 0
     overruns_backlog: int = 0
@@ -97,6 +98,7 @@ class LoopStats:
         work = self.work.summary()
         cpu = self.work_cpu.summary()
         return {"ticks": self.ticks, "samples": self.samples, "lost_samples": self.lost_samples,
+                "lost_longest": self.lost_longest,
                 "overruns": self.overruns, "overruns_work": self.overruns_work,
                 "overruns_backlog": self.overruns_backlog,
                 "overruns_late_start": self.overruns_late_start, "skipped_periods": self.skipped_periods,
@@ -398,6 +400,7 @@ class IdentificationLoop(TelemetryWindow):
             return
         stats.samples += n
         stats.lost_samples += block.lost
+        stats.lost_longest = max(stats.lost_longest, block.lost)
         if self.on_block is not None:               # record first: a block that trips a check is kept
             self.on_block(block)
         if self._catching_up:
@@ -734,6 +737,7 @@ class MultiAxisLoop:
             stats.compiles.stop()
             stats.samples = sum(ax.stats.samples for ax in axes)
             stats.lost_samples = sum(ax.stats.lost_samples for ax in axes)
+            stats.lost_longest = max((ax.stats.lost_longest for ax in axes), default=0)
             stats.estimates = sum(ax.stats.estimates for ax in axes)
         for ax in axes:
             ax._flush_telemetry()

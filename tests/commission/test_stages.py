@@ -220,7 +220,7 @@ def test_stage_c_tries_a_second_time_at_most(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize(("loop", "names_host"), [
     ({"stalls": {"count": 1, "longest_ms": 106.0}, "lost_samples": 0}, True),
-    ({"stalls": {"count": 0}, "lost_samples": 1787}, True),
+    ({"stalls": {"count": 0}, "lost_samples": 1787, "lost_longest": 1787, "samples": 170_000}, True),
     ({"stalls": {"count": 0}, "lost_samples": 0}, False),
 ])
 def test_stage_c_stopped_after_a_stall_or_lost_samples_names_the_host_not_the_axis(tmp_path, monkeypatch, loop,
@@ -240,3 +240,23 @@ def test_stage_c_stopped_after_a_stall_or_lost_samples_names_the_host_not_the_ax
     (check,) = result["checks"]
     assert check["ok"] is False and check["fix"].startswith("loop.realtime") == names_host, check["fix"]
     assert "speed-limit" in check["fix"]
+
+
+@pytest.mark.parametrize(("lost", "longest", "names_host"), [
+    (13, 5, False),          # a few gaps of a few samples in a 2.8 s move: it measures the axis all the same
+    (13, 13, False),         # 6.5 ms in one gap
+    (20, 20, True),          # one gap of 10 ms: as long as the loop's stall limit
+    (60, 3, True),           # more than 1 % of the samples
+    (13, None, False),       # a summary that does not say the longest gap: as if all were one
+    (30, None, True),
+])
+def test_lost_samples_name_the_host_only_when_enough_or_in_a_long_enough_gap(lost, longest, names_host):
+    from rt_ident.commission.stages import host_trouble
+
+    loop = {"stalls": {"count": 0}, "samples": 5600, "lost_samples": lost}
+    if longest is not None:
+        loop["lost_longest"] = longest
+    said = host_trouble({"loop": loop}, 0.5e-3)
+    assert (said is not None) == names_host, said
+    if names_host:
+        assert f"lost {lost} samples" in said
