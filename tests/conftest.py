@@ -29,6 +29,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                     help="run config (TOML) naming a real backend; repeat or comma-separate for several")
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: three workers per two CPUs. A worker spends about half its time in runs paced in real
+    time or waiting on processes, not on a CPU, so one per CPU leaves the CPUs half idle; the real-time
+    parts of all workers' runs take turns on the one CPU the loop takes (rt_ident/loop/cpu_claim.py)."""
+    cpus = len(os.sched_getaffinity(0))
+    return max(1, cpus + cpus // 2)
+
+
 def pytest_sessionstart(session: pytest.Session) -> None:
     """With xdist workers and a cold kernel cache (a fresh clone): one short run in the controller, before
     the workers start, compiles the loop's kernels into numba's cache (beside the package). Otherwise

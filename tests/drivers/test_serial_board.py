@@ -41,6 +41,18 @@ def read_for(backend: SerialBoardBackend, seconds: float) -> list:
     return [b for b in blocks if len(b)]
 
 
+def read_through(backend: SerialBoardBackend, seq: int, timeout: float = 10.0) -> list:
+    """Read until the board has sent sample ``seq`` (at 20 kHz, however long a busy host takes to deliver)."""
+    blocks = []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and not (blocks and blocks[-1].seq[-1] >= seq):
+        b = backend.read()
+        if len(b):
+            blocks.append(b)
+        time.sleep(0.001)
+    return blocks
+
+
 def cat(blocks, field):
     return np.concatenate([getattr(b, field) for b in blocks])
 
@@ -165,7 +177,7 @@ def test_torque_plan_lands_on_its_sequence_numbers(rig):
     plan = np.linspace(0.001, 0.2, 150)
     be.write(0.002)
     be.write(plan, start_seq=start)
-    blocks = read_for(be, 0.08)
+    blocks = read_through(be, start + 200)
     seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
     idx = int(np.searchsorted(seq, start))
     assert seq[idx] == start and len(seq) > idx + 200
@@ -183,7 +195,7 @@ def test_a_newer_plan_replaces_the_rest_of_an_older_one(rig):
     s = int(read_for(be, 0.01)[-1].seq[-1]) + 800
     be.write(np.full(100, 0.01), start_seq=s)
     be.write(np.full(20, 0.02), start_seq=s + 50)
-    blocks = read_for(be, 0.08)
+    blocks = read_through(be, s + 120)
     seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
     i = int(np.searchsorted(seq, s))
     assert seq[i] == s and len(seq) > i + 120
@@ -207,7 +219,7 @@ def test_a_leased_plan_reaches_the_board_in_one_write_with_its_end(rig):
     assert len(writes) == 1
     frames = [f for f in sp.FrameDecoder().feed(writes[0]) if isinstance(f, sp.TorquePlan)]
     assert [(f.start_seq, len(f.torques)) for f in frames] == [(s, 30), (s + 70, 1)]
-    blocks = read_for(be, 0.08)
+    blocks = read_through(be, s + 200)
     seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
     i = int(np.searchsorted(seq, s))
     assert seq[i] == s and np.all(cmd[i:i + 70] == np.float32(0.01)) and np.all(cmd[i + 70:i + 200] == 0.0)
