@@ -8,7 +8,8 @@ b. probe: open-loop torque pulses each way (:mod:`rt_ident.commission.probe`), b
    follows the motor at ``lead``, the acceleration per N m is within x3 of 1/(I1 + I2), the breakaway;
 c. identify: a run holding with the conservative controller and the probing multisine;
 d. verify: the model controller designed on the identified axis, its margins, and a small move measured
-   against the same move on the identified model (the sim backend);
+   against the same move on the identified model (the sim backend, on virtual time: the prediction
+   has no host timing in it);
 e. the report (HTML), the ``[axis]`` snippet, ``commission.json``, and the record ``run`` consults.
 
 Every failed check names the config key to change. Whatever happens, the device ends at zero torque and
@@ -278,6 +279,7 @@ def _move_metrics(path: str, lead: float, origin: float, move: float, t_arrive: 
 def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, Any], progress: Progress) -> bool:
     """Stage d: design on the identified axis (its margins), then the move, measured and predicted."""
     from rt_ident.axis.params import AxisParams
+    from rt_ident.compose.offline import run_offline
     from rt_ident.compose.run import run as run_loop
     from rt_ident.control.job import model_controller
     from rt_ident.control.reference import Moves
@@ -330,13 +332,15 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
         if host is None:
             break
         result["stalled_moves"] = result.get("stalled_moves", 0) + 1   # the host's doing, not the axis's
+    # the prediction: the same loop and move on the identified model, on virtual time (no host in it)
     opts = cfg.backend.options()
-    sim = {"name": "sim", "sample_period": result.get("sample_period") or _sample_period(cfg), "paced": False,
+    sim = {"name": "sim", "sample_period": result.get("sample_period") or _sample_period(cfg),
            "torque_limit": opts.get("torque_limit", 1.0),
            "counts_per_rev": opts.get("counts_per_rev", 2**17), "scale_resolution": opts.get("scale_resolution", 1e-7)}
     pred = _derived(cfg, **{**common, "loop": {**common["loop"], "realtime": False}}, backend=sim, plant={},
-                    emulator={}, recording={"enabled": True, "path": str(out / "move-model.parquet")})
-    p = run_loop(pred, sink="off", overwrite=True)
+                    emulator={}, recording={"enabled": False})
+    model_rec = out / "move-model.parquet"
+    p = run_offline(pred, record=str(model_rec), overwrite=True) | {"files": {"recording": str(model_rec)}}
     lead = cfg.axis_params().lead
     sc = s.get("control") or {}
     got: dict[str, Any] = {"stop": (s.get("stop") or {}).get("cause"), "rms_error_m": sc.get("rms_error_m"),

@@ -5,6 +5,7 @@ interrupts on the loop's CPU), for the run summary. Used by ``rt-ident run`` for
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import threading
@@ -200,7 +201,14 @@ class LoopRealtime:
     def prepare(self) -> None:
         """The slow part, as an ordinary thread and before the device is opened (idempotent). First the
         claim on the loop's CPU (rt_ident.loop.cpu_claim): it may wait for another loop, and may refuse."""
-        if self._prepared is not None or not self.cfg.loop.realtime:
+        if self._prepared is not None:
+            return
+        if not self.cfg.loop.realtime:
+            # no collector pause in the loop of an ordinary process either (a gen-1 pass of tens of ms
+            # is a stall): collected and frozen here, turned off by begin(), back on after the run
+            gc.collect()
+            gc.freeze()
+            self._prepared = (None, None)
             return
         poller, failed = None, None
         cpu = loop_cpu()
@@ -217,8 +225,6 @@ class LoopRealtime:
             except Exception as exc:  # noqa: BLE001 - an optional aid: the run goes on without it, and says why
                 log.warning("idle poller not started: %s", exc)
                 poller, failed = None, f"failed to start: {type(exc).__name__}: {exc}"
-        import gc
-
         gc.collect()                                   # apply_realtime's collection is then a short one
         gc.freeze()
         self._prepared = (poller, failed)
@@ -227,10 +233,11 @@ class LoopRealtime:
         """Real-time treatment for the calling thread (the loop) and the idle poller; returns the report
         (``idle_poll`` in it when the run is real time)."""
         cfg = self.cfg
-        if not cfg.loop.realtime:
-            self.report = apply_run_realtime(cfg)
-            return self.report
         self.prepare()
+        if not cfg.loop.realtime:
+            gc.disable()                               # the caller turns it back on after the run
+            self.report = {**apply_run_realtime(cfg), "gc_freeze": True}
+            return self.report
         assert self._prepared is not None             # made by prepare() for a real-time run
         poller, failed = self._prepared
         try:

@@ -282,3 +282,14 @@ def test_a_run_without_excitation_starts_no_fit_process_and_says_why_it_has_no_e
     assert not s.get("parameters")
     with_probe = run(cfg(loop__duration=0.3, control__mode="fixed"))       # the peer: the probe makes a fit process
     assert "fit" in with_probe["helpers"] and with_probe["final_fit_error"] is None
+
+
+def test_a_run_without_real_time_keeps_the_collector_out_of_its_loop_and_turns_it_back_on_after():
+    import gc
+
+    seen = []
+    s = run(cfg(loop__duration=0.3, recording__enabled=False), tick_hook=lambda n: seen.append(gc.isenabled()))
+    assert s["realtime"]["requested"] is False and s["realtime"]["gc_freeze"] is True
+    assert seen and not any(seen)              # off in every tick: no collection pause in the loop
+    assert gc.isenabled()
+    gc.unfreeze()
