@@ -47,8 +47,8 @@ VERIFY_FACTOR, VERIFY_FLOOR_M = 2.0, 10e-6
 #: rejoin or lost samples are not the axis's response
 STALLED_MOVE_RETRIES = 1
 
-#: lost samples that disturb a run (``host_trouble``): this share of the samples, or one gap this long (the
-#: loop's default stall limit)
+#: lost samples that disturb a run that passed (``host_trouble``): this share of the samples, or one gap this
+#: long (the loop's default stall limit)
 LOST_SHARE, LOST_GAP_S = 0.01, 0.01
 
 Progress = Callable[[str], None]
@@ -57,11 +57,12 @@ Progress = Callable[[str], None]
 HOST_FIX = "loop.realtime = true (or a less busy host): "
 
 
-def host_trouble(summary: dict[str, Any], sample_period: float) -> str | None:
+def host_trouble(summary: dict[str, Any], sample_period: float, any_lost: bool = True) -> str | None:
     """What the host did to a run that no axis setting explains: a loop stall, or samples lost on the
-    device's link enough to change what the run measures (more than ``LOST_SHARE`` of them, or one gap
-    of ``LOST_GAP_S`` or longer); else None. Single overruns, and a few short gaps, are left out: a
-    non-real-time loop has some in most runs, and a move or a fit over them measures the axis all the same."""
+    device's link; else None. ``any_lost`` (a run that stopped or failed its check: the gaps may be why):
+    any lost sample counts; else only enough to change what the run measures (more than ``LOST_SHARE``
+    of them, or one gap of ``LOST_GAP_S`` or longer): a move over a few short gaps measures the axis all
+    the same. Single overruns are left out: a non-real-time loop has a few in most runs."""
     loop = summary.get("loop") or {}
     stalls = loop.get("stalls") or {}
     said = []
@@ -70,7 +71,8 @@ def host_trouble(summary: dict[str, Any], sample_period: float) -> str | None:
                     "at longest")
     lost = int(loop.get("lost_samples") or 0)
     longest = int(loop.get("lost_longest", lost) or 0)      # a summary without it: as if all in one gap
-    if lost > LOST_SHARE * int(loop.get("samples") or 0) or longest * sample_period >= LOST_GAP_S:
+    if lost and (any_lost or lost > LOST_SHARE * int(loop.get("samples") or 0)
+                 or longest * sample_period >= LOST_GAP_S):
         said.append(f"the device's link lost {lost} samples ({1e3 * longest * sample_period:.1f} ms at longest)")
     return " and ".join(said) or None
 
@@ -323,44 +325,31 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
                               "excitation": {"kind": "none"}, "loop": {"duration": duration},
                               "telemetry": {"sink": "off"}, "safety": {"stuck_torque": stuck}}
     meas = _derived(cfg, **common, recording={"enabled": True, "path": str(out / "move.parquet")})
-    for _ in range(1 + STALLED_MOVE_RETRIES):
-        s = run_loop(meas, sink="off", overwrite=True)
-        if (s.get("stop") or {}).get("interrupted"):
-            raise KeyboardInterrupt
-        stalls = (s.get("loop") or {}).get("stalls") or {}
-        host = host_trouble(s, result.get("sample_period") or _sample_period(cfg))
-        if host is None:
-            break
-        result["stalled_moves"] = result.get("stalled_moves", 0) + 1   # the host's doing, not the axis's
-    # the prediction: the same loop and move on the identified model, on virtual time (no host in it)
+    # the prediction first: the same loop and move on the identified model, on virtual time (no host in it)
     opts = cfg.backend.options()
-    sim = {"name": "sim", "sample_period": result.get("sample_period") or _sample_period(cfg),
-           "torque_limit": opts.get("torque_limit", 1.0),
+    period = result.get("sample_period") or _sample_period(cfg)
+    sim = {"name": "sim", "sample_period": period, "torque_limit": opts.get("torque_limit", 1.0),
            "counts_per_rev": opts.get("counts_per_rev", 2**17), "scale_resolution": opts.get("scale_resolution", 1e-7)}
     pred = _derived(cfg, **{**common, "loop": {**common["loop"], "realtime": False}}, backend=sim, plant={},
                     emulator={}, recording={"enabled": False})
     model_rec = out / "move-model.parquet"
     p = run_offline(pred, record=str(model_rec), overwrite=True) | {"files": {"recording": str(model_rec)}}
-    lead = cfg.axis_params().lead
-    sc = s.get("control") or {}
-    got: dict[str, Any] = {"stop": (s.get("stop") or {}).get("cause"), "rms_error_m": sc.get("rms_error_m"),
-                           "max_error_m": sc.get("max_error_m"), "fallbacks": sc.get("fallbacks")}
-    want: dict[str, Any] = {"rms_error_m": (p.get("control") or {}).get("rms_error_m"),
-            "max_error_m": (p.get("control") or {}).get("max_error_m")}
-    origin_m = float(((s.get("control") or {}).get("reference") or {}).get("origin_m") or 0.0)
-    origin_p = ((p.get("control") or {}).get("reference") or {}).get("origin_m") or 0.0
-    if got["stop"] is None and (s.get("files") or {}).get("recording"):
-        got |= _move_metrics(s["files"]["recording"], lead, origin_m, move, t_arrive)
-        want |= _move_metrics(p["files"]["recording"], lead, origin_p, move, t_arrive)
+    for _ in range(1 + STALLED_MOVE_RETRIES):
+        s = run_loop(meas, sink="off", overwrite=True)
+        if (s.get("stop") or {}).get("interrupted"):
+            raise KeyboardInterrupt
+        ok, got, want = _judge_move(s, p, cfg.axis_params().lead, move, t_arrive)
+        # a move that failed or stopped with samples lost may have failed on the gaps: any count then
+        host = host_trouble(s, period, any_lost=not ok)
+        if host is None:
+            break
+        result["stalled_moves"] = result.get("stalled_moves", 0) + 1   # the host's doing, not the axis's
     loop = s.get("loop") or {}
     timing = {"overruns": loop.get("overruns"), "lost_samples": loop.get("lost_samples"),
               "lateness_max_us": (loop.get("lateness_us") or {}).get("max")}
-    result["verification"] = {"move_m": move, "measured": got, "model": want, "stalls": stalls, "timing": timing,
+    result["verification"] = {"move_m": move, "measured": got, "model": want, "stalls": loop.get("stalls") or {},
+                              "timing": timing,
                               "recordings": [s.get("files", {}).get("recording"), p.get("files", {}).get("recording")]}
-    ok = (got["stop"] is None and not got["fallbacks"] and got.get("max_error_m") is not None
-          and want.get("max_error_m") is not None
-          and got["max_error_m"] <= VERIFY_FACTOR * want["max_error_m"] + VERIFY_FLOOR_M
-          and got.get("overshoot_m", 0.0) <= VERIFY_FACTOR * want.get("overshoot_m", 0.0) + VERIFY_FLOOR_M)
     result["checks"].append(check(
         "verification move", ok,
         {k: got.get(k) for k in ("max_error_m", "overshoot_m", "settling_s", "stop")},
@@ -371,6 +360,26 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
         else "control.bandwidth_hz (lower) - the axis does not move as the identified model predicts"
         if got["stop"] is None else f"the move stopped: {got['stop']}"))
     return ok
+
+
+def _judge_move(s: dict[str, Any], p: dict[str, Any], lead: float, move: float,
+                t_arrive: float) -> tuple[bool, dict[str, Any], dict[str, Any]]:
+    """The measured move's summary ``s`` against the prediction's ``p``: (passed, measured, predicted)."""
+    sc = s.get("control") or {}
+    got: dict[str, Any] = {"stop": (s.get("stop") or {}).get("cause"), "rms_error_m": sc.get("rms_error_m"),
+                           "max_error_m": sc.get("max_error_m"), "fallbacks": sc.get("fallbacks")}
+    want: dict[str, Any] = {"rms_error_m": (p.get("control") or {}).get("rms_error_m"),
+                            "max_error_m": (p.get("control") or {}).get("max_error_m")}
+    origin_m = float((sc.get("reference") or {}).get("origin_m") or 0.0)
+    origin_p = ((p.get("control") or {}).get("reference") or {}).get("origin_m") or 0.0
+    if got["stop"] is None and (s.get("files") or {}).get("recording"):
+        got |= _move_metrics(s["files"]["recording"], lead, origin_m, move, t_arrive)
+        want |= _move_metrics(p["files"]["recording"], lead, origin_p, move, t_arrive)
+    ok = (got["stop"] is None and not got["fallbacks"] and got.get("max_error_m") is not None
+          and want.get("max_error_m") is not None
+          and got["max_error_m"] <= VERIFY_FACTOR * want["max_error_m"] + VERIFY_FLOOR_M
+          and got.get("overshoot_m", 0.0) <= VERIFY_FACTOR * want.get("overshoot_m", 0.0) + VERIFY_FLOOR_M)
+    return ok, got, want
 
 
 def _arrival(path: Any, move: float) -> float:
