@@ -155,8 +155,8 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
             # the host heartbeat comes from the (real-time) SYNC thread, not canopen's ordinary periodic thread
             assert x._setup.conn._hb_task is None and x._sender.heartbeat == (0x77F, 50)
             got = {5: [], 6: []}
-            end = time.monotonic() + 0.5
-            while time.monotonic() < end:
+            end = time.monotonic() + 0.5              # and on, up to 10 s more, until both have sent a few blocks
+            while time.monotonic() < end or (min(map(len, got.values())) <= 10 and time.monotonic() < end + 10):
                 time.sleep(0.001)
                 for be, n in ((x, 5), (y, 6)):
                     blk = be.read()
