@@ -400,7 +400,8 @@ class IdentificationLoop(TelemetryWindow):
             return
         stats.samples += n
         stats.lost_samples += block.lost
-        stats.lost_longest = max(stats.lost_longest, block.lost)
+        if block.lost > stats.lost_longest:
+            stats.lost_longest = block.lost
         if self.on_block is not None:               # record first: a block that trips a check is kept
             self.on_block(block)
         if self._catching_up:
