@@ -162,7 +162,8 @@ def _note_stall(exc: BaseException, stats: LoopStats, now: float, since_read: fl
 
 def _stall_length(t: float, last_read: float, period: float, policy: StallPolicy) -> float:
     """The host's silence from the last read to ``t``, less a period, when it exceeds the stall limit; else 0.
-    For a tick that raised, ``t`` is its start, before its read: waiting on a device is no stall."""
+    For a tick that raised, ``t`` is when it raised: a host stopped inside the read (a device's read waits
+    at most a poll, far below the limit) is a stall that ended in the stop."""
     gap = t - last_read - period
     return gap if gap > policy.max_s else 0.0
 
@@ -348,7 +349,8 @@ class IdentificationLoop(TelemetryWindow):
                 if self.tick_hook is not None:
                     self.tick_hook(stats.ticks)
         except RtIdentError as exc:
-            _note_stall(exc, stats, clock(), _stall_length(t0, last_read, period, policy))
+            now = clock()
+            _note_stall(exc, stats, now, _stall_length(now, last_read, period, policy))
             raise
         finally:
             stats.compiles.stop()
@@ -732,7 +734,8 @@ class MultiAxisLoop:
                     self.tick_hook(stats.ticks)
         except BaseException as exc:
             self.failed_axis = names[cur] if cur >= 0 else None
-            _note_stall(exc, stats, clock(), _stall_length(t0, last_read, period, policy))
+            now = clock()
+            _note_stall(exc, stats, now, _stall_length(now, last_read, period, policy))
             raise
         finally:
             stats.compiles.stop()

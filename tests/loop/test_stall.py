@@ -389,3 +389,25 @@ def test_the_summary_counts_lost_samples_and_the_longest_gap_one_read_found(monk
     out = run_offline(load(None, **{**FAST, "loop.duration": 0.8}), paced=False)
     assert out["stop"] is None, out["stop"]
     assert out["loop"]["lost_samples"] == 12 and out["loop"]["lost_longest"] == 7, out["loop"]
+
+
+def test_a_host_stopped_inside_a_read_that_then_raises_counts_the_stall_and_the_stop_names_it(monkeypatch):
+    # a SIGSTOP inside the tick's read: the drive faulted meanwhile (its RPDO deadline), and the read that
+    # resumes finds the fault; the stop must say it followed the host's 500 ms silence
+    from drivers.errors import DeviceFault
+    from drivers.sim import SimBackend
+
+    real_read, reads = SimBackend.read, [0]
+
+    def read(self):
+        reads[0] += 1
+        if reads[0] == 300:
+            self._clock.now += 0.5
+            raise DeviceFault("node 5 sent EMCY 0x8250 (RPDO timeout)")
+        return real_read(self)
+
+    monkeypatch.setattr(SimBackend, "read", read)
+    out = run_offline(load(None, **{**FAST, "loop.duration": 1.0}), paced=True)
+    assert out["stop"].startswith("DeviceFault: node 5 sent EMCY 0x8250"), out["stop"]
+    assert out["loop"]["stalls"]["count"] == 1 and out["loop"]["stalls"]["longest_ms"] >= 490, out["loop"]["stalls"]
+    assert re.search(r"after a 50\d ms loop stall", out["stop"]), out["stop"]
