@@ -21,6 +21,7 @@ from rich.table import Table
 
 from rt_ident.errors import ConfigError, RtIdentError, require
 from rt_ident.outputs.text import fmt, json_default, um
+from rt_ident.processes.context import prestart
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Identify a machine-tool axis (two-inertia spring-damper) from simulation or a bench.")
@@ -344,13 +345,19 @@ def run(
     cfg = cfgmod.load(config, **overrides)
     _check_rrd_sink(rrd or (cfg.telemetry.rrd if sink is None else None), sink or cfg.telemetry.sink, sink is not None,
                     "--rrd" if rrd else "telemetry.rrd")
-    # the loop's modules (numba, scipy, python-control: seconds) only once the config is known to be good
-    from rt_ident.compose.preflight import preflight
-    from rt_ident.compose.run import exit_code
-    from rt_ident.compose.run import run as run_loop
+    # the loop's modules (numba, scipy, python-control: seconds) only once the config is known to be good,
+    # beside the helpers' forkserver importing its own
+    early = prestart()
+    try:
+        from rt_ident.compose.preflight import preflight
+        from rt_ident.compose.run import exit_code
+        from rt_ident.compose.run import run as run_loop
 
-    preflight(cfg, sink=sink, connect_url=connect)   # a setting the start would refuse: one line, nothing started
-    commissioned = _commissioning(cfg, config, require_commissioned)
+        preflight(cfg, sink=sink, connect_url=connect)   # a setting the start would refuse: one line, nothing started
+        commissioned = _commissioning(cfg, config, require_commissioned)
+    except BaseException:
+        early.discard()
+        raise
     if cfg.defaulted:
         what = {"axis": "the THOMSON X axis's values", "backend": "the sim backend",
                 "safety": f"the travel window {list(cfg.safety.window)} m"}
@@ -664,7 +671,12 @@ def commission(
     folder = out_dir or Path("runs") / f"commission-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     if folder.exists() and any(folder.iterdir()):
         raise ConfigError("--out", f"{folder} exists and is not empty; choose another folder")
-    from rt_ident.commission.stages import commission as run_commission
+    early = prestart()                           # its imports beside those of the stages
+    try:
+        from rt_ident.commission.stages import commission as run_commission
+    except BaseException:
+        early.discard()
+        raise
 
     def progress(msg: str) -> None:
         if not json_out:

@@ -89,3 +89,33 @@ def test_an_unknown_start_method_is_refused_in_one_line():
     r = subprocess.run([sys.executable, "-c", code], env={**os.environ, "RT_IDENT_START_METHOD": "fork"},
                        capture_output=True, text=True, timeout=60)
     assert r.returncode != 0 and "RT_IDENT_START_METHOD='fork': use one of" in r.stderr
+
+
+@FORKSERVER
+def test_a_discarded_prestart_ends_the_forkserver_while_it_still_imports():
+    """A start refused before any helper (``rt-ident run``'s checks fail) leaves no forkserver finishing its
+    imports after the command has ended: it ignores SIGTERM and hears of the end only once its imports are done."""
+    code = ("import os, subprocess, sys\n"
+            "from multiprocessing import forkserver as f\n"
+            "from rt_ident.processes import context\n"
+            "early = context.prestart(); pid = f._forkserver._forkserver_pid\n"
+            "early.discard()\n"
+            "print(pid, *subprocess.run(['ps', '-o', 'pid=', '--ppid', str(os.getpid())], capture_output=True, "
+            "text=True).stdout.split())\n")
+    env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    pid, *children = r.stdout.split()
+    assert int(pid) > 0 and pid not in children, (r.stdout, r.stderr[-2000:])
+
+
+@FORKSERVER
+def test_a_prestarted_forkserver_is_the_one_helpers_start_from(monkeypatch):
+    code = ("from multiprocessing import forkserver as f\n"
+            "from rt_ident.processes import context\n"
+            "early = context.prestart(); pid = f._forkserver._forkserver_pid\n"
+            "again = context.prestart()\n"
+            "context.helper_context()\n"
+            "print(early.started, again.started, pid == f._forkserver._forkserver_pid)\n")
+    env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert r.stdout.split() == ["True", "False", "True"], r.stderr[-2000:]
