@@ -24,13 +24,16 @@ def _config(tmp_path: Path, port: int) -> Path:
     text = (ROOT / "configs" / "canopen-virtual.toml").read_text()
     text = re.sub(r"(?m)^emulate = true", "emulate = false", text)
     text = re.sub(r"(?m)^# port: unset.*$", f"port = {port}", text)
-    # a busy test machine gets 100 ms of stale data before a stop, not 10 ms: what is tested is the path the
-    # docs describe and the drive's placement (its READY line), not the machine's worst 10 ms
+    # a busy test machine gets 100 ms of stale data before a stop, not 10 ms, from the backend and from the
+    # host's watchdog: what is tested is the path the docs describe and the drive's placement (its READY
+    # line), not the machine's worst 10 ms
     text = re.sub(r"(?m)^stale_limit = .*$", "stale_limit = 200", text)
+    text = re.sub(r"(?m)^watchdog_ticks = .*$", "watchdog_ticks = 200", text)
     text = re.sub(r"(?m)^position_hold = false", "position_hold = true", text)    # [emulator]: the drive holds
     # ... and the host, which sees a real drive, is told so (without it, --control off is refused)
     text = re.sub(r"(?m)^\[control\]$", "[control]\ndrive_holds = true", text)
     assert "emulate = false" in text and f"port = {port}" in text and "stale_limit = 200" in text
+    assert "watchdog_ticks = 200" in text
     assert "[emulator]\nposition_hold = true" in text and "drive_holds = true" in text
     shutil.copy(ROOT / "configs" / "cia402_generic.eds", tmp_path)
     path = tmp_path / "my-drive.toml"
