@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import fcntl
 import gc
 import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -67,6 +71,28 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if item.get_closest_marker("hardware") is not None:
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def made_once(tmp_path_factory, worker_id) -> Callable[[str, Callable[[Path], None]], Path]:
+    """``made_once(name, make)``: a folder ``make(folder)`` fills, made by the first xdist worker that asks (under a
+    lock in the workers' shared temporary folder) and used by the others as it is. For data the tests only read
+    (the others would each spend the seconds of CPU making it again)."""
+    root = tmp_path_factory.getbasetemp()
+    root = root if worker_id == "master" else root.parent
+
+    def get(name: str, make: Callable[[Path], None]) -> Path:
+        out = root / name
+        with open(root / f"{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not (root / f"{name}.done").is_file():
+                shutil.rmtree(out, ignore_errors=True)      # a worker that failed while making it
+                out.mkdir(parents=True)
+                make(out)
+                (root / f"{name}.done").touch()
+        return out
+
+    return get
 
 
 @pytest.fixture

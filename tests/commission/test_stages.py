@@ -82,7 +82,9 @@ def test_a_table_that_starts_where_the_budget_leaves_the_window_is_refused_befor
 def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path, state_dir):
     text = (ROOT / "configs" / "sim.toml").read_text().replace("realtime = true", "realtime = false")
     cfg_path = tmp_path / "axis.toml"
-    cfg_path.write_text(text.replace('sink = "rrd"', 'sink = "off"') + "\n[plant.actual]\nx0 = -0.012\n")
+    # identified for 2 s (the default 5 s adds only precision to what is tested)
+    cfg_path.write_text(text.replace('sink = "rrd"', 'sink = "off"') + "\n[plant.actual]\nx0 = -0.012\n"
+                        "\n[commission]\nidentify_s = 2.0\n")
     env = {**os.environ, "RT_IDENT_STATE_DIR": str(state_dir)}
     p = subprocess.run([sys.executable, "-m", "rt_ident", "commission", str(cfg_path), "--out", str(tmp_path / "c"),
                         "--json"], capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)

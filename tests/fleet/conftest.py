@@ -6,7 +6,6 @@ three series wear from day 6 on - one K alone (-0.5 %/day), one B alone (+2 %/da
 from __future__ import annotations
 
 import copy
-import fcntl
 import json
 import pickle
 from dataclasses import dataclass
@@ -44,16 +43,9 @@ class WearFleet:
 
 
 @pytest.fixture(scope="session")
-def wear_fleet(tmp_path_factory, worker_id) -> WearFleet:
-    """Made by the first xdist worker that asks (under a lock in the workers' shared temporary folder) and
-    read back by the others: each worker making its own cost 5-15 s of CPU the other workers needed."""
-    root = tmp_path_factory.getbasetemp()
-    root = root if worker_id == "master" else root.parent
-    out = root / "wear-fleet"
-    with open(root / "wear-fleet.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (out / "rows.pickle").is_file():
-            _make_wear_fleet(out)
+def wear_fleet(made_once) -> WearFleet:
+    """Made once for all the xdist workers (each making its own cost 5-15 s of CPU the others needed)."""
+    out = made_once("wear-fleet", _make_wear_fleet)
     rows = pickle.loads((out / "rows.pickle").read_bytes())
     return WearFleet(out, json.loads((out / "truth.json").read_text()), rows)
 
@@ -70,9 +62,7 @@ def _make_wear_fleet(out: Path) -> None:
     assert all(r["status"] == "ok" and r["trusted"] for r in rows), [r["error"] or r["reasons"] for r in rows]
     truth = json.loads((out / "truth.json").read_text())
     assert sorted(str(s["wear"]) for s in truth["series"]) == ["None", "b", "k", "load"]
-    tmp = out / "rows.pickle.part"
-    tmp.write_bytes(pickle.dumps(rows))
-    tmp.replace(out / "rows.pickle")        # the others read a whole file or none
+    (out / "rows.pickle").write_bytes(pickle.dumps(rows))
 
 
 def local_cluster(workers: int):

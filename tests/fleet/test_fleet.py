@@ -2,7 +2,7 @@
 history, re-runs that compute nothing twice, a corrupt recording among good ones, drift alarms on known wear,
 DuckDB queries, and the command line end to end.
 
-One small fleet is generated per module by ``tools/make_fleet.py`` (closed-loop runs of the product on the
+One small fleet is generated once per session by ``tools/make_fleet.py`` (closed-loop runs of the product on the
 simulated axis): 2 machines x 1 axis x 10 days, one series wearing (K -0.5 %/day, B +2 %/day).
 """
 
@@ -28,12 +28,15 @@ sys.path.insert(0, str(ROOT / "tools"))
 import make_fleet  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def fleet(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("fleet")
+def _make(out: Path) -> None:
     assert make_fleet.main([str(out), "--machines", "2", "--axes", "x", "--days", "10", "--worn", "0.5",
                             "--duration", "0.35", "--seed", "3"]) == 0
-    return out
+
+
+@pytest.fixture(scope="module")
+def fleet(made_once) -> Path:
+    """Read only: made once for all the workers."""
+    return made_once("two-machine-fleet", _make)
 
 
 @pytest.fixture(scope="module")
