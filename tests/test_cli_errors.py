@@ -34,6 +34,7 @@ def _script(tmp_path: Path, body: str) -> Path:
     return p
 
 
+@pytest.mark.slow
 def test_a_serial_board_that_dies_mid_run_is_reported_once_without_traceback(tmp_path):
     script = _script(tmp_path, """
         import os, signal, sys

@@ -229,6 +229,7 @@ def test_a_config_without_axis_backend_safety_lists_them_as_defaulted(tmp_path):
     assert load(None).defaulted == ()                # no file: the shipped default, nothing to warn about
 
 
+@pytest.mark.slow
 def test_an_empty_config_is_exit_2_and_a_partial_one_warns_and_reports_config_defaulted(tmp_path):
     _one_line_error(_cli(["run", str(_write(tmp_path, "")), "--no-telemetry"], tmp_path), str(tmp_path / "c.toml"))
     p = _write(tmp_path, "[loop]\nduration = 0.3\nrealtime = false\n[recording]\nenabled = false\n", "p.toml")

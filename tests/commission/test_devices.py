@@ -62,6 +62,7 @@ CASES = [("serial-virtual.toml", a, k) for a, k in BOARD] + [("canopen-virtual.t
 
 @pytest.mark.parametrize(("name", "actual", "key"), CASES,
                          ids=[f"{n.split('-')[0]}-{k}-{next(iter(a))}" for n, a, k in CASES])
+@pytest.mark.slow
 def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limits(tmp_path, name, actual, key,
                                                                                  restore_scheduling):
     # real time, as on a bench: the board's link (a frame every 50 us, 0.05 s timeouts) and the drive's

@@ -62,6 +62,7 @@ def test_a_miswired_sim_fails_the_check_that_names_its_key_within_budget_and_spe
     assert ledger.lookup(cfg)["verdict"] == "fail"
 
 
+@pytest.mark.slow
 def test_the_hosts_matching_sign_settings_pass_the_probe_checks(tmp_path):
     data = sim_data({"torque_sign": -1, "scale_sign": -1})
     data["backend"] |= {"torque_sign": -1, "scale_sign": -1}
@@ -79,6 +80,7 @@ def test_a_table_that_starts_where_the_budget_leaves_the_window_is_refused_befor
     assert r["failed"]["fix"].startswith("safety.window") and r["max_travel_m"] is None
 
 
+@pytest.mark.slow
 def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path, state_dir):
     text = (ROOT / "configs" / "sim.toml").read_text().replace("realtime = true", "realtime = false")
     cfg_path = tmp_path / "axis.toml"
@@ -109,6 +111,7 @@ def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path
     assert s["stop"]["cause"] is None and s["trusted"] is True, s.get("trust")
 
 
+@pytest.mark.slow
 def test_sigterm_mid_commissioning_stops_the_device_writes_the_files_and_exits_130(tmp_path, state_dir):
     import signal
     import time
@@ -134,6 +137,7 @@ def test_sigterm_mid_commissioning_stops_the_device_writes_the_files_and_exits_1
 
 
 @pytest.mark.parametrize("stalled_runs", [1, 2])
+@pytest.mark.slow
 def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_names_the_host(tmp_path, monkeypatch,
                                                                                               stalled_runs):
     """The measured move's summary reports a 500 ms stall and the speed trip that followed, ``stalled_runs``

@@ -153,6 +153,7 @@ def test_travel_trip_stops_with_a_cause_and_keeps_the_recording(tmp_path):
     assert len(read_recording(tmp_path / "t.parquet")) == s["loop"]["samples"]
 
 
+@pytest.mark.slow
 def test_viewer_that_never_answers_does_not_block_the_loop():
     import socket
 

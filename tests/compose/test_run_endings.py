@@ -57,6 +57,7 @@ def _wait_group_empty(pgid: int, timeout: float) -> list[int]:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.slow
 def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_path, sig):
     proc, rec, rrd = _start(tmp_path)
     try:
@@ -75,6 +76,7 @@ def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_
     assert _wait_group_empty(proc.pid, 5.0) == []
 
 
+@pytest.mark.slow
 def test_kill_9_of_the_main_process_leaves_no_orphan_and_a_finished_recording(tmp_path):
     proc, rec, rrd = _start(tmp_path)
     time.sleep(1.0)
@@ -93,6 +95,7 @@ def test_kill_9_of_the_main_process_leaves_no_orphan_and_a_finished_recording(tm
     assert rrd.exists() and rrd.stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_path):
     import multiprocessing as mp
 

@@ -22,6 +22,7 @@ from rt_ident.processes.recorder import read_recording
 runner = CliRunner()
 
 
+@pytest.mark.slow
 def test_two_runs_started_in_the_same_second_write_separate_files(tmp_path):
     cmd = [sys.executable, "-m", "rt_ident", "run", "--duration", "1", "--no-realtime", "--json"]
     procs = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)

@@ -104,6 +104,7 @@ def _direct_margins(G: np.ndarray, p: AxisParams, tick: float) -> tuple[float, f
             min(pms) if pms else np.inf)
 
 
+@pytest.mark.slow
 def test_loop_margins_agree_with_a_direct_dense_grid_computation_on_random_plants_designs_delays_and_ticks():
     rng = np.random.default_rng(7)
     light = AxisParams(I1=1.0e-5, I2=2.5e-5, B=1.0e-3, K=60.0)

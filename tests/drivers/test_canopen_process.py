@@ -246,6 +246,7 @@ def _threads(pid: int) -> dict[int, tuple[int, int, frozenset]]:
     return out
 
 
+@pytest.mark.slow
 def test_during_a_run_only_the_loop_and_its_sync_sender_are_real_time_on_the_loop_cpu(emulators):
     # RT throttling needs 950 ms of SCHED_FIFO in a second on one CPU: the loop's CPU holds the loop
     # (FIFO 50) and the SYNC sender (FIFO 51) and no other real-time thread; the drive's real-time

@@ -49,6 +49,7 @@ def _truth(fleet: Path) -> dict:
     return json.loads((fleet / "truth.json").read_text())
 
 
+@pytest.mark.slow
 def test_results_on_a_real_scheduler_with_two_workers_equal_a_serial_run(fleet, cluster, tmp_path):
     from distributed import Client
 
@@ -122,6 +123,7 @@ def test_bad_sql_is_one_line_and_an_empty_history_is_refused(fleet, tmp_path):
         query(tmp_path, "SELECT 1")
 
 
+@pytest.mark.slow
 def test_command_line_identify_drift_report_query_end_to_end(fleet, tmp_path):
     m = fleet / "manifest.csv"          # its recordings lie under its folder, as identify requires
     env = {**os.environ, "PYTHONPATH": str(ROOT)}

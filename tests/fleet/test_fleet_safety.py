@@ -140,6 +140,7 @@ def test_a_url_history_is_queried_with_external_access_off(rows):
 
 
 # --------------------------------------------------------------------------- a damaged batch file
+@pytest.mark.slow
 def test_a_truncated_batch_file_is_skipped_with_one_line_naming_it_by_query_drift_and_identify(history, small_fleet):
     (bad,) = (f for f in parquet_files(history) if "machine=m02" in f)
     data = Path(bad).read_bytes()
@@ -271,6 +272,7 @@ def test_append_history_keeps_one_row_per_recording_across_calls_and_within_one(
     assert _count(tmp_path / "h") == _count(tmp_path / "h2") == (6, 6)
 
 
+@pytest.mark.slow
 def test_two_concurrent_identify_runs_leave_one_row_per_recording(small_fleet, tmp_path):
     h = tmp_path / "h"
     args = [*CLI, "fleet", "identify", str(small_fleet / "manifest.csv"), "--history", str(h), "--workers", "1",
@@ -339,6 +341,7 @@ def _with_huge(entries: list[Entry], folder: Path) -> Path:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.slow
 def test_ctrl_c_or_sigterm_ends_a_run_with_130_and_keeps_what_finished(entries, tmp_path, sig):
     h = tmp_path / "h"
     m = _with_huge(entries, tmp_path)
@@ -364,6 +367,7 @@ def test_ctrl_c_or_sigterm_ends_a_run_with_130_and_keeps_what_finished(entries, 
     assert f"interrupted: the {n} results finished are in {h}" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_a_task_over_its_timeout_fails_with_a_message_and_the_run_ends(entries, tmp_path):
     m = _with_huge(entries[:2], tmp_path)
     t0 = time.monotonic()

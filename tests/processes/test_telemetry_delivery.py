@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
 
@@ -28,6 +29,7 @@ def _block(k: int, n: int = 200) -> dict:
     return {"t": t, "theta1": np.sin(t), "theta2": np.cos(t)}
 
 
+@pytest.mark.slow
 def test_connect_to_a_port_nobody_listens_on_reports_the_dashboard_not_delivered():
     port = _free_port()
     tp = TelemetryProcess(TelemetryConfig(sink="connect", connect_url=f"rerun+http://127.0.0.1:{port}/proxy")).start()
@@ -57,6 +59,7 @@ def test_connect_to_a_listening_viewer_reports_the_dashboard_delivered():
     assert s["delivered"] is True and s["write_error"] is None, s
 
 
+@pytest.mark.slow
 def test_a_run_streaming_to_no_viewer_exits_4_and_says_the_dashboard_was_lost(tmp_path):
     cfg = tmp_path / "c.toml"
     cfg.write_text((REPO / "configs" / "sim.toml").read_text().replace("enabled = true", "enabled = false"))
