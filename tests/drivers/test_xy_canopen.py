@@ -143,7 +143,10 @@ def test_shared_bus_budget_counts_both_drives_and_names_the_rate_each_bus_allows
 
 def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_safe():
     channel = f"t-{uuid.uuid4().hex[:10]}"
-    cfgs = [{"backend": backend_cfg(channel, node_id=n), "emulator": {"position_hold": True, "seed": n}}
+    # the drives' heartbeats watched for 2 s, not 250 ms: beside a busy loop per core a drive process was held off
+    # for 0.8 s while the other was enabled (what is tested is the shared connection and SYNC, and the safe end)
+    cfgs = [{"backend": backend_cfg(channel, node_id=n, heartbeat_consumer_ms=2000),
+             "emulator": {"position_hold": True, "seed": n}}
             for n in (5, 6)]
     drives = start_emulator_for({"drives": cfgs})
     try:
