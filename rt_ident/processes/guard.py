@@ -115,10 +115,15 @@ def quick_exit(code: int = 0) -> None:
 
 
 def start_ignoring_signals(proc: Any) -> None:
-    """``proc.start()`` with SIGINT/SIGTERM ignored, so the child is born ignoring them (and with
-    :data:`HELPER_ENV`)."""
-    if threading.current_thread() is not threading.main_thread():
-        start_with_helper_env(proc)  # cannot touch dispositions here; become_helper() covers the child
+    """``proc.start()`` with the child born ignoring SIGINT/SIGTERM (and with :data:`HELPER_ENV`).
+
+    A child of the forkserver inherits that from the forkserver (rt_ident.processes.context), so this
+    process's own handlers stay in place: its start waits for the forkserver's preloads (up to a second
+    after the forkserver itself started), and a Ctrl-C ignored meanwhile would be lost. A spawned child
+    inherits this process's dispositions, ignored for the moment its start takes."""
+    if (threading.current_thread() is not threading.main_thread()
+            or getattr(proc, "_start_method", None) == "forkserver"):
+        start_with_helper_env(proc)  # off the main thread dispositions cannot change; become_helper() covers it
         return
     old = {s: signal.signal(s, signal.SIG_IGN) for s in _GROUP_SIGNALS}
     try:

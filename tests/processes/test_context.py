@@ -119,3 +119,26 @@ def test_a_prestarted_forkserver_is_the_one_helpers_start_from(monkeypatch):
     env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
     assert r.stdout.split() == ["True", "False", "True"], r.stderr[-2000:]
+
+
+@FORKSERVER
+def test_a_ctrl_c_while_a_helper_starts_from_the_forkserver_reaches_the_starters_handler():
+    """The first helper's start waits for the forkserver's preloads: a Ctrl-C then must reach the run's
+    handler (which stops the run), not be ignored for the child's sake and lost."""
+    code = ("import os, signal, threading, time\n"
+            "from rt_ident.processes.context import helper_context\n"
+            "from rt_ident.processes.guard import start_ignoring_signals\n"
+            "got = []\n"
+            "signal.signal(signal.SIGINT, lambda *a: got.append(1))\n"
+            "ctx = helper_context()\n"
+            "threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
+            "p = ctx.Process(target=time.sleep, args=(0,))\n"
+            "t = time.monotonic(); start_ignoring_signals(p); waited = time.monotonic() - t\n"
+            "p.join(); time.sleep(0.1)\n"
+            "print(len(got), waited > 0.2)\n")
+    env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    got, waited_past_the_signal = r.stdout.split()
+    if waited_past_the_signal != "True":
+        pytest.skip("the forkserver preloaded in under 0.2 s: the start did not span the signal")
+    assert got == "1", r.stderr[-2000:]
