@@ -728,6 +728,16 @@ def _command():
     return cmd
 
 
+def _from_ctrl_c(exc: BaseException) -> bool:
+    """True when a KeyboardInterrupt is among the exceptions ``exc`` was raised from or during."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
 def main() -> None:
     """The ``rt-ident`` entry point. Exit codes: 0 ok, 2 bad input (one line naming the setting),
     3 a run stopped by a fault or trip, 4 data lost, 1 an internal error (one line; -v: the traceback)."""
@@ -744,6 +754,10 @@ def main() -> None:
     except KeyboardInterrupt:                    # Ctrl-C before a run's own handler is installed
         err.print("interrupted")
         sys.exit(130)
+    except SystemExit as exc:                    # typer turns that Ctrl-C into a silent exit 130
+        if exc.code == 130 and _from_ctrl_c(exc):
+            err.print("interrupted")
+        raise
     except Exception as exc:  # noqa: BLE001 - a bug: one line for the user, the traceback with -v
         if _VERBOSE:
             err.print_exception()

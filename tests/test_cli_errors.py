@@ -113,3 +113,18 @@ def test_an_unexpected_exception_is_one_internal_error_line_and_its_traceback_on
     assert ("Traceback" in res.stderr) is verbose
     if not verbose:
         assert res.stderr.strip() == last
+
+
+def test_a_ctrl_c_before_the_runs_own_handler_exits_130_saying_interrupted(tmp_path):
+    script = _script(tmp_path, """
+        import sys
+        import rt_ident.config
+
+        def interrupted(*a, **k):
+            raise KeyboardInterrupt
+
+        rt_ident.config.load = interrupted
+    """)
+    res = subprocess.run([sys.executable, str(script), "run", "--no-telemetry"], cwd=tmp_path, env=_env(),
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 130 and res.stderr.strip() == "interrupted", res.stderr[-2000:]
