@@ -221,13 +221,19 @@ class _Cluster:
             # not the user's business unless they ask (-v); warnings still show
             logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger().level))
             # processes, one thread each: numba kernels and numpy hold the GIL for whole recordings
-            with _children_ignore_ctrl_c():
-                # the workers' own log lines stay quiet: a task's failure is reported per recording here, and a
-                # worker losing its scheduler while the cluster closes after Ctrl-C logs an ERROR with a traceback
-                self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                            host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                                            silence_logs=logging.CRITICAL)
-            self.client = Client(self.cluster)
+            try:
+                with _children_ignore_ctrl_c():
+                    # the workers' own log lines stay quiet: a task's failure is reported per recording here, and
+                    # a worker losing its scheduler while the cluster closes after Ctrl-C logs an ERROR with a
+                    # traceback
+                    self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                                                silence_logs=logging.CRITICAL)
+                self.client = Client(self.cluster)
+            except BaseException:                # Ctrl-C or a failure before the client: nothing was submitted
+                if self.cluster is not None:
+                    self.cluster.close()
+                raise
         self.dashboard = self.client.dashboard_link if self._has_dashboard() else None
 
     def _has_dashboard(self) -> bool:
@@ -258,7 +264,8 @@ class _Cluster:
 def _children_ignore_ctrl_c() -> Iterator[None]:
     """SIGINT ignored while the LocalCluster starts its worker processes, which inherit that: Ctrl-C in a
     terminal reaches the whole process group, and only this process is to handle it (it ends the run and
-    the cluster). A Ctrl-C during those seconds is lost."""
+    the cluster). A Ctrl-C during those seconds is lost (blocking it in this thread would not hold it: a
+    thread that libraries imported before had started takes it, and ignores it)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -354,11 +361,18 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
             interrupted = True
             while not done.empty():               # what finished before the interrupt is kept too
                 take(done.get_nowait())
-        flush()
+        try:
+            flush()
+        except KeyboardInterrupt:                 # during the last write, which finished first
+            interrupted = True
     finally:
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
-        cluster.close()
+        try:
+            with _signals_deferred():             # a close cut short leaves workers to distributed's exit hooks
+                cluster.close()
+        except KeyboardInterrupt:
+            interrupted = True
     return {**counts, "interrupted": interrupted, "failures": failures, "history": str(history),
             "dashboard": cluster.dashboard, "scheduler": scheduler or "LocalCluster on 127.0.0.1"}
 

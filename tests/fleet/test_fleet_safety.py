@@ -400,3 +400,22 @@ def test_a_task_timed_out_while_hashing_stops_reading_the_file(tmp_path):
     while any(t.name == "identify huge.parquet" for t in threading.enumerate()) and time.monotonic() - t0 < 5:
         time.sleep(0.05)
     assert not any(t.name == "identify huge.parquet" for t in threading.enumerate())
+
+
+def test_a_ctrl_c_during_the_last_write_keeps_what_it_wrote_and_the_run_returns_interrupted(entries, cluster, tmp_path,
+                                                                                         monkeypatch):
+    import rt_ident.fleet.identify as ident
+
+    real = ident._append
+
+    def append_then_ctrl_c(*args, **kwargs):
+        written = real(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGINT)      # delivered while the write's signals are held
+        return written
+
+    monkeypatch.setattr(ident, "_append", append_then_ctrl_c)
+    h = tmp_path / "h"
+    res = identify_fleet(entries[:2], h, scheduler=cluster.scheduler_address, flush_every=600)   # one write, the last
+    assert res["interrupted"] is True and res["identified"] == 2
+    assert len(known_hashes(h)) == 2
+
