@@ -88,8 +88,11 @@ def identify_cmd(
         for f in res["failures"]:
             out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}", highlight=False)
     if res["interrupted"]:
-        err.print(f"interrupted: the {res['identified']} results finished are in {res['history']}; run the same "
-                  "command again to identify the rest", highlight=False)
+        left = res["tasks"] - res["identified"] - res["skipped"] - res["failed"]
+        rest = (f"; run the same command again to identify the other {left}" if left > 0
+                else " (every task had finished)")
+        err.print(f"interrupted: the {res['identified']} results finished are in {res['history']}{rest}",
+                  highlight=False)
         raise typer.Exit(130)
     if res["failed"]:
         raise typer.Exit(1)

@@ -365,6 +365,7 @@ def test_ctrl_c_or_sigterm_ends_a_run_with_130_and_keeps_what_finished(entries, 
     n = len(known_hashes(h))
     assert 1 <= n <= 6
     assert f"interrupted: the {n} results finished are in {h}" in err and "Traceback" not in err
+    assert "run the same command again to identify the other" in err          # the huge one at least is left
 
 
 @pytest.mark.slow
