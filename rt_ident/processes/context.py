@@ -76,7 +76,9 @@ class Prestart:
             os.kill(pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-        server._stop()  # type: ignore[attr-defined]  # reaps it, closes its pipe, removes its socket
+        stop = getattr(server, "_stop", None)           # reaps it, closes its pipe, removes its socket
+        if stop is not None:
+            stop()
 
 
 def prestart() -> Prestart:
