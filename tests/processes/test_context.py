@@ -91,6 +91,12 @@ def test_an_unknown_start_method_is_refused_in_one_line():
     assert r.returncode != 0 and "RT_IDENT_START_METHOD='fork': use one of" in r.stderr
 
 
+def _fresh_python(code: str) -> subprocess.CompletedProcess:
+    """``code`` in a new interpreter with the default start method (no forkserver running yet)."""
+    env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+
+
 @FORKSERVER
 def test_a_discarded_prestart_ends_the_forkserver_while_it_still_imports():
     """A start refused before any helper (``rt-ident run``'s checks fail) leaves no forkserver finishing its
@@ -102,22 +108,20 @@ def test_a_discarded_prestart_ends_the_forkserver_while_it_still_imports():
             "early.discard()\n"
             "print(pid, *subprocess.run(['ps', '-o', 'pid=', '--ppid', str(os.getpid())], capture_output=True, "
             "text=True).stdout.split())\n")
-    env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    r = _fresh_python(code)
     pid, *children = r.stdout.split()
     assert int(pid) > 0 and pid not in children, (r.stdout, r.stderr[-2000:])
 
 
 @FORKSERVER
-def test_a_prestarted_forkserver_is_the_one_helpers_start_from(monkeypatch):
+def test_a_prestarted_forkserver_is_the_one_helpers_start_from():
     code = ("from multiprocessing import forkserver as f\n"
             "from rt_ident.processes import context\n"
             "early = context.prestart(); pid = f._forkserver._forkserver_pid\n"
             "again = context.prestart()\n"
             "context.helper_context()\n"
             "print(early.started, again.started, pid == f._forkserver._forkserver_pid)\n")
-    env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    r = _fresh_python(code)
     assert r.stdout.split() == ["True", "False", "True"], r.stderr[-2000:]
 
 
@@ -136,8 +140,7 @@ def test_a_ctrl_c_while_a_helper_starts_from_the_forkserver_reaches_the_starters
             "t = time.monotonic(); start_ignoring_signals(p); waited = time.monotonic() - t\n"
             "p.join(); time.sleep(0.1)\n"
             "print(len(got), waited > 0.2)\n")
-    env = {k: v for k, v in os.environ.items() if k != "RT_IDENT_START_METHOD"}
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    r = _fresh_python(code)
     got, waited_past_the_signal = r.stdout.split()
     if waited_past_the_signal != "True":
         pytest.skip("the forkserver preloaded in under 0.2 s: the start did not span the signal")
