@@ -127,23 +127,28 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
     else:
         # theta1 reading off by the ratio's factor shows in its acceleration per N m too; the scale's or the
         # lead's error does not. Between the two (a third of the way or closer to the middle, in log terms:
-        # a noisy acceleration) the check names both rather than guess
+        # a noisy acceleration), for the pulses' median or any one pulse, the check names both rather than guess
         cpr, res = opts.get("counts_per_rev"), opts.get("scale_resolution")
-        d_cpr, d_lead = abs(math.log(acc * rel)), abs(math.log(acc))
         margin = abs(math.log(rel)) / 3.0
-        fix_cpr = (f"backend.counts_per_rev: the motor encoder reads {1 / rel:.3g} x its motion (its acceleration "
-                   f"per N m is off by the same factor); {cpr} counts/rev -> {round(cpr * rel) if cpr else '?'}")
-        fix_lead = (f"backend.lead (and axis.lead): the scale moves {ratio:.4g} m per rad of the motor, not "
-                    f"{p.lead:.4g}; set lead = {ratio:.4g}, or if the lead is right, scale_resolution "
-                    f"{res} -> {res / rel if res else '?':.4g} m per count")
-        if d_cpr < d_lead - margin:
-            fix_l = fix_cpr
-        elif d_lead < d_cpr - margin:
-            fix_l = fix_lead
+
+        def points_to(a: float) -> str:
+            d_cpr, d_lead = abs(math.log(a * rel)), abs(math.log(a))
+            return "cpr" if d_cpr < d_lead - margin else "lead" if d_lead < d_cpr - margin else "both"
+
+        says = {points_to(a) for a in [acc] + [f / nominal for f in fits]}
+        if says == {"cpr"}:
+            fix_l = (f"backend.counts_per_rev: the motor encoder reads {1 / rel:.3g} x its motion (its acceleration "
+                     f"per N m is off by the same factor); {cpr} counts/rev -> {round(cpr * rel) if cpr else '?'}")
+        elif says == {"lead"}:
+            fix_l = (f"backend.lead (and axis.lead): the scale moves {ratio:.4g} m per rad of the motor, not "
+                     f"{p.lead:.4g}; set lead = {ratio:.4g}, or if the lead is right, scale_resolution "
+                     f"{res} -> {res / rel if res else '?':.4g} m per count")
         else:
             fix_l = (f"backend.counts_per_rev or backend.lead/scale_resolution: x/theta1 is {rel:.3g} x the "
-                     f"configured lead, and the acceleration per N m ({acc:.3g} x nominal) does not tell which "
-                     f"sensor is off; check the encoder's counts per rev ({cpr}) and the screw's lead")
+                     f"configured lead, and the acceleration per N m ({acc:.3g} x nominal"
+                     + (f"; the pulses' {', '.join(f'{f / nominal:.3g}' for f in fits)}" if len(fits) > 1 else "")
+                     + f") does not tell which sensor is off; check the encoder's counts per rev ({cpr}) and the "
+                     "screw's lead")
     out.append(check("scale ratio x/theta1", lead_ok, ratio, f"lead {p.lead:.4g} m/rad +-{LEAD_TOLERANCE:.0%}", fix_l))
     if not lead_ok:
         return out

@@ -251,8 +251,13 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
         measured = f"not trusted: {'; '.join(reasons) or stop}"
     else:
         measured = "trusted" if stop is None else f"trusted, but the run stopped: {stop}"
-    host = host_trouble(s, result.get("sample_period") or _sample_period(cfg))
-    if stop is None:
+    period = result.get("sample_period") or _sample_period(cfg)
+    host = host_trouble(s, period)
+    # an estimate from a run the host disturbed enough to change what it measured may be untrusted for that
+    disturbed = None if trusted else host_trouble(s, period, any_lost=False)
+    if stop is None and disturbed is not None:
+        fix = f"{HOST_FIX}{disturbed} while identifying; else commission.identify_s (longer)"
+    elif stop is None:
         fix = "commission.identify_s (longer), excitation.peak / excitation.band"
     elif host is not None:
         fix = f"{HOST_FIX}{host}, then the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"

@@ -124,3 +124,18 @@ def test_a_limit_passed_on_an_axis_far_livelier_per_newton_metre_names_the_torqu
     checks = probe_checks(cfg, pulses, pulses[0].t[1] - pulses[0].t[0])
     failed = [c for c in checks if not c["ok"]]
     assert [c["name"] for c in failed] == ["limits"] and failed[0]["fix"].startswith(key), failed
+
+
+def test_a_ratio_off_by_two_names_one_sensor_only_when_every_pulse_points_to_it(monkeypatch):
+    """theta1 reading half its motion doubles x/theta1 and halves the acceleration per N m: both pulses say
+    counts_per_rev. A pulse the host disturbed into the nominal acceleration (as a wrong lead would give)
+    leaves the two keys for the user to tell apart, not the wrong one named alone."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {"counts_per_rev": 2**16}, None)
+    dt = pulses[0].t[1] - pulses[0].t[0]
+    failed = [c for c in probe_checks(cfg, pulses, dt) if not c["ok"]]
+    assert failed[0]["name"] == "scale ratio x/theta1" and failed[0]["fix"].startswith("backend.counts_per_rev:")
+    p = cfg.axis_params()
+    pulses[1].dynamics = lambda _dt: (1.0 / (p.I1 + p.I2), 0.0)        # type: ignore[method-assign]
+    failed = [c for c in probe_checks(cfg, pulses, dt) if not c["ok"]]
+    assert failed[0]["fix"].startswith("backend.counts_per_rev or backend.lead/scale_resolution:"), failed[0]
+    assert "the pulses' " in failed[0]["fix"]

@@ -225,6 +225,30 @@ def test_stage_c_tries_a_second_time_at_most(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize(("loop", "names_host"), [
+    ({"stalls": {"count": 0}, "samples": 4000, "lost_samples": 159, "lost_longest": 55}, True),   # 4 %, 27 ms
+    ({"stalls": {"count": 2, "longest_ms": 31.0}, "samples": 4000, "lost_samples": 0}, True),
+    ({"stalls": {"count": 0}, "samples": 4000, "lost_samples": 25, "lost_longest": 4}, False),    # 0.6 %, 2 ms
+])
+def test_stage_c_untrusted_in_a_run_the_host_disturbed_names_the_host_first_then_a_longer_identify(
+        tmp_path, monkeypatch, loop, names_host):
+    from rt_ident.commission import stages
+    from rt_ident.compose import run as run_mod
+
+    def noisy(cfg, **_):
+        s = _summary([FIT_OK, {"criterion": "median torque-line SNR (power)", "passed": False, "value": 6.03,
+                                "limit": ">= 10", "why": "torque lines barely above noise (median SNR 6.03 < 10)"}])
+        s["loop"] = loop
+        return s
+
+    monkeypatch.setattr(run_mod, "run", noisy)
+    result: dict = {"checks": []}
+    assert stages._identify(config.from_mapping(sim_data()), tmp_path, result, lambda msg: None) is None
+    (check,) = result["checks"]
+    assert check["ok"] is False and check["fix"].startswith("loop.realtime") == names_host, check["fix"]
+    assert "commission.identify_s (longer)" in check["fix"]
+
+
+@pytest.mark.parametrize(("loop", "names_host"), [
     ({"stalls": {"count": 1, "longest_ms": 106.0}, "lost_samples": 0}, True),
     ({"stalls": {"count": 0}, "lost_samples": 1787, "lost_longest": 1787, "samples": 170_000}, True),
     ({"stalls": {"count": 0}, "lost_samples": 0}, False),
