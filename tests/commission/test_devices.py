@@ -93,9 +93,10 @@ def test_an_emulated_device_wired_as_the_host_is_told_passes_from_off_centre_or_
         tmp_path, name, restore_scheduling):
     """A busy host can stall the loop or starve the emulated device's link (a real device has a processor of
     its own); commissioning must then fail naming ``loop.realtime``, never a key of the axis or the backend.
-    A commissioning the host left alone passes every stage (identifying for 2 s, not the default 5 s: what is
-    tested is every stage on the device's link, not the estimate's precision)."""
-    cfg = device_cfg(name, {"x0": 0.01}, loop={"realtime": True}, commission={"identify_s": 2.0})
+    A commissioning the host left alone passes every stage (identifying for 3 s, not the default 5 s: what is
+    tested is every stage on the device's link, not the estimate's precision; shorter leaves the emulated
+    drive's torque lines near the trust limit's SNR)."""
+    cfg = device_cfg(name, {"x0": 0.01}, loop={"realtime": True}, commission={"identify_s": 3.0})
     host_failures = []
     for k in range(ATTEMPTS):
         r = commission(cfg, tmp_path / f"out{k}")
@@ -103,7 +104,8 @@ def test_an_emulated_device_wired_as_the_host_is_told_passes_from_off_centre_or_
         if r["verdict"] == "pass":
             break
         failed = [(c["name"], c["measured"], c["fix"]) for c in r["checks"] if not c["ok"]]
-        assert r["failed"]["fix"].startswith("loop.realtime"), (failed, r.get("verification", {}).get("timing"))
+        assert r["failed"]["fix"].startswith("loop.realtime"), (failed, r.get("verification", {}).get("timing"),
+                                                                 r.get("identification", {}).get("attempts"))
         host_failures.append(r["failed"]["fix"])
     else:
         pytest.skip(f"the host disturbed all {ATTEMPTS} commissionings: {host_failures}")
