@@ -450,6 +450,9 @@ class EmulatedBoard:
             with self._lock:
                 m, data = self._faulty(np.frombuffer(raw, dtype=np.uint8).reshape(n, sp.DATA_FRAME_SIZE))
         if self.clock() < self._delay_until:   # delay(): held up in transit (USB, kernel), not the FIFO
+            if self._out:                      # behind what the FIFO held when the hold began: in order
+                self._transit += self._out
+                self._out.clear()
             self.frames_sent += m
             self._transit += data
             return

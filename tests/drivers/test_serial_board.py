@@ -309,6 +309,17 @@ def test_a_short_delay_loses_nothing(rig):
     assert board.enabled
 
 
+def test_a_delay_while_the_host_is_behind_keeps_the_frames_in_order(rig):
+    """The host has not read for a while (the port's buffer full, the board's FIFO holding frames) when the
+    link holds up: what the FIFO held goes out before the frames made during the hold."""
+    board, be = rig({"read_timeout": 1.0})
+    read_for(be, 0.01)
+    time.sleep(0.4)                                # frames back up into the board's FIFO
+    board.delay(0.03)
+    blocks = read_for(be, 0.4)
+    assert sum(b.lost for b in blocks) == 0 and np.all(np.diff(cat(blocks, "seq")) == 1)
+
+
 # ----- faults: fatal ones ---------------------------------------------------------------------
 def test_silent_board_raises_device_timeout_and_ends_disabled(rig):
     board, be = rig(hold=False)
