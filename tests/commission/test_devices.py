@@ -77,8 +77,9 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
         [{k: p.get(k) for k in ("direction", "breakaway_nm", "push_nm", "aborted", "starved_samples")}
          for p in r.get("pulses") or []], r.get("max_travel_m"), r.get("max_speed_m_s"))
     if r["max_travel_m"] is not None:
-        # a limit passed all the same (a device's latency on a loaded host) fails 'limits' and is braked at once
-        slack = 1.0 if all(c["ok"] for c in r["checks"] if c["name"] == "limits") else 1.25
+        # a limit passed all the same (a device's latency on a loaded host) fails 'limits' and is braked at once;
+        # how far past it the table gets grows with the emulated device's latency behind a busy host
+        slack = 1.0 if all(c["ok"] for c in r["checks"] if c["name"] == "limits") else 1.5
         assert r["max_travel_m"] <= slack * cfg.commission.travel_m
         assert r["max_speed_m_s"] <= slack * cfg.commission.max_speed_m_s
 
