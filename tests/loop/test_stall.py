@@ -147,6 +147,8 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
         if proc.poll() is not None and early_ok:     # a stall of its own (a busy machine) came first
             out, err = proc.communicate(timeout=60)
             s = json.loads(out)
+            if not (rec.with_name(journal_of).exists() or journal.exists()) and "no heartbeat from node 127" in err:
+                pytest.skip(f"the host's own heartbeat lapsed before the run recorded (a busy host): {s.get('stop')}")
             assert rec.with_name(journal_of).exists() or journal.exists(), (
                 f"the run ended before it recorded (rc {proc.returncode}): {s.get('stop')} {err[-3000:]}")
             return proc.returncode, s, read_recording(rec.with_name(journal_of)), err, False
