@@ -219,9 +219,7 @@ class JobProcess:
     def close(self, timeout: float = 5.0) -> None:
         self.begin_close()
         self._proc.join(timeout)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(1.0)
+        end_helper(self._proc)          # born ignoring SIGTERM: a job still running is killed, not left behind
 
 
 def newest_result(jobs: Any, items: Any) -> Any:

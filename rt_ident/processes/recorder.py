@@ -51,7 +51,7 @@ from rt_ident.outputs.recording_reader import (
     read_recording,
 )
 from rt_ident.processes.context import helper_context
-from rt_ident.processes.guard import become_helper, quick_exit, start_ignoring_signals
+from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, RingReused
 
 log = logging.getLogger(__name__)
@@ -531,8 +531,7 @@ class RecorderProcess:
         self._proc.join(timeout)
         if self._proc.is_alive():
             log.error("recorder process did not finish within %.1f s; terminating", timeout)
-            self._proc.terminate()
-            self._proc.join(2.0)
+            end_helper(self._proc, 2.0)     # born ignoring SIGTERM: SIGKILL after 2 s (the journal keeps the rows)
             summary["terminated"] = True
         summary.update(rows_written=self.rows_written, exitcode=self._proc.exitcode, failure=self.failure)
         summary["complete"] = self._complete(summary)
