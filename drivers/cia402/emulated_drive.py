@@ -627,9 +627,10 @@ class EmulatedCia402Drive:
                 due = min(due, last + lay.inhibit_s)     # changed, but inhibited: sent when it ends
                 continue
             self._send(lay.cob, data)
-            self._tpdo_sent[lay.cob], self._tpdo_sent_t[lay.cob] = data, now
+            sent = time.monotonic()                  # the timers run from the frame on the bus, not from `now`
+            self._tpdo_sent[lay.cob], self._tpdo_sent_t[lay.cob] = data, sent
             if lay.event_s > 0:
-                due = min(due, now + lay.event_s)
+                due = min(due, sent + lay.event_s)
         self._event_due = due
 
     def _on_sync_work(self) -> None:
