@@ -180,6 +180,18 @@ def _summary(criteria: list[dict], stop: str | None = None) -> dict:
             "parameters": {"I1": 2.7e-5}, "ci95": {}, "loop": {"lost_samples": 12}}
 
 
+def _failed_stage_c(monkeypatch, tmp_path, fake_run) -> dict:
+    """Stage c on ``fake_run``'s summary: it must fail; its one check."""
+    from rt_ident.commission import stages
+    from rt_ident.compose import run as run_mod
+
+    monkeypatch.setattr(run_mod, "run", fake_run)
+    result: dict = {"checks": []}
+    assert stages._identify(config.from_mapping(sim_data()), tmp_path, result, lambda msg: None) is None
+    (check,) = result["checks"]
+    return check
+
+
 WIDE_B = {"criterion": "widest 95 % interval of I1, I2, B, K (half-width, relative)", "passed": False,
           "value": 13.9, "limit": "<= 10 %", "why": "95 % interval of B is +-13.9 % (> 10 %)"}
 FIT_OK = {"criterion": "fit converged", "passed": True, "value": None, "limit": "", "why": ""}
@@ -231,19 +243,13 @@ def test_stage_c_tries_a_second_time_at_most(tmp_path, monkeypatch):
 ])
 def test_stage_c_untrusted_in_a_run_the_host_disturbed_names_the_host_first_then_a_longer_identify(
         tmp_path, monkeypatch, loop, names_host):
-    from rt_ident.commission import stages
-    from rt_ident.compose import run as run_mod
-
     def noisy(cfg, **_):
         s = _summary([FIT_OK, {"criterion": "median torque-line SNR (power)", "passed": False, "value": 6.03,
                                 "limit": ">= 10", "why": "torque lines barely above noise (median SNR 6.03 < 10)"}])
         s["loop"] = loop
         return s
 
-    monkeypatch.setattr(run_mod, "run", noisy)
-    result: dict = {"checks": []}
-    assert stages._identify(config.from_mapping(sim_data()), tmp_path, result, lambda msg: None) is None
-    (check,) = result["checks"]
+    check = _failed_stage_c(monkeypatch, tmp_path, noisy)
     assert check["ok"] is False and check["fix"].startswith("loop.realtime") == names_host, check["fix"]
     assert "commission.identify_s (longer)" in check["fix"]
 
@@ -255,19 +261,13 @@ def test_stage_c_untrusted_in_a_run_the_host_disturbed_names_the_host_first_then
 ])
 def test_stage_c_stopped_after_a_stall_or_lost_samples_names_the_host_not_the_axis(tmp_path, monkeypatch, loop,
                                                                                    names_host):
-    from rt_ident.commission import stages
-    from rt_ident.compose import run as run_mod
-
     def stopped(cfg, **_):
         s = _summary([FIT_OK], stop="speed-limit")
         s["loop"] = loop
         s["stop"]["message"] = "table at -58.2 mm/s, faster than safety.max_speed_m_s"
         return s
 
-    monkeypatch.setattr(run_mod, "run", stopped)
-    result: dict = {"checks": []}
-    assert stages._identify(config.from_mapping(sim_data()), tmp_path, result, lambda msg: None) is None
-    (check,) = result["checks"]
+    check = _failed_stage_c(monkeypatch, tmp_path, stopped)
     assert check["ok"] is False and check["fix"].startswith("loop.realtime") == names_host, check["fix"]
     assert "speed-limit" in check["fix"]
 
