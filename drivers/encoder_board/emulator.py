@@ -188,7 +188,8 @@ class EmulatedBoard:
         with self._lock:
             return {"enabled": self.enabled, "applied_torque": self.applied_torque, "status": self.status,
                     "samples": self._k, "frames_sent": self.frames_sent, "frames_dropped": self.frames_dropped,
-                    "frames_corrupted": self.frames_corrupted, "host_frames": self.host_frames}
+                    "frames_corrupted": self.frames_corrupted, "host_frames": self.host_frames,
+                    "queued_bytes": len(self._out) + len(self._transit)}
 
     # ----- one-shot faults -----------------------------------------------------------------
     def drop_next(self, n: int) -> None:
