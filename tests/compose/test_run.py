@@ -11,6 +11,7 @@ import pytest
 
 from rt_ident import config
 from rt_ident.compose.run import run
+from rt_ident.errors import DataError
 from rt_ident.processes.recorder import read_recording
 from rt_ident.reports.identify import identify_file
 
@@ -180,18 +181,24 @@ def test_kill_9_mid_run_leaves_a_readable_recording(tmp_path):
     cmd = [sys.executable, "-m", "rt_ident", "run", "--duration", "60", "--no-realtime", "--no-telemetry",
            "--record", str(rec)]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    seen = 0
     try:
         deadline = time.monotonic() + 60
         journal = rec.with_name(rec.name + ".arrows")
-        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 200_000):
+        while time.monotonic() < deadline and seen <= 1000:
             time.sleep(0.2)
-        assert journal.exists(), "the run never started recording"
+            if journal.exists():                # what a reader recovers while the run goes on
+                try:
+                    seen = len(read_recording(rec))
+                except DataError:               # no whole batch flushed yet
+                    pass
+        assert seen > 1000, "the run never recorded a readable batch"
     finally:
         os.killpg(proc.pid, signal.SIGKILL)     # the loop and its recorder process, no cleanup at all
         proc.wait(10)
     r = read_recording(rec)
     assert r.source == "journal"
-    assert len(r) > 1000
+    assert len(r) >= seen                       # nothing flushed before the kill is lost
     assert np.all(np.diff(r.seq) == 1) and r.seq[0] == 0
     assert np.all(np.isfinite(r.theta1))
 
