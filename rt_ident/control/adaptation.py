@@ -38,7 +38,7 @@ import numba
 import numpy as np
 
 from rt_ident.axis.params import AxisParams
-from rt_ident.control.anchor import Anchor, ReferenceOptions
+from rt_ident.control.anchor import Anchor, ReferenceOptions, braking_limits
 from rt_ident.control.job import KEYS, ControlSettings, model_controller, rigid_controller
 from rt_ident.control.law import C_INERTIA, Controller, StateFeedback
 from rt_ident.errors import RtIdentError
@@ -262,7 +262,8 @@ class Supervisor:
         self.tick_s = tick
         self.lead = nominal.lead
         self.reference = reference              # the configured path; the controller follows self.anchor
-        self.anchor = Anchor(reference, reference_options or ReferenceOptions())
+        self.anchor = Anchor(reference, reference_options or ReferenceOptions(),
+                             brake=braking_limits(nominal.I1 + nominal.I2, nominal.lead, torque_limit))
         self._last_stall: tuple[float, float] | None = None     # (t, length [s]) of the newest loop stall
         self.jobs = jobs
         self.error_after_s = error_after_s
@@ -367,8 +368,10 @@ class Supervisor:
         xr, vr, ar = a.point(t)
         self.law.rebase(th1, w1, th2, w2, xr, vr, ar, self.lead)
         self._last_stall = (t, stall_s)
+        r = a.last_rejoin if a.rejoining else None
+        braked = f", braked at {r['brake_m_s2']:.2g} m/s²" if r is not None else ""
         self.stats.events.append((t, "stall", f"{stall_s * 1e3:.0f} ms loop stall: re-planned from x = "
-                                             f"{x * 1e3:+.3f} mm at {v * 1e3:+.1f} mm/s"))
+                                             f"{x * 1e3:+.3f} mm at {v * 1e3:+.1f} mm/s{braked}"))
 
     def after_stall(self, t: float, within_s: float = 2.0) -> str:
         """' (0.40 s after a 470 ms loop stall)' when a stall came shortly before ``t``, else ''."""

@@ -18,7 +18,10 @@ controller follows
 A rejoin first brakes the offset's speed to zero, then moves the remaining distance rest to rest
 (:func:`rt_ident.control.reference.s_curve`). It is not time-optimal when the table already moves
 towards the path, but its speed never exceeds ``max(|v0|, v_max)`` and its acceleration and jerk
-stay within ``a_max`` and ``j_max``.
+stay within ``a_max`` and ``j_max`` - except that an offset faster than ``v_max`` is braked with the
+anchor's ``brake`` limits when they are stronger: a drive that kept its last torque through a host
+stall leaves the table faster than any path asks, and braking it at a path's gentle ``a_max``
+(0.5 m/s² from 0.2 m/s: 40 mm) would carry it to the end of its travel.
 """
 
 from __future__ import annotations
@@ -46,6 +49,11 @@ class MotionLimits:
 
 #: The approach and rejoin limits of references that have none of their own (hold, sine, circle, csv).
 DEFAULT_LIMITS = MotionLimits(v_max=0.02, a_max=0.5, j_max=20.0)
+
+#: A rejoin brakes a too-fast offset with this share of the torque limit over the nominal inertia,
+#: its deceleration built up over ``BRAKE_RAMP_S`` (a ramp, not a torque step).
+BRAKE_TORQUE_SHARE = 0.5
+BRAKE_RAMP_S = 0.01
 
 ORIGINS = ("enable", "scale")
 _COMMON = ("origin", "v_max", "a_max", "j_max")
@@ -90,13 +98,31 @@ def split_reference_table(mapping: Mapping[str, Any] | None) -> tuple[dict[str, 
     return data, ReferenceOptions(opt.origin, limits)
 
 
-def rejoin(d0: float, v0: float, limits: MotionLimits, t0: float) -> Segments:
+def braking_limits(inertia: float, lead: float, torque_limit: float) -> MotionLimits | None:
+    """The ``brake`` limits of an axis of total ``inertia`` [kg m²] and ``lead`` [m/rad] whose torque is
+    limited to ``torque_limit`` [N m]; None when those do not give a finite, positive deceleration."""
+    a = BRAKE_TORQUE_SHARE * torque_limit * lead / inertia if inertia > 0 else math.nan
+    if not (math.isfinite(a) and a > 0):
+        return None
+    return MotionLimits(v_max=math.inf, a_max=a, j_max=a / BRAKE_RAMP_S)
+
+
+def braking(limits: MotionLimits, v0: float, brake: MotionLimits | None) -> MotionLimits:
+    """The limits a rejoin brakes an offset speed ``v0`` with: ``brake`` when ``|v0|`` exceeds
+    ``limits.v_max`` and ``brake`` decelerates harder, else ``limits``."""
+    if brake is not None and abs(v0) > limits.v_max and brake.a_max > limits.a_max:
+        return brake
+    return limits
+
+
+def rejoin(d0: float, v0: float, limits: MotionLimits, t0: float, brake: MotionLimits | None = None) -> Segments:
     """The offset d(t), t >= ``t0``: from ``d0`` [m] moving at ``v0`` [m/s] (zero acceleration) to rest at
-    0, within ``limits`` (see the module docstring)."""
+    0, within ``limits``, braking a speed above ``limits.v_max`` with ``brake`` (see the module docstring)."""
     if not (math.isfinite(d0) and math.isfinite(v0)):
         raise ValueError(f"rejoin from a non-finite state (d0={d0!r}, v0={v0!r})")
     lim = limits
-    segs = velocity_change(-v0, lim.a_max, lim.j_max) if v0 != 0.0 else []
+    b = braking(lim, v0, brake)
+    segs = velocity_change(-v0, b.a_max, b.j_max) if v0 != 0.0 else []
     stop = Segments.build(d0, segs, t0, v0)            # where braking alone ends
     d1 = float(stop.x0[-1])
     if d1 != 0.0:
@@ -120,9 +146,11 @@ class Anchor:
     """The reference the controller follows: the path, moved to its origin, plus the current rejoin.
     :meth:`point` runs every tick (plain floats; no rejoin once the last one has ended)."""
 
-    def __init__(self, path: Any, options: ReferenceOptions = ReferenceOptions()) -> None:
+    def __init__(self, path: Any, options: ReferenceOptions = ReferenceOptions(),
+                 brake: MotionLimits | None = None) -> None:
         self.path = path
         self.options = options
+        self.brake = brake                  # what the axis brakes a too-fast offset with (see rejoin)
         self.origin = 0.0
         self.anchored = False
         self._rejoin: Segments | None = None
@@ -158,15 +186,16 @@ class Anchor:
         self._rejoin = None
         if d0 == 0.0 and v0 == 0.0:
             return
-        seg = rejoin(d0, v0, self.options.limits, t)
+        seg = rejoin(d0, v0, self.options.limits, t, self.brake)
         self._rejoin, self._end = seg, seg.end
         self.rejoins += 1
-        self.last_rejoin = {"t": t, "offset_m": d0, "speed_m_s": v0, "duration_s": seg.end - t}
+        self.last_rejoin = {"t": t, "offset_m": d0, "speed_m_s": v0, "duration_s": seg.end - t,
+                            "brake_m_s2": braking(self.options.limits, v0, self.brake).a_max}
 
     @property
     def rejoining(self) -> bool:
         return self._rejoin is not None
 
 
-__all__ = ["Anchor", "DEFAULT_LIMITS", "MotionLimits", "ReferenceOptions", "path_peak_speed", "path_samples", "rejoin",
-           "split_reference_table"]
+__all__ = ["Anchor", "BRAKE_RAMP_S", "BRAKE_TORQUE_SHARE", "DEFAULT_LIMITS", "MotionLimits", "ReferenceOptions",
+           "braking", "braking_limits", "path_peak_speed", "path_samples", "rejoin", "split_reference_table"]

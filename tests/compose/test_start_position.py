@@ -13,7 +13,7 @@ from rt_ident.compose.build import max_speed, probe_motion
 from rt_ident.compose.offline import run_offline
 from rt_ident.compose.preflight import check_config
 from rt_ident.compose.run import run
-from rt_ident.control.anchor import DEFAULT_LIMITS, rejoin
+from rt_ident.control.anchor import DEFAULT_LIMITS, braking_limits, rejoin
 from rt_ident.errors import ConfigError
 from rt_ident.loop.safety import SafetyMonitor
 
@@ -80,6 +80,21 @@ def test_the_rejoin_starts_at_the_table_and_ends_at_rest_on_the_path_within_the_
         assert abs(x[-1]) < 1e-12 and abs(v[-1]) < 1e-12
         assert np.abs(v).max() <= max(abs(v0), DEFAULT_LIMITS.v_max) + 1e-12
         assert np.abs(a).max() <= DEFAULT_LIMITS.a_max + 1e-12
+
+
+def test_a_rejoin_brakes_at_the_axis_rate_only_a_speed_above_the_paths_limit():
+    brake = braking_limits(3.53e-5, LEAD, 1.0)
+    assert brake is not None and brake.a_max == pytest.approx(0.5 * LEAD / 3.53e-5)
+    for d0, v0 in ((0.03, 0.0), (-0.01, 0.02), (0.001, -0.02)):        # within v_max: the path's own limits
+        assert rejoin(d0, v0, DEFAULT_LIMITS, 0.0, brake).end == rejoin(d0, v0, DEFAULT_LIMITS, 0.0).end
+    seg = rejoin(0.0, 0.2, DEFAULT_LIMITS, 0.0, brake)
+    t = np.linspace(0.0, seg.end, 200001)
+    x, v, a = seg.at(t)
+    stop = int(np.argmax(v <= 0.0))
+    assert x[stop] < 4e-3                                 # the path's 0.5 m/s² would need 40 mm
+    assert np.abs(a).max() <= brake.a_max * (1 + 1e-9) and a[0] == 0.0     # a ramp, not a step
+    assert np.abs(a[stop:]).max() <= DEFAULT_LIMITS.a_max + 1e-12        # back to the path gently
+    assert braking_limits(0.0, LEAD, 1.0) is None and braking_limits(3.53e-5, LEAD, float("inf")) is None
 
 
 def test_a_start_outside_the_window_is_refused_before_the_device_is_enabled(monkeypatch):

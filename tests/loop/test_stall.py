@@ -59,6 +59,37 @@ def test_a_half_second_stall_resumes_from_where_the_table_is_without_a_lunge(res
     assert abs(u_fb[after][0]) < 0.05
 
 
+def _held_run(torque: float, stall_s: float):
+    """The offline loop holding the table; after tick STALL_TICK the drive keeps ``torque`` through a
+    ``stall_s`` stall of the host (a CANopen drive applies its last RPDO until its own deadline), so the
+    table is moving fast when the loop resumes. The speed limit is lifted: the braking is under test."""
+    cfg = load(None, **{**FAST, "loop.duration": 3.0, "safety.max_speed_m_s": 1.0})
+    rows = []
+
+    def hook(loop):
+        if loop.stats.ticks == STALL_TICK:
+            loop.backend.write(torque)
+            loop.clock.now += stall_s
+        c = loop.control
+        rows.append((c.t, c.x_ref + c.error, c.law.u))
+
+    out = run_offline(cfg, tick_hook=hook, paced=True)
+    r = np.array(rows)
+    return out, r[np.r_[True, np.diff(r[:, 0]) > 0]].T
+
+
+def test_a_table_the_drive_kept_pushing_through_a_stall_is_braked_at_the_axis_rate_not_the_paths():
+    out, (t, x, u) = _held_run(0.3, 0.04)
+    assert out["stop"] is None and out["control"]["fallbacks"] == 0
+    (stall,) = [e["detail"] for e in out["control"]["events"] if e["kind"] == "stall"]
+    speed = abs(float(re.search(r"at ([-+\d.]+) mm/s", stall).group(1)))
+    assert speed > 200 and "braked at 11 m/s" in stall        # 0.5 x 1 N m over the nominal inertia
+    resumed = int(np.searchsorted(t, t[STALL_TICK - 10] + 0.04)) + 1
+    # from 263 mm/s the path's 0.5 m/s² would take 69 mm (past the 40 mm window); the axis's rate takes mm
+    assert np.abs(x[resumed:] - x[resumed]).max() < 6e-3
+    assert np.abs(u[resumed:]).max() < 0.75                      # braking within the torque limit's share
+
+
 def test_the_same_stall_handled_as_before_lunges_into_a_trip():
     out, _ = _stalled_run(0.5, **{"safety.max_stall_s": 0.9, "safety.max_stall_stop_s": 1.0})
     # no re-plan: the half second of coasting is an error the controller drives back at full torque
