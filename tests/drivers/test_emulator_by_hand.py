@@ -29,11 +29,13 @@ def _config(tmp_path: Path, port: int) -> Path:
     # line), not the machine's worst 10 ms
     text = re.sub(r"(?m)^stale_limit = .*$", "stale_limit = 200", text)
     text = re.sub(r"(?m)^watchdog_ticks = .*$", "watchdog_ticks = 200", text)
+    # nor the drive's 20 ms RPDO deadline, which a whole-host pause of 50 ms trips (the drive holds the axis)
+    text = re.sub(r"(?m)^\[backend\]$", "[backend]\nrpdo_deadline_ms = 200", text)
     text = re.sub(r"(?m)^position_hold = false", "position_hold = true", text)    # [emulator]: the drive holds
     # ... and the host, which sees a real drive, is told so (without it, --control off is refused)
     text = re.sub(r"(?m)^\[control\]$", "[control]\ndrive_holds = true", text)
     assert "emulate = false" in text and f"port = {port}" in text and "stale_limit = 200" in text
-    assert "watchdog_ticks = 200" in text
+    assert "watchdog_ticks = 200" in text and "[backend]\nrpdo_deadline_ms = 200" in text
     assert "[emulator]\nposition_hold = true" in text and "drive_holds = true" in text
     shutil.copy(ROOT / "configs" / "cia402_generic.eds", tmp_path)
     path = tmp_path / "my-drive.toml"
