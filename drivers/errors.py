@@ -6,9 +6,11 @@ from rt_ident.errors import RtIdentError
 
 
 class DriverError(RtIdentError):
-    """Root of backend errors. ``cause`` is a short machine-readable tag used in summaries."""
+    """Root of backend errors. ``cause`` is a short machine-readable tag used in summaries; ``fix`` names
+    the setting that cures it, where one does."""
 
     cause = "driver-error"
+    fix: str | None = None
 
 
 class BackendNotFound(DriverError):
@@ -43,6 +45,13 @@ class DeviceFault(DriverError):
     """The device reported a fault (EMCY, fault state, heartbeat lost)."""
 
     cause = "device-fault"
+
+
+class RpdoTimeout(DeviceFault):
+    """The drive got no torque write within its RPDO deadline (EMCY 0x8250): the host was late, not the axis."""
+
+    fix = ("loop.realtime = true (or a less busy host; else a longer backend.rpdo_deadline_ms): the drive got no "
+           "torque write within its RPDO deadline")
 
 
 class SafetyTrip(DriverError):

@@ -544,8 +544,14 @@ def _print_axes(s: dict) -> None:
         where = f" on axis {stop['axis']}" if stop.get("axis") else ""
         err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {stop.get('message')} - every axis at zero "
                   "torque, disabled")
+        _print_fix(stop)
     elif stop.get("interrupted"):
         err.print(_INTERRUPTED.format(ticks=loop.get("ticks", 0)))
+
+
+def _print_fix(stop: dict) -> None:
+    if stop.get("fix"):
+        err.print(f"  fix: {stop['fix']}", highlight=False)
 
 
 def _print_stalls(loop: dict) -> None:
@@ -581,6 +587,7 @@ def _print_stop(s: dict) -> None:
     stop = s.get("stop") or {}
     if stop.get("cause"):
         err.print(f"[red]stopped by {stop['cause']}:[/red] {stop.get('message')} - torque zeroed, drive disabled")
+        _print_fix(stop)
     elif stop.get("interrupted"):
         err.print(_INTERRUPTED.format(ticks=(s.get("loop") or {}).get("ticks", 0)))
 

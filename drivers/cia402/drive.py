@@ -41,7 +41,7 @@ from drivers.cia402 import profile as p402
 from drivers.cia402.config import Cia402Config, validate
 from drivers.cia402.node import NodeSetup
 from drivers.cia402.stream import ECHO, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
-from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
+from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError, RpdoTimeout
 
 log = logging.getLogger(__name__)
 
@@ -253,7 +253,8 @@ class Cia402Backend(Backend):
         cfg = self.config
         if self._emcy is not None:
             code, reg = self._emcy
-            raise DeviceFault(f"node {cfg.node_id} sent {p402.emcy_text(code)}, error register 0x{reg:02X}")
+            fault = RpdoTimeout if code == p402.EMCY_RPDO_TIMEOUT else DeviceFault
+            raise fault(f"node {cfg.node_id} sent {p402.emcy_text(code)}, error register 0x{reg:02X}")
         age = time.monotonic() - self._hb_time
         if age > cfg.consumer_ms / 1000.0:
             raise DeviceFault(f"no heartbeat from node {cfg.node_id} for {age:.3f} s (consumer time "

@@ -111,8 +111,6 @@ def _int16(v: float) -> int:
 
 #: the longest silence of a master the table is stepped through [s]
 SILENCE_MAX_S = 1.0
-#: EMCY: an RPDO missed its deadline (CiA 301 "RPDO timeout")
-RPDO_TIMEOUT = 0x8250
 #: the emulator itself not run for this long (its housekeeping runs every 2 ms): it was paused with its host
 OWN_PAUSE_S = 0.010
 
@@ -700,8 +698,8 @@ class EmulatedCia402Drive:
         d, t = self._deadline_s, self._rpdo_t
         if not d or t is None or now - t <= d or self._state != p402.OPERATION_ENABLED:
             return
-        self._fault(RPDO_TIMEOUT, f"no RPDO for {1e3 * (now - t):.0f} ms (deadline 0x1400:05 = {1e3 * d:.0f} ms; "
-                                  f"seen by the {seen_by})", at=t + d)
+        self._fault(p402.EMCY_RPDO_TIMEOUT, f"no RPDO for {1e3 * (now - t):.0f} ms (deadline 0x1400:05 = "
+                                            f"{1e3 * d:.0f} ms; seen by the {seen_by})", at=t + d)
 
     def _torque_in_force(self) -> tuple[bool, float]:
         """(enabled, the torque the drive believes it applies [N m], its own frame): the last target torque

@@ -252,6 +252,9 @@ def abort_text(code: int) -> str:
     return f"SDO abort 0x{code:08X} ({SDO_ABORT_TEXT.get(code, 'unknown abort code')})"
 
 
+#: CiA 301 "RPDO timeout": no RPDO within its event timer (0x1400:05), so the host was late
+EMCY_RPDO_TIMEOUT = 0x8250
+
 EMCY_TEXT = {
     0x1000: "generic error", 0x2310: "continuous over-current", 0x3210: "DC link over-voltage",
     0x4310: "drive temperature", 0x5000: "device hardware", 0x6000: "device software",

@@ -51,7 +51,7 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
         fix = ("backend.scale_sign, motor_encoder_sign, lead, counts_per_rev or scale_resolution: the device saw "
                "its motor encoder and scale move apart under the pulse before the host could measure them (one "
                "counts the other way or at another scale, or slips)" if "disagree" in fault
-               else f"backend ({faulted[0].fault_cause})")
+               else faulted[0].fault_fix or f"backend ({faulted[0].fault_cause})")
         out.append(check("device", False, fault, "no fault while probing", fix))
         return out
     still = [q for q in pulses if q.breakaway_nm is None and not q.aborted]   # a limit's stop: the limits check

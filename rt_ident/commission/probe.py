@@ -80,6 +80,7 @@ class Pulse:
     brake_at: int | None = None               # samples before the brake began (None: it never pushed)
     fault: str | None = None                  # the device stopped during the pulse: why
     fault_cause: str | None = None
+    fault_fix: str | None = None
     starved: int = 0                          # samples with a torque commanded but none in force (late plans)
     cap_held_s: float = 0.0                   # time the cap was in force before the pulse gave up moving
 
@@ -135,6 +136,11 @@ class Pulse:
         coef = coef / scale
         inv_j = float(coef[2])
         return inv_j, float(coef[3] / inv_j) if inv_j else math.nan
+
+
+def fault_of(exc: Exception) -> tuple[str, str, str | None]:
+    """What a device's stop says: its message, its cause tag and the setting that fixes it (if one does)."""
+    return str(exc), getattr(exc, "cause", "device"), getattr(exc, "fix", None)
 
 
 def _slope(t: np.ndarray, y: np.ndarray) -> float:
@@ -224,7 +230,7 @@ class Prober:
                     break
                 self.settle(0.1)
         except RtIdentError as exc:
-            out.fault, out.fault_cause = str(exc), getattr(exc, "cause", "device")
+            out.fault, out.fault_cause, out.fault_fix = fault_of(exc)
             return out
         assert self.start is not None
         th0, x0 = self.start
@@ -242,7 +248,7 @@ class Prober:
         try:
             self._pulse_loop(direction, out, ts, th1s, xs, tqs, th0, x0, push_target, ramp, slew, deadline)
         except RtIdentError as exc:            # the device stopped itself: what it did until then still counts
-            out.fault, out.fault_cause = str(exc), getattr(exc, "cause", "device")
+            out.fault, out.fault_cause, out.fault_fix = fault_of(exc)
         if ts:
             out.t, out.theta1, out.x, out.torque = (np.concatenate(a) for a in (ts, th1s, xs, tqs))
         out.max_travel_m, out.max_speed_m_s = self.max_travel, self.max_speed

@@ -155,7 +155,8 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             checks.append(check("probe", False, str(exc), "samples every tick", exc.key))
             return False
         except RtIdentError as exc:                   # the device stopped or failed: zero torque, disabled
-            key = exc.field if isinstance(exc, ConfigError) else f"backend ({getattr(exc, 'cause', 'device')})"
+            key = exc.field if isinstance(exc, ConfigError) else \
+                getattr(exc, "fix", None) or f"backend ({getattr(exc, 'cause', 'device')})"
             checks.append(check("probe", False, str(exc), "the device follows the pulses", key))
             return False
         finally:

@@ -120,7 +120,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     axes: dict[str, _Axis] = {}
     helpers = Helpers()
     host: dict[str, Any] = {"steal_ms": None, "steal_cpu": None, "interrupts": None}   # filled around the loop
-    stop_cause = stop_message = stop_axis = None
+    stop_cause = stop_message = stop_axis = stop_fix = None
     enabled = False
     refused: ConfigError | None = None
     runner: IdentificationLoop | MultiAxisLoop | None = None
@@ -214,6 +214,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             refused = exc                                # refused before enabling: a one-line error, exit 2
         stop_cause = getattr(exc, "cause", "error")
         stop_message = str(exc) + getattr(exc, "after_stall", "")
+        stop_fix = getattr(exc, "fix", None)
         if several:
             failed = runner.failed_axis if isinstance(runner, MultiAxisLoop) else None
             stop_axis = failed or next((n for n, ax in axes.items() if ax.loop is not None and _tripped(ax.loop, exc)),
@@ -245,6 +246,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         raise refused
     backends = {n: ax.backend for n, ax in axes.items()}
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set()}
+    if stop_fix:
+        summary["stop"]["fix"] = stop_fix
     if several:
         summary["stop"].update({"axis": stop_axis, "final_torque": {n: b.last_torque for n, b in backends.items()},
                                 "backend_state": {n: b.state.value for n, b in backends.items()}})

@@ -41,6 +41,10 @@ def device_cfg(name: str, actual: dict | None = None, **sections: dict) -> confi
     return config.from_mapping(data, source=str(ROOT / "configs" / name))
 
 
+#: commissionings a test runs before it accepts that the host disturbed every one
+ATTEMPTS = 2
+
+
 @pytest.fixture(autouse=True)
 def state_dir(tmp_path, monkeypatch):
     monkeypatch.setenv("RT_IDENT_STATE_DIR", str(tmp_path / "state"))
@@ -68,8 +72,15 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
     # real time, as on a bench: the board's link (a frame every 50 us, 0.05 s timeouts) and the drive's
     # 2 kHz SYNC next to pytest's other workers need it
     cfg = device_cfg(name, {**actual, "x0": 0.01}, loop={"realtime": True})
-    r = commission(cfg, tmp_path / "out")
-    assert r["verdict"] == "fail", r["checks"]
+    host_failures = []
+    for k in range(ATTEMPTS):          # a commissioning the host disturbed names the host: it cannot tell the key
+        r = commission(cfg, tmp_path / f"out{k}")
+        assert r["verdict"] == "fail", r["checks"]
+        if not r["failed"]["fix"].startswith("loop.realtime"):
+            break
+        host_failures.append(r["failed"]["fix"])
+    else:
+        pytest.skip(f"the host disturbed all {ATTEMPTS} commissionings: {host_failures}")
     # the key first, or (the board's encoder check stopped it before the host saw the motion) among those named
     named = r["failed"]["fix"].split(":")[0]
     assert named.startswith(key) or key.removeprefix("backend.") in named, (
@@ -82,10 +93,6 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
         slack = 1.0 if all(c["ok"] for c in r["checks"] if c["name"] == "limits") else 1.5
         assert r["max_travel_m"] <= slack * cfg.commission.travel_m
         assert r["max_speed_m_s"] <= slack * cfg.commission.max_speed_m_s
-
-
-#: commissionings of a correct config a test runs before it accepts that the host disturbed every one
-ATTEMPTS = 2
 
 
 @pytest.mark.slow

@@ -8,6 +8,7 @@ import types
 import numpy as np
 import pytest
 
+from drivers.errors import DeviceFault, RpdoTimeout
 from drivers.sim import SimBackend
 from rt_ident import config
 from rt_ident.commission import probe
@@ -139,3 +140,29 @@ def test_a_ratio_off_by_two_names_one_sensor_only_when_every_pulse_points_to_it(
     failed = [c for c in probe_checks(cfg, pulses, dt) if not c["ok"]]
     assert failed[0]["fix"].startswith("backend.counts_per_rev or backend.lead/scale_resolution:"), failed[0]
     assert "the pulses' " in failed[0]["fix"]
+
+
+@pytest.mark.parametrize(("fault", "fix"), [(RpdoTimeout, "loop.realtime"), (DeviceFault, "backend (device-fault)")])
+def test_a_drive_faulted_by_the_hosts_late_torque_writes_names_the_host_and_any_other_fault_the_backend(
+        monkeypatch, fault, fix):
+    """A drive that got no torque write within its RPDO deadline stopped because the host was late: the
+    device check names loop.realtime, not the backend; another device fault still names the backend."""
+    cfg = config.from_mapping(sim_data({}))
+    backend = SimBackend(backend_options(cfg))
+    write, writes = probe.Prober._write, []
+
+    def faulting_write(self, torque, until=None):
+        writes.append(torque)
+        if sum(1 for w in writes if w) == 20:                  # mid-pulse, the table not yet moved
+            raise fault("node 5 sent EMCY, error register 0x01")
+        write(self, torque, until)
+
+    monkeypatch.setattr(probe.Prober, "_write", faulting_write)
+    with backend:
+        backend.activate()
+        prober = probe.Prober(backend, probe_limits(cfg, backend.torque_limit))
+        prober.settle(0.05)
+        q = prober.pulse(1)
+    assert q.fault is not None
+    failed = [c for c in probe_checks(cfg, [q], backend.sample_period) if not c["ok"]]
+    assert [c["name"] for c in failed] == ["device"] and failed[0]["fix"].startswith(fix), failed

@@ -234,6 +234,7 @@ def test_a_sigstop_of_a_canopen_run_ends_on_the_drives_rpdo_deadline_not_a_lunge
     # the SIGSTOP's stall, or one of the busy host's own before it: the drive ended it, and the stop says so
     assert rc == 3 and stop["cause"] == "device-fault", (stop, err[-2000:])
     assert "0x8250" in stop["message"] and "stall" in stop["message"], (stop, s["loop"]["stalls"])
+    assert stop["fix"].startswith("loop.realtime") and "backend.rpdo_deadline_ms" in stop["fix"], stop
     # the drive's own account: the torque held 20 ms at most, so the table's speed at the fault is bounded
     # by the torque limit's impulse (1 N m x 20 ms on I1 + I2)
     fault = re.search(r"fault EMCY 0x8250.*table at x = (-?[\d.]+) mm, (-?[\d.]+) mm/s", err)
