@@ -113,7 +113,11 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
     fits = [abs(q.dynamics(dt)[0]) for q in pulses]
     fits = [f for f in fits if math.isfinite(f) and f > 0]
     if not fits:
-        out.append(check("acceleration measured", False, "no fit", "an acceleration per N m from the pulses",
+        lost = sum(q.lost(dt) for q in pulses) if any(q.gapped(dt) for q in pulses) else 0
+        out.append(check("acceleration measured", False, f"no fit ({lost} samples lost)" if lost else "no fit",
+                         "an acceleration per N m from the pulses",
+                         f"loop.realtime = true (or a less busy host; else check the bus): the device's link lost "
+                         f"{lost} of the pulses' samples, too many at once to fit the motion" if lost else
                          "commission.max_speed_m_s / commission.travel_m (larger: longer pulses)"))
         return out
     inv_j = float(np.median(fits))

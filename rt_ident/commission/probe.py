@@ -6,9 +6,11 @@ when the ramp alone already gave that speed), then a brake: the torque reversed,
 acceleration to take the speed back over :data:`BRAKE_TICKS` of the host's ticks or more, at the pace it keeps
 (a brake ended a tick early or late leaves a small fraction of the speed, whatever the torque's true scale),
 until the speed along the push's motion has fallen to a twentieth of its peak by either sensor (before it
-reverses), the impulse is back to zero (summed from the torque the device's samples had in force), or the
-brake has been in force for twice the push's time (and 3 x BRAKE_TICKS ticks). The brake acts whatever the
-wiring: it is relative to the command and to the signs the sensors moved in under the push. Then zero torque.
+reverses), the impulse is back to zero (summed from the torque the device's samples had in force, a lost
+sample's from its neighbours'; not when samples were lost while a torque was written: what was in force then
+is not known, and the speed alone ends the brake), or the brake has been in force for twice the push's time
+(and 3 x BRAKE_TICKS ticks). The brake acts whatever the wiring: it is relative to the command and to the
+signs the sensors moved in under the push. Then zero torque.
 Every change of torque is a ramp. The push ends early once the table's speed would pass 0.4 x its limit within
 four ticks (at the host's own recent pace), or its distance from where the pulse started passes a quarter of
 the travel budget; if either limit is passed all the same, the pulse brakes and ends, and the check fails.
@@ -48,6 +50,8 @@ LAPSED_RETRIES = 2
 #: the brake takes the push's speed back over at least this many host ticks (at the push's own measured
 #: acceleration), so that ending it a tick late or early leaves a small fraction of that speed
 BRAKE_TICKS = 10
+#: a pulse's acceleration fit needs no gap of lost samples longer than this share of its window
+FIT_GAP_SHARE = 0.2
 
 
 @dataclass(frozen=True)
@@ -114,25 +118,49 @@ class Pulse:
         den = float(th @ th)
         return float(th @ (self.x - self.x.mean()) / den) if den > 0 else math.nan
 
-    def dynamics(self, sample_period: float) -> tuple[float, float]:
-        """(1/J [rad/s^2 per N m], F [N m]) from theta1 over the motion before it first reverses."""
+    def lost(self, sample_period: float) -> int:
+        """Samples the device's link lost between the pulse's first and last."""
+        if self.t.size < 2:
+            return 0
+        return int(round((float(self.t[-1]) - float(self.t[0])) / sample_period)) + 1 - int(self.t.size)
+
+    def _window(self, sample_period: float) -> tuple[int, int, int, np.ndarray] | None:
+        """(first, end, the way the push moved theta1, sample numbers from the first) of the motion before it
+        first reverses; None without one of 8 samples or more."""
         if self.brake_at is None or self.brake_at < 2 or not self.t.size:
-            return math.nan, math.nan
-        th, tq = self._own()[0], self.torque
-        if self.brake_at < 2:
-            return math.nan, math.nan
+            return None
+        th = self._own()[0]
         d = int(np.sign(th[self.brake_at - 1])) or 1       # the way the push moved it
         peak = int(np.argmax(d * th))                       # where the brake stopped it (not its overshoot)
         moving = np.flatnonzero(d * th[:peak + 1] > 0)
         if moving.size < 8:
-            return math.nan, math.nan
+            return None
         i0, i1 = int(moving[0]), peak + 1
-        t = np.arange(i1 - i0) * sample_period
-        s = np.cumsum(np.cumsum(tq[i0:i1])) * sample_period ** 2
+        return i0, i1, d, np.rint((self.t[i0:i1] - self.t[i0]) / sample_period).astype(np.int64)
+
+    def gapped(self, sample_period: float) -> bool:
+        """The motion's window has a gap of lost samples over :data:`FIT_GAP_SHARE` of its span."""
+        w = self._window(sample_period)
+        return w is not None and (w[3][-1] <= 0 or float(np.max(np.diff(w[3]))) > FIT_GAP_SHARE * float(w[3][-1]))
+
+    def dynamics(self, sample_period: float) -> tuple[float, float]:
+        """(1/J [rad/s^2 per N m], F [N m]) from theta1 over the motion before it first reverses.
+
+        On the samples' own times: a lost sample's torque is interpolated between its neighbours' (the host's
+        plan was in force), so the double integral runs on every sample period. A :meth:`gapped` window has
+        lost the motion's shape: no fit (NaN)."""
+        w = self._window(sample_period)
+        if w is None or self.gapped(sample_period):
+            return math.nan, math.nan
+        i0, i1, d, k = w
+        th = self._own()[0][i0:i1]
+        every = np.arange(k[-1] + 1)
+        s = (np.cumsum(np.cumsum(np.interp(every, k, self.torque[i0:i1]))) * sample_period ** 2)[k]
+        t = k * sample_period
         a = np.column_stack([np.ones_like(t), t, s, -0.5 * d * t ** 2])
         scale = np.linalg.norm(a, axis=0)
         scale[scale == 0] = 1.0
-        coef, *_ = np.linalg.lstsq(a / scale, th[i0:i1], rcond=None)   # columns of like size: none cut off
+        coef, *_ = np.linalg.lstsq(a / scale, th, rcond=None)   # columns of like size: none cut off
         coef = coef / scale
         inv_j = float(coef[2])
         return inv_j, float(coef[3] / inv_j) if inv_j else math.nan
@@ -149,6 +177,19 @@ def _slope(t: np.ndarray, y: np.ndarray) -> float:
     tc = t - t.mean()
     den = float(tc @ tc)
     return float(tc @ (y - y.mean()) / den) if den > 0 else 0.0
+
+
+def _impulse(seq: np.ndarray, torque: np.ndarray, before: tuple[int, float] | None) -> float:
+    """The sum of the torque in force over the samples up to ``seq[-1]`` from the one after ``before`` (seq,
+    torque of the last sample read), in sample periods: a lost sample's torque halfway between its
+    neighbours' (the host's plan was in force)."""
+    total = float(np.sum(torque))
+    if before is None:
+        return total
+    s = np.concatenate([[before[0]], seq])
+    tq = np.concatenate([[before[1]], torque])
+    gaps = np.diff(s) - 1
+    return total + float(np.sum(gaps * 0.5 * (tq[1:] + tq[:-1])))
 
 
 def _brake_nm(push_nm: float, peak: float, push_dur: float, tick_s: float) -> float:
@@ -266,6 +307,8 @@ class Prober:
         ramp_per_s = ramp / lim.tick_s
         applied_s = 0.0                     # time with the ramp's torque in force
         t_push = push_dur = peak = impulse = brake_s = 0.0
+        last_in_force: tuple[int, float] | None = None      # (seq, torque) of the last sample read
+        unseen = False                         # the push's impulse is not known (see below)
         brake_tick = lim.tick_s
         along = (0, 0)                         # the signs theta1 and x moved in under the push
         braked: list[tuple[float, float]] = []   # (device time, speed along) with the brake in force
@@ -338,7 +381,11 @@ class Prober:
                 # samples that carried the torque last written (a lapsed plan leaves none in force)
                 carried = np.abs(blk.torque_cmd) >= 0.5 * abs(torque) if torque != 0.0 else np.ones(len(blk), bool)
                 out.starved += int(np.count_nonzero(~carried))
-                impulse += float(np.sum(blk.torque_cmd)) * b.sample_period     # the torque that was in force
+                if phase != "brake" and torque != 0.0 and last_in_force is not None and \
+                        int(blk.seq[-1]) - last_in_force[0] > len(blk):
+                    unseen = True      # samples lost with a torque written: what was in force is not known
+                impulse += _impulse(blk.seq, blk.torque_cmd, last_in_force) * b.sample_period
+                last_in_force = (int(blk.seq[-1]), float(blk.torque_cmd[-1]))
                 if phase == "ramp":
                     applied_s += float(np.count_nonzero(carried)) * b.sample_period
                     if abs(torque) >= lim.torque_cap:
@@ -382,14 +429,14 @@ class Prober:
                             stop = v / decel - 0.5 * float(tw[-1] - tw[0])
                             brake_n = max(self.plan_len, int(0.5 * stop / b.sample_period))
                     # the commanded impulse back to zero: the momentum the pulse gave, taken back
-                    if (direction * impulse <= 0.0 or v <= 0.05 * peak or speed < 0.05 * peak
+                    if ((direction * impulse <= 0.0 and not unseen) or v <= 0.05 * peak or speed < 0.05 * peak
                             or brake_s >= max(2.0 * push_dur, 3 * BRAKE_TICKS * brake_tick)):
                         phase, target = "rest", 0.0
             if phase == "ramp":
                 target = direction * min(lim.torque_cap, ramp_per_s * applied_s)
             # the ramp rises with time (a late tick takes a larger, still small, step), never past its target
             step = slew if phase != "ramp" else min(5.0 * ramp, max(ramp, ramp_per_s * (now - t_written)))
-            if phase == "brake":                     # no overshoot of the impulse on the way back
+            if phase == "brake" and not unseen:      # no overshoot of the impulse on the way back
                 step = min(step, max(abs(impulse) / lim.tick_s, 0.0) + abs(torque))
             torque = torque + max(-step, min(step, target - torque))
             self._write(torque, brake_n if phase == "brake" and direction * torque < 0.0 else None)

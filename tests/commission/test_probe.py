@@ -3,11 +3,13 @@ stalls at a chosen write, the same way on every run whatever else the machine is
 
 from __future__ import annotations
 
+import dataclasses
 import types
 
 import numpy as np
 import pytest
 
+from drivers.base import SampleBlock
 from drivers.errors import DeviceFault, RpdoTimeout
 from drivers.sim import SimBackend
 from rt_ident import config
@@ -18,21 +20,36 @@ from rt_ident.compose.offline import VirtualClock
 from tests.commission.test_stages import sim_data
 
 
-def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float = 0.03, late_s: float = 0.0):
+def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float = 0.03, late_s: float = 0.0,
+               blind_s: float = 0.0):
     """Two pulses (+, -); ``stall_at``: the host stalls after its first write of a self-ending brake plan
     ("plan") or its second write of a braking torque ("lease", the brake's deceleration not yet measured), or
     once while pushing, the table past a tenth of the speed limit ("push");
-    ``late_s``: every write comes this much later than the tick (a slow host)."""
+    ``late_s``: every write comes this much later than the tick (a slow host);
+    ``blind_s``: once a pulse has moved the table past a twentieth of the speed limit, the device's link
+    loses every sample for this long (the host runs on, the table too)."""
     cfg = config.from_mapping(sim_data(actual))
     clock = VirtualClock()      # the host's time: a tick's sleep or a stall advances it, the paced sim follows
     monkeypatch.setattr(probe, "time", types.SimpleNamespace(perf_counter=clock, sleep=clock.sleep))
     backend = SimBackend(backend_options(cfg), clock=clock)
-    state = {"direction": 0, "braking": 0, "stalls": 0, "planned": 0}
+    state = {"direction": 0, "braking": 0, "stalls": 0, "planned": 0, "blind_until": None, "pushed": False}
+    if blind_s:
+        read = backend.read
+
+        def lossy_read():
+            blk = read()
+            speed = abs(cfg.axis_params().lead * float(backend.plant.state[3]))
+            if state["blind_until"] is None and state["pushed"] and speed > 0.05 * cfg.commission.max_speed_m_s:
+                state["blind_until"] = clock() + blind_s
+            return SampleBlock.empty() if state["blind_until"] and clock() < state["blind_until"] else blk
+
+        monkeypatch.setattr(backend, "read", lossy_read)
     write = probe.Prober._write
 
     def host_write(self, torque, until=None):
         write(self, torque, until)
         clock.sleep(late_s)
+        state["pushed"] = state["pushed"] or torque * state["direction"] > 0.0
         if torque * state["direction"] >= 0.0:
             speed = abs(cfg.axis_params().lead * float(backend.plant.state[3]))
             if stall_at == "push" and speed > 0.1 * cfg.commission.max_speed_m_s and not state["stalls"]:
@@ -53,7 +70,7 @@ def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float =
         prober = probe.Prober(backend, probe_limits(cfg, backend.torque_limit))
         prober.settle(0.05)
         for d in (1, -1):
-            state.update(direction=d, braking=0, planned=0)
+            state.update(direction=d, braking=0, planned=0, blind_until=None, pushed=False)
             pulses.append(prober.pulse(d))
     return cfg, pulses, state
 
@@ -99,6 +116,21 @@ def test_a_slow_host_probing_a_much_stronger_axis_keeps_the_speed_limit_and_the_
         assert q.aborted is None and q.fault is None and q.breakaway_nm is not None, q.aborted
         assert q.truth["max_speed_m_s"] <= cfg.commission.max_speed_m_s
     assert max(q.truth["max_travel_m"] for q in pulses) <= 0.25 * cfg.commission.travel_m
+
+
+@pytest.mark.parametrize("blind_s", [0.02, 0.1])
+@pytest.mark.parametrize("torque_scale", [1.0, 10.0, 100.0])
+def test_a_link_that_loses_every_sample_mid_pulse_leaves_the_table_within_the_speed_limit_and_the_budget(
+        monkeypatch, torque_scale, blind_s):
+    """A device's link silent for 20 or 100 ms once the table moves (the host blind, its plans lapsing): the
+    ramp does not rise on torque it cannot see in force, and the brake that follows is not cut short by an
+    impulse summed from samples that never showed the torque in force (the frictionless sim would coast on)."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {"torque_scale": torque_scale}, None, blind_s=blind_s)
+    dt = pulses[0].t[1] - pulses[0].t[0]
+    for q in pulses:
+        assert q.aborted is None and q.fault is None and q.breakaway_nm is not None and q.lost(dt) > 0
+        assert q.truth["max_speed_m_s"] <= cfg.commission.max_speed_m_s
+    assert max(q.truth["max_travel_m"] for q in pulses) <= 0.5 * cfg.commission.travel_m
 
 
 @pytest.mark.parametrize("torque_scale", [1.0, 10.0, 100.0])
@@ -166,3 +198,53 @@ def test_a_drive_faulted_by_the_hosts_late_torque_writes_names_the_host_and_any_
     assert q.fault is not None
     failed = [c for c in probe_checks(cfg, [q], backend.sample_period) if not c["ok"]]
     assert [c["name"] for c in failed] == ["device"] and failed[0]["fix"].startswith(fix), failed
+
+
+@pytest.mark.parametrize("keep", [0.5, 0.25])
+def test_a_pulse_whose_samples_the_link_lost_measures_the_same_acceleration_per_newton_metre(monkeypatch, keep):
+    """A device's link that lost most samples (a drive answering SYNCs late sends no TPDO) leaves the fit on
+    the samples' own times: the acceleration per N m stays where the full pulse puts it, within 5 %."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {}, None)
+    p = cfg.axis_params()
+    dt = pulses[0].t[1] - pulses[0].t[0]
+    rng = np.random.default_rng(7)
+    for q in pulses:
+        full = q.dynamics(dt)[0]
+        m = rng.random(q.t.size) < keep
+        m[0] = m[-1] = True
+        thin = dataclasses.replace(q, t=q.t[m], theta1=q.theta1[m], x=q.x[m], torque=q.torque[m],
+                                   brake_at=int(np.count_nonzero(m[:q.brake_at])))
+        assert thin.lost(dt) == q.t.size - thin.t.size
+        assert full * (p.I1 + p.I2) == pytest.approx(1.0, rel=0.05)
+        assert thin.dynamics(dt)[0] == pytest.approx(full, rel=0.05)
+
+
+def test_a_pulse_with_a_gap_over_a_fifth_of_its_motion_gives_no_acceleration():
+    """A gap that hides a fifth of the motion hides its shape: no fit rather than a guess."""
+    dt = 1e-3
+    t = np.arange(200) * dt
+    torque = 10.0 * t                     # a ramp: its double integral is no multiple of the friction's t^2
+    s = np.cumsum(np.cumsum(torque)) * dt ** 2
+    q = probe.Pulse(1, t, 100.0 * s, np.zeros_like(t), torque, brake_at=199)
+    assert q.dynamics(dt)[0] == pytest.approx(100.0, rel=1e-3)
+    m = (t < 0.05) | (t >= 0.1)
+    gap = dataclasses.replace(q, t=t[m], theta1=q.theta1[m], torque=q.torque[m], x=q.x[m],
+                              brake_at=int(np.count_nonzero(m)) - 1)
+    assert gap.gapped(dt) and not q.gapped(dt) and np.isnan(gap.dynamics(dt)[0])
+
+
+def test_pulses_whose_motion_the_link_lost_a_fifth_of_at_once_name_the_host_not_the_pulse_length(monkeypatch):
+    """No fit because of a long gap of lost samples is the host's (or the bus's) doing: the check says so."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {}, None)
+    dt = pulses[0].t[1] - pulses[0].t[0]
+    thinned = []
+    for q in pulses:
+        i0, i1 = q._window(dt)[:2]
+        m = np.ones(q.t.size, bool)
+        m[i0 + (i1 - i0) // 3:i0 + 2 * (i1 - i0) // 3] = False       # a third of the motion, lost at once
+        thinned.append(dataclasses.replace(q, t=q.t[m], theta1=q.theta1[m], x=q.x[m], torque=q.torque[m],
+                                           brake_at=int(np.count_nonzero(m[:q.brake_at]))))
+    failed = [c for c in probe_checks(cfg, thinned, dt) if not c["ok"]]
+    assert [c["name"] for c in failed] == ["acceleration measured"], failed
+    assert failed[0]["fix"].startswith("loop.realtime") and "lost" in failed[0]["measured"]
+    assert all(c["ok"] for c in probe_checks(cfg, pulses, dt))

@@ -58,15 +58,18 @@ def rig(faults: dict | None = None, emulator: dict | None = None, **over):
 
 
 def pump(be: Cia402Backend, seconds: float, torque=lambda seq: np.zeros_like(seq, dtype=float),
-         ahead: int = 8) -> list:
-    """Read every ~1 ms for ``seconds`` and write a plan for the next ``ahead`` samples; returns the blocks."""
-    blocks, nxt = [], 0
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
+         ahead: int = 8, samples: int = 0) -> list:
+    """Read every ~1 ms for ``seconds`` (and on, up to 10 s, until ``samples`` samples came: a drive a busy
+    host starves answers few SYNCs) and write a plan for the next ``ahead`` samples; returns the blocks."""
+    blocks, nxt, got = [], 0, 0
+    start = time.monotonic()
+    end = start + seconds
+    while time.monotonic() < end or (got < samples and time.monotonic() < start + 10.0):
         time.sleep(0.001)
         blk = be.read()
         if len(blk):
             blocks.append(blk)
+            got += len(blk)
             nxt = int(blk.seq[-1]) + 1
         seq = np.arange(nxt, nxt + ahead)
         be.write(torque(seq), start_seq=nxt)
@@ -382,7 +385,7 @@ def test_samples_carry_plausible_angles_and_torque():
     with rig() as (drive, be):
         with be:
             be.activate()
-            blocks = pump(be, 0.6, lambda seq: np.full(seq.shape, hold))
+            blocks = pump(be, 0.6, lambda seq: np.full(seq.shape, hold), samples=250)
             assert drive.applied_torque != 0.0
         assert_drive_safe(drive)
     seq = np.concatenate([b.seq for b in blocks])
@@ -440,9 +443,8 @@ def test_next_session_resets_a_faulted_drive_and_runs():
         with be2:
             be2.activate()                         # fault reset (bit 7 edge), then the normal walk
             assert drive.enabled and drive.state == OPERATION_ENABLED
-            # samples flow again: at least 50 (of ~1000 at the 1 kHz SYNC) in 1 s, beside a busy machine too
-            # (49 in 0.2 s beside a busy loop on each core)
-            assert sum(len(b) for b in pump(be2, 1.0)) > 50
+            # samples flow again (a drive a busy host starves answers few of the 1 kHz SYNCs)
+            assert sum(len(b) for b in pump(be2, 1.0, samples=60)) > 50
         assert_drive_safe(drive)
 
 
@@ -530,7 +532,7 @@ def test_garbage_frames_are_ignored():
     with rig(faults={"garbage_frames_per_sync": 3}) as (drive, be):
         with be:
             be.activate()
-            blocks = pump(be, 0.4, square(0.1))
+            blocks = pump(be, 0.4, square(0.1), samples=150)
             assert drive.enabled
             assert be.counters["corrupt"] == 0
         assert drive.garbage_frames > 300
