@@ -114,7 +114,7 @@ def test_our_master_maps_the_streamed_objects_into_as_many_entries_per_pdo_as_th
             # statusword 2 + position 4 + torque 2 bytes, scale 4 bytes: two frames per SYNC either way
             assert sizes == ([8, 4] if profile == "four-objects-per-pdo" else [6, 6])
             be.activate()
-            blocks = pump(be, 0.5, lambda seq: np.full(len(seq), 0.01))
+            blocks = pump(be, 0.5, lambda seq: np.full(len(seq), 0.01), samples=60)
             blk = blocks[-1]
             assert sum(len(b) for b in blocks) > 50
             # every streamed value lands where it belongs: torque actual, motor and table moving together
