@@ -168,7 +168,8 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             result["device_truth"] = {k: max(t[k] for t in truth) for k in truth[0]}
         result["pulses"] = [{"direction": q.direction, "fault": q.fault, "breakaway_nm": q.breakaway_nm,
                              "push_nm": q.push_nm, "aborted": q.aborted, "cap_held_s": q.cap_held_s,
-                             "starved_samples": q.starved, "theta1_rad": q.moved()[0], "x_m": q.moved()[1],
+                             "starved_samples": q.starved, "lost_samples": q.lost(backend.sample_period),
+                             "theta1_rad": q.moved()[0], "x_m": q.moved()[1],
                              "ratio_m_per_rad": q.ratio(),
                              "accel_per_nm": q.dynamics(backend.sample_period)[0]} for q in pulses]
         checks.extend(probe_checks(cfg, pulses, backend.sample_period))

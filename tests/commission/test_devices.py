@@ -85,7 +85,7 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
     named = r["failed"]["fix"].split(":")[0]
     assert named.startswith(key) or key.removeprefix("backend.") in named, (
         [(c["name"], c["measured"]) for c in r["checks"] if not c["ok"]], r["failed"]["fix"],
-        [{k: p.get(k) for k in ("direction", "breakaway_nm", "push_nm", "aborted", "starved_samples")}
+        [{k: p.get(k) for k in ("direction", "breakaway_nm", "push_nm", "aborted", "starved_samples", "lost_samples")}
          for p in r.get("pulses") or []], r.get("max_travel_m"), r.get("max_speed_m_s"))
     if r["max_travel_m"] is not None:
         # a limit passed all the same (a device's latency on a loaded host) fails 'limits' and is braked at once;

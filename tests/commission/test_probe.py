@@ -180,7 +180,9 @@ def test_a_drive_faulted_by_the_hosts_late_torque_writes_names_the_host_and_any_
     """A drive that got no torque write within its RPDO deadline stopped because the host was late: the
     device check names loop.realtime, not the backend; another device fault still names the backend."""
     cfg = config.from_mapping(sim_data({}))
-    backend = SimBackend(backend_options(cfg))
+    clock = VirtualClock()      # the 20th torque write comes mid-pulse however slow the host
+    monkeypatch.setattr(probe, "time", types.SimpleNamespace(perf_counter=clock, sleep=clock.sleep))
+    backend = SimBackend(backend_options(cfg), clock=clock)
     write, writes = probe.Prober._write, []
 
     def faulting_write(self, torque, until=None):

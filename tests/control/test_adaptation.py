@@ -104,7 +104,7 @@ def test_run_safe_stops_with_exit_code_3_when_the_fallback_cannot_hold_the_bound
 def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, emulators, restore_scheduling):
     # real-time like a bench run: a loop that is not real-time loses CANopen samples next to pytest
     # what is tested is the closed loop over each backend, not the drive's watchdogs: a stale stretch of
-    # up to 100 ms on a loaded machine's udp_multicast exchange may not end it (the shipped limit is 10 ms),
+    # up to 0.5 s on a loaded machine's udp_multicast exchange may not end it (the shipped limit is 10 ms),
     # nor a host heartbeat late by more than the shipped 250 ms (a loaded machine can hold it back that
     # long: "no heartbeat from node 127"). Both watchdogs are tested at their shipped values in
     # test_canopen_backend.py.
@@ -113,9 +113,9 @@ def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, em
     # nor a serial link the emulator's process was kept off for longer than the shipped 50 ms read_timeout, nor
     # the board's watch of the host's heartbeats
     # (tested at its shipped value in tests/drivers and test_cli_errors.py)
-    extra = ({"backend.stale_limit": 200, "backend.heartbeat_consumer_ms": 1000, "backend.rpdo_deadline_ms": 200}
+    extra = ({"backend.stale_limit": 1000, "backend.heartbeat_consumer_ms": 1000, "backend.rpdo_deadline_ms": 200}
              if config.startswith("canopen") else {"backend.read_timeout": 0.5, "emulator.heartbeat_timeout": 1.0})
-    extra["safety.watchdog_ticks"] = 200      # nor the host's own no-fresh-feedback watchdog (a stall next to pytest)
+    extra["safety.watchdog_ticks"] = 1000     # nor the host's own no-fresh-feedback watchdog (a stall next to pytest)
     # nor the speed limit (2 x the path's peak speed), which samples lost on a loaded machine can take the table
     # just past. The limit is tested in tests/compose (test_fault_runs, test_start_position)
     extra["safety.max_speed_m_s"] = 0.5
