@@ -267,8 +267,10 @@ def test_commands_are_clamped_to_the_torque_limit_before_leaving_the_host(rig):
 
 
 def test_counters_unwrap_across_the_32_bit_wrap_end_to_end(rig):
-    board, be = rig(seq0=2**32 - 1000, t0_us=2**32 - 30_000)
-    blocks = read_for(be, 0.15)
+    # 1 s of samples before either counter wraps (the time's a little earlier): a host late to its first read
+    # still sees both wraps, and reads on until it has
+    board, be = rig(seq0=2**32 - 20_000, t0_us=2**32 - 990_000)
+    blocks = read_through(be, 2**32 + 1000)
     seq, t = cat(blocks, "seq"), cat(blocks, "t")
     assert seq[0] < 2**32 < seq[-1]
     assert np.all(np.diff(seq) == 1) and np.allclose(np.diff(t), 50e-6, atol=1e-9)
