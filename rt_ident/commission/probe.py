@@ -141,7 +141,7 @@ class Pulse:
     def gapped(self, sample_period: float) -> bool:
         """The motion's window has a gap of lost samples over :data:`FIT_GAP_SHARE` of its span."""
         w = self._window(sample_period)
-        return w is not None and (w[3][-1] <= 0 or float(np.max(np.diff(w[3]))) > FIT_GAP_SHARE * float(w[3][-1]))
+        return w is not None and _too_gapped(w[3])
 
     def dynamics(self, sample_period: float) -> tuple[float, float]:
         """(1/J [rad/s^2 per N m], F [N m]) from theta1 over the motion before it first reverses.
@@ -150,7 +150,7 @@ class Pulse:
         plan was in force), so the double integral runs on every sample period. A :meth:`gapped` window has
         lost the motion's shape: no fit (NaN)."""
         w = self._window(sample_period)
-        if w is None or self.gapped(sample_period):
+        if w is None or _too_gapped(w[3]):
             return math.nan, math.nan
         i0, i1, d, k = w
         th = self._own()[0][i0:i1]
@@ -164,6 +164,11 @@ class Pulse:
         coef = coef / scale
         inv_j = float(coef[2])
         return inv_j, float(coef[3] / inv_j) if inv_j else math.nan
+
+
+def _too_gapped(k: np.ndarray) -> bool:
+    """Sample numbers ``k`` (from 0) with one gap over :data:`FIT_GAP_SHARE` of their span, or no span."""
+    return bool(k[-1] <= 0 or float(np.max(np.diff(k))) > FIT_GAP_SHARE * float(k[-1]))
 
 
 def fault_of(exc: Exception) -> tuple[str, str, str | None]:
