@@ -13,6 +13,7 @@ import ctypes.util
 import fcntl
 import gc
 import os
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -128,3 +129,30 @@ def restore_scheduling():
     libc.munlockall()
     gc.unfreeze()
     gc.enable()
+
+
+def _host_made_end(stop: dict, emulator: dict | None = None) -> str | None:
+    """Why the host, not the device or the product, ended a run - from the run's own evidence - or None.
+
+    The host's: a stop whose fix names ``loop.realtime`` (the product attributes it to the host); a trip right
+    after a loop stall (a drive holds its torque while the host is away); a stale run no longer than the SYNCs
+    the emulated drive itself answered too late to send (its process starved: a real drive has a processor of
+    its own)."""
+    message = stop.get("message") or ""
+    if (stop.get("fix") or "").startswith("loop.realtime"):
+        return message
+    if "ms loop stall)" in message:
+        return message
+    stale = re.search(r"for (\d+) SYNCs in a row", message)
+    late = int((emulator or {}).get("late_syncs") or 0)
+    if stop.get("cause") == "watchdog" and stale and late >= int(stale.group(1)):
+        return f"{message}; the emulated drive answered {late} SYNCs too late to send"
+    return None
+
+
+@pytest.fixture
+def host_made_end() -> Callable[[dict, dict | None], str | None]:
+    """``host_made_end(summary["stop"], emulator_stats)``: why the host ended the run, or None (see
+    :func:`_host_made_end`). A device test whose run the host ended checks the safe end, then runs again or
+    skips naming the host: it cannot tell the device's behaviour from it."""
+    return _host_made_end

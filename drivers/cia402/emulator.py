@@ -268,7 +268,11 @@ def main(argv: list[str] | None = None) -> int:
         while not stop.wait(0.2):
             pass
     finally:
+        st = drive.stats()                        # as the host left the drive, before its own stop
         drive.stop()
+        print(f"STOPPED node {drive.node_id}: state {st.get('state')}, {st.get('samples')} samples, "
+              f"{st.get('late_syncs')} SYNCs answered too late to send, paused {st.get('paused_s', 0.0):.3f} s",
+              flush=True)
     return 0
 
 

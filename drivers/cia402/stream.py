@@ -423,15 +423,15 @@ class SampleAssembler:
         self._run_missed0 = 0
         self._run_latency = 0.0
 
-    def _which(self) -> str:
-        """Whose fault a stale run was: the host's (its SYNC sender skipped periods meanwhile: a
-        busy host that was late, the drive may well have answered) or the drive's (the host kept
-        time and no valid answer came: stale data)."""
+    def _which(self) -> tuple[str, bool]:
+        """Whose fault a stale run was, and whether it was the host's: the host's when its SYNC sender
+        skipped periods meanwhile (a busy host that was late, the drive may well have answered), else the
+        drive's (the host kept time and no valid answer came: stale data)."""
         missed = (self.host_missed() - self._run_missed0) if self.host_missed is not None else 0
         if missed > 0:
             return (f"the host fell behind meanwhile ({missed} SYNC periods skipped by its sender): "
-                    "a busy host, not a silent drive")
-        return "the host kept time (0 SYNC periods skipped): the drive sent no fresh data"
+                    "a busy host, not a silent drive"), True
+        return "the host kept time (0 SYNC periods skipped): the drive sent no fresh data", False
 
     def reset_counters(self) -> None:
         self.stale = self.ambiguous = self.late = self.corrupt = self.unchanged = 0
@@ -587,9 +587,13 @@ class SampleAssembler:
                     raise ProtocolError(f"{self._bad_run} samples in a row without a valid TPDO set "
                                         f"(last bad frame: {self._last_corrupt}); {self.corrupt} corrupt "
                                         f"frames in total")
-                raise WatchdogTrip(f"no fresh TPDO data for {self._bad_run} SYNCs in a row "
-                                   f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total); "
-                                   + self._which())
+                whose, host = self._which()
+                trip = WatchdogTrip(f"no fresh TPDO data for {self._bad_run} SYNCs in a row "
+                                    f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total); {whose}")
+                if host:
+                    trip.fix = ("loop.realtime = true (or a less busy host; else a larger backend.stale_limit): "
+                                "the host's SYNCs were late, not the drive's answers")
+                raise trip
             return
         self._bad_run = 0
         self._bad_corrupt = False

@@ -92,7 +92,12 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
     s_th = [int(np.sign(q.moved()[0] * q.direction)) for q in pulses]
     s_x = [int(np.sign(q.moved()[1] * q.direction)) for q in pulses]
     if len(set(s_th)) > 1 or len(set(s_x)) > 1 or 0 in s_th or 0 in s_x:
+        lost, starved = sum(q.lost(dt) for q in pulses), sum(q.starved for q in pulses)
         out.append(check("direction", False, f"theta1 {s_th}, x {s_x} per pulse (+, -)", "the same each way",
+                         f"loop.realtime = true (or a less busy host): the pulses lost {lost} samples and had "
+                         f"{starved} without a torque plan in force, so the host's lateness may have made the "
+                         f"inconsistent motion (if it recurs on a host that keeps time: a load, a brake or "
+                         f"backlash? check the mechanics)" if lost or starved else
                          "the axis moved inconsistently (a load, a brake or backlash?); check the mechanics"))
         return out
     sth, sx = s_th[0], s_x[0]

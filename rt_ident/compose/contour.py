@@ -38,6 +38,7 @@ class ContourTrace:
         self.active = len(self.ctl) == 2 and refs["x"].radius == refs["y"].radius and \
             refs["x"].windows() == refs["y"].windows()
         self.ref = refs.get("x")
+        self.tick_s = 1.0 / loops["x"].tick_hz if self.active else 0.0
         n = n_ticks + 8 if self.active else 0
         self.buf = np.full((n, 5), np.nan)        # t, x, y of the table, x, y of the reference
         self.n = 0
@@ -58,14 +59,18 @@ class ContourTrace:
 
         t, x, y, xr, yr = self.buf[:self.n].T
         R = ref.radius
-        paths = {}
+        paths, missed = {}, {}
         for d, (t0, t1) in ref.measured().items():               # constant feed: overshoot arcs excluded
             sel = (t >= t0) & (t <= t1) & np.isfinite(x) & np.isfinite(y)
             if sel.sum() >= 16:
                 paths[d] = (x[sel], y[sel])
+                # ticks the loop did not run (it fell behind and skipped periods): no point for them
+                missed[d] = int(np.sum(np.maximum(np.rint(np.diff(t[sel]) / self.tick_s) - 1.0, 0.0)))
         if not paths:
             return {"note": "the run ended before the circle began"}
         fig = circle_figures(paths, R, (0.0, -R))
+        for d, n in missed.items():
+            fig[d]["ticks_missed"] = n
         fig["feed_mm_min"] = 60e3 * 2 * math.pi * R * ref.frequency_hz
         stalls = [t for c in self.ctl.values() for t, kind, _ in c.stats.events if kind == "stall"]
         for d, (t0, t1) in ref.measured().items():

@@ -250,3 +250,23 @@ def test_pulses_whose_motion_the_link_lost_a_fifth_of_at_once_name_the_host_not_
     assert [c["name"] for c in failed] == ["acceleration measured"], failed
     assert failed[0]["fix"].startswith("loop.realtime") and "lost" in failed[0]["measured"]
     assert all(c["ok"] for c in probe_checks(cfg, pulses, dt))
+
+
+@pytest.mark.parametrize(("lose", "fix"), [(True, "loop.realtime"), (False, "the axis moved inconsistently")])
+def test_pulses_moving_the_same_way_name_the_host_when_they_lost_samples_and_the_mechanics_when_not(
+        monkeypatch, lose, fix):
+    """The - pulse moving + (as a table still coasting from the + pulse while the host was away does): with
+    samples lost from the pulses the host's lateness comes first; with every sample read, the mechanics."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {}, None)
+    dt = pulses[0].t[1] - pulses[0].t[0]
+    q = pulses[1]
+    wrong = dataclasses.replace(q, theta1=2 * q.theta1[0] - q.theta1, x=2 * q.x[0] - q.x,
+                                drift=(-q.drift[0], -q.drift[1]))
+    if lose:
+        m = np.ones(q.t.size, bool)
+        m[q.t.size // 2:q.t.size // 2 + 5] = False
+        wrong = dataclasses.replace(wrong, t=wrong.t[m], theta1=wrong.theta1[m], x=wrong.x[m],
+                                    torque=wrong.torque[m], brake_at=int(np.count_nonzero(m[:q.brake_at])))
+    failed = [c for c in probe_checks(cfg, [pulses[0], wrong], dt) if not c["ok"]]
+    assert [c["name"] for c in failed] == ["direction"], failed
+    assert failed[0]["fix"].startswith(fix), failed[0]

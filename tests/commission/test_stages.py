@@ -81,17 +81,25 @@ def test_a_table_that_starts_where_the_budget_leaves_the_window_is_refused_befor
 
 
 @pytest.mark.slow
-def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path, state_dir):
+def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path, state_dir, host_made_end):
     text = (ROOT / "configs" / "sim.toml").read_text().replace("realtime = true", "realtime = false")
     cfg_path = tmp_path / "axis.toml"
     # identified for 2 s (the default 5 s adds only precision to what is tested)
     cfg_path.write_text(text.replace('sink = "rrd"', 'sink = "off"') + "\n[plant.actual]\nx0 = -0.012\n"
                         "\n[commission]\nidentify_s = 2.0\n")
     env = {**os.environ, "RT_IDENT_STATE_DIR": str(state_dir)}
-    p = subprocess.run([sys.executable, "-m", "rt_ident", "commission", str(cfg_path), "--out", str(tmp_path / "c"),
-                        "--json"], capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
-    assert p.stdout, p.stderr[-3000:]
-    r = json.loads(p.stdout)
+    host_failures = []
+    for k in range(2):                  # a commissioning the host disturbed fails naming the host: once more
+        p = subprocess.run([sys.executable, "-m", "rt_ident", "commission", str(cfg_path), "--out",
+                            str(tmp_path / f"c{k}"), "--json"], capture_output=True, text=True, timeout=600, env=env,
+                           cwd=tmp_path)
+        assert p.stdout, p.stderr[-3000:]
+        r = json.loads(p.stdout)
+        if not (r["failed"] or {}).get("fix", "").startswith("loop.realtime"):
+            break
+        host_failures.append(r["failed"]["fix"])
+    else:
+        pytest.skip(f"the host disturbed both commissionings: {host_failures}")
     assert p.returncode == 0 and r["verdict"] == "pass" and r["stage_reached"] == "e", (
         r["failed"], [(c["name"], c["measured"]) for c in r["checks"] if not c["ok"]])
     assert set(r) >= {"verdict", "stage_reached", "checks", "max_travel_m", "max_speed_m_s", "parameters", "report",
@@ -108,7 +116,9 @@ def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path
     from rt_ident.compose.run import run
 
     s = run(config.from_mapping(run_data), sink="off", record=str(tmp_path / "after.parquet"))
-    assert s["stop"]["cause"] is None and s["trusted"] is True, s.get("trust")
+    if s["stop"]["cause"] is not None and host_made_end(s["stop"]):
+        pytest.skip(f"the host ended the run with the snippet: {s['stop']['message']}")
+    assert s["stop"]["cause"] is None and s["trusted"] is True, (s["stop"], s.get("trust"))
 
 
 @pytest.mark.slow

@@ -314,9 +314,9 @@ def test_a_cancelled_sync_gives_its_window_back_to_the_one_before():
     assert asm.take_rows()["k"] == [0, 2] and asm.stale == 0
 
 
-def _silent_run(host_missed_during: int) -> str:
+def _silent_run(host_missed_during: int) -> WatchdogTrip:
     """SYNCs without an answer (stale_limit 10) while the host's sender skipped
-    ``host_missed_during`` periods; returns the trip's message."""
+    ``host_missed_during`` periods; returns the trip."""
     asm, dq = _echo_assembler()
     missed = [3]                                     # skipped before the run: not counted against it
     asm.host_missed = lambda: missed[0]
@@ -328,17 +328,20 @@ def _silent_run(host_missed_during: int) -> str:
         for k in range(3, 20):
             dq.extend([(MARK, k, float(k), 0.0), (ECHO, 0.0)])
             asm.feed(dq, deliver=True)
-    return str(e.value)
+    return e.value
 
 
 def test_a_stale_run_trip_says_the_drive_was_silent_when_the_host_kept_time():
-    msg = _silent_run(0)
-    assert "no fresh TPDO data" in msg and "the drive sent no fresh data" in msg
+    trip = _silent_run(0)
+    assert "no fresh TPDO data" in str(trip) and "the drive sent no fresh data" in str(trip)
+    assert trip.fix is None                          # no setting of the host's fixes a silent drive
 
 
-def test_a_stale_run_trip_says_the_host_was_late_when_its_sync_sender_skipped_periods():
-    msg = _silent_run(5)
+def test_a_stale_run_trip_names_the_host_and_its_setting_when_its_sync_sender_skipped_periods():
+    trip = _silent_run(5)
+    msg = str(trip)
     assert "no fresh TPDO data" in msg and "a busy host, not a silent drive" in msg and "5 SYNC periods" in msg
+    assert trip.fix is not None and trip.fix.startswith("loop.realtime")
 
 
 def test_cancelled_sync_has_no_window():
