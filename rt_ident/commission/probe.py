@@ -14,6 +14,7 @@ signs the sensors moved in under the push. Then zero torque.
 Every change of torque is a ramp. The push ends early once the table's speed would pass 0.4 x its limit within
 four ticks (at the host's own recent pace), or its distance from where the pulse started passes a quarter of
 the travel budget; if either limit is passed all the same, the pulse brakes and ends, and the check fails.
+Travel past :data:`HARD_STOP` x the budget, whatever the pulse is doing, ends it at zero torque at once.
 Distance and speed are taken from both sensors, the scale (x) and the motor encoder (lead x theta1), and the
 larger is used: one wrong scaling cannot hide motion. Torque leaves the host as a short plan with a lease, so
 a stalled host leaves the axis coasting, not pushed (once the brake has shown its deceleration, its plan holds
@@ -50,6 +51,8 @@ LAPSED_RETRIES = 2
 #: the brake takes the push's speed back over at least this many host ticks (at the push's own measured
 #: acceleration), so that ending it a tick late or early leaves a small fraction of that speed
 BRAKE_TICKS = 10
+#: travel past this multiple of the budget ends the pulse at zero torque, whatever its phase
+HARD_STOP = 1.5
 #: a pulse's acceleration fit needs no gap of lost samples longer than this share of its window
 FIT_GAP_SHARE = 0.2
 
@@ -257,6 +260,12 @@ class Prober:
                 if plant is not None and true is not None:     # a simulated device: its own truth
                     self._tx0 = true.lead * float(plant.state[2])
             self._write(0.0)
+            if len(blk) and self.start is not None:
+                th0, x0 = self.start
+                self.max_travel = max(self.max_travel, abs(self.lim.lead * float(blk.theta2[-1]) - x0),
+                                      abs(self.lim.lead * (float(blk.theta1[-1]) - th0)))
+                if self.max_travel > HARD_STOP * self.lim.travel_m:
+                    return                       # moving at zero torque: the pulse says so (Prober.pulse)
             time.sleep(self.lim.tick_s)
         if got:      # the drift at rest (a table without static friction coasts on): motion is measured from it
             t = np.concatenate([g.seq for g in got]) * self.b.sample_period
@@ -272,11 +281,17 @@ class Prober:
             # the drift line does not follow) would read as motion at zero torque
             self.settle(0.1)
             for _ in range(9):
-                if abs(self.drift[0]) * REST_S <= lim.motion_theta1 and abs(self.drift[1]) * REST_S <= lim.motion_x:
+                if abs(self.drift[0]) * REST_S <= lim.motion_theta1 and abs(self.drift[1]) * REST_S <= lim.motion_x \
+                        or self.max_travel > HARD_STOP * lim.travel_m:
                     break
                 self.settle(0.1)
         except RtIdentError as exc:
             out.fault, out.fault_cause, out.fault_fix = fault_of(exc)
+            return out
+        if self.max_travel > HARD_STOP * lim.travel_m:
+            out.aborted = (f"the table moved {self.max_travel * 1e3:.3f} mm from where it stood, at zero torque "
+                           f"({self.drift[1] * 1e3:+.2f} mm/s at rest): a load or gravity pulls it?")
+            out.max_travel_m, out.max_speed_m_s = self.max_travel, self.max_speed
             return out
         assert self.start is not None
         th0, x0 = self.start
@@ -337,7 +352,7 @@ class Prober:
             # write may come that late) and brakes over more of its ticks
             pace, t_looked = max(lim.tick_s, 0.8 * pace, now - t_looked), now
             if now > deadline:
-                out.aborted = "the pulse did not end within 5 s"
+                out.aborted = "; ".join(filter(None, (out.aborted, "the pulse did not end within 5 s")))
                 break
             blk = self._read()
             if not len(blk):
@@ -372,6 +387,14 @@ class Prober:
                                                     abs(lead * float(st[2]) - self._tx0))
                     out.truth["max_speed_m_s"] = max(out.truth.get("max_speed_m_s", 0.0),
                                                      abs(lead * float(st[3])))
+                if travel > HARD_STOP * lim.travel_m:
+                    # past the travel budget by half again with the brake or the rest in force: the pulse no
+                    # longer governs the table; no more torque, the stage ends (the backend's stop disables)
+                    self._write(0.0)
+                    out.aborted = "; ".join(filter(None, (out.aborted or "travel limit passed", (
+                        f"stopped at {travel * 1e3:.3f} mm ({HARD_STOP:g} x commission.travel_m), "
+                        f"{speed * 1e3:.2f} mm/s"))))
+                    break
                 if (travel > lim.travel_m or speed > lim.max_speed_m_s) and out.aborted is None:
                     out.aborted = (f"{'travel' if travel > lim.travel_m else 'speed'} limit passed "
                                    f"({travel * 1e3:.3f} mm, {speed * 1e3:.2f} mm/s)")

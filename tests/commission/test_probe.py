@@ -270,3 +270,52 @@ def test_pulses_moving_the_same_way_name_the_host_when_they_lost_samples_and_the
     failed = [c for c in probe_checks(cfg, [pulses[0], wrong], dt) if not c["ok"]]
     assert [c["name"] for c in failed] == ["direction"], failed
     assert failed[0]["fix"].startswith(fix), failed[0]
+
+
+@pytest.mark.parametrize(("when", "said"), [("at rest", "at zero torque"), ("mid-pulse", "stopped at")])
+def test_a_table_that_moves_on_past_the_budget_whatever_the_torque_ends_the_probe_at_zero_torque(
+        monkeypatch, when, said):
+    """A table the pulses do not govern moves on: a load pulling it at 4 mm/s from the first pulse on (under the
+    speed limit), or a slip of 3.5 mm mid-pulse (a coupling, a drive applying what the host does not know).
+    Past 1.5 x the travel budget the probe writes zero and ends - between pulses or mid-pulse - saying where
+    the table was, long before a pulse's 5 s deadline."""
+    cfg = config.from_mapping(sim_data({}))
+    clock = VirtualClock()
+    monkeypatch.setattr(probe, "time", types.SimpleNamespace(perf_counter=clock, sleep=clock.sleep))
+    backend = SimBackend(backend_options(cfg), clock=clock)
+    lead, read, creep, slip = cfg.axis_params().lead, backend.read, 4e-3, 3.5e-3
+    since: list[int] = []                                  # the sample the first torque was written at
+
+    def moving_read():
+        blk = read()
+        if not len(blk) or not since:
+            return blk
+        k = blk.seq - since[0]
+        off = (creep * k * backend.sample_period if when == "at rest" else slip * (k >= 40)) / lead   # rad
+        return dataclasses.replace(blk, theta1=blk.theta1 + off, theta2=blk.theta2 + off)
+
+    writes: list[float] = []
+    write = probe.Prober._write
+
+    def recorded_write(self, torque, until=None):
+        writes.append(torque)
+        if torque and not since:
+            since.append(self.next_seq)
+        write(self, torque, until)
+
+    monkeypatch.setattr(backend, "read", moving_read)
+    monkeypatch.setattr(probe.Prober, "_write", recorded_write)
+    with backend:
+        backend.activate()
+        prober = probe.Prober(backend, probe_limits(cfg, backend.torque_limit))
+        prober.settle(0.05)
+        t0 = clock()
+        for d in (1, -1, 1):                   # the stage's pulses go on until one is aborted
+            q = prober.pulse(d)
+            if q.aborted:
+                break
+    budget = cfg.commission.travel_m
+    assert q.aborted is not None and said in q.aborted, q.aborted
+    assert q.max_travel_m <= (probe.HARD_STOP * budget + creep * 0.002 if when == "at rest" else slip + 1e-4), \
+        q.max_travel_m
+    assert writes[-1] == 0.0 and clock() - t0 < 3.0
