@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import re
 import signal
 import sys
 import threading
@@ -245,6 +246,11 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     if refused is not None:
         raise refused
     backends = {n: ax.backend for n, ax in axes.items()}
+    emulated = _emulator_stats(emulator)
+    starved = _starved_emulator(stop_cause, stop_message, emulated)
+    if starved:
+        stop_message = f"{stop_message}; {starved}"
+        stop_fix = "loop.realtime = true (or a less busy host): the emulated drive's process was starved"
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set()}
     if stop_fix:
         summary["stop"]["fix"] = stop_fix
@@ -255,8 +261,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         summary["axes"] = {n: {**reports[n], "files": files[n], **_axis_summary(ax)} for n, ax in axes.items()}
         if isinstance(runner, MultiAxisLoop):
             summary["loop"] = {**runner.stats.as_dict(), "host": host}
-        if emulator is not None and getattr(emulator, "stats", None) is not None:
-            summary["emulator"] = emulator.stats() if callable(emulator.stats) else emulator.stats
+        if emulated is not None:
+            summary["emulator"] = emulated
         contour = trace.result(contour_png, contour_rrd, summary.get("live_url")) if trace is not None else None
         if contour is not None:
             summary["contour"] = contour
@@ -266,6 +272,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         summary.update(reports[""])
         summary["files"] = files[""]
         summary.update(_axis_summary(ax, host))
+        if emulated is not None:
+            summary["emulator"] = emulated
     return summary
 
 
@@ -315,6 +323,29 @@ def _final_fit(ax: _Axis) -> str | None:
         return "nothing to identify: no probing excitation (excitation.kind = \"none\")"
     assert ax.loop is not None                           # built before any run ends with a fit
     return final_fit(ax.loop, ax.loop.est)
+
+
+def _emulator_stats(emulator: Any) -> dict[str, Any] | None:
+    """What the emulator process reported when it was closed (per node for a bus of drives), or None."""
+    if emulator is None or getattr(emulator, "stats", None) is None:
+        return None
+    stats = emulator.stats() if callable(emulator.stats) else emulator.stats
+    return stats if isinstance(stats, dict) else None
+
+
+def _starved_emulator(cause: str | None, message: str | None, stats: dict[str, Any] | None) -> str | None:
+    """A watchdog stop on stale data while the emulated drive itself answered at least that many SYNCs too late
+    to send (its process starved: the host's doing, which a drive with a processor of its own would not show):
+    the note that says so, else None."""
+    stale = re.search(r"for (\d+) SYNCs in a row", message or "") if cause == "watchdog" else None
+    if stale is None or not stats:
+        return None
+    nodes = [v for k, v in stats.items() if k.startswith("node ") and isinstance(v, dict)] or [stats]
+    late = max(int(n.get("late_syncs") or 0) for n in nodes)
+    if late < int(stale.group(1)):
+        return None
+    return (f"the emulated drive answered {late} SYNCs too late to send: its process was starved (a busy host, "
+            "not the device)")
 
 
 def _start_emulator(cfg: RunConfig, axes_cfg: dict[str, RunConfig], several: bool) -> Any:

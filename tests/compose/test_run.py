@@ -301,3 +301,23 @@ def test_a_run_without_real_time_keeps_the_collector_out_of_its_loop_and_turns_i
     assert seen and not any(seen)              # off in every tick: no collection pause in the loop
     assert gc.isenabled()
     gc.unfreeze()
+
+
+WATCHDOG = "no fresh TPDO data for 201 SYNCs in a row (stale_limit 200); the host kept time: the drive sent no fresh data"
+
+
+@pytest.mark.parametrize(("stats", "starved"), [
+    ({"late_syncs": 892, "pickup_time": {"<100us": 1}}, True),                  # one drive, starved that long
+    ({"late_syncs": 150}, False),                                               # fewer than the stale run
+    ({"node 5": {"late_syncs": 12}, "node 6": {"late_syncs": 400}}, True),       # a bus of drives: any one
+    ({"samples": 4000}, False),                                                 # no such count (the serial board)
+])
+def test_a_watchdog_stop_says_the_emulated_drive_was_starved_only_when_it_answered_that_many_syncs_late(
+        stats, starved):
+    import rt_ident.compose.run as run_mod
+
+    note = run_mod._starved_emulator("watchdog", WATCHDOG, stats)
+    assert (note is not None) == starved, note
+    if starved:
+        assert "starved" in note and "not the device" in note
+    assert run_mod._starved_emulator("device-fault", WATCHDOG, stats) is None      # only a stale-data stop

@@ -10,6 +10,7 @@ import pytest
 
 from rt_ident.compose.offline import run_offline
 from rt_ident.config import load
+from rt_ident.errors import DataError
 from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator
 from rt_ident.loop.stall import StallLog, StallPolicy
 
@@ -182,7 +183,11 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
                 pytest.skip(f"the host's own heartbeat lapsed before the run recorded (a busy host): {s.get('stop')}")
             assert rec.with_name(journal_of).exists() or journal.exists(), (
                 f"the run ended before it recorded (rc {proc.returncode}): {s.get('stop')} {err[-3000:]}")
-            return proc.returncode, s, read_recording(rec.with_name(journal_of)), err, False
+            try:
+                early = read_recording(rec.with_name(journal_of))
+            except DataError:                        # fewer samples than a recording reads back
+                early = None
+            return proc.returncode, s, early, err, False
         if not journal.exists() or proc.poll() is not None:
             out, err = proc.communicate(timeout=60)
             raise AssertionError(f"the run never started recording (rc {proc.returncode}): {out[-1500:]} {err[-3000:]}")
@@ -225,12 +230,21 @@ def test_a_sigstop_of_a_canopen_run_ends_on_the_drives_rpdo_deadline_not_a_lunge
     """The whole process stops: no SYNC, no RPDO. A CiA 402 drive in torque mode holds its last target
     torque; the RPDO deadline the host set (backend.rpdo_deadline_ms) ends that within 20 ms, where the
     heartbeat consumer (250 ms here) would let the table run on."""
-    rc, s, r, err, sent = _sigstop_run(tmp_path, "configs/canopen-virtual.toml", journal_bytes=150_000,
-                                       early_ok=True)
-    stop = s["stop"]
-    if not sent:
-        pytest.skip(f"the run stopped by itself before the SIGSTOP (a busy host): {stop['cause']}: {stop['message']} "
-                    f"(stalls {s['loop']['stalls']})")
+    early = []
+    for k in range(3):                        # a run that stopped by itself (a busy host) is run again
+        (tmp_path / str(k)).mkdir()
+        rc, s, r, err, sent = _sigstop_run(tmp_path / str(k), "configs/canopen-virtual.toml", journal_bytes=150_000,
+                                           early_ok=True)
+        stop = s["stop"]
+        # stopped by itself before the SIGSTOP, or after the journal's size was reached while its files were
+        # written (the stop follows no stall of the SIGSTOP's length)
+        before = stop["cause"] is not None and "loop stall" not in (stop["message"] or "") \
+            and s["loop"]["stalls"]["longest_ms"] < 400
+        if sent and not before:
+            break
+        early.append(f"{stop['cause']}: {stop['message']} (stalls {s['loop']['stalls']})")
+    else:
+        pytest.skip(f"each run stopped by itself before the SIGSTOP (a busy host): {early}")
     # the SIGSTOP's stall, or one of the busy host's own before it: the drive ended it, and the stop says so
     assert rc == 3 and stop["cause"] == "device-fault", (stop, err[-2000:])
     assert "0x8250" in stop["message"] and "stall" in stop["message"], (stop, s["loop"]["stalls"])
@@ -253,7 +267,8 @@ def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     rc, s, r, err, _ = _sigstop_run(tmp_path, str(cfg_path), early_ok=True)
     assert rc == 3 and s["stop"]["cause"] == "loop-stall", (s["stop"], err[-2000:])
     assert re.match(r"loop stalled for \d+ ms", s["stop"]["message"])
-    assert len(r) == s["loop"]["samples"]                 # the stalled tick's samples are in the recording
+    # the stalled tick's samples are in the recording (one that ended too early to read back has under 10)
+    assert len(r) == s["loop"]["samples"] if r is not None else s["loop"]["samples"] < 10, s["loop"]["samples"]
 
 
 @pytest.mark.slow
