@@ -303,7 +303,8 @@ def test_a_run_without_real_time_keeps_the_collector_out_of_its_loop_and_turns_i
     gc.unfreeze()
 
 
-WATCHDOG = "no fresh TPDO data for 201 SYNCs in a row (stale_limit 200); the host kept time: the drive sent no fresh data"
+WATCHDOG = ("no fresh TPDO data for 201 SYNCs in a row (stale_limit 200); the host kept time: the drive sent "
+            "no fresh data")
 
 
 @pytest.mark.parametrize(("stats", "starved"), [

@@ -179,10 +179,12 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
         if proc.poll() is not None and early_ok:     # a stall of its own (a busy machine) came first
             out, err = proc.communicate(timeout=60)
             s = json.loads(out)
-            if not (rec.with_name(journal_of).exists() or journal.exists()) and "no heartbeat from node 127" in err:
+            recorded = rec.with_name(journal_of).exists() or journal.exists()
+            if not recorded and "no heartbeat from node 127" in err:
                 pytest.skip(f"the host's own heartbeat lapsed before the run recorded (a busy host): {s.get('stop')}")
-            assert rec.with_name(journal_of).exists() or journal.exists(), (
-                f"the run ended before it recorded (rc {proc.returncode}): {s.get('stop')} {err[-3000:]}")
+            if not recorded and (s["stop"].get("fix") or "").startswith("loop.realtime"):
+                return proc.returncode, s, None, err, False      # the host ended it before it recorded
+            assert recorded, f"the run ended before it recorded (rc {proc.returncode}): {s.get('stop')} {err[-3000:]}"
             try:
                 early = read_recording(rec.with_name(journal_of))
             except DataError:                        # fewer samples than a recording reads back
@@ -245,10 +247,15 @@ def test_a_sigstop_of_a_canopen_run_ends_on_the_drives_rpdo_deadline_not_a_lunge
         early.append(f"{stop['cause']}: {stop['message']} (stalls {s['loop']['stalls']})")
     else:
         pytest.skip(f"each run stopped by itself before the SIGSTOP (a busy host): {early}")
-    # the SIGSTOP's stall, or one of the busy host's own before it: the drive ended it, and the stop says so
-    assert rc == 3 and stop["cause"] == "device-fault", (stop, err[-2000:])
-    assert "0x8250" in stop["message"] and "stall" in stop["message"], (stop, s["loop"]["stalls"])
-    assert stop["fix"].startswith("loop.realtime") and "backend.rpdo_deadline_ms" in stop["fix"], stop
+    # the SIGSTOP's stall, or one of the busy host's own before it: the drive ended it, and the stop says so -
+    # unless the emulated drive, starved after the resume, left the host stale data before its EMCY was read
+    # (the stop then says that, naming the host)
+    assert rc == 3, (stop, err[-2000:])
+    if not (stop["cause"] == "watchdog" and "emulated drive answered" in stop["message"]):
+        assert stop["cause"] == "device-fault", (stop, err[-2000:])
+        assert "0x8250" in stop["message"] and "stall" in stop["message"], (stop, s["loop"]["stalls"])
+        assert "backend.rpdo_deadline_ms" in stop["fix"], stop
+    assert stop["fix"].startswith("loop.realtime"), stop
     # the drive's own account: the torque held 20 ms at most, so the table's speed at the fault is bounded
     # by the torque limit's impulse (1 N m x 20 ms on I1 + I2)
     fault = re.search(r"fault EMCY 0x8250.*table at x = (-?[\d.]+) mm, (-?[\d.]+) mm/s", err)
