@@ -171,8 +171,8 @@ Dispatcher._compile_for_args = counted
 try:
     with Cia402Backend(backend) as be:
         be.activate()
-        end = time.monotonic() + 0.3
-        while time.monotonic() < end:
+        end = time.monotonic() + 10.0            # until 60 SYNCs were answered (a busy host answers few at once)
+        while time.monotonic() < end and drive.samples <= 60:
             be.read()
             be.write(0.05)
             time.sleep(0.002)
@@ -228,8 +228,9 @@ position_hold = true
         n, last = 0, None
         with be:
             be.activate()
-            end = time.monotonic() + 0.5
-            while time.monotonic() < end:
+            # 150 samples (0.3 s at 500 Hz) within 10 s: a drive process starved by a busy host answers few SYNCs
+            end = time.monotonic() + 10.0
+            while time.monotonic() < end and n <= 150:
                 time.sleep(0.002)
                 blk = be.read()
                 be.write(0.1)
