@@ -13,7 +13,6 @@ import ctypes.util
 import fcntl
 import gc
 import os
-import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -143,11 +142,10 @@ def _host_made_end(stop: dict, emulator: dict | None = None) -> str | None:
         return message
     if "ms loop stall)" in message:
         return message
-    stale = re.search(r"for (\d+) SYNCs in a row", message)
-    late = int((emulator or {}).get("late_syncs") or 0)
-    if stop.get("cause") == "watchdog" and stale and late >= int(stale.group(1)):
-        return f"{message}; the emulated drive answered {late} SYNCs too late to send"
-    return None
+    from rt_ident.compose.run import _starved_emulator
+
+    starved = _starved_emulator(stop.get("cause"), message, emulator)
+    return f"{message}; {starved}" if starved else None
 
 
 @pytest.fixture

@@ -226,6 +226,17 @@ class Prober:
         self._tx0: float | None = None      # a simulated device's true table position at the start
         self.drift = (0.0, 0.0)     # (dtheta1/dt, dx/dt) at the end of the last rest
 
+    def _travel(self, theta1: float, x: float) -> float:
+        """Distance [m] from where the table stood, by the sensor that says it is further (``x`` in m)."""
+        assert self.start is not None
+        th0, x0 = self.start
+        return max(abs(x - x0), abs(self.lim.lead * (theta1 - th0)))
+
+    @property
+    def past_hard_stop(self) -> bool:
+        """The table has been past :data:`HARD_STOP` x the travel budget."""
+        return self.max_travel > HARD_STOP * self.lim.travel_m
+
     def _read(self) -> Any:
         blk = self.b.read()
         if len(blk):
@@ -260,11 +271,10 @@ class Prober:
                 if plant is not None and true is not None:     # a simulated device: its own truth
                     self._tx0 = true.lead * float(plant.state[2])
             self._write(0.0)
-            if len(blk) and self.start is not None:
-                th0, x0 = self.start
-                self.max_travel = max(self.max_travel, abs(self.lim.lead * float(blk.theta2[-1]) - x0),
-                                      abs(self.lim.lead * (float(blk.theta1[-1]) - th0)))
-                if self.max_travel > HARD_STOP * self.lim.travel_m:
+            if len(blk):
+                self.max_travel = max(self.max_travel, self._travel(float(blk.theta1[-1]),
+                                                                    self.lim.lead * float(blk.theta2[-1])))
+                if self.past_hard_stop:
                     return                       # moving at zero torque: the pulse says so (Prober.pulse)
             time.sleep(self.lim.tick_s)
         if got:      # the drift at rest (a table without static friction coasts on): motion is measured from it
@@ -282,19 +292,17 @@ class Prober:
             self.settle(0.1)
             for _ in range(9):
                 if abs(self.drift[0]) * REST_S <= lim.motion_theta1 and abs(self.drift[1]) * REST_S <= lim.motion_x \
-                        or self.max_travel > HARD_STOP * lim.travel_m:
+                        or self.past_hard_stop:
                     break
                 self.settle(0.1)
         except RtIdentError as exc:
             out.fault, out.fault_cause, out.fault_fix = fault_of(exc)
             return out
-        if self.max_travel > HARD_STOP * lim.travel_m:
+        if self.past_hard_stop:
             out.aborted = (f"the table moved {self.max_travel * 1e3:.3f} mm from where it stood, at zero torque "
                            f"({self.drift[1] * 1e3:+.2f} mm/s at rest): a load or gravity pulls it?")
             out.max_travel_m, out.max_speed_m_s = self.max_travel, self.max_speed
             return out
-        assert self.start is not None
-        th0, x0 = self.start
         ts: list[np.ndarray] = []
         th1s: list[np.ndarray] = []
         xs: list[np.ndarray] = []
@@ -307,7 +315,7 @@ class Prober:
         out.drift = self.drift
         deadline = self._clock() + 5.0
         try:
-            self._pulse_loop(direction, out, ts, th1s, xs, tqs, th0, x0, push_target, ramp, slew, deadline)
+            self._pulse_loop(direction, out, ts, th1s, xs, tqs, push_target, ramp, slew, deadline)
         except RtIdentError as exc:            # the device stopped itself: what it did until then still counts
             out.fault, out.fault_cause, out.fault_fix = fault_of(exc)
         if ts:
@@ -320,8 +328,8 @@ class Prober:
         """The signs theta1 and x are moving in (whatever the wiring)."""
         return int(np.sign(_slope(t, theta1))) or 1, int(np.sign(_slope(t, x))) or 1
 
-    def _pulse_loop(self, direction: int, out: Pulse, ts: list, th1s: list, xs: list, tqs: list, th0: float,
-                    x0: float, push_target: float, ramp: float, slew: float, deadline: float) -> None:
+    def _pulse_loop(self, direction: int, out: Pulse, ts: list, th1s: list, xs: list, tqs: list,
+                    push_target: float, ramp: float, slew: float, deadline: float) -> None:
         lim, b = self.lim, self.b
         phase, torque, target = "ramp", 0.0, 0.0
         ramp_per_s = ramp / lim.tick_s
@@ -373,7 +381,7 @@ class Prober:
                 th1s.append(th1)
                 xs.append(x)
                 tqs.append(blk.torque_cmd)
-                travel = max(abs(float(x[-1]) - x0), abs(lim.lead * (float(th1[-1]) - th0)))
+                travel = self._travel(float(th1[-1]), float(x[-1]))
                 tw = ts[-1] if ts[-1].size >= 4 or len(ts) < 2 else np.concatenate(ts[-3:])
                 xw = xs[-1] if xs[-1].size >= 4 or len(xs) < 2 else np.concatenate(xs[-3:])
                 thw = th1s[-1] if th1s[-1].size >= 4 or len(th1s) < 2 else np.concatenate(th1s[-3:])
