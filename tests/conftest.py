@@ -54,6 +54,7 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     import tempfile
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    _compile_bytecode(root)
     if glob.glob(os.path.join(root, "rt_ident", "loop", "__pycache__", "tick_kernel.axis_tick-*.nbi")):
         return                  # compiled before (a stale entry is compiled again where it is used)
     with tempfile.TemporaryDirectory() as tmp:
@@ -62,6 +63,16 @@ def pytest_sessionstart(session: pytest.Session) -> None:
                            cwd=tmp, capture_output=True, text=True, timeout=600)
     if r.returncode != 0:       # the tests that run the loop say why; this only fills a cache
         print(f"conftest: the cache-filling run exited {r.returncode}: {r.stderr.strip()[-300:]}", file=sys.stderr)
+
+
+def _compile_bytecode(root: str) -> None:
+    """The package's bytecode written once, where PYTHONDONTWRITEBYTECODE (or ``-B``) keeps imports from
+    writing it: every ``rt-ident`` the tests start, its forkserver and its emulated devices would otherwise
+    compile the same sources again (about half a second of CPU each). Python still reads bytecode it finds."""
+    import compileall
+
+    for pkg in ("rt_ident", "drivers"):
+        compileall.compile_dir(os.path.join(root, pkg), quiet=1, workers=1)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -25,8 +25,9 @@ import threading
 from multiprocessing.context import ForkServerContext, SpawnContext
 
 #: modules the forkserver imports once (one missing is skipped by multiprocessing). Not rerun nor pyarrow:
-#: they start threads at import (tokio's workers, jemalloc's), and a process with threads must not fork
-PRELOAD = ("numpy", "scipy.linalg", "scipy.signal", "numba", "can", "canopen", "serial",
+#: they start threads at import (tokio's workers, jemalloc's), and a process with threads must not fork. Nor
+#: scipy.signal: about a second of CPU per run, for the few helpers that import it themselves when they need it
+PRELOAD = ("numpy", "scipy.linalg", "numba", "can", "canopen", "serial",
            "rt_ident.processes.jobs", "rt_ident.processes.recorder", "rt_ident.processes.telemetry",
            "rt_ident.processes.emulation", "rt_ident.estimators.streaming", "rt_ident.control.design")
 
