@@ -42,9 +42,9 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
-    """With xdist workers and a cold kernel cache (a fresh clone): one short run in the controller, before
-    the workers start, compiles the loop's kernels into numba's cache (beside the package). Otherwise
-    every worker, and the helper processes of their first runs, compile the same kernels at once."""
+    """With xdist workers and a cold kernel cache (a fresh clone): before the workers start, one short run
+    and the tick kernel's compile, side by side, fill numba's cache (beside the package) with the loop's
+    kernels. Otherwise every worker, and the helper processes of their first runs, compile them at once."""
     config = session.config
     if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
         return
@@ -57,12 +57,19 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     _compile_bytecode(root)
     if glob.glob(os.path.join(root, "rt_ident", "loop", "__pycache__", "tick_kernel.axis_tick-*.nbi")):
         return                  # compiled before (a stale entry is compiled again where it is used)
+    # the tick kernel (over half the compile) in one process while a run on the Python path compiles the rest
+    kernel = subprocess.Popen([sys.executable, "-c", "from rt_ident.loop.tick_kernel import compiled_kernel as k; k()"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    run = ("import sys; from rt_ident.config import load; from rt_ident.compose.run import run, exit_code; "
+           "s = run(load(sys.argv[1], **{'loop.duration': 0.3, 'loop.realtime': False, 'loop.compiled_tick': False}),"
+           " sink='off'); sys.exit(exit_code(s))")
     with tempfile.TemporaryDirectory() as tmp:
-        r = subprocess.run([sys.executable, "-m", "rt_ident.cli", "run", os.path.join(root, "configs", "sim.toml"),
-                            "--duration", "0.3", "--no-realtime", "--no-telemetry"],
+        r = subprocess.run([sys.executable, "-c", run, os.path.join(root, "configs", "sim.toml")],
                            cwd=tmp, capture_output=True, text=True, timeout=600)
-    if r.returncode != 0:       # the tests that run the loop say why; this only fills a cache
-        print(f"conftest: the cache-filling run exited {r.returncode}: {r.stderr.strip()[-300:]}", file=sys.stderr)
+    k_err = kernel.communicate(timeout=600)[1]
+    for what, code, err in (("run", r.returncode, r.stderr), ("tick kernel's compile", kernel.returncode, k_err)):
+        if code != 0:       # the tests that run the loop say why; this only fills a cache
+            print(f"conftest: the cache-filling {what} exited {code}: {err.strip()[-300:]}", file=sys.stderr)
 
 
 def _compile_bytecode(root: str) -> None:
