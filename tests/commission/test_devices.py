@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from rt_ident import config
+from rt_ident.commission.probe import HARD_STOP
 from rt_ident.commission.stages import commission
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -62,6 +63,8 @@ BOARD = [
 
 DRIVE = [*BOARD[:5], ({"torque_scale": 10.0}, "backend.rated_torque"), ({"rated_torque": 6.4}, "backend.rated_torque")]
 CASES = [("serial-virtual.toml", a, k) for a, k in BOARD] + [("canopen-virtual.toml", a, k) for a, k in DRIVE]
+#: the most a probe's read covers on a host it does not name as the cause: a few ticks
+READ_S = 0.01
 
 
 @pytest.mark.parametrize(("name", "actual", "key"), CASES,
@@ -90,9 +93,13 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
     if r["max_travel_m"] is not None:
         # a limit passed all the same (a device's latency on a loaded host) fails 'limits' and is braked at once;
         # how far past it the table gets grows with the emulated device's latency behind a busy host
-        slack = 1.0 if all(c["ok"] for c in r["checks"] if c["name"] == "limits") else 1.5
-        assert r["max_travel_m"] <= slack * cfg.commission.travel_m
-        assert r["max_speed_m_s"] <= slack * cfg.commission.max_speed_m_s
+        # and past HARD_STOP x the budget the probe writes zero on the first sample it reads there: the table is
+        # seen where that read ends, up to READ_S of motion at the speed measured
+        within = all(c["ok"] for c in r["checks"] if c["name"] == "limits")
+        budget = cfg.commission.travel_m
+        travel = budget if within else HARD_STOP * budget + READ_S * r["max_speed_m_s"]
+        assert r["max_travel_m"] <= travel
+        assert r["max_speed_m_s"] <= (1.0 if within else HARD_STOP) * cfg.commission.max_speed_m_s
 
 
 @pytest.mark.slow
