@@ -160,9 +160,9 @@ def _host_made_end(stop: dict, emulator: dict | None = None) -> str | None:
         return message
     if "ms loop stall)" in message:
         return message
-    from rt_ident.compose.run import _starved_emulator
+    from rt_ident.compose.run import starved_emulator
 
-    starved = _starved_emulator(stop.get("cause"), message, emulator)
+    starved = starved_emulator(stop.get("cause"), message, emulator)
     return f"{message}; {starved}" if starved else None
 
 

@@ -247,7 +247,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         raise refused
     backends = {n: ax.backend for n, ax in axes.items()}
     emulated = _emulator_stats(emulator)
-    starved = _starved_emulator(stop_cause, stop_message, emulated)
+    starved = starved_emulator(stop_cause, stop_message, emulated)
     if starved:
         stop_message = f"{stop_message}; {starved}"
         stop_fix = "loop.realtime = true (or a less busy host): the emulated drive's process was starved"
@@ -333,7 +333,7 @@ def _emulator_stats(emulator: Any) -> dict[str, Any] | None:
     return stats if isinstance(stats, dict) else None
 
 
-def _starved_emulator(cause: str | None, message: str | None, stats: dict[str, Any] | None) -> str | None:
+def starved_emulator(cause: str | None, message: str | None, stats: dict[str, Any] | None) -> str | None:
     """A watchdog stop on stale data while the emulated drive itself answered at least that many SYNCs too late
     to send (its process starved: the host's doing, which a drive with a processor of its own would not show):
     the note that says so, else None."""
@@ -434,4 +434,4 @@ def exit_code(summary: dict[str, Any]) -> int:
     return 4 if summary.get("data_lost") else 0
 
 
-__all__ = ["exit_code", "run"]
+__all__ = ["exit_code", "run", "starved_emulator"]

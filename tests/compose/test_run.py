@@ -320,8 +320,8 @@ def test_a_watchdog_stop_says_the_emulated_drive_was_starved_only_when_it_answer
         stats, starved):
     import rt_ident.compose.run as run_mod
 
-    note = run_mod._starved_emulator("watchdog", WATCHDOG, stats)
+    note = run_mod.starved_emulator("watchdog", WATCHDOG, stats)
     assert (note is not None) == starved, note
     if starved:
         assert "starved" in note and "not the device" in note
-    assert run_mod._starved_emulator("device-fault", WATCHDOG, stats) is None      # only a stale-data stop
+    assert run_mod.starved_emulator("device-fault", WATCHDOG, stats) is None      # only a stale-data stop

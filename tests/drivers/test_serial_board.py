@@ -41,38 +41,32 @@ def read_for(backend: SerialBoardBackend, seconds: float) -> list:
     return [b for b in blocks if len(b)]
 
 
-def read_through(backend: SerialBoardBackend, seq: int, timeout: float = 10.0) -> list:
-    """Read until the board has sent sample ``seq`` (at 20 kHz, however long a busy host takes to deliver)."""
-    blocks = []
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and not (blocks and blocks[-1].seq[-1] >= seq):
-        b = backend.read()
-        if len(b):
-            blocks.append(b)
-        time.sleep(0.001)
-    return blocks
-
-
 def read_until(backend: SerialBoardBackend, done, timeout: float = 10.0) -> list:
-    """Read until ``done(backend.stats())`` holds, then 20 ms more (so a count past the target shows): frames
-    a fault was injected into may wait behind a busy host's backlog in the board's FIFO."""
-    blocks = []
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and not done(backend.stats()):
-        b = backend.read()
-        if len(b):
-            blocks.append(b)
-        time.sleep(0.001)
-    return blocks + read_for(backend, 0.02)
-
-
-def read_samples(backend: SerialBoardBackend, n: int, timeout: float = 10.0) -> list:
-    """Read until at least ``n`` samples came (a busy host may deliver the board's 20 kHz late)."""
+    """Read until ``done(blocks read so far)`` holds: at 20 kHz, however long a busy host takes to deliver."""
     blocks: list = []
     end = time.monotonic() + timeout
-    while time.monotonic() < end and sum(len(b) for b in blocks) < n:
-        blocks += read_for(backend, 0.005)
+    while time.monotonic() < end and not done(blocks):
+        b = backend.read()
+        if len(b):
+            blocks.append(b)
+        time.sleep(0.001)
     return blocks
+
+
+def read_through(backend: SerialBoardBackend, seq: int) -> list:
+    """Read until the board has sent sample ``seq``."""
+    return read_until(backend, lambda blocks: bool(blocks) and blocks[-1].seq[-1] >= seq)
+
+
+def read_samples(backend: SerialBoardBackend, n: int) -> list:
+    """Read until at least ``n`` samples came."""
+    return read_until(backend, lambda blocks: sum(len(b) for b in blocks) >= n)
+
+
+def read_counted(backend: SerialBoardBackend, counter: str, n: int) -> list:
+    """Read until the backend's ``counter`` reached ``n``, then 20 ms more (so a count past it shows): frames a
+    fault was injected into may wait behind a busy host's backlog in the board's FIFO."""
+    return read_until(backend, lambda _: backend.stats()[counter] >= n) + read_for(backend, 0.02)
 
 
 def cat(blocks, field):
@@ -303,7 +297,7 @@ def test_dropped_frames_are_reported_as_lost_exactly(rig):
     board, be = rig()
     read_for(be, 0.02)
     board.drop_next(7)
-    blocks = read_until(be, lambda st: st["lost"] >= 7)
+    blocks = read_counted(be, "lost", 7)
     assert sum(b.lost for b in blocks) == 7 and be.stats()["lost"] == 7
     assert board.enabled
 
@@ -312,7 +306,7 @@ def test_corrupted_frames_are_crc_errors_and_lost_samples(rig):
     board, be = rig()
     read_for(be, 0.02)
     board.corrupt_next(3)
-    blocks = read_until(be, lambda st: st["crc_errors"] >= 3)
+    blocks = read_counted(be, "crc_errors", 3)
     assert be.stats()["crc_errors"] == 3 and sum(b.lost for b in blocks) == 3
     assert board.enabled
 
@@ -321,7 +315,7 @@ def test_garbage_bytes_are_skipped_without_losing_samples(rig):
     board, be = rig()
     read_for(be, 0.02)
     board.inject_garbage(100)
-    blocks = read_until(be, lambda st: st["garbage_bytes"] >= 100)
+    blocks = read_counted(be, "garbage_bytes", 100)
     assert be.stats()["garbage_bytes"] == 100 and sum(b.lost for b in blocks) == 0
     assert np.all(np.diff(cat(blocks, "seq")) == 1)
 
