@@ -110,11 +110,12 @@ def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, em
     # test_canopen_backend.py.
     # Nor a host stall past the drive's 20 ms RPDO deadline (tested in test_emulated_drive.py, test_stall.py,
     # and at the stop in test_canopen_process.py and test_xy_canopen.py).
-    # nor a serial link the emulator's process was kept off for longer than the shipped 50 ms read_timeout, nor
-    # the board's watch of the host's heartbeats
+    # nor a serial link the emulator's process was kept off for longer than the shipped 50 ms read_timeout (or
+    # write_timeout: its full input buffer blocks the host's writes), nor the board's watch of the host's heartbeats
     # (tested at its shipped value in tests/drivers and test_cli_errors.py)
     extra = ({"backend.stale_limit": 1000, "backend.heartbeat_consumer_ms": 1000, "backend.rpdo_deadline_ms": 200}
-             if config.startswith("canopen") else {"backend.read_timeout": 0.5, "emulator.heartbeat_timeout": 1.0})
+             if config.startswith("canopen") else {"backend.read_timeout": 0.5, "backend.write_timeout": 0.5,
+                   "emulator.heartbeat_timeout": 1.0})
     extra["safety.watchdog_ticks"] = 1000     # nor the host's own no-fresh-feedback watchdog (a stall next to pytest)
     # nor the speed limit (2 x the path's peak speed), which samples lost on a loaded machine can take the table
     # just past. The limit is tested in tests/compose (test_fault_runs, test_start_position)
