@@ -426,7 +426,7 @@ def commission(cfg: RunConfig, out: Path, progress: Progress = _silent) -> dict[
     result: dict[str, Any] = {"verdict": "fail", "stage_reached": None, "checks": [], "max_travel_m": None,
                               "max_speed_m_s": None, "parameters": None, "report": None, "axis_toml": None,
                               "config": cfg.source, "out": str(out)}
-    old_term = _term_interrupts()
+    old_handlers = _interrupts()
     try:
         ok = _connect_and_probe(cfg, result, progress)
         ident = _identify(cfg, out, result, progress) if ok else None
@@ -443,8 +443,8 @@ def commission(cfg: RunConfig, out: Path, progress: Progress = _silent) -> dict[
                                       "run rt-ident commission again"))
         raise
     finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
         first = next((c for c in result["checks"] if c["ok"] is False), None)
         result["failed"] = None if first is None else {"check": first["name"], "fix": first["fix"]}
         rep = out / "report.html"
@@ -459,16 +459,17 @@ def commission(cfg: RunConfig, out: Path, progress: Progress = _silent) -> dict[
     return result
 
 
-def _term_interrupts() -> Any:
-    """SIGTERM unwinds as Ctrl-C does (the device's context stops it, the files are written); the handler
-    it had, or None off the main thread."""
+def _interrupts() -> dict[int, Any]:
+    """SIGINT and SIGTERM unwind as Ctrl-C does (the device's context stops it, the files are written), even in
+    a process started with SIGINT ignored (a shell script's background job), as ``rt-ident run`` stops on them;
+    returns the handlers they had (none off the main thread)."""
     if threading.current_thread() is not threading.main_thread():
-        return None
+        return {}
 
     def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
         raise KeyboardInterrupt
 
-    return signal.signal(signal.SIGTERM, handler)
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
 def _json(o: Any) -> Any:

@@ -326,3 +326,25 @@ def test_a_move_that_lost_a_few_samples_runs_again_only_when_it_failed(tmp_path,
     ident = {"parameters": {k: getattr(cfg.axis_params(), k) for k in ("I1", "I2", "B", "K")}}
     assert stages._verify(cfg, ident, tmp_path, result, lambda msg: None) is True
     assert len(moves) == (1 if passed else 2) and result.get("stalled_moves", 0) == (0 if passed else 1)
+
+
+def test_ctrl_c_stops_a_commissioning_started_with_sigint_ignored_and_leaves_that_disposition(tmp_path, monkeypatch):
+    import signal
+
+    import rt_ident.commission.stages as stages
+
+    def probe_then_ctrl_c(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)          # a terminal's Ctrl-C, during stage b
+        return True
+
+    monkeypatch.setattr(stages, "_connect_and_probe", probe_then_ctrl_c)
+    cfg = config.from_mapping(sim_data())
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a shell script's background job starts it
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            commission(cfg, tmp_path / "c")
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, old)
+    r = json.loads((tmp_path / "c" / "commission.json").read_text())
+    assert r["interrupted"] is True and r["failed"]["check"] == "interrupted"
