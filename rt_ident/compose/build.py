@@ -9,9 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import signal
-import threading
-from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -153,19 +150,6 @@ def make_excitation(cfg: RunConfig):
     ms = schroeder_multisine(ex.period_samples, ex.band, peak=ex.peak,
                              phases="schroeder" if ex.kind == "schroeder" else "random", seed=ex.seed)
     return ms.at
-
-def install_stop_signals(stop: threading.Event) -> dict[signal.Signals, Any]:
-    """SIGINT and SIGTERM set ``stop`` (in the main thread); returns the handlers they had."""
-    old: dict[signal.Signals, Any] = {}
-    if threading.current_thread() is not threading.main_thread():
-        return old
-
-    def handler(signum: int, frame: FrameType | None) -> None:  # noqa: ARG001
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        old[sig] = signal.signal(sig, handler)
-    return old
 
 def final_fit(loop: IdentificationLoop, est) -> str | None:
     """Cold fit of everything seen (what `identify` replays); an error is reported, not raised."""

@@ -43,7 +43,6 @@ from rt_ident.compose.build import (
     friction_summary,
     ident_summary,
     identification_loop,
-    install_stop_signals,
     recording_metadata,
     safety_monitor,
     stall_policy,
@@ -58,6 +57,7 @@ from rt_ident.errors import ConfigError, RtIdentError
 from rt_ident.loop.host import HostSteal, LoopCpuInterrupts, LoopRealtime
 from rt_ident.loop.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.outputs.paths import check_methods, check_output, prepare_outputs, remove_empty_outputs
+from rt_ident.processes.guard import install_stop_signals
 from rt_ident.processes.jobs import make_fit_process
 
 log = logging.getLogger(__name__)

@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 from rt_ident import __version__
 from rt_ident.fleet.manifest import Entry
 from rt_ident.fleet.store import HashIndex, history_lock, write_rows
+from rt_ident.processes.guard import install_stop_signals
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -336,44 +337,48 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
     done: queue.Queue[Any] = queue.Queue()       # futures, as they finish (filled from Dask's thread)
     futures: dict[Any, dict[str, Any]] = {}      # Dask key -> its entry
     cluster = _Cluster(scheduler, workers)
-    with _stop_signals() as stop:
+    # the run checks the flag between results: no KeyboardInterrupt lands inside a Dask call
+    stop = threading.Event()
+    old_signals = install_stop_signals(stop)
+    try:
         try:
-            try:
-                if on_start is not None:
-                    on_start(len(items), cluster.dashboard)
-                client = cluster.client
-                # one copy per worker of the known hashes (a list of one: scatter splits a collection into elements)
-                seen = client.scatter([known], broadcast=True)[0] if known else known
-                for it in items:
-                    fut = client.submit(identify_recording, it, seen, method, task_timeout or None, pure=False)
-                    futures[fut.key] = it
-                    fut.add_done_callback(done.put)
-                left = len(futures)
-                while left and not stop.is_set():
-                    wait = oldest + flush_every - time.monotonic() if pending else flush_every
-                    try:
-                        take(done.get(timeout=min(max(wait, 0.01), _STOP_POLL_S)))
-                        left -= 1
-                    except queue.Empty:
-                        pass
-                    if pending and time.monotonic() - oldest >= flush_every:
-                        flush()
-            except KeyboardInterrupt:             # from a callback, or a signal held through a write
-                stop.set()
-            if stop.is_set():
-                interrupted = True
-                while not done.empty():           # what finished before the interrupt is kept too
-                    take(done.get_nowait())
-            try:
-                flush()
-            except KeyboardInterrupt:             # during the last write, which finished first
-                interrupted = True
-        finally:
-            try:
-                with _signals_deferred():         # a close cut short leaves workers to distributed's exit hooks
-                    cluster.close()
-            except KeyboardInterrupt:
-                interrupted = True
+            if on_start is not None:
+                on_start(len(items), cluster.dashboard)
+            client = cluster.client
+            # one copy per worker of the known hashes (a list of one: scatter splits a collection into elements)
+            seen = client.scatter([known], broadcast=True)[0] if known else known
+            for it in items:
+                fut = client.submit(identify_recording, it, seen, method, task_timeout or None, pure=False)
+                futures[fut.key] = it
+                fut.add_done_callback(done.put)
+            left = len(futures)
+            while left and not stop.is_set():
+                wait = oldest + flush_every - time.monotonic() if pending else flush_every
+                try:
+                    take(done.get(timeout=min(max(wait, 0.01), _STOP_POLL_S)))
+                    left -= 1
+                except queue.Empty:
+                    pass
+                if pending and time.monotonic() - oldest >= flush_every:
+                    flush()
+        except KeyboardInterrupt:                 # from a callback, or a signal held through a write
+            stop.set()
+        if stop.is_set():
+            interrupted = True
+            while not done.empty():               # what finished before the interrupt is kept too
+                take(done.get_nowait())
+        try:
+            flush()
+        except KeyboardInterrupt:                 # during the last write, which finished first
+            interrupted = True
+    finally:
+        try:
+            with _signals_deferred():             # a close cut short leaves workers to distributed's exit hooks
+                cluster.close()
+        except KeyboardInterrupt:
+            interrupted = True
+        for sig, handler in old_signals.items():
+            signal.signal(sig, handler)
     return {**counts, "interrupted": interrupted, "failures": failures, "history": str(history),
             "dashboard": cluster.dashboard, "scheduler": scheduler or "LocalCluster on 127.0.0.1"}
 
@@ -408,27 +413,6 @@ def _signals_deferred() -> Iterator[None]:
             signal.signal(sig, handler)
     if got:
         raise KeyboardInterrupt
-
-
-@contextmanager
-def _stop_signals() -> Iterator[threading.Event]:
-    """SIGINT and SIGTERM set the event it yields while the run waits on its tasks (main thread), which the run
-    checks between results: no signal lands inside a Dask call. Like ``rt-ident run``, it stops on them even when
-    started with SIGINT ignored (a shell script's background job)."""
-    stop = threading.Event()
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
-
-    def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
-        stop.set()
-
-    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield stop
-    finally:
-        for sig, h in old.items():
-            signal.signal(sig, h)
 
 
 __all__ = ["FLUSH_EVERY", "PARAMS", "TASK_TIMEOUT", "append_history", "identify_fleet", "identify_recording",

@@ -133,6 +133,22 @@ def start_ignoring_signals(proc: Any) -> None:
             signal.signal(s, h)
 
 
+def install_stop_signals(stop: threading.Event) -> dict[int, Any]:
+    """SIGINT and SIGTERM set ``stop`` (in the main thread), whatever their disposition was, an inherited
+    SIG_IGN included (a shell script's background job): the main process of a run that energizes a device,
+    or of any long command, ends on them at a point of its choosing. Returns the handlers they had."""
+    old: dict[int, Any] = {}
+    if threading.current_thread() is not threading.main_thread():
+        return old
+
+    def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
+        stop.set()
+
+    for sig in _GROUP_SIGNALS:
+        old[sig] = signal.signal(sig, handler)
+    return old
+
+
 def become_helper() -> ParentWatch:
     """First call in a helper's main: ignore the group's SIGINT/SIGTERM, leave the loop's CPU; returns
     the parent watch.
