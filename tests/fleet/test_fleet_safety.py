@@ -346,8 +346,8 @@ def test_ctrl_c_or_sigterm_ends_a_run_with_130_and_keeps_what_finished_even_star
                                                                                                    sig):
     h = tmp_path / "h"
     m = _with_huge(entries, tmp_path)
-    # started as a shell script's background job is (SIGINT ignored, which Python keeps): the run stops on it all
-    # the same, as `rt-ident run` does, not only when the signal happens to land during a write
+    # started as a shell script starts a background job (SIGINT ignored, which Python keeps): the run stops on it
+    # all the same, as `rt-ident run` does, not only when the signal happens to land during a write
     ignoring = [sys.executable, "-c", "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
                 "os.execv(sys.executable, [sys.executable, '-m', 'rt_ident', *sys.argv[1:]])"]
     p = subprocess.Popen([*ignoring, "fleet", "identify", str(m), "--history", str(h), "--allow-outside",
