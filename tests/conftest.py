@@ -55,7 +55,9 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     _compile_bytecode(root)
+    rewrite = _rewrite_tests_once(root)
     if glob.glob(os.path.join(root, "rt_ident", "loop", "__pycache__", "tick_kernel.axis_tick-*.nbi")):
+        _wait_for(rewrite)
         return                  # compiled before (a stale entry is compiled again where it is used)
     # the tick kernel (over half the compile) in one process while a run on the Python path compiles the rest
     kernel = subprocess.Popen([sys.executable, "-c", "from rt_ident.loop.tick_kernel import compiled_kernel as k; k()"],
@@ -67,9 +69,57 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         r = subprocess.run([sys.executable, "-c", run, os.path.join(root, "configs", "sim.toml")],
                            cwd=tmp, capture_output=True, text=True, timeout=600)
     k_err = kernel.communicate(timeout=600)[1]
+    _wait_for(rewrite)
     for what, code, err in (("run", r.returncode, r.stderr), ("tick kernel's compile", kernel.returncode, k_err)):
         if code != 0:       # the tests that run the loop say why; this only fills a cache
             print(f"conftest: the cache-filling {what} exited {code}: {err.strip()[-300:]}", file=sys.stderr)
+
+
+def _rewrite_tests_once(root: str):
+    """Where PYTHONDONTWRITEBYTECODE keeps pytest from caching the test modules it rewrites for its asserts,
+    every worker rewrites all of them while it collects (8 of its 13 s of CPU here): one collection with
+    the cache allowed, beside the kernels' compile, leaves the rewritten modules for the workers to read.
+    Only the modules without a cache of their current source; None when there are none."""
+    import importlib.util
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tail = f"{sys.implementation.cache_tag}-pytest-{pytest.__version__}.pyc"
+    tests = Path(root, "tests")
+
+    def stale(f: Path) -> bool:      # pytest's cache is a checked-hash pyc (PEP 552): magic, flags, source hash
+        try:
+            head = (f.parent / "__pycache__" / f"{f.stem}.{tail}").open("rb").read(16)
+        except OSError:
+            return True
+        return head != importlib.util.MAGIC_NUMBER + b"\x03\0\0\0" + importlib.util.source_hash(f.read_bytes())[:8]
+
+    todo = {str(f.parent if f.name == "conftest.py" else f)
+            for f in [*tests.rglob("test_*.py"), *tests.rglob("conftest.py")] if stale(f)}
+    if not todo:
+        return None
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    return subprocess.Popen([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+                             *sorted(todo)], cwd=root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def _wait_for(rewrite) -> None:
+    """The collection above finished (or given up on: the workers then rewrite for themselves)."""
+    import subprocess
+    import sys
+
+    if rewrite is None:
+        return
+    try:
+        err = rewrite.communicate(timeout=120)[1]
+    except subprocess.TimeoutExpired:
+        rewrite.kill()
+        err = rewrite.communicate()[1]
+    if rewrite.returncode != 0:
+        print(f"conftest: the collection that caches the rewritten tests exited {rewrite.returncode}: "
+              f"{err.strip()[-300:]}", file=sys.stderr)
 
 
 def _compile_bytecode(root: str) -> None:
