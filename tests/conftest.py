@@ -77,7 +77,7 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
 def _rewrite_tests_once(root: str):
     """Where PYTHONDONTWRITEBYTECODE keeps pytest from caching the test modules it rewrites for its asserts,
-    every worker rewrites all of them while it collects (8 of its 13 s of CPU here): one collection with
+    every worker rewrites all of them while it collects (most of its collection's CPU): one collection with
     the cache allowed, beside the kernels' compile, leaves the rewritten modules for the workers to read.
     Only the modules without a cache of their current source; None when there are none."""
     import importlib.util
@@ -90,7 +90,8 @@ def _rewrite_tests_once(root: str):
 
     def stale(f: Path) -> bool:      # pytest's cache is a checked-hash pyc (PEP 552): magic, flags, source hash
         try:
-            head = (f.parent / "__pycache__" / f"{f.stem}.{tail}").open("rb").read(16)
+            with (f.parent / "__pycache__" / f"{f.stem}.{tail}").open("rb") as pyc:
+                head = pyc.read(16)
         except OSError:
             return True
         return head != importlib.util.MAGIC_NUMBER + b"\x03\0\0\0" + importlib.util.source_hash(f.read_bytes())[:8]
