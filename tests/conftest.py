@@ -60,7 +60,8 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         _wait_for(rewrite)
         return                  # compiled before (a stale entry is compiled again where it is used)
     # the tick kernel (over half the compile) in one process while a run on the Python path compiles the rest
-    kernel = subprocess.Popen([sys.executable, "-c", "from rt_ident.loop.tick_kernel import compiled_kernel as k; k()"],
+    kernel = subprocess.Popen([sys.executable, "-c", "from rt_ident.loop.tick_kernel import compiled_kernel as k; k(); "
+                               "from rt_ident.loop.idle_poll import IdlePoller; IdlePoller(0).prepare()"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     run = ("import sys; from rt_ident.config import load; from rt_ident.compose.run import run, exit_code; "
            "s = run(load(sys.argv[1], **{'loop.duration': 0.3, 'loop.realtime': False, 'loop.compiled_tick': False}),"

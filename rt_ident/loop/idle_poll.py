@@ -38,58 +38,40 @@ import threading
 import time
 from typing import Any
 
+import numba
 import numpy as np
+from numba.core import types
 
 log = logging.getLogger(__name__)
 
-_spin = None
+# libc by symbol name, resolved in the process when the code is loaded: no address of this process's is
+# compiled in, so numba caches the spin beside the package (pointers pass as pointer-sized integers;
+# callable only from compiled code, hence Any)
+_clock_gettime: Any = types.ExternalFunction("clock_gettime", types.intc(types.intc, types.uintp))
+_setscheduler: Any = types.ExternalFunction("sched_setscheduler", types.intc(types.intc, types.intc, types.uintp))
+_MONOTONIC, _IDLE, _OTHER = time.CLOCK_MONOTONIC, os.SCHED_IDLE, os.SCHED_OTHER
 
 
-def _kernel():
-    """The compiled spin, built on first use (~0.1-0.4 s; numba cannot cache a function that calls through
-    a ctypes pointer, so each process compiles it once)."""
-    global _spin
-    if _spin is None:
-        import ctypes
-        import ctypes.util
-
-        import numba
-
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        clock_gettime = libc.clock_gettime
-        clock_gettime.argtypes = (ctypes.c_int, ctypes.c_void_p)
-        clock_gettime.restype = ctypes.c_int
-        setscheduler = libc.sched_setscheduler
-        setscheduler.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p)
-        setscheduler.restype = ctypes.c_int
-        monotonic = time.CLOCK_MONOTONIC
-        idle, other = os.SCHED_IDLE, os.SCHED_OTHER
-
-        @numba.njit(nogil=True)
-        def spin(stop, ts, state):
-            # runs without the GIL from the first iteration to the last: a thread that came back to
-            # Python between chunks could be preempted holding the GIL, and at SCHED_IDLE beside a busy
-            # process it might not run again for many milliseconds while the loop waited for the GIL.
-            # SCHED_IDLE is taken here and left here (pid 0: this thread), so that the thread holds and
-            # takes the GIL only as an ordinary thread. state[0]: 1 once idle, -1 if refused; state[1]:
-            # 0 if the policy was given back on the way out.
-            # The call to clock_gettime (vDSO, no system call) is opaque to the compiler, so stop[0] is
-            # read again on every iteration instead of once before the loop.
-            param = state[2:].ctypes.data                  # struct sched_param {int priority}: zeros
-            if setscheduler(0, idle, param) != 0:
-                state[0] = -1
-                return 0
-            state[0] = 1
-            n = 0
-            where = ts.ctypes.data
-            while stop[0] == 0:
-                clock_gettime(monotonic, where)
-                n += 1
-            state[1] = setscheduler(0, other, param)
-            return n
-
-        _spin = spin
-    return _spin
+@numba.njit(nogil=True, cache=True)
+def _spin(stop, ts, state):
+    """Runs without the GIL from the first iteration to the last: a thread that came back to Python between
+    chunks could be preempted holding the GIL, and at SCHED_IDLE beside a busy process it might not run again
+    for many milliseconds while the loop waited for the GIL. SCHED_IDLE is taken here and left here (pid 0:
+    this thread), so that the thread holds and takes the GIL only as an ordinary thread. state[0]: 1 once
+    idle, -1 if refused; state[1]: 0 if the policy was given back on the way out. The call to clock_gettime
+    (vDSO, no system call) is opaque to the compiler, so stop[0] is read again on every iteration."""
+    param = state[2:].ctypes.data                  # struct sched_param {int priority}: zeros
+    if _setscheduler(0, _IDLE, param) != 0:
+        state[0] = -1
+        return 0
+    state[0] = 1
+    n = 0
+    where = ts.ctypes.data
+    while stop[0] == 0:
+        _clock_gettime(_MONOTONIC, where)
+        n += 1
+    state[1] = _setscheduler(0, _OTHER, param)
+    return n
 
 
 class IdlePoller:
@@ -118,9 +100,7 @@ class IdlePoller:
     def prepare(self) -> None:
         """Compile the spin (idempotent; raises what the compiler raises)."""
         if self._spin is None:
-            import numba
-
-            spin = _kernel()
+            spin = _spin
             # compiled for these arrays without running it (a run would switch the caller to SCHED_IDLE)
             spin.compile(tuple(numba.typeof(a) for a in (self._stop, self._ts, self._state)))
             self._spin = spin

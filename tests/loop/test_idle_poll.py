@@ -107,10 +107,10 @@ def test_a_poller_that_fails_to_start_is_reported_and_the_run_goes_on(restore_sc
         pytest.skip("the loop gets a CPU of its own only with two or more")
     import rt_ident.loop.idle_poll as ip
 
-    def broken():
+    def broken(self):
         raise RuntimeError("no compiler today")
 
-    monkeypatch.setattr(ip, "_kernel", broken)
+    monkeypatch.setattr(ip.IdlePoller, "prepare", broken)
     s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}))
     assert s["stop"]["cause"] is None and s["loop"]["samples"] > 0
     assert s["realtime"]["idle_poll"] == {"running": False,
