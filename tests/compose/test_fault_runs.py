@@ -62,8 +62,16 @@ def test_canopen_fault_stops_at_zero_torque_disabled_with_the_recording_intact(n
     cfg = load(CONFIG_DIR / "canopen-virtual.toml",
                **{"loop.duration": 3.0, "loop.realtime": True, "telemetry.sink": "off",
                   "backend.stale_limit": 200, "safety.watchdog_ticks": 200, "emulator.faults": faults, **wide})
-    rec = tmp_path / "r.parquet"
-    summary = run_mod.run(cfg, record=str(rec))
+    host = []
+    for k in range(3):      # a stop the host caused (a loop stall past the drive's RPDO deadline) is run again
+        emulators.clear()
+        rec = tmp_path / f"r{k}.parquet"
+        summary = run_mod.run(cfg, record=str(rec))
+        if not (summary["stop"].get("fix") or "").startswith("loop.realtime"):
+            break
+        host.append(summary["stop"]["message"])
+    else:
+        pytest.skip(f"the host stopped all 3 runs before the injected fault: {host}")
     _check_stopped(summary, emulators, causes)
     _check_recording(rec, summary["loop"]["samples"])
 
