@@ -35,8 +35,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: three workers per two CPUs. A worker spends about half its time in runs paced in real
-    time or waiting on processes, not on a CPU, so one per CPU leaves the CPUs half idle; the real-time
-    parts of all workers' runs take turns on the one CPU the loop takes (rt_ident/loop/cpu_claim.py)."""
+    time or waiting on processes, not on a CPU, so one per CPU leaves the CPUs half idle. The tests whose runs
+    take the loop's CPU in real time (its claim, rt_ident/loop/cpu_claim.py) are marked
+    ``xdist_group("realtime")``: one worker runs them one after the other, where workers running them side by
+    side would queue for the claim."""
     cpus = len(os.sched_getaffinity(0))
     return max(1, cpus + cpus // 2)
 

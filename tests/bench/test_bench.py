@@ -93,6 +93,7 @@ def test_trial_classification_separates_startup_stalls_spikes_and_saturation():
     assert _saturated({**base, "overruns": 0, "stop_cause": "watchdog"})
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_one_short_loop_trial_runs_in_a_subprocess_and_reports_rss():
     res = loop_trial(34_000, 0.3, "off")

@@ -69,6 +69,7 @@ READ_S = 0.01
 
 @pytest.mark.parametrize(("name", "actual", "key"), CASES,
                          ids=[f"{n.split('-')[0]}-{k}-{next(iter(a))}" for n, a, k in CASES])
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limits(tmp_path, name, actual, key,
                                                                                  restore_scheduling):
@@ -102,6 +103,7 @@ def test_an_emulated_device_miswired_fails_the_check_naming_its_key_within_limit
         assert r["max_speed_m_s"] <= (1.0 if within else HARD_STOP) * cfg.commission.max_speed_m_s
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["serial-virtual.toml", "canopen-virtual.toml"], ids=["serial", "canopen"])
 def test_an_emulated_device_wired_as_the_host_is_told_passes_from_off_centre_or_names_only_the_host(

@@ -53,6 +53,7 @@ CANOPEN = [
 ]
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.parametrize("name,faults,causes", CANOPEN, ids=[c[0] for c in CANOPEN])
 def test_canopen_fault_stops_at_zero_torque_disabled_with_the_recording_intact(name, faults, causes, emulators,
                                                                                 tmp_path):

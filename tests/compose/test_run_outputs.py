@@ -85,6 +85,7 @@ def test_bad_paths_and_methods_fail_in_one_line_before_anything_starts(tmp_path,
     assert not Path("runs").exists() or not any(Path("runs").iterdir())      # no file left behind
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_run_that_fails_before_any_sample_says_why_once_and_leaves_no_file(tmp_path):
     import re
 

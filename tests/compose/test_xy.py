@@ -99,6 +99,7 @@ def test_a_watchdog_trip_on_either_axis_names_that_axis_when_both_have_the_same_
     assert s["axes"]["y" if axis == "x" else "x"]["loop"]["samples"] > 300 * 30
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_the_circular_test_reports_g_f_h_per_direction_and_draws_the_polar_plot(tmp_path, restore_scheduling,
                                                                                 host_made_end):

@@ -99,6 +99,7 @@ def test_run_safe_stops_with_exit_code_3_when_the_fallback_cannot_hold_the_bound
     assert summary["control"]["fallbacks"] == 0 or summary["control"]["controller"] == "conservative"
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.parametrize("config,duration", [("canopen-virtual.toml", 3.0), ("serial-virtual.toml", 2.5)])
 @pytest.mark.slow
 def test_every_emulated_backend_closes_the_loop_on_the_host(config, duration, emulators, restore_scheduling):

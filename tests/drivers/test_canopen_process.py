@@ -188,6 +188,7 @@ def _run_unless_the_host_ends_it(emulators, host_made_end, cfg, **kw) -> tuple[d
     pytest.skip(f"the host ended all {ATTEMPTS} runs: {reasons}")
 
 
+@pytest.mark.xdist_group("realtime")
 def test_run_against_the_drive_process_streams_and_stops_at_zero_torque_disabled(emulators, host_made_end):
     summary, emu = _run_unless_the_host_ends_it(emulators, host_made_end, _config())
     assert summary["stop"]["cause"] is None, summary["stop"]
@@ -207,6 +208,7 @@ def test_run_against_the_drive_process_streams_and_stops_at_zero_torque_disabled
     assert emu.stats["state"] == p402.SWITCH_ON_DISABLED
 
 
+@pytest.mark.xdist_group("realtime")
 def test_drive_fault_in_the_drive_process_stops_the_run_safely(emulators, host_made_end):
     cfg = _config(**{"emulator.faults": {"emcy_at_sample": 600, "emcy_code": 0x2310}})
     summary, emu = _run_unless_the_host_ends_it(emulators, host_made_end, cfg)
@@ -216,6 +218,7 @@ def test_drive_fault_in_the_drive_process_stops_the_run_safely(emulators, host_m
     assert emu.stats["state"] == p402.FAULT and emu.stats["emcy_codes"] == [0x2310]
 
 
+@pytest.mark.xdist_group("realtime")
 def test_exception_in_the_loop_leaves_no_emulator_process(emulators):
     def boom(tick: int) -> None:
         if tick == 100:
@@ -271,6 +274,7 @@ def _threads(pid: int) -> dict[int, tuple[int, int, frozenset]]:
     return out
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_during_a_run_only_the_loop_and_its_sync_sender_are_real_time_on_the_loop_cpu(emulators, host_made_end):
     # RT throttling needs 950 ms of SCHED_FIFO in a second on one CPU: the loop's CPU holds the loop

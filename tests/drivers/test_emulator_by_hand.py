@@ -67,6 +67,7 @@ def _by_hand(tmp_path: Path, port: int, cfg: Path, env: dict) -> tuple[dict, sub
     return json.loads(run.stdout), run, stopped
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_drive_started_by_hand_keeps_pace_with_the_real_time_loop(tmp_path, host_made_end):
     port = free_udp_port()

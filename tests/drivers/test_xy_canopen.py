@@ -200,6 +200,7 @@ def _xy_canopen(**over):
                                                       "safety.max_speed_m_s": 1.0, **over})
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_two_emulated_drives_on_one_bus_run_both_axes_in_one_loop(restore_scheduling):
     # nor a host stall past the drives' 20 ms RPDO deadline (a drive's fault stop below keeps it: the healthy
@@ -221,6 +222,7 @@ def test_two_emulated_drives_on_one_bus_run_both_axes_in_one_loop(restore_schedu
         assert ax["control"]["max_error_m"] is not None and ax["control"]["max_error_m"] < 5e-3
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 @pytest.mark.parametrize("axis,node", [("x", 5), ("y", 6)])
 def test_a_drive_fault_on_either_axis_stops_both_drives(axis, node, restore_scheduling):

@@ -34,6 +34,7 @@ class Holder:
             self.proc.wait(30)
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_second_loop_waits_for_the_cpu_then_refuses_naming_the_holder_and_the_setting(tmp_path):
     holder = Holder(3, str(tmp_path))
     try:
@@ -49,6 +50,7 @@ def test_a_second_loop_waits_for_the_cpu_then_refuses_naming_the_holder_and_the_
         holder.end()
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_waiting_loop_gets_the_cpu_once_the_other_process_ends(tmp_path):
     holder = Holder(2, str(tmp_path))
     threading.Timer(0.4, holder.end).start()
@@ -61,6 +63,7 @@ def test_a_waiting_loop_gets_the_cpu_once_the_other_process_ends(tmp_path):
         claim.release()
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_stop_signal_while_waiting_ends_the_wait_without_claiming(tmp_path):
     holder = Holder(1, str(tmp_path))
     try:
@@ -84,6 +87,7 @@ def _free_elsewhere(cpu: int, directory) -> bool:
                           capture_output=True).returncode == 0
 
 
+@pytest.mark.xdist_group("realtime")
 def test_nested_claims_in_one_process_share_it_and_the_last_release_frees_the_cpu(tmp_path):
     outer, inner = CpuClaim(0, 0.0, directory=tmp_path), CpuClaim(0, 0.0, directory=tmp_path)
     outer.acquire()
@@ -96,6 +100,7 @@ def test_nested_claims_in_one_process_share_it_and_the_last_release_frees_the_cp
     outer.release()                                      # idempotent
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.skipif(loop_cpu() is None, reason="the loop gets a CPU of its own only with two or more")
 def test_a_run_refuses_before_turning_real_time_while_another_loop_holds_its_cpu(tmp_path):
     from rt_ident.compose.run import run

@@ -70,6 +70,7 @@ def test_a_poller_that_cannot_be_placed_says_why_and_leaves_no_thread():
     assert not p.alive and not _pollers()
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_real_time_run_polls_its_loop_cpu_sleeps_in_one_piece_and_stops_the_poller(restore_scheduling):
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("the loop gets a CPU of its own only with two or more")
@@ -81,6 +82,7 @@ def test_a_real_time_run_polls_its_loop_cpu_sleeps_in_one_piece_and_stops_the_po
     assert not _pollers()
 
 
+@pytest.mark.xdist_group("realtime")
 def test_an_xy_run_polls_too_and_a_configured_max_sleep_keeps_its_chunks(restore_scheduling):
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("the loop gets a CPU of its own only with two or more")
@@ -94,6 +96,7 @@ def test_an_xy_run_polls_too_and_a_configured_max_sleep_keeps_its_chunks(restore
     assert not _pollers()
 
 
+@pytest.mark.xdist_group("realtime")
 def test_idle_poll_off_or_not_real_time_starts_no_poller(restore_scheduling):
     s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True, "loop.idle_poll": False}))
     assert s["realtime"]["idle_poll"] == {"running": False, "reason": "[loop] idle_poll = false"}
@@ -102,6 +105,7 @@ def test_idle_poll_off_or_not_real_time_starts_no_poller(restore_scheduling):
     assert not _pollers()
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_poller_that_fails_to_start_is_reported_and_the_run_goes_on(restore_scheduling, monkeypatch):
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("the loop gets a CPU of its own only with two or more")
@@ -133,6 +137,7 @@ def test_the_device_interrupts_of_proc_interrupts_are_read_per_cpu_without_timer
     assert read_interrupts(str(tmp_path / "missing")) is None
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_real_time_run_reports_the_device_interrupts_its_loop_cpu_served(restore_scheduling):
     if len(os.sched_getaffinity(0)) < 2 or not os.path.exists("/proc/interrupts"):
         pytest.skip("needs a CPU of the loop's own and /proc/interrupts")
@@ -211,6 +216,7 @@ def _record_order(monkeypatch) -> list[str]:
     return events
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_real_time_run_stops_the_poller_after_the_safe_stop_and_fits_outside_real_time(restore_scheduling,
                                                                                          monkeypatch):
     # the final fit is CPU-bound work: at SCHED_FIFO it would run into the RT throttle and hold the loop's
@@ -227,6 +233,7 @@ def test_a_real_time_run_stops_the_poller_after_the_safe_stop_and_fits_outside_r
     assert (os.sched_getscheduler(0), os.sched_getaffinity(0)) == before      # the caller's thread as it was
 
 
+@pytest.mark.xdist_group("realtime")
 def test_a_run_that_fails_in_its_loop_leaves_real_time_after_the_safe_stop(restore_scheduling, monkeypatch):
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("the loop gets a CPU of its own only with two or more")
@@ -244,6 +251,7 @@ def test_a_run_that_fails_in_its_loop_leaves_real_time_after_the_safe_stop(resto
     assert (os.sched_getscheduler(0), os.sched_getaffinity(0)) == before
 
 
+@pytest.mark.xdist_group("realtime")
 def test_an_xy_run_fits_outside_real_time_too(restore_scheduling, monkeypatch):
     import rt_ident.compose.run as multi_mod
     from rt_ident.axis.params import CONFIG_DIR

@@ -206,6 +206,7 @@ def _sigstop_run(tmp_path, *extra: str, journal_of: str = "s.parquet", early_ok:
     return proc.returncode, json.loads(out), read_recording(rec.with_name(journal_of)), err, sent
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_a_sigstop_of_the_run_process_resumes_without_a_lunge(tmp_path):
     rc, s, r, err, _ = _sigstop_run(tmp_path)
@@ -271,6 +272,7 @@ def test_a_sigstop_of_a_canopen_run_ends_on_the_drives_rpdo_deadline_not_a_lunge
         assert abs(v) <= bound, (v, bound, stop)
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     cfg_path = tmp_path / "stop.toml"
@@ -285,6 +287,7 @@ def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     assert len(r) == s["loop"]["samples"] if r is not None else s["loop"]["samples"] < 10, s["loop"]["samples"]
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 def test_a_sigstop_of_an_xy_run_resumes_both_axes(tmp_path):
     # stopped once the x axis's journal holds 1 MB (about half a second of its samples): each axis's recorder
@@ -351,6 +354,7 @@ def test_a_stall_between_the_ticks_wait_and_its_read_is_caught_by_the_device_tim
     assert out["control"]["fallbacks"] == 0 and out["control"]["max_error_m"] < 1e-4
 
 
+@pytest.mark.xdist_group("realtime")
 @pytest.mark.slow
 @pytest.mark.parametrize("config", ["configs/sim-load-change.toml", "friction"])
 def test_nothing_compiles_after_the_first_tick_through_the_rare_paths(tmp_path, config):
