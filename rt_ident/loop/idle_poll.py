@@ -100,10 +100,9 @@ class IdlePoller:
     def prepare(self) -> None:
         """Compile the spin (idempotent; raises what the compiler raises)."""
         if self._spin is None:
-            spin = _spin
             # compiled for these arrays without running it (a run would switch the caller to SCHED_IDLE)
-            spin.compile(tuple(numba.typeof(a) for a in (self._stop, self._ts, self._state)))
-            self._spin = spin
+            _spin.compile(tuple(numba.typeof(a) for a in (self._stop, self._ts, self._state)))
+            self._spin = _spin
 
     def start(self, timeout: float = 10.0) -> dict[str, Any]:
         self.prepare()
