@@ -9,6 +9,8 @@ import sys
 import tomllib
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -72,3 +74,14 @@ def test_the_code_tells_what_and_why_not_its_history():
     found = [f"{p.relative_to(ROOT)}:{i}" for p in sources
              for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
     assert not found, found
+
+
+@pytest.mark.xdist_group("realtime")
+def test_the_realtime_mark_puts_its_tests_in_one_xdist_group(request, worker_id):
+    """xdist's loadgroup sends the tests marked ``xdist_group("realtime")`` to one worker by a suffix on their
+    node ids. A pytest that drops the suffix spreads them over every worker, where their runs queue for the
+    loop's CPU claim, and nothing else fails."""
+    if worker_id == "master":
+        pytest.skip("only under xdist workers (-n)")
+    assert request.node.nodeid.endswith("@realtime"), (
+        f"{request.node.nodeid}: xdist did not group this test; keep the test extra's pytest to one that keeps it")
