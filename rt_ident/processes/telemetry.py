@@ -40,6 +40,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
@@ -205,7 +206,7 @@ def _port_open(host: str, port: int) -> bool:
 #: caller, so whether the viewer got the data is checked at the end (:meth:`TelemetryProcess._delivered`).
 CLIENT_SINKS = ("connect", "spawn")
 #: ``failed`` codes the child leaves for the parent (0: none)
-FAIL_DISK_FULL, FAIL_NO_VIEWER, FAIL_FLUSH = 1, 2, 3
+FAIL_DISK_FULL, FAIL_NO_VIEWER, FAIL_FLUSH, FAIL_CONNECT = 1, 2, 3, 4
 
 
 def viewer_address(cfg: TelemetryConfig) -> tuple[str, int]:
@@ -241,6 +242,20 @@ def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
         log.info("telemetry served at %s", sink.uri)
     elif cfg.sink == "spawn":
         rec.connect_grpc(ensure_viewer(cfg), default_blueprint=bp)
+
+
+def _connect(rec: Any, cfg: TelemetryConfig, rr: Any, failed: Any) -> None:
+    """The ``connect`` sink, opened beside the child's loop; a failure leaves ``FAIL_CONNECT``."""
+    try:
+        _open_sink(rec, cfg, rr)
+    except Exception as exc:  # noqa: BLE001 - rerun's errors vary by version; each is reported the same
+        log.error("telemetry: connecting to %s failed: %s", cfg.connect_url, exc)
+        failed.value = FAIL_CONNECT
+
+
+def _connected(connecting: threading.Thread, timeout: float) -> bool:
+    connecting.join(timeout)
+    return not connecting.is_alive()
 
 
 def ensure_viewer(cfg: TelemetryConfig, wait_s: float = 15.0) -> str:
@@ -547,7 +562,19 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     import rerun as rr
 
     rec = rr.RecordingStream(cfg.application_id)
-    _open_sink(rec, cfg, rr)
+    connecting = None
+    if cfg.sink == "connect":
+        # connect_grpc blocks 5 s when nothing listens: the run goes on meanwhile, rerun buffering what is
+        # logged until the sink is set (and a viewer started later still gets it)
+        host, port = viewer_address(cfg)
+        if not _port_open(host, port):
+            log.warning("telemetry: nothing listens at %s:%d yet; the dashboard goes there if a viewer starts",
+                        host, port)
+        connecting = threading.Thread(target=_connect, args=(rec, cfg, rr, failed), name="telemetry connect",
+                                      daemon=True)
+        connecting.start()
+    else:
+        _open_sink(rec, cfg, rr)
     for path, (names, colors) in SERIES_STYLES.items():
         rec.log(path, rr.SeriesLines(names=list(names), colors=list(colors)), static=True)
     ready.set()
@@ -601,6 +628,9 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     client = cfg.sink in CLIENT_SINKS
     if client and not _port_open(*viewer_address(cfg)):
         failed.value = FAIL_NO_VIEWER
+    elif connecting is not None and not _connected(connecting, cfg.flush_timeout):
+        if not failed.value:
+            failed.value = FAIL_FLUSH             # still connecting: a flush would only empty rerun's buffer
     else:
         try:
             rec.flush(timeout_sec=cfg.flush_timeout)
@@ -704,7 +734,8 @@ class TelemetryProcess:
         return self.start()
 
     def wait_ready(self, timeout: float) -> bool:
-        """Wait (outside the real-time loop!) until the child has opened its sink. True if ready.
+        """Wait (outside the real-time loop!) until the child has opened its sink (a ``connect`` sink:
+        until it takes blocks, connecting meanwhile). True if ready.
 
         Blocks published before that only fill the ring; with a short ring they are dropped.
         """
@@ -928,6 +959,8 @@ class TelemetryProcess:
         why = None
         if code == FAIL_NO_VIEWER:
             why = f"nothing listens at {host}:{port}: the dashboard was not delivered"
+        elif code == FAIL_CONNECT:
+            why = f"connecting to {host}:{port} failed: the dashboard was not delivered"
         elif code == FAIL_FLUSH:
             why = f"the viewer at {host}:{port} did not take the whole dashboard within {self.config.flush_timeout:g} s"
         elif terminated:

@@ -59,6 +59,25 @@ def test_connect_to_a_listening_viewer_reports_the_dashboard_delivered():
     assert s["delivered"] is True and s["write_error"] is None, s
 
 
+def test_a_viewer_that_starts_after_the_connect_sink_is_ready_gets_the_dashboard():
+    port = _free_port()
+    tp = TelemetryProcess(TelemetryConfig(sink="connect", connect_url=f"rerun+http://127.0.0.1:{port}/proxy",
+                                          flush_timeout=10.0)).start()
+    server = None
+    try:
+        assert tp.wait_ready(30.0)                  # ready with nothing listening: blocks go to rerun's buffer
+        for k in range(5):
+            tp.publish(_block(k))
+        server = TelemetryProcess(TelemetryConfig(sink="serve", port=port)).start()
+        assert server.wait_ready(30.0)
+        s = tp.close(timeout=20.0)
+    finally:
+        tp.close(timeout=5.0)
+        if server is not None:
+            server.close()
+    assert s["delivered"] is True and s["write_error"] is None, s
+
+
 @pytest.mark.slow
 def test_a_run_streaming_to_no_viewer_exits_4_and_says_the_dashboard_was_lost(tmp_path):
     cfg = tmp_path / "c.toml"
@@ -73,6 +92,7 @@ def test_a_run_streaming_to_no_viewer_exits_4_and_says_the_dashboard_was_lost(tm
     loop_line = next(ln for ln in res.stdout.splitlines() if ln.startswith("loop:"))
     assert loop_line.endswith("not delivered")
     assert f"DATA LOST: dashboard: nothing listens at 127.0.0.1:{port}" in res.stdout
+    assert f"telemetry: nothing listens at 127.0.0.1:{port} yet" in res.stderr     # said at the start, too
 
 
 def test_rrd_beside_a_live_sink_is_refused_in_one_line_and_writes_nothing(tmp_path):
