@@ -170,7 +170,9 @@ def test_a_verification_move_the_loop_stalled_in_runs_again_and_a_second_stall_n
     monkeypatch.setattr(run_mod, "run", stalled)
     data = sim_data()
     data["commission"] = {"identify_s": 1.0}
-    # the simulated plant waits for its loop: a busy host's 10-20 ms hiccup is no stall worth a third move here
+    # a plant that waits for its loop (free-running sim): a busy host's hiccups move it no further, so the clean
+    # move measures the axis, and a hiccup is no stall worth a third move
+    data["backend"]["paced"] = False
     data["safety"]["max_stall_s"] = 0.1
     r = commission(config.from_mapping(data), tmp_path / "out")
     if real_stalls:                 # a busy host stalled the run that was to be clean: the count cannot tell
