@@ -50,6 +50,9 @@ STALLED_MOVE_RETRIES = 1
 #: lost samples that disturb a run that passed (``host_trouble``): this share of the samples, or one gap this
 #: long (the loop's default stall limit)
 LOST_SHARE, LOST_GAP_S = 0.01, 0.01
+#: a run that failed with more of its ticks late than this: the host's doing too (a device paced by its own
+#: clock moves on under the held torque while the loop is late)
+OVERRUN_SHARE = 0.01
 
 Progress = Callable[[str], None]
 
@@ -62,7 +65,8 @@ def host_trouble(summary: dict[str, Any], sample_period: float, any_lost: bool =
     device's link; else None. ``any_lost`` (a run that stopped or failed its check: the gaps may be why):
     any lost sample counts; else only enough to change what the run measures (more than ``LOST_SHARE``
     of them, or one gap of ``LOST_GAP_S`` or longer): a move over a few short gaps measures the axis all
-    the same. Single overruns are left out: a non-real-time loop has a few in most runs."""
+    the same. Overruns count only in such a run and when more than ``OVERRUN_SHARE`` of the ticks: a
+    non-real-time loop has a few in most runs."""
     loop = summary.get("loop") or {}
     stalls = loop.get("stalls") or {}
     said = []
@@ -74,6 +78,10 @@ def host_trouble(summary: dict[str, Any], sample_period: float, any_lost: bool =
     if lost and (any_lost or lost > LOST_SHARE * int(loop.get("samples") or 0)
                  or longest * sample_period >= LOST_GAP_S):
         said.append(f"the device's link lost {lost} samples ({1e3 * longest * sample_period:.1f} ms at longest)")
+    overruns, ticks = int(loop.get("overruns") or 0), int(loop.get("ticks") or 0)
+    if any_lost and overruns > OVERRUN_SHARE * ticks > 0:
+        late_ms = float((loop.get("lateness_us") or {}).get("max") or 0.0) / 1e3
+        said.append(f"the loop was late on {overruns} of {ticks} ticks ({late_ms:.1f} ms at most)")
     return " and ".join(said) or None
 
 

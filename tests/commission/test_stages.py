@@ -309,6 +309,23 @@ def test_lost_samples_name_the_host_when_enough_or_in_a_long_gap_and_any_in_a_ru
         assert f"lost {lost} samples" in said
 
 
+@pytest.mark.parametrize(("overruns", "failed", "names_host"), [
+    (96, True, True),          # 3 % of a failed move's ticks late, up to 9.7 ms: the paced device moved on
+    (96, False, False),        # the same in a run that passed its check: it measured the axis all the same
+    (20, True, False),         # under 1 % of the ticks
+])
+def test_late_ticks_name_the_host_only_in_a_run_that_failed_and_when_over_a_share_of_its_ticks(
+        overruns, failed, names_host):
+    from rt_ident.commission.stages import host_trouble
+
+    loop = {"stalls": {"count": 0}, "samples": 105_000, "ticks": 3100, "lost_samples": 0, "overruns": overruns,
+            "lateness_us": {"max": 9711.2}}
+    said = host_trouble({"loop": loop}, 2.9481e-5, any_lost=failed)
+    assert (said is not None) == names_host, said
+    if names_host:
+        assert said == f"the loop was late on {overruns} of 3100 ticks (9.7 ms at most)"
+
+
 @pytest.mark.parametrize("passed", [True, False])
 def test_a_move_that_lost_a_few_samples_runs_again_only_when_it_failed(tmp_path, monkeypatch, passed):
     from rt_ident.commission import stages
