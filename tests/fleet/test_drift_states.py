@@ -15,9 +15,6 @@ from rt_ident.cli import app
 from rt_ident.fleet.drift import drift
 from rt_ident.fleet.findings import FELL, ROSE, read_limits
 
-# the wear fleet is made on one xdist worker, where its tests run; no other worker waits for it
-pytestmark = pytest.mark.xdist_group("wear-fleet")
-
 runner = CliRunner()
 
 

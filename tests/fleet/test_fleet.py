@@ -27,9 +27,6 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
 import make_fleet  # noqa: E402
 
-# its fleet and its Dask cluster made on one xdist worker; no other worker makes or waits for them
-pytestmark = pytest.mark.xdist_group("fleet")
-
 
 def _make(out: Path) -> None:
     assert make_fleet.main([str(out), "--machines", "2", "--axes", "x", "--days", "10", "--worn", "0.5",

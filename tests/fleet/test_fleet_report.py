@@ -19,9 +19,6 @@ from typer.testing import CliRunner
 from rt_ident.cli import app
 from rt_ident.fleet.report import write_report
 
-# the wear fleet is made on one xdist worker, where its tests run; no other worker waits for it
-pytestmark = pytest.mark.xdist_group("wear-fleet")
-
 ROOT = Path(__file__).resolve().parents[2]
 SVG = "{http://www.w3.org/2000/svg}"
 

@@ -26,9 +26,6 @@ from rt_ident.fleet.manifest import Entry, read_manifest, write_manifest
 from rt_ident.fleet.store import parquet_files
 from tests.fleet.conftest import local_cluster
 
-# its fleet, identified rows and Dask cluster made once, on one xdist worker
-pytestmark = pytest.mark.xdist_group("fleet-safety")
-
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 CLI = [sys.executable, "-m", "rt_ident"]
