@@ -60,13 +60,13 @@ Progress = Callable[[str], None]
 HOST_FIX = "loop.realtime = true (or a less busy host): "
 
 
-def host_trouble(summary: dict[str, Any], sample_period: float, any_lost: bool = True) -> str | None:
-    """What the host did to a run that no axis setting explains: a loop stall, or samples lost on the
-    device's link; else None. ``any_lost`` (a run that stopped or failed its check: the gaps may be why):
-    any lost sample counts; else only enough to change what the run measures (more than ``LOST_SHARE``
-    of them, or one gap of ``LOST_GAP_S`` or longer): a move over a few short gaps measures the axis all
-    the same. Overruns count only in such a run and when more than ``OVERRUN_SHARE`` of the ticks: a
-    non-real-time loop has a few in most runs."""
+def host_trouble(summary: dict[str, Any], sample_period: float, run_failed: bool = True) -> str | None:
+    """What the host did to a run that no axis setting explains: a loop stall, samples lost on the
+    device's link, or many late ticks; else None. ``run_failed`` (a run that stopped or failed its
+    check: the gaps may be why): any lost sample counts; else only enough to change what the run
+    measures (more than ``LOST_SHARE`` of them, or one gap of ``LOST_GAP_S`` or longer): a move over a
+    few short gaps measures the axis all the same. Overruns count only in a run that failed, and when
+    more than ``OVERRUN_SHARE`` of its ticks: a non-real-time loop has a few in most runs."""
     loop = summary.get("loop") or {}
     stalls = loop.get("stalls") or {}
     said = []
@@ -75,11 +75,11 @@ def host_trouble(summary: dict[str, Any], sample_period: float, any_lost: bool =
                     "at longest")
     lost = int(loop.get("lost_samples") or 0)
     longest = int(loop.get("lost_longest", lost) or 0)      # a summary without it: as if all in one gap
-    if lost and (any_lost or lost > LOST_SHARE * int(loop.get("samples") or 0)
+    if lost and (run_failed or lost > LOST_SHARE * int(loop.get("samples") or 0)
                  or longest * sample_period >= LOST_GAP_S):
         said.append(f"the device's link lost {lost} samples ({1e3 * longest * sample_period:.1f} ms at longest)")
     overruns, ticks = int(loop.get("overruns") or 0), int(loop.get("ticks") or 0)
-    if any_lost and overruns > OVERRUN_SHARE * ticks > 0:
+    if run_failed and overruns > OVERRUN_SHARE * ticks > 0:
         late_ms = float((loop.get("lateness_us") or {}).get("max") or 0.0) / 1e3
         said.append(f"the loop was late on {overruns} of {ticks} ticks ({late_ms:.1f} ms at most)")
     return " and ".join(said) or None
@@ -264,7 +264,7 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
     period = result.get("sample_period") or _sample_period(cfg)
     host = host_trouble(s, period)
     # an estimate from a run the host disturbed enough to change what it measured may be untrusted for that
-    disturbed = None if trusted else host_trouble(s, period, any_lost=False)
+    disturbed = None if trusted else host_trouble(s, period, run_failed=False)
     if stop is None and disturbed is not None:
         fix = f"{HOST_FIX}{disturbed} while identifying; else commission.identify_s (longer)"
     elif stop is None:
@@ -355,7 +355,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
             raise KeyboardInterrupt
         ok, got, want = _judge_move(s, p, cfg.axis_params().lead, move, t_arrive)
         # a move that failed or stopped with samples lost may have failed on the gaps: any count then
-        host = host_trouble(s, period, any_lost=not ok)
+        host = host_trouble(s, period, run_failed=not ok)
         if host is None:
             break
         result["stalled_moves"] = result.get("stalled_moves", 0) + 1   # the host's doing, not the axis's

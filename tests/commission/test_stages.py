@@ -303,7 +303,7 @@ def test_lost_samples_name_the_host_when_enough_or_in_a_long_gap_and_any_in_a_ru
     loop = {"stalls": {"count": 0}, "samples": 5600, "lost_samples": lost}
     if longest is not None:
         loop["lost_longest"] = longest
-    said = host_trouble({"loop": loop}, 0.5e-3, any_lost=failed)
+    said = host_trouble({"loop": loop}, 0.5e-3, run_failed=failed)
     assert (said is not None) == names_host, said
     if names_host:
         assert f"lost {lost} samples" in said
@@ -320,7 +320,7 @@ def test_late_ticks_name_the_host_only_in_a_run_that_failed_and_when_over_a_shar
 
     loop = {"stalls": {"count": 0}, "samples": 105_000, "ticks": 3100, "lost_samples": 0, "overruns": overruns,
             "lateness_us": {"max": 9711.2}}
-    said = host_trouble({"loop": loop}, 2.9481e-5, any_lost=failed)
+    said = host_trouble({"loop": loop}, 2.9481e-5, run_failed=failed)
     assert (said is not None) == names_host, said
     if names_host:
         assert said == f"the loop was late on {overruns} of 3100 ticks (9.7 ms at most)"
