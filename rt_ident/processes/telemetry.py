@@ -254,6 +254,7 @@ def _connect(rec: Any, cfg: TelemetryConfig, rr: Any, failed: Any) -> None:
 
 
 def _connected(connecting: threading.Thread, timeout: float) -> bool:
+    """Whether the connect thread ended within ``timeout`` (it sets ``failed`` itself if its connect failed)."""
     connecting.join(timeout)
     return not connecting.is_alive()
 
@@ -629,8 +630,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     if client and not _port_open(*viewer_address(cfg)):
         failed.value = FAIL_NO_VIEWER
     elif connecting is not None and not _connected(connecting, cfg.flush_timeout):
-        if not failed.value:
-            failed.value = FAIL_FLUSH             # still connecting: a flush would only empty rerun's buffer
+        failed.value = FAIL_FLUSH                 # still connecting: a flush would only empty rerun's buffer
     else:
         try:
             rec.flush(timeout_sec=cfg.flush_timeout)
