@@ -12,6 +12,9 @@ from typing import Any
 
 from drivers.base import Backend, SampleBlock
 from drivers.errors import BackendNotFound, DriverError
+from rt_ident import kernel_cache
+
+kernel_cache.sync()          # before a backend's compiled kernels load from numba's cache (once per process)
 
 BACKENDS: dict[str, str] = {
     "sim": "drivers.sim:SimBackend",

@@ -58,9 +58,12 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     _compile_bytecode(root)
     rewrite = _rewrite_tests_once(root)
+    from rt_ident import kernel_cache
+
+    kernel_cache.sync()         # entries compiled against sources changed since are removed first
     if glob.glob(os.path.join(root, "rt_ident", "loop", "__pycache__", "tick_kernel.axis_tick-*.nbi")):
         _wait_for(rewrite)
-        return                  # compiled before (a stale entry is compiled again where it is used)
+        return                  # compiled before
     # the tick kernel (over half the compile) in one process while a run on the Python path compiles the rest
     kernel = subprocess.Popen([sys.executable, "-c", "from rt_ident.loop.tick_kernel import compiled_kernel as k; k(); "
                                "from rt_ident.loop.idle_poll import IdlePoller; IdlePoller(0).prepare()"],

@@ -1,0 +1,99 @@
+"""numba's on-disk cache of this distribution's kernels, kept in step with its sources.
+
+numba keys a cached function on the modification time and size of its own file only, while a compiled
+caller holds its callees from other modules compiled in: after an edit or a ``git pull`` that changes a
+callee's module but not the caller's (the law, not the tick kernel that runs it), numba loads the caller
+as compiled against the old callee, and the compiled tick runs code that is no longer in the tree.
+
+So, once per process, :func:`sync` compares the modification times and sizes of every module of
+``rt_ident`` and ``drivers`` with the record left when the cache was last in step; on any difference it
+removes the compiled entries of both packages (numba compiles them again where they are next used) and
+writes the new record. The entries are those beside the sources and, with ``NUMBA_CACHE_DIR`` set, their
+mirror there (numba's layout: ``<folder name>_<sha1 of the folder's path>``). Where the package folders
+are read-only numba keeps its cache in the user's cache folder instead; an install there rewrites every
+file, so every entry goes stale at once, as numba sees.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+#: the record of the sources the cache was last in step with, beside rt_ident's own entries
+RECORD = "kernel-sources.txt"
+_ENTRY_SUFFIXES = (".nbi", ".nbc")
+_done = False
+
+
+def package_roots() -> list[Path]:
+    """rt_ident's folder and, when installed beside it (one distribution), drivers'."""
+    here = Path(__file__).resolve().parent
+    roots = [here]
+    drivers = here.parent / "drivers"
+    if (drivers / "__init__.py").is_file():
+        roots.append(drivers)
+    return roots
+
+
+def _sources(roots: list[Path]) -> Iterator[Path]:
+    for root in roots:
+        for dirpath, dirnames, filenames in os.walk(root):
+            dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+            for name in sorted(filenames):
+                if name.endswith(".py"):
+                    yield Path(dirpath, name)
+
+
+def fingerprint(roots: list[Path]) -> str:
+    """One line per module: its path under the distribution, modification time [ns] and size."""
+    base = roots[0].parent
+    lines = []
+    for f in _sources(roots):
+        st = f.stat()
+        lines.append(f"{f.relative_to(base)} {st.st_mtime_ns} {st.st_size}")
+    return "\n".join(lines) + "\n"
+
+
+def cache_dirs(roots: list[Path]) -> list[Path]:
+    """Every folder numba may keep an entry of these packages in (existing or not)."""
+    mirror = os.environ.get("NUMBA_CACHE_DIR")
+    out = []
+    for root in roots:
+        for dirpath, dirnames, _ in os.walk(root):
+            dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+            folder = Path(dirpath)
+            out.append(folder / "__pycache__")
+            if mirror:
+                path = os.path.abspath(folder)
+                out.append(Path(mirror, f"{folder.name}_{hashlib.sha1(path.encode()).hexdigest()}"))
+    return out
+
+
+def sync(roots: list[Path] | None = None) -> bool:
+    """Remove the compiled entries when the sources changed since the record (True: removed). Once per
+    process for the installed packages; nothing is done where the record cannot be written."""
+    global _done
+    if roots is None:
+        if _done:
+            return False
+        _done = True
+        roots = package_roots()
+    record = roots[0] / "__pycache__" / RECORD
+    try:
+        now = fingerprint(roots)
+        if record.is_file() and record.read_text() == now:
+            return False
+        record.parent.mkdir(exist_ok=True)
+        for folder in cache_dirs(roots):
+            if folder.is_dir():
+                for entry in folder.iterdir():
+                    if entry.suffix in _ENTRY_SUFFIXES:
+                        entry.unlink(missing_ok=True)
+        tmp = record.with_name(f"{RECORD}.{os.getpid()}")
+        tmp.write_text(now)
+        os.replace(tmp, record)
+    except OSError:
+        return False
+    return True
