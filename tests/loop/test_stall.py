@@ -254,9 +254,17 @@ def test_a_sigstop_of_a_canopen_run_ends_on_the_drives_rpdo_deadline_not_a_lunge
     # unless the emulated drive, starved after the resume, left the host stale data before its EMCY was read
     # (the stop then says that, naming the host)
     assert rc == 3, (stop, err[-2000:])
+    emulated = s.get("emulator") or {}
+    paused = max([float(st.get("paused_s") or 0.0) for st in emulated.values() if isinstance(st, dict)]
+                 + [float(emulated.get("paused_s") or 0.0)])
+    if stop["cause"] == "device-fault" and "no heartbeat from node" in (stop["message"] or "") and paused >= 0.2:
+        # the emulated drive was itself starved through the stall (a drive has a processor of its own): it sent
+        # neither its heartbeat nor its deadline's EMCY, so the host's heartbeat watch ended the run instead
+        assert stop["fix"].startswith("loop.realtime"), stop
+        pytest.skip(f"the emulated drive was paused {paused:.2f} s itself: {stop['message']}")
     if not (stop["cause"] == "watchdog" and "emulated drive answered" in stop["message"]):
-        assert stop["cause"] == "device-fault", (stop, err[-2000:])
-        assert "0x8250" in stop["message"] and "stall" in stop["message"], (stop, s["loop"]["stalls"])
+        assert stop["cause"] == "device-fault", (stop, emulated, err[-2000:])
+        assert "0x8250" in stop["message"] and "stall" in stop["message"], (stop, s["loop"]["stalls"], emulated)
         assert "backend.rpdo_deadline_ms" in stop["fix"], stop
     assert stop["fix"].startswith("loop.realtime"), stop
     # the drive's own account: the torque held 20 ms at most, so the table's speed at the fault is bounded
