@@ -19,6 +19,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from rt_ident import kernel_cache
 from rt_ident.errors import ConfigError, RtIdentError, require
 from rt_ident.outputs.text import fmt, json_default, um
 from rt_ident.processes.context import prestart
@@ -368,6 +369,9 @@ def run(
     if not json_out:
         err.print(f"running {cfg.backend.name} for {cfg.loop.duration:g} s "
                   f"(method {cfg.estimator.method}, tick {cfg.loop.tick_hz:g} Hz); Ctrl-C stops safely")
+        if not kernel_cache.tick_kernel_cached():
+            err.print("compiling the loop's kernels first (after an install or a change of the sources; "
+                      "about 20 s, before anything is energized)")
     summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
     if commissioned is not None:
         summary["commissioning"] = commissioned

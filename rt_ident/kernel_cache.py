@@ -97,3 +97,16 @@ def sync(roots: list[Path] | None = None) -> bool:
     except OSError:
         return False
     return True
+
+
+def tick_kernel_cached() -> bool:
+    """Whether numba will find the tick kernel in its cache (False: the next run compiles it first, which takes
+    seconds of CPU). Where numba keeps it elsewhere (read-only package folders), True: it cannot be told here."""
+    loop = package_roots()[0] / "loop"
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        where = cache_dirs([loop])[1]                 # numba then looks only there
+    else:
+        where = loop / "__pycache__"
+        if not os.access(loop, os.W_OK):
+            return True
+    return where.is_dir() and any(where.glob("tick_kernel.axis_tick-*.nbi"))

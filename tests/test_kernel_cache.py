@@ -91,3 +91,18 @@ def test_the_installed_packages_record_lists_every_module_of_rt_ident_and_driver
     listed = {line.split()[0] for line in kernel_cache.fingerprint(roots).splitlines()}
     assert "rt_ident/control/law.py" in listed and "rt_ident/loop/tick_kernel.py" in listed
     assert "drivers/sim_plan.py" in listed and not any("__pycache__" in p for p in listed)
+
+
+def test_the_tick_kernel_counts_as_cached_only_where_numba_will_look_for_it(tmp_path, monkeypatch):
+    from rt_ident.loop.tick_kernel import compiled_kernel
+
+    compiled_kernel()                                   # in the cache beside the package from here on
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    assert kernel_cache.tick_kernel_cached()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "empty"))   # numba then looks only there
+    assert not kernel_cache.tick_kernel_cached()
+    loop = kernel_cache.package_roots()[0] / "loop"
+    mirror = kernel_cache.cache_dirs([loop])[1]
+    mirror.mkdir(parents=True)
+    (mirror / "tick_kernel.axis_tick-228.py311.nbi").write_bytes(b"")
+    assert kernel_cache.tick_kernel_cached()
