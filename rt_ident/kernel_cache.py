@@ -56,18 +56,22 @@ def fingerprint(roots: list[Path]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def mirror_of(folder: Path, cache_dir: str) -> Path:
+    """Where numba keeps the entries of ``folder``'s modules under ``NUMBA_CACHE_DIR`` = ``cache_dir``."""
+    return Path(cache_dir, f"{folder.name}_{hashlib.sha1(os.path.abspath(folder).encode()).hexdigest()}")
+
+
 def cache_dirs(roots: list[Path]) -> list[Path]:
     """Every folder numba may keep an entry of these packages in (existing or not)."""
-    mirror = os.environ.get("NUMBA_CACHE_DIR")
+    cache_dir = os.environ.get("NUMBA_CACHE_DIR")
     out = []
     for root in roots:
         for dirpath, dirnames, _ in os.walk(root):
             dirnames[:] = [d for d in dirnames if d != "__pycache__"]
             folder = Path(dirpath)
             out.append(folder / "__pycache__")
-            if mirror:
-                path = os.path.abspath(folder)
-                out.append(Path(mirror, f"{folder.name}_{hashlib.sha1(path.encode()).hexdigest()}"))
+            if cache_dir:
+                out.append(mirror_of(folder, cache_dir))
     return out
 
 
@@ -103,8 +107,9 @@ def tick_kernel_cached() -> bool:
     """Whether numba will find the tick kernel in its cache (False: the next run compiles it first, which takes
     seconds of CPU). Where numba keeps it elsewhere (read-only package folders), True: it cannot be told here."""
     loop = package_roots()[0] / "loop"
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        where = cache_dirs([loop])[1]                 # numba then looks only there
+    cache_dir = os.environ.get("NUMBA_CACHE_DIR")
+    if cache_dir:
+        where = mirror_of(loop, cache_dir)            # numba then looks only there
     else:
         where = loop / "__pycache__"
         if not os.access(loop, os.W_OK):

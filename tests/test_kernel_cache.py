@@ -67,21 +67,20 @@ def test_after_a_callees_module_changes_sync_makes_the_caller_compile_again(tmp_
     assert _g(tmp_path, sync=True) == 202.0
 
 
-def test_sync_keeps_the_entries_while_the_sources_are_unchanged_and_clears_the_numba_cache_dir_mirror(tmp_path):
+def test_sync_keeps_the_entries_while_the_sources_are_unchanged_and_clears_the_numba_cache_dir_mirror(tmp_path,
+                                                                                                    monkeypatch):
     mirror = tmp_path / "nbcache"
     pk = _package(tmp_path, 1.0)
     env = {"NUMBA_CACHE_DIR": str(mirror)}
     assert _g(tmp_path, sync=True, env=env) == 4.0
     entries = sorted(mirror.rglob("*.nbi"))
-    assert entries and all(e.parent.name.startswith("pk_") for e in entries)
-    os.environ["NUMBA_CACHE_DIR"] = str(mirror)
-    try:
-        assert kernel_cache.sync([pk]) is False and sorted(mirror.rglob("*.nbi")) == entries
-        _edit_callee(pk, 100.0)
-        assert kernel_cache.sync([pk]) is True and not list(mirror.rglob("*.nb[ic]"))
-        assert kernel_cache.sync([pk]) is False
-    finally:
-        del os.environ["NUMBA_CACHE_DIR"]
+    assert entries and {e.parent for e in entries} == {kernel_cache.mirror_of(pk, str(mirror))}
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(mirror))
+    assert kernel_cache.sync([pk]) is False and sorted(mirror.rglob("*.nbi")) == entries
+    _edit_callee(pk, 100.0)
+    assert kernel_cache.sync([pk]) is True and not list(mirror.rglob("*.nb[ic]"))
+    assert kernel_cache.sync([pk]) is False
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
     assert _g(tmp_path, sync=True, env=env) == 202.0
 
 
@@ -102,7 +101,7 @@ def test_the_tick_kernel_counts_as_cached_only_where_numba_will_look_for_it(tmp_
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "empty"))   # numba then looks only there
     assert not kernel_cache.tick_kernel_cached()
     loop = kernel_cache.package_roots()[0] / "loop"
-    mirror = kernel_cache.cache_dirs([loop])[1]
+    mirror = kernel_cache.mirror_of(loop, str(tmp_path / "empty"))
     mirror.mkdir(parents=True)
     (mirror / "tick_kernel.axis_tick-228.py311.nbi").write_bytes(b"")
     assert kernel_cache.tick_kernel_cached()
