@@ -50,7 +50,6 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     config = session.config
     if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
         return
-    import glob
     import subprocess
     import sys
     import tempfile
@@ -61,7 +60,7 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     from rt_ident import kernel_cache
 
     kernel_cache.sync()         # entries compiled against sources changed since are removed first
-    if glob.glob(os.path.join(root, "rt_ident", "loop", "__pycache__", "tick_kernel.axis_tick-*.nbi")):
+    if kernel_cache.tick_kernel_cached():
         _wait_for(rewrite)
         return                  # compiled before
     # the tick kernel (over half the compile) in one process while a run on the Python path compiles the rest
