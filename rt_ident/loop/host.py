@@ -183,10 +183,10 @@ class LoopRealtime:
     collects and freezes the heap while the thread is an ordinary one and before the device is
     opened (a collection holds the GIL for tenths of a second: the thread that sends the host's
     heartbeat until the SYNC runs would wait that long, and a drive watching it faults); :meth:`begin`
-    is then quick; :meth:`end` stops the poller and gives the thread back the policy and CPUs it had
-    before. Register :meth:`end` before the backend's context, so that on an error it runs after the
-    backend's safe stop (the SYNC sender the poller could stall is gone by then: see
-    rt_ident.loop.idle_poll); on a normal end call it after ``safe_stop()``.
+    is then quick; :meth:`end` stops the poller, gives the thread back the policy and CPUs it had
+    before and unlocks the memory the run locked. Register :meth:`end` before the backend's context,
+    so that on an error it runs after the backend's safe stop (the SYNC sender the poller could stall
+    is gone by then: see rt_ident.loop.idle_poll); on a normal end call it after ``safe_stop()``.
     """
 
     def __init__(self, cfg: RunConfig, stop: threading.Event | None = None) -> None:
@@ -197,6 +197,7 @@ class LoopRealtime:
         self._prepared: tuple[Any, str | None] | None = None     # (idle poller, why it failed)
         self._saved: tuple[int, Any, set[int]] | None = None
         self._claim: CpuClaim | None = None
+        self._unlock = False                       # end() unlocks the memory this run locked
 
     def prepare(self) -> None:
         """The slow part, as an ordinary thread and before the device is opened (idempotent). First the
@@ -244,7 +245,11 @@ class LoopRealtime:
             self._saved = (os.sched_getscheduler(0), os.sched_getparam(0), os.sched_getaffinity(0))
         except (AttributeError, OSError):
             self._saved = None
+        from rt_ident.loop.scheduler import locked_memory_kb
+
+        unlocked_before = locked_memory_kb() == 0       # memory the process locked itself stays locked
         self.report = apply_run_realtime(cfg)
+        self._unlock = unlocked_before and self.report.get("mlockall") is True
         if self._claim is not None:
             self.report["cpu_claim"] = {"cpu": self._claim.cpu, "waited_s": round(self._claim.waited_s, 3)}
         self.poller = start_idle_poll(cfg, self.report, tickers, poller=poller, failed=failed)
@@ -266,6 +271,13 @@ class LoopRealtime:
                 os.sched_setaffinity(0, cpus)
             except (AttributeError, OSError) as exc:
                 log.warning("the loop thread could not leave its CPU: %s", exc)
+        if self._unlock:
+            from rt_ident.loop.scheduler import unlock_memory
+
+            self._unlock = False
+            unlocked = unlock_memory()
+            if unlocked is not True:
+                log.warning("the memory locked for the loop stays locked: %s", unlocked)
         claim, self._claim = self._claim, None
         if claim is not None:
             claim.release()

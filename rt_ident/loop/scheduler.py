@@ -317,6 +317,33 @@ def _mlockall() -> bool | str:
     return True
 
 
+def locked_memory_kb() -> int | None:
+    """This process's locked memory (``VmLck``), in kB; None where ``/proc`` does not say."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmLck:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def unlock_memory() -> bool | str:
+    """``munlockall()``: the process's pages unlocked and new mappings no longer locked (``MCL_FUTURE``
+    ends with it). Without it, a process that goes on after its run (a commissioning's next stage, the
+    final fit, a caller's own work) faults in and pins every page it maps from then on."""
+    name = ctypes.util.find_library("c") or "libc.so.6"
+    try:
+        libc = ctypes.CDLL(name, use_errno=True)
+    except OSError as exc:
+        return f"libc not loadable: {exc}"
+    if libc.munlockall() != 0:
+        err = ctypes.get_errno()
+        return f"munlockall failed: [Errno {err}] {os.strerror(err)}"
+    return True
+
+
 def apply_realtime(
     priority: int | None = 50,
     cpus: Iterable[int] | None = None,

@@ -234,6 +234,44 @@ def test_a_real_time_run_stops_the_poller_after_the_safe_stop_and_fits_outside_r
 
 
 @pytest.mark.xdist_group("realtime")
+@pytest.mark.parametrize("locked_by_caller", [False, True], ids=["unlocked", "locked-by-caller"])
+def test_a_real_time_run_unlocks_the_memory_it_locked_before_its_final_fit_and_keeps_a_callers_lock(
+        restore_scheduling, monkeypatch, locked_by_caller):
+    # mlockall's MCL_FUTURE outlives the loop: unlocked, the final fit and whatever the process does next
+    # would fault in and pin every page they map
+    from rt_ident.loop.scheduler import _mlockall, locked_memory_kb, unlock_memory
+
+    if locked_memory_kb() != 0:
+        pytest.skip(f"this process holds locked memory already ({locked_memory_kb()} kB)")
+    if locked_by_caller and _mlockall() is not True:
+        pytest.skip("mlockall is not allowed here")
+    seen: dict[str, int | None] = {}
+    final_fit = run_mod.final_fit
+
+    def recorded_final_fit(*a, **k):
+        seen["final fit"] = locked_memory_kb()
+        return final_fit(*a, **k)
+
+    def during(tick: int) -> None:
+        if tick == 100:
+            seen["loop"] = locked_memory_kb()
+
+    monkeypatch.setattr(run_mod, "final_fit", recorded_final_fit)
+    try:
+        s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}), tick_hook=during)
+        after = locked_memory_kb()
+    finally:
+        unlock_memory()
+    if s["realtime"]["mlockall"] is not True:
+        pytest.skip(f"the run could not lock its memory: {s['realtime']['mlockall']}")
+    assert seen["loop"] > 0
+    if locked_by_caller:
+        assert seen["final fit"] > 0 and after > 0
+    else:
+        assert seen["final fit"] == 0 and after == 0
+
+
+@pytest.mark.xdist_group("realtime")
 def test_a_run_that_fails_in_its_loop_leaves_real_time_after_the_safe_stop(restore_scheduling, monkeypatch):
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("the loop gets a CPU of its own only with two or more")
