@@ -375,14 +375,16 @@ def test_ctrl_c_or_sigterm_ends_a_run_with_130_and_keeps_what_finished_even_star
 
 
 @pytest.mark.slow
-def test_a_task_over_its_timeout_fails_with_a_message_and_the_run_ends(entries, tmp_path):
+def test_a_task_over_its_timeout_fails_with_a_message_and_the_run_ends(entries, history, tmp_path):
+    # the two recordings are in the history already: their tasks only hash a small file, well within a timeout
+    # short enough that the huge one's hashing (CPU-bound) is cut after seconds
     m = _with_huge(entries[:2], tmp_path)
     t0 = time.monotonic()
-    r = _cli("fleet", "identify", str(m), "--history", str(tmp_path / "h"), "--allow-outside", "--workers", "1",
-             "--task-timeout", "15")       # an identify takes seconds on a slow, busy host; hashing huge, far longer
+    r = _cli("fleet", "identify", str(m), "--history", str(history), "--allow-outside", "--workers", "1",
+             "--task-timeout", "4")
     assert r.returncode == 1, r.stderr
-    assert "2 identified" in r.stdout and "1 failed" in r.stdout, r.stdout
-    assert f"failed: {tmp_path / 'huge.parquet'} (m09 x): timed out after 15 s (--task-timeout)" in r.stdout
+    assert "0 identified" in r.stdout and "2 already in the" in r.stdout and "1 failed" in r.stdout, r.stdout
+    assert f"failed: {tmp_path / 'huge.parquet'} (m09 x): timed out after 4 s (--task-timeout)" in r.stdout
     assert time.monotonic() - t0 < 120 and "Traceback" not in r.stderr
 
 
