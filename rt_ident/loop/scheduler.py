@@ -305,12 +305,18 @@ _MCL_CURRENT = 1
 _MCL_FUTURE = 2
 
 
-def _mlockall() -> bool | str:
-    name = ctypes.util.find_library("c") or "libc.so.6"
+def _libc() -> ctypes.CDLL | str:
+    """The C library (errno kept), or why it does not load."""
     try:
-        libc = ctypes.CDLL(name, use_errno=True)
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
     except OSError as exc:
         return f"libc not loadable: {exc}"
+
+
+def _mlockall() -> bool | str:
+    libc = _libc()
+    if isinstance(libc, str):
+        return libc
     if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
         err = ctypes.get_errno()
         return f"mlockall failed: [Errno {err}] {os.strerror(err)} (needs CAP_IPC_LOCK or a memlock rlimit)"
@@ -333,11 +339,9 @@ def unlock_memory() -> bool | str:
     """``munlockall()``: the process's pages unlocked and new mappings no longer locked (``MCL_FUTURE``
     ends with it). Without it, a process that goes on after its run (a commissioning's next stage, the
     final fit, a caller's own work) faults in and pins every page it maps from then on."""
-    name = ctypes.util.find_library("c") or "libc.so.6"
-    try:
-        libc = ctypes.CDLL(name, use_errno=True)
-    except OSError as exc:
-        return f"libc not loadable: {exc}"
+    libc = _libc()
+    if isinstance(libc, str):
+        return libc
     if libc.munlockall() != 0:
         err = ctypes.get_errno()
         return f"munlockall failed: [Errno {err}] {os.strerror(err)}"
