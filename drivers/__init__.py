@@ -10,11 +10,11 @@ import importlib
 from collections.abc import Mapping
 from typing import Any
 
+# rt_ident's import brings numba's cache in step with the sources (rt_ident.kernel_cache) before a backend's
+# compiled kernels load from it
+import rt_ident  # noqa: F401
 from drivers.base import Backend, SampleBlock
 from drivers.errors import BackendNotFound, DriverError
-from rt_ident import kernel_cache
-
-kernel_cache.sync()          # before a backend's compiled kernels load from numba's cache (once per process)
 
 BACKENDS: dict[str, str] = {
     "sim": "drivers.sim:SimBackend",

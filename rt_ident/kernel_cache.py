@@ -37,13 +37,17 @@ def package_roots() -> list[Path]:
     return roots
 
 
-def _sources(roots: list[Path]) -> Iterator[Path]:
+def _folders(roots: list[Path]) -> Iterator[tuple[Path, list[str]]]:
+    """Every package folder under ``roots`` (``__pycache__`` left out) with its file names, in a fixed order."""
     for root in roots:
         for dirpath, dirnames, filenames in os.walk(root):
             dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
-            for name in sorted(filenames):
-                if name.endswith(".py"):
-                    yield Path(dirpath, name)
+            yield Path(dirpath), sorted(filenames)
+
+
+def _sources(roots: list[Path]) -> Iterator[Path]:
+    for folder, names in _folders(roots):
+        yield from (folder / name for name in names if name.endswith(".py"))
 
 
 def fingerprint(roots: list[Path]) -> str:
@@ -65,13 +69,10 @@ def cache_dirs(roots: list[Path]) -> list[Path]:
     """Every folder numba may keep an entry of these packages in (existing or not)."""
     cache_dir = os.environ.get("NUMBA_CACHE_DIR")
     out = []
-    for root in roots:
-        for dirpath, dirnames, _ in os.walk(root):
-            dirnames[:] = [d for d in dirnames if d != "__pycache__"]
-            folder = Path(dirpath)
-            out.append(folder / "__pycache__")
-            if cache_dir:
-                out.append(mirror_of(folder, cache_dir))
+    for folder, _ in _folders(roots):
+        out.append(folder / "__pycache__")
+        if cache_dir:
+            out.append(mirror_of(folder, cache_dir))
     return out
 
 

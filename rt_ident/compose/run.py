@@ -333,6 +333,11 @@ def _emulator_stats(emulator: Any) -> dict[str, Any] | None:
     return stats if isinstance(stats, dict) else None
 
 
+def emulator_nodes(stats: dict[str, Any]) -> list[dict[str, Any]]:
+    """The emulator's stats per drive: one drive's are flat, a bus's are per ``node N``."""
+    return [v for k, v in stats.items() if k.startswith("node ") and isinstance(v, dict)] or [stats]
+
+
 def starved_emulator(cause: str | None, message: str | None, stats: dict[str, Any] | None) -> str | None:
     """A watchdog stop on stale data while the emulated drive itself answered at least that many SYNCs too late
     to send (its process starved: the host's doing, which a drive with a processor of its own would not show):
@@ -340,8 +345,7 @@ def starved_emulator(cause: str | None, message: str | None, stats: dict[str, An
     stale = re.search(r"for (\d+) SYNCs in a row", message or "") if cause == "watchdog" else None
     if stale is None or not stats:
         return None
-    nodes = [v for k, v in stats.items() if k.startswith("node ") and isinstance(v, dict)] or [stats]
-    late = max(int(n.get("late_syncs") or 0) for n in nodes)
+    late = max(int(n.get("late_syncs") or 0) for n in emulator_nodes(stats))
     if late < int(stale.group(1)):
         return None
     return (f"the emulated drive answered {late} SYNCs too late to send: its process was starved (a busy host, "
@@ -434,4 +438,4 @@ def exit_code(summary: dict[str, Any]) -> int:
     return 4 if summary.get("data_lost") else 0
 
 
-__all__ = ["exit_code", "run", "starved_emulator"]
+__all__ = ["emulator_nodes", "exit_code", "run", "starved_emulator"]

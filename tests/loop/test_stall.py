@@ -254,9 +254,10 @@ def test_a_sigstop_of_a_canopen_run_ends_on_the_drives_rpdo_deadline_not_a_lunge
     # unless the emulated drive, starved after the resume, left the host stale data before its EMCY was read
     # (the stop then says that, naming the host)
     assert rc == 3, (stop, err[-2000:])
-    emulated = s.get("emulator") or {}                     # one drive's stats, or per node for a bus of drives
-    nodes = [v for k, v in emulated.items() if k.startswith("node ") and isinstance(v, dict)] or [emulated]
-    paused = max(float(st.get("paused_s") or 0.0) for st in nodes)
+    from rt_ident.compose.run import emulator_nodes
+
+    emulated = s.get("emulator") or {}
+    paused = max(float(st.get("paused_s") or 0.0) for st in emulator_nodes(emulated))
     if stop["cause"] == "device-fault" and "no heartbeat from node" in (stop["message"] or "") and paused >= 0.2:
         # the emulated drive was itself starved through the stall (a drive has a processor of its own): it sent
         # neither its heartbeat nor its deadline's EMCY, so the host's heartbeat watch ended the run instead
