@@ -86,10 +86,12 @@ def crest_factor(x: np.ndarray) -> float:
     x = np.asarray(x, dtype=float)
     if x.size == 0:
         raise ConfigError("x", "empty signal")
-    rms = float(np.sqrt(np.mean(x * x)))
-    if rms == 0.0:
+    peak = float(np.max(np.abs(x)))
+    if peak == 0.0:
         raise ConfigError("x", "all-zero signal has no crest factor")
-    return float(np.max(np.abs(x))) / rms
+    if not math.isfinite(peak):
+        raise ConfigError("x", "a signal with inf or NaN in it has no crest factor")
+    return 1.0 / float(np.sqrt(np.mean((x / peak) ** 2)))       # scaled by the peak: no overflow of x * x
 
 
 # --------------------------------------------------------------------------- multisine
@@ -213,7 +215,8 @@ def schroeder_multisine(
     for arr in (signal, harmonics, amplitudes, phi):
         arr.setflags(write=False)
     ms = Multisine(signal=signal, harmonics=harmonics, amplitudes=amplitudes, phases=phi)
-    log.debug("multisine N=%d band=%d..%d phases=%s crest=%.3f", N, lo, hi, phases, ms.crest_factor)
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug("multisine N=%d band=%d..%d phases=%s crest=%.3f", N, lo, hi, phases, ms.crest_factor)
     return ms
 
 

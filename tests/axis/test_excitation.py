@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -122,6 +123,15 @@ def test_crest_factor_of_a_sine_and_square():
     assert crest_factor(np.array([1.0, -1.0, 1.0, -1.0])) == pytest.approx(1.0)
     with pytest.raises(ConfigError):
         crest_factor(np.zeros(4))
+
+
+def test_crest_factor_of_a_huge_sine_is_a_sines_without_overflow_and_a_non_finite_signal_is_refused():
+    n = np.arange(1000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                  # x * x of 1e300 would overflow to inf, and warn
+        assert crest_factor(1e300 * np.sin(2 * np.pi * 10 * n / 1000)) == pytest.approx(math.sqrt(2), rel=1e-12)
+    with pytest.raises(ConfigError, match="inf or NaN"):
+        crest_factor(np.array([1.0, math.inf]))
 
 
 # ----------------------------------------------------------------------------- PRBS
