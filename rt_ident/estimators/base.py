@@ -9,6 +9,7 @@ intervals and a trust flag with the numbers behind it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -144,6 +145,21 @@ def _json_float(v: float) -> float | None:
     return v if math.isfinite(v) else None
 
 
+def untrusted_reasons(trusted: bool, criteria: Sequence[Mapping[str, Any]], method: str) -> list[str]:
+    """Why a result is not trusted (empty when it is): each failed criterion's reason in words; a method
+    that states no criteria is never trusted, and says so."""
+    if trusted:
+        return []
+    why = [c["why"] or c["criterion"] for c in criteria if not c["passed"]]
+    return why or [f"{method} states no trust criteria; its result is never trusted"]
+
+
+def trust_report(trusted: bool, criteria: Sequence[Mapping[str, Any]], method: str) -> dict[str, Any]:
+    """``{"trusted", "reasons", "criteria"}`` as the CLI's JSON reports a result's trust."""
+    return {"trusted": bool(trusted), "reasons": untrusted_reasons(trusted, criteria, method),
+            "criteria": [dict(c) for c in criteria]}
+
+
 @dataclass(frozen=True)
 class Identification:
     """Result of one identification.
@@ -173,15 +189,11 @@ class Identification:
     @property
     def reasons(self) -> list[str]:
         """Why the result is not trusted (empty when it is)."""
-        if self.trusted:
-            return []
-        why = [c["why"] or c["criterion"] for c in self.trust_criteria if not c["passed"]]
-        return why or [f"{self.method} states no trust criteria; its result is never trusted"]
+        return untrusted_reasons(self.trusted, self.trust_criteria, self.method)
 
     def trust(self) -> dict[str, Any]:
         """``{"trusted", "reasons", "criteria"}`` as the CLI's JSON reports it."""
-        return {"trusted": bool(self.trusted), "reasons": self.reasons,
-                "criteria": [dict(c) for c in self.trust_criteria]}
+        return trust_report(self.trusted, self.trust_criteria, self.method)
 
     def value(self, key: str) -> float:
         """A physical (I1, I2, B, K) or modal (wn, wd, zeta) value by name."""

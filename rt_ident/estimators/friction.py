@@ -61,6 +61,7 @@ import numpy as np
 import scipy.linalg
 
 from rt_ident.errors import ConfigError, DataError, EstimationError
+from rt_ident.estimators.base import trust_report, untrusted_reasons
 from rt_ident.estimators.uncertainty import (
     MAX_REL_HALFWIDTH,
     criterion,
@@ -117,13 +118,11 @@ class FrictionIdentification:
     @property
     def reasons(self) -> list[str]:
         """Why the result is not trusted (empty when it is)."""
-        if self.trusted:
-            return []
-        why = [c["why"] or c["criterion"] for c in self.trust_criteria if not c["passed"]]
-        return why or [f"{self.method} states no trust criteria; its result is never trusted"]
+        return untrusted_reasons(self.trusted, self.trust_criteria, self.method)
 
     def trust(self) -> dict[str, Any]:
-        return {"trusted": self.trusted, "reasons": self.reasons, "criteria": [dict(c) for c in self.trust_criteria]}
+        """``{"trusted", "reasons", "criteria"}`` as the CLI's JSON reports it."""
+        return trust_report(self.trusted, self.trust_criteria, self.method)
 
     def with_validation(self, validation: Mapping[str, Any]) -> FrictionIdentification:
         """This result with the validation on another recording as one more criterion: its torque
