@@ -36,14 +36,26 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
+from pydantic import AfterValidator
 
 from drivers.errors import BackendStateError, DriverError
 from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
+
+
+
+def _ordered(v: tuple[float, float]) -> tuple[float, float]:
+    if not v[0] < v[1]:
+        raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
+    return v
+
+
+#: A device's table travel in a config: [min, max] in m on the scale, min < max.
+Travel = Annotated[tuple[float, float], AfterValidator(_ordered)]
 
 _ZERO = np.zeros(1)     # the lease's one-value plan (backends copy what they keep; written every tick)
 _ZERO.flags.writeable = False

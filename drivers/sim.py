@@ -31,7 +31,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from drivers.base import Backend, SampleBlock, State
+from drivers.base import Backend, SampleBlock, State, Travel
 from drivers.errors import DriverError, TravelLimitTrip
 from drivers.sim_plan import PM_OFF, PM_SIZE, new_plan, plan_take, plan_write
 from rt_ident.axis.friction import Friction
@@ -99,7 +99,7 @@ class SimConfig(BaseModel):
     torque_process_noise: float = Field(0.0, ge=0)
     torque_limit: float = Field(1.0, gt=0)          # N m, at most rated_torque
     rated_torque: float = Field(3.0, gt=0)          # N m the simulated motor can deliver (3 x the default limit)
-    travel: tuple[float, float] | None = (-0.05, 0.05)  # m on the linear scale
+    travel: Travel | None = (-0.05, 0.05)  # m on the linear scale
     position_hold: bool = False                     # a drive-side hold loop (identification-only runs)
     kp: float | None = Field(None, ge=0)
     kd: float | None = Field(None, ge=0)
@@ -119,13 +119,6 @@ class SimConfig(BaseModel):
     scale_sign: Literal[1, -1] = 1
     # the simulated device's own truth where it differs from the keys above ([plant.actual] of a run config)
     actual: SimActual | None = None
-
-    @field_validator("travel")
-    @classmethod
-    def _travel_ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
-        if v is not None and not v[0] < v[1]:
-            raise ValueError(f"must satisfy min < max, got {list(v)}")
-        return v
 
     @field_validator("scale_resolution")
     @classmethod

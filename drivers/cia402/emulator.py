@@ -24,6 +24,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from drivers.base import Travel
 from drivers.cia402.emulated_drive import EmulatedCia402Drive
 from drivers.cia402.faults import FaultConfig
 from drivers.cia402.variants import drive_profile
@@ -66,7 +67,7 @@ class EmulatorConfig(BaseModel):
     torque_meas_noise: float = Field(0.0, ge=0)    # N m rms on 0x6077
     torque_process_noise: float = Field(0.0, ge=0)  # N m rms on the applied torque
     torque_limit: float | None = Field(None, gt=0)  # N m peak of the power stage; None: backend's limit
-    travel: tuple[float, float] | None = (-0.05, 0.05)  # m on the scale; outside -> fault 0x8612
+    travel: Travel | None = (-0.05, 0.05)  # m on the scale; outside -> fault 0x8612
     integrator: Literal["zoh", "newmark"] = "zoh"
     poll_us: float | None = Field(None, ge=0)   # receive poll period; None: 100 us on udp_multicast,
     #                                                blocking in-process (see drivers.cia402.frames.FrameIO)
@@ -85,13 +86,6 @@ class EmulatorConfig(BaseModel):
     @classmethod
     def _known_profile(cls, v: str) -> str:
         drive_profile(v)                        # ValueError names the profiles there are
-        return v
-
-    @field_validator("travel")
-    @classmethod
-    def _travel_ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
-        if v is not None and not v[0] < v[1]:
-            raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
         return v
 
 

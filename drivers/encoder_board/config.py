@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from drivers.base import Travel
 from drivers.encoder_board import protocol as sp
 from rt_ident.errors import ConfigError
 
@@ -116,7 +117,7 @@ class EmulatorConfig(BaseModel):
     angle_noise: float = Field(0.0, ge=0)      # [rad] rms before quantization
     torque_meas_noise: float = Field(0.0, ge=0)  # [N m] rms on the reported current
     torque_process_noise: float = Field(0.0, ge=0)  # [N m] rms on the applied torque
-    travel: tuple[float, float] | None = None  # [m] table travel; outside -> limit-switch fault
+    travel: Travel | None = None  # [m] table travel; outside -> limit-switch fault
     tx_buffer: int = Field(65536, ge=sp.DATA_FRAME_SIZE)  # [bytes] transmit FIFO; full -> frames dropped
     seq0: int = Field(0, ge=0, lt=2**32)       # first sequence number (test wrap-around)
     t0_us: int = Field(0, ge=0, lt=2**32)      # first time stamp [us]
@@ -141,13 +142,6 @@ class EmulatorConfig(BaseModel):
             for k in v:
                 if k not in BoardTruth.model_fields:
                     raise ValueError(f"{k}: unknown key; valid: {', '.join(BoardTruth.model_fields)}")
-        return v
-
-    @field_validator("travel")
-    @classmethod
-    def _travel_ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
-        if v is not None and not v[0] < v[1]:
-            raise ValueError(f"must be [min, max] in m with min < max, got {list(v)}")
         return v
 
 
