@@ -311,13 +311,17 @@ class NodeSetup:
 
     # ----- SDO with errors that name the object -----------------------------------------
     def upload(self, index: int, subindex: int, what: str = "") -> int:
-        code, node = self._data_type(index, subindex), self.node
-        assert node is not None                 # connected
         try:
-            data = node.sdo.upload(index, subindex)
+            return self._read(index, subindex, self._data_type(index, subindex))
         except SdoAbortedError as exc:
             raise ProtocolError(f"node {self.cfg.node_id} refused reading {p402.object_label(index, subindex)}"
                                 f"{what}: {p402.abort_text(exc.code)}") from exc
+
+    def _read(self, index: int, subindex: int, code: int) -> int:
+        """One SDO read decoded as data type ``code``; an abort propagates, a silence is DeviceTimeout."""
+        assert self.node is not None            # connected
+        try:
+            data = self.node.sdo.upload(index, subindex)
         except SdoCommunicationError as exc:
             raise DeviceTimeout(f"node {self.cfg.node_id} did not answer reading "
                                 f"{p402.object_label(index, subindex)} within sdo_timeout "
@@ -499,17 +503,10 @@ class NodeSetup:
         var = self.od.get_variable(index, subindex)
         if var is not None and var.data_type in p402.STRUCT_CODE:
             code = var.data_type
-        assert self.node is not None            # connected
         try:
-            data = self.node.sdo.upload(index, subindex)
+            return self._read(index, subindex, code)
         except SdoAbortedError:
             return None
-        except SdoCommunicationError as exc:
-            raise DeviceTimeout(f"node {self.cfg.node_id} did not answer reading "
-                                f"{p402.object_label(index, subindex)} within sdo_timeout "
-                                f"{self.cfg.sdo_timeout:g} s") from exc
-        st = struct.Struct("<" + p402.STRUCT_CODE[code])
-        return st.unpack_from(bytes(data).ljust(st.size, b"\0"))[0]
 
     def identity_objects(self) -> dict[str, Any]:
         """What the drive says it is, by SDO (start-up only): 0x1000, 0x6502, 0x6076, 0x6072, 0x607E and
