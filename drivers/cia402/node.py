@@ -41,6 +41,18 @@ from rt_ident.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
+class _SdoTimeoutAbortFilter(logging.Filter):
+    """canopen logs an ERROR for the abort (0x05040000) it sends on every SDO timeout; this module raises
+    its own error for each such timeout, naming the object and sdo_timeout, so the library's line goes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (isinstance(record.msg, str) and record.msg.startswith("Transfer aborted by client")
+                    and record.args == (0x05040000,))
+
+
+logging.getLogger("canopen.sdo.client").addFilter(_SdoTimeoutAbortFilter())
+
+
 def _best_effort(what: str, steps: Iterable[Callable[[], object]]) -> None:
     """Run every step of a stop path; a failing one is logged and the next still runs."""
     for step in steps:
@@ -436,7 +448,8 @@ class NodeSetup:
             raise DeviceConnectionError(
                 f"no answer from CANopen node {cfg.node_id} on {cfg.interface}:{cfg.channel} within "
                 f"{time.monotonic() - t0:.2f} s (SDO read of 0x1000 device type, sdo_timeout "
-                f"{cfg.sdo_timeout:g} s)") from None
+                f"{cfg.sdo_timeout:g} s): is the drive powered and on this bus, and do backend.node_id, "
+                f"backend.interface and backend.channel name it?") from None
         except SdoAbortedError as exc:
             raise ProtocolError(f"node {cfg.node_id} refused reading 0x1000 device type: "
                                 f"{p402.abort_text(exc.code)}") from exc

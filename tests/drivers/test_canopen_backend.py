@@ -9,6 +9,7 @@ fault tests, whose injected faults exceed it by far.
 from __future__ import annotations
 
 import collections
+import logging
 import math
 import re
 import struct
@@ -573,16 +574,18 @@ def test_safe_stop_is_bounded_and_silent_when_the_drive_vanished():
         assert time.monotonic() - t0 < 15.0            # two stop steps + one SDO timeout, not forever
 
 
-def test_no_node_at_that_id_raises_device_connection_error():
+def test_no_node_at_that_id_raises_one_error_naming_the_settings_without_canopens_own_abort_line(caplog):
     with rig(node_id=5) as (drive, _):
         cfg = backend_cfg(drive.bus_kwargs["channel"], node_id=6, sdo_timeout=0.2)
         be = Cia402Backend(cfg)
         t0 = time.monotonic()
-        with pytest.raises(DeviceConnectionError, match=r"no answer from CANopen node 6 .* within 0\.\d+ s"):
+        with caplog.at_level(logging.WARNING), pytest.raises(
+                DeviceConnectionError, match=r"no answer from CANopen node 6 .* within 0\.\d+ s.*backend\.node_id"):
             with be:
                 pass
         assert time.monotonic() - t0 < 15.0            # the SDO timeout, not forever
         assert drive.state == SWITCH_ON_DISABLED
+    assert not [r for r in caplog.records if r.name == "canopen.sdo.client"], caplog.text
 
 
 def _edited_eds(tmp_path: Path, name: str, edit) -> str:
