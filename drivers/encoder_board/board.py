@@ -214,6 +214,10 @@ class SerialBoardBackend(Backend):
             hint = ""
             if getattr(exc, "errno", None) == 13 or "Permission denied" in str(exc):
                 hint = " (no permission: add your user to the group that owns the port, e.g. dialout, and log in again)"
+            elif getattr(exc, "errno", None) == 2 or "No such file" in str(exc):
+                hint = " (no such device: is the board plugged in? backend.port names it, e.g. /dev/ttyACM0)"
+            elif "Inappropriate ioctl" in str(exc):
+                hint = " (not a serial device: backend.port names the board's tty, e.g. /dev/ttyACM0)"
             raise DeviceConnectionError(f"cannot open serial port {self.port!r}: {exc}{hint}") from exc
         try:
             self._send(sp.encode_disable())          # a known, de-energized state

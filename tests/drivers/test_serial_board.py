@@ -124,9 +124,15 @@ def test_registry_builds_the_serial_backend_without_io():
 
 
 # ----- connection ------------------------------------------------------------------------
-def test_missing_port_raises_device_connection_error_naming_it():
+def test_missing_port_raises_device_connection_error_naming_it_and_the_setting():
     be = SerialBoardBackend({"port": "/dev/rt-ident-no-such-port"})
-    with pytest.raises(DeviceConnectionError, match="rt-ident-no-such-port"):
+    with pytest.raises(DeviceConnectionError, match="rt-ident-no-such-port.*plugged in.*backend.port"):
+        be.open()
+
+
+def test_a_port_that_is_no_tty_raises_device_connection_error_naming_the_setting():
+    be = SerialBoardBackend({"port": "/dev/null"})
+    with pytest.raises(DeviceConnectionError, match="'/dev/null'.*not a serial device: backend.port"):
         be.open()
 
 
