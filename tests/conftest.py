@@ -147,6 +147,21 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip)
 
 
+_CHECKOUT_RUNS = Path(__file__).resolve().parent.parent / "runs"
+
+
+@pytest.fixture(autouse=True)
+def _nothing_left_in_the_checkouts_runs_folder():
+    """A test's runs write under its own tmp_path: a run's default outputs (``runs/`` under the working
+    directory) left in the checkout would pile up with every suite run. Fails the test that left one."""
+    before = set(os.listdir(_CHECKOUT_RUNS)) if _CHECKOUT_RUNS.is_dir() else set()
+    yield
+    left = (set(os.listdir(_CHECKOUT_RUNS)) if _CHECKOUT_RUNS.is_dir() else set()) - before
+    if left:
+        pytest.fail(f"the test left {sorted(left)} in {_CHECKOUT_RUNS}: give its run a tmp_path "
+                    "(record=..., recording.enabled = false, or monkeypatch.chdir(tmp_path))", pytrace=False)
+
+
 @pytest.fixture(scope="session")
 def made_once(tmp_path_factory, worker_id) -> Callable[[str, Callable[[Path], None]], Path]:
     """``made_once(name, make)``: a folder ``make(folder)`` fills, made by the first xdist worker that asks (under a

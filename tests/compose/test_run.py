@@ -286,12 +286,13 @@ def test_a_run_without_any_fit_worker_result_still_ends_its_dashboard_on_the_fin
 
 
 def test_a_run_without_excitation_starts_no_fit_process_and_says_why_it_has_no_estimate():
-    s = run(cfg(loop__duration=0.3, excitation__kind="none", control__mode="fixed"))
+    s = run(cfg(loop__duration=0.3, excitation__kind="none", control__mode="fixed", recording__enabled=False))
     assert s["stop"]["cause"] is None and s["stop"]["final_torque"] == 0.0
     assert "fit" not in s["helpers"] and "control" not in s["helpers"]
     assert s["final_fit_error"] == 'nothing to identify: no probing excitation (excitation.kind = "none")'
     assert not s.get("parameters")
-    with_probe = run(cfg(loop__duration=0.3, control__mode="fixed"))       # the peer: the probe makes a fit process
+    # the peer: with the probe there is a fit process
+    with_probe = run(cfg(loop__duration=0.3, control__mode="fixed", recording__enabled=False))
     assert "fit" in with_probe["helpers"] and with_probe["final_fit_error"] is None
 
 
