@@ -101,7 +101,7 @@ UNITS = {"I1": "kg m²", "I2": "kg m²", "B": "N m s/rad", "K": "N m/rad", "wn":
 
 def _param_table(title: str, truth: bool = False) -> Table:
     """The parameter table of run and identify: values never cut ('fold' wraps a cell instead)."""
-    tab = Table(title=title, title_justify="left")
+    tab = Table(title=escape(title), title_justify="left")
     tab.add_column("param", overflow="fold")
     tab.add_column("unit", overflow="fold")
     tab.add_column("estimate", justify="right", overflow="fold")
@@ -201,7 +201,7 @@ def reproduce(
     if study is not None:
         _print_study(study)
     for path in written:
-        err.print(f"wrote {path}")
+        err.print(f"wrote {path}", markup=False)
 
 
 def _write_study(rows, folder: Path) -> list[str]:
@@ -245,7 +245,7 @@ def _print_reproduce(result, sens) -> None:
     from rt_ident.reports.reproduce import ALL_KEYS, MODAL_KEYS, PARAM_KEYS, error_pct
 
     t2 = Table(title="Table 2 - time step  Dt = 2 pi k / (N wn),  w0 = wn / k")
-    for col in ("N", "k", "wn paper", "wn ours", "w0 paper", "w0 ours", "Dt paper [s]", "Dt ours [s]", "Dt diff %"):
+    for col in ("N", "k", "wn paper", "wn ours", "w0 paper", "w0 ours", "Dt paper \\[s]", "Dt ours \\[s]", "Dt diff %"):
         t2.add_column(col, justify="right")
     for paper, ours in zip(paper_tables.TABLE2, result.table2):
         t2.add_row(str(ours["N"]), str(ours["k"]), fmt(paper["wn"]), fmt(ours["wn"]), fmt(paper["w0"]),
@@ -430,7 +430,7 @@ def _print_run(s: dict) -> None:
     params = s.get("parameters") or {}
     out.print(_summary_table(f"rt-ident run - {s['backend']} - method {s.get('method')}", s))
     if not params and s.get("final_fit_error"):
-        out.print(f"no estimate: {s['final_fit_error']}")
+        out.print(f"no estimate: {s['final_fit_error']}", markup=False)
     elif not params:
         out.print("no estimate yet: the run ended before a full excitation period after the warm-up")
     else:
@@ -459,7 +459,7 @@ def _print_run(s: dict) -> None:
                  f"fallbacks {ctl.get('fallbacks', 0)}; running the {ctl.get('controller')} controller")
         out.print(line)
         for reason in rd.get("rejected_reasons") or []:
-            out.print(f"  rejected: {reason}")
+            out.print(f"  rejected: {reason}", markup=False)
     elif ctl:
         out.print("control: off (the host sends the excitation only; the drive must hold the axis)")
     te = s.get("torque_estimate") or {}
@@ -467,7 +467,7 @@ def _print_run(s: dict) -> None:
         out.print(f"torque estimate (Eq. 18 on filtered derivatives vs the filtered measured torque): NRMSE "
                   f"{fmt(te['nrmse_percent'])} % over {fmt(te.get('seconds'))} s (from the first trusted fit on)")
     elif te.get("why_none"):
-        out.print(f"torque estimate: none ({te['why_none']})")
+        out.print(f"torque estimate: none ({te['why_none']})", markup=False)
     work = loop.get("work_us") or {}
     if work:
         cpu = loop.get("work_cpu_us") or {}
@@ -481,17 +481,19 @@ def _print_run(s: dict) -> None:
         out.print("real-time: " + ", ".join(f"{k}={'yes' if v is True else v}" for k, v in rt.items()))
     files = s.get("files") or {}
     if files.get("rrd"):
-        out.print(f"dashboard: {files['rrd']}   (open with: rerun --bind 127.0.0.1 {files['rrd']})")
+        out.print(f"dashboard: {files['rrd']}   (open with: rerun --bind 127.0.0.1 {files['rrd']})", markup=False)
     for name, st in (s.get("helpers") or {}).items():
         if st.get("deaths"):
-            out.print(f"[yellow]helper {name} died[/] {st['deaths']}x (exit codes {st['exitcodes']}); "
+            codes = escape(str(st["exitcodes"]))
+            out.print(f"[yellow]helper {escape(name)} died[/] {st['deaths']}x (exit codes {codes}); "
                       f"restarted {st['restarts']}x; {'running' if st['alive'] else 'not running'} at the end")
     if (s.get("files") or {}).get("rrd_earlier"):
-        out.print(f"dashboard before the telemetry restart: {', '.join(s['files']['rrd_earlier'])}")
+        out.print(f"dashboard before the telemetry restart: {', '.join(s['files']['rrd_earlier'])}", markup=False)
     if s.get("data_lost"):
-        out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
+        out.print(f"[bold red]DATA LOST[/]: {escape(str(s['data_lost']))}")
     elif files.get("recording"):
-        out.print(f"recording: {files['recording']}   (re-identify: rt-ident identify {files['recording']})")
+        out.print(f"recording: {files['recording']}   (re-identify: rt-ident identify {files['recording']})",
+                  markup=False)
     _print_stop(s)
 
 
@@ -503,7 +505,7 @@ def _print_axes(s: dict) -> None:
         if params:
             _print_trust(ax.get("trust"), ax.get("trusted"))
         elif ax.get("final_fit_error"):
-            out.print(f"no estimate: {ax['final_fit_error']}")
+            out.print(f"no estimate: {ax['final_fit_error']}", markup=False)
         ctl = ax.get("control") or {}
         if ctl.get("mode") not in (None, "off"):
             rd = ctl.get("redesigns") or {}
@@ -514,12 +516,12 @@ def _print_axes(s: dict) -> None:
         files = ax.get("files") or {}
         for key, what in (("rrd", "dashboard"), ("recording", "recording")):
             if files.get(key):
-                out.print(f"{what} {name}: {files[key]}")
+                out.print(f"{what} {name}: {files[key]}", markup=False)
     if s.get("live_url"):
         recs = [f"rt_ident-{n}" for n in s.get("axes") or {}]
         if (s.get("contour") or {}).get("rrd"):
             recs.append("rt_ident-xy-contour")
-        out.print(f"dashboard: live at {s['live_url']} (recordings {', '.join(recs)})")
+        out.print(f"dashboard: live at {s['live_url']} (recordings {', '.join(recs)})", markup=False)
     c = s.get("contour")
     if c and "radius_mm" in c:
         parts = []
@@ -531,9 +533,10 @@ def _print_axes(s: dict) -> None:
                                 "measurement of the axis)" if "disturbed_by_stall_at_s" in f else ""))
         h = f"; H {c['H_um']:.2f} um" if c.get("H_um") is not None else ""
         out.print(f"circular test (ISO 230-4), R {c['radius_mm']:g} mm at {c['feed_mm_min']:.0f} mm/min: "
-                  + "; ".join(parts) + h + (f"; polar plot {c['polar_png']}" if c.get("polar_png") else ""))
+                  + "; ".join(parts) + h + (f"; polar plot {c['polar_png']}" if c.get("polar_png") else ""),
+                  markup=False)
     elif c:
-        out.print(f"circular test: {c.get('note')}")
+        out.print(f"circular test: {c.get('note')}", markup=False)
     loop = s.get("loop") or {}
     if loop:
         work, lat = loop.get("work_us") or {}, loop.get("lateness_us") or {}
@@ -542,12 +545,12 @@ def _print_axes(s: dict) -> None:
                   f"p99 {fmt(work.get('p99'))} us; lateness p99 {fmt(lat.get('p99'))} us")
         _print_stalls(loop)
     if s.get("data_lost"):
-        out.print(f"[bold red]DATA LOST[/]: {s['data_lost']}")
+        out.print(f"[bold red]DATA LOST[/]: {escape(str(s['data_lost']))}")
     stop = s.get("stop") or {}
     if stop.get("cause"):
         where = f" on axis {stop['axis']}" if stop.get("axis") else ""
-        err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {stop.get('message')} - every axis at zero "
-                  "torque, disabled")
+        message = escape(str(stop.get("message")))
+        err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {message} - every axis at zero torque, disabled")
         _print_fix(stop)
     elif stop.get("interrupted"):
         err.print(_INTERRUPTED.format(ticks=loop.get("ticks", 0)))
@@ -555,7 +558,7 @@ def _print_axes(s: dict) -> None:
 
 def _print_fix(stop: dict) -> None:
     if stop.get("fix"):
-        err.print(f"  fix: {stop['fix']}", highlight=False)
+        err.print(f"  fix: {stop['fix']}", highlight=False, markup=False)
 
 
 def _print_stalls(loop: dict) -> None:
@@ -577,10 +580,11 @@ def _print_trust(trust: dict | None, trusted: bool | None = None) -> None:
         return
     out.print("trusted: [bold]no[/]")
     for why in trust["reasons"]:
-        out.print(f"  - {why}", highlight=False)
+        out.print(f"  - {why}", highlight=False, markup=False)
     for c in trust["criteria"]:
         if c["passed"]:
-            out.print(f"  ok: {c['criterion']} {fmt(c['value'])} {c['limit']}", highlight=False, style="dim")
+            out.print(f"  ok: {c['criterion']} {fmt(c['value'])} {c['limit']}", highlight=False, style="dim",
+                      markup=False)
 
 
 _INTERRUPTED = ("stopped early on request (Ctrl-C or SIGTERM) after {ticks} ticks: the figures above cover only "
@@ -590,7 +594,8 @@ _INTERRUPTED = ("stopped early on request (Ctrl-C or SIGTERM) after {ticks} tick
 def _print_stop(s: dict) -> None:
     stop = s.get("stop") or {}
     if stop.get("cause"):
-        err.print(f"[red]stopped by {stop['cause']}:[/red] {stop.get('message')} - torque zeroed, drive disabled")
+        message = escape(str(stop.get("message")))
+        err.print(f"[red]stopped by {stop['cause']}:[/red] {message} - torque zeroed, drive disabled")
         _print_fix(stop)
     elif stop.get("interrupted"):
         err.print(_INTERRUPTED.format(ticks=(s.get("loop") or {}).get("ticks", 0)))
@@ -656,7 +661,7 @@ def identify(
     if "validation" in d:
         v = d["validation"]
         out.print(f"validation on {v['file']}: torque prediction error {v['torque_error_percent']:.2f} % "
-                  f"(correlation {v['correlation']:.4f}, {v['samples_used']} samples in motion)")
+                  f"(correlation {v['correlation']:.4f}, {v['samples_used']} samples in motion)", markup=False)
     _print_trust(d.get("trust"), d["trusted"])
 
 
@@ -664,12 +669,12 @@ def identify(
 @app.command()
 def commission(
     config: Path = typer.Argument(..., help="The axis's run config (TOML)."),
-    out_dir: Path | None = typer.Option(None, "--out", help="Folder for the report and the [axis] snippet "
+    out_dir: Path | None = typer.Option(None, "--out", help="Folder for the report and the \\[axis] snippet "
                                              "(default runs/commission-DATE-TIME)."),
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
     """Check a real axis before closing the loop on it: signs, scales, torque, then identify, design and
-    verify with a small move; write an HTML report and an [axis] snippet. Exit 0 pass, 3 a failed check,
+    verify with a small move; write an HTML report and an \\[axis] snippet. Exit 0 pass, 3 a failed check,
     130 interrupted (Ctrl-C, SIGTERM: the device stopped, the report and commission.json written)."""
     import datetime as _dt
 
@@ -691,7 +696,7 @@ def commission(
 
     def progress(msg: str) -> None:
         if not json_out:
-            err.print(msg, highlight=False)
+            err.print(msg, highlight=False, markup=False)
 
     result = run_commission(cfg, folder, progress)
     if json_out:
@@ -702,7 +707,8 @@ def commission(
             out.print(f"{mark} {escape(c['name'])}: {escape(_commission_value(c['measured']))}"
                       + (f" - fix: {escape(str(c['fix']))}" if not c["ok"] else ""), highlight=False)
         out.print(f"verdict: {result['verdict']} (stage {result['stage_reached']}); report {result['report']}"
-                  + (f"; \\[axis] for run: {result['axis_toml']}" if result.get("axis_toml") else ""), highlight=False)
+                  + (f"; [axis] for run: {result['axis_toml']}" if result.get("axis_toml") else ""), highlight=False,
+              markup=False)
     raise typer.Exit(0 if result["verdict"] == "pass" else 3)
 
 

@@ -90,6 +90,26 @@ def test_file_hints_stay_on_one_line_when_piped(monkeypatch):
     assert len(hint) == 1 and f"rt-ident identify {long}.parquet" in hint[0]
 
 
+def test_brackets_in_paths_reasons_and_stop_messages_are_printed_as_written_not_read_as_markup(monkeypatch):
+    buf = _capture(monkeypatch, 200)
+    ebuf = io.StringIO()
+    monkeypatch.setattr(cli, "err", Console(file=ebuf, width=200, soft_wrap=True, color_system=None))
+    s = _summary("runs/[s]/rec[x]")
+    s["trust"]["reasons"] = ["[axis] I2 disagrees [/red] with the fit"]
+    s["stop"] = {"cause": "speed-trip", "message": "[axis] lead [s] is wrong [/]", "fix": "set [safety] max_speed"}
+    cli._print_run(s)
+    text, etext = buf.getvalue(), ebuf.getvalue()
+    assert "rt-ident identify runs/[s]/rec[x].parquet" in text
+    assert "[axis] I2 disagrees [/red] with the fit" in text
+    assert "[axis] lead [s] is wrong [/]" in etext and "fix: set [safety] max_speed" in etext
+
+
+def test_the_reproduce_tables_keep_their_units_in_brackets(capsys, monkeypatch):
+    wide = _capture(monkeypatch, 200)
+    code, _ = _invoke(["reproduce", "--no-beyond", "--periods", "1"], capsys, monkeypatch)
+    assert code == 0 and "Dt paper [s]" in wide.getvalue() and "Dt ours [s]" in wide.getvalue(), wide.getvalue()[:800]
+
+
 def _invoke(args: list[str], capsys, monkeypatch) -> tuple[int, str]:
     monkeypatch.setenv("COLUMNS", "120")
     with pytest.raises(SystemExit) as e:

@@ -88,7 +88,7 @@ def _print_control(json_out: bool, quick: bool, figure: Path | None, cases: int,
     from rt_ident.bench.control import control_bench, targets
 
     res = control_bench(quick=quick, cases=cases, repeats=repeats,
-                        progress=lambda s: err.print(f"control bench: {s}", highlight=False))
+                        progress=lambda s: err.print(f"control bench: {s}", highlight=False, markup=False))
     if figure is not None:
         from rt_ident.bench.control import control_comparison
 
@@ -124,15 +124,15 @@ def _print_control(json_out: bool, quick: bool, figure: Path | None, cases: int,
     out.print(f"random plants (I1, I2, B, K each x 0.5..2, seed {rp['seed']}): {rp['unstable']} of {rp['n']} unstable "
               f"with the nominal design; worst overshoot {100 * rp['worst_overshoot']:.1f} %")
     for name, ok, fig in targets(res):
-        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
+        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})", markup=False)
     if figure is not None:
-        out.print(f"figure: {figure}")
+        out.print(f"figure: {figure}", markup=False)
 
 
 def _print_xy(seconds: float, json_out: bool) -> None:
     from rt_ident.bench.xy import xy_budget
 
-    res = xy_budget(seconds, progress=lambda s: err.print(f"xy bench: {s}", highlight=False))
+    res = xy_budget(seconds, progress=lambda s: err.print(f"xy bench: {s}", highlight=False, markup=False))
     if json_out:
         typer.echo(json.dumps(res, indent=2, default=json_default))
         return
@@ -169,7 +169,7 @@ def _print_xy(seconds: float, json_out: bool) -> None:
 def _print_estimator(json_out: bool) -> None:
     from rt_ident.bench.estimator import KEYS, estimator_bench, targets
 
-    res = estimator_bench(progress=lambda s: err.print(f"estimator bench: {s}", highlight=False))
+    res = estimator_bench(progress=lambda s: err.print(f"estimator bench: {s}", highlight=False, markup=False))
     if json_out:
         typer.echo(json.dumps(res, indent=2, default=json_default))
         return
@@ -179,7 +179,7 @@ def _print_estimator(json_out: bool) -> None:
     tab.add_column("trial")
     for k in KEYS:
         tab.add_column(k, justify="right")
-    tab.add_column("settled [ms]", justify="right")
+    tab.add_column("settled \\[ms]", justify="right")
     b = r["bias"]
     tab.add_row("bias, last 5 s of 10", *(f"{100 * b['bias'][k]:+.2f}" for k in KEYS), "")
     tab.add_row("std, last 5 s of 10", *(f"{100 * b['std'][k]:.2f}" for k in KEYS), "")
@@ -189,7 +189,7 @@ def _print_estimator(json_out: bool) -> None:
                     f"{1e3 * settle:.0f}" if math.isfinite(settle) else "never")
     out.print(tab)
     for name, ok, fig in targets(res):
-        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})")
+        out.print(f"{'met' if ok else 'NOT met'}: {name} ({fig})", markup=False)
 
 
 def _print_soak(seconds: float, rate: float, sink: str, json_out: bool, record: bool = True) -> None:

@@ -84,15 +84,16 @@ def identify_cmd(
     else:
         twice = f", {res['duplicates']} listed more than once" if res["duplicates"] else ""
         out.print(f"{res['identified']} identified ({res['untrusted']} not trusted), {res['skipped']} already in the "
-                  f"history, {res['failed']} failed{twice} -> {res['history']}", highlight=False)
+                  f"history, {res['failed']} failed{twice} -> {res['history']}", highlight=False, markup=False)
         for f in res["failures"]:
-            out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}", highlight=False)
+            out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}", highlight=False,
+                      markup=False)
     if res["interrupted"]:
         left = res["tasks"] - res["identified"] - res["skipped"] - res["failed"]
         rest = (f"; run the same command again to identify the other {left}" if left > 0
                 else " (every task had finished)")
         err.print(f"interrupted: the {res['identified']} results finished are in {res['history']}{rest}",
-                  highlight=False)
+                  highlight=False, markup=False)
         raise typer.Exit(130)
     if res["failed"]:
         raise typer.Exit(1)
