@@ -454,10 +454,12 @@ def load(path: str | Path | None = None, **overrides: Any) -> RunConfig:
         p = Path(path)
         if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p.name).is_file():
             p = CONFIG_DIR / p.name
+        if p.is_dir():
+            raise ConfigError(str(path), "is a folder; give a config file (TOML) in it, e.g. configs/sim.toml")
         if not p.is_file():
             raise ConfigError(str(path), "config file not found")
         try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
+            data = tomllib.loads(p.read_text(encoding="utf-8-sig"))     # -sig: a BOM as Windows editors write it
         except UnicodeDecodeError as exc:
             raise ConfigError(str(path), f"not a text file (byte 0x{exc.object[exc.start]:02x} at offset "
                                          f"{exc.start} is not UTF-8); a config is TOML text") from None

@@ -70,6 +70,21 @@ def test_a_binary_config_file_is_refused_in_one_line_naming_the_file(tmp_path):
     _one_line_error(_cli(["run", str(p), "--no-telemetry"], tmp_path), str(p))
 
 
+def test_a_config_saved_with_a_byte_order_mark_loads_as_without_one(tmp_path):
+    from rt_ident.axis.params import CONFIG_DIR
+
+    text = (CONFIG_DIR / "sim.toml").read_text(encoding="utf-8")
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))          # as Windows' Notepad saves UTF-8
+    assert load(p).model_dump(exclude={"source"}) == load(CONFIG_DIR / "sim.toml").model_dump(exclude={"source"})
+
+
+def test_a_folder_given_as_the_config_is_one_line_saying_so(tmp_path):
+    with pytest.raises(ConfigError, match="is a folder") as e:
+        load(tmp_path)
+    assert e.value.field == str(tmp_path)
+
+
 # 2 ------------------------------------------------------------------------- the safety window
 @pytest.mark.parametrize("window", [[0.04, -0.04], [0.01, 0.01], [math.nan, 0.04], [-0.04, math.inf]],
                          ids=["reversed", "empty", "nan", "inf"])

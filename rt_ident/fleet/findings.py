@@ -184,7 +184,7 @@ def read_limits(path: str | Path | None) -> Limits:
         return base
     p = Path(path)
     try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
+        data = tomllib.loads(p.read_text(encoding="utf-8-sig"))     # -sig: a BOM as Windows editors write it
     except FileNotFoundError:
         raise ConfigError("--limits", f"{p} not found") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:

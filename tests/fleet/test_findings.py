@@ -58,6 +58,12 @@ def test_a_bad_limits_file_is_refused_in_one_line_naming_the_key(tmp_path, text,
     assert "\n" not in str(e.value)
 
 
+def test_a_limits_file_saved_with_a_byte_order_mark_reads_as_without_one(tmp_path):
+    p = tmp_path / "limits.toml"
+    p.write_bytes(b"\xef\xbb\xbf[K]\nfall = 12\n")
+    assert read_limits(p).limit("K", FELL) == 12
+
+
 def test_built_in_limits_keep_k_within_15_percent_and_wn_within_what_that_k_gives():
     lim = Limits()
     assert lim.limit("K", FELL) == 15.0
