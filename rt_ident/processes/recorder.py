@@ -227,8 +227,23 @@ class Recorder:
             self._journal_file.close()
             journal_path(self.path).unlink(missing_ok=True)
             log.info("recording %s closed: %d rows", self.path, self._rows_written)
+        except BaseException:
+            self._abandon_parquet()
+            raise
         finally:
             self._closed = True
+
+    def _abandon_parquet(self) -> None:
+        """After a failed write or close the unfinished ``.part`` stays as it is (the journal holds the rows
+        flushed): the writer is closed here, where its failure is expected, and not by the garbage
+        collector, which would print the same error (a full disk) again as a traceback."""
+        writer, self._parquet = self._parquet, None
+        if writer is None:
+            return
+        try:
+            writer.close()
+        except OSError:
+            writer.is_open = False          # what pyarrow's __del__ checks before closing again
 
     def __enter__(self) -> Recorder:
         self.open()

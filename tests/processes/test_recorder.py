@@ -123,6 +123,36 @@ def test_torn_final_batch_is_dropped_whole(tmp_path: Path) -> None:
     _assert_matches_oracle(rec)
 
 
+def test_a_full_disk_fails_close_once_and_leaves_no_traceback_for_the_garbage_collector(tmp_path, monkeypatch):
+    import errno
+    import gc
+    import sys
+
+    class FullDisk(pq.ParquetWriter):                   # every write, and the footer at close, hit ENOSPC
+        def write_table(self, *a, **k):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def close(self):
+            if self.is_open:
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+    unraisable = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    monkeypatch.setattr(pq, "ParquetWriter", FullDisk)
+    path = tmp_path / "full.parquet"
+    r = Recorder(path, {"method": "ls"})
+    sig = _signals(np.arange(50, dtype=np.int64))
+    r.append(sig["t"], sig["seq"], sig["theta1"], sig["theta2"], sig["torque_cmd"])
+    with pytest.raises(OSError) as e:
+        r.close()
+    assert e.value.errno == errno.ENOSPC
+    r.close()                                           # a second close does nothing
+    del r, e                                            # (the traceback holds the recorder too)
+    gc.collect()
+    assert unraisable == []
+    assert len(read_recording(path)) == 50              # the journal kept the batch the Parquet write lost
+
+
 def test_recorder_process_close_writes_complete_parquet(tmp_path: Path) -> None:
     path = tmp_path / "p.parquet"
     with RecorderProcess(path, {"backend": "sim"}, flush_interval=0.1) as rp:
