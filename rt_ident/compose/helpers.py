@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rt_ident.loop.host import helper_role, keep_off_loop_cpu
+from rt_ident.outputs.recording_reader import journal_path
 from rt_ident.processes.guard import HelperWatch
 
 log = logging.getLogger(__name__)
@@ -99,9 +100,14 @@ class Helpers:
 
 
 def recording_lost(r: dict[str, Any]) -> str:
-    """A recording that is not complete, in words (``RecorderProcess.close()``'s report)."""
+    """A recording that is not complete, in words (``RecorderProcess.close()``'s report), and where its
+    journal keeps what was recorded up to the last flush, when it does."""
     why = f": {r['failure']}" if r.get("failure") else f" (recorder exit code {r['exitcode']})"
-    return f"recording {r['path']} incomplete: {r['rows_written']} of {r['samples_put']} samples written{why}"
+    text = f"recording {r['path']} incomplete: {r['rows_written']} of {r['samples_put']} samples written{why}"
+    journal = journal_path(r["path"])
+    if journal.is_file() and journal.stat().st_size > 0:
+        text += f" (what was recorded up to the last flush is in {journal}: rt-ident identify {r['path']} reads it)"
+    return text
 
 
 __all__ = ["AxisHelpers", "Helpers", "recording_lost"]

@@ -239,6 +239,17 @@ def test_free_space_check_names_the_file(tmp_path):
     assert why is not None and "x.rrd" in why and "no space left" in why
 
 
+def test_an_incomplete_recording_whose_journal_is_left_says_where_and_how_to_read_it(tmp_path):
+    from rt_ident.compose.helpers import recording_lost
+
+    rec = tmp_path / "r.parquet"
+    report = {"path": str(rec), "rows_written": 5, "samples_put": 9, "failure": "no space left on the device"}
+    assert "journal" not in recording_lost(report) and ".arrows" not in recording_lost(report)
+    (tmp_path / "r.parquet.arrows").write_bytes(b"x" * 64)
+    text = recording_lost(report)
+    assert f"{rec}.arrows" in text and f"rt-ident identify {rec} reads it" in text and "; " not in text
+
+
 def test_a_recording_that_is_not_complete_is_reported_in_the_same_words_on_one_axis_and_two(tmp_path, monkeypatch):
     from rt_ident.compose.run import run
     from rt_ident.processes.recorder import RecorderProcess
