@@ -54,7 +54,8 @@ def identify_cmd(
     json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
 ) -> None:
     """Identify every recording of MANIFEST (one Dask task each); add new results to the history. Exit 0 all
-    identified or already there, 1 some failed, 2 bad input, 130 interrupted (what finished is kept)."""
+    identified or already there, 1 some failed, 2 bad input, 4 the history refused a write (a full disk: what
+    was written before is kept), 130 interrupted (what finished is kept)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from rt_ident.fleet.identify import identify_fleet
@@ -88,6 +89,13 @@ def identify_cmd(
         for f in res["failures"]:
             out.print(f"  failed: {f['path']} ({f['machine']} {f['axis']}): {f['error']}", highlight=False,
                       markup=False)
+    if res["write_error"]:
+        left = res["tasks"] - res["identified"] - res["skipped"] - res["failed"]
+        err.print(f"error: cannot write to the history: {res['write_error']}; the {res['identified']} results "
+                  f"written before are in {res['history']}, {res['unwritten']} finished results could not be "
+                  f"kept; make room and run the same command again to identify the other {left}",
+                  highlight=False, markup=False)
+        raise typer.Exit(4)
     if res["interrupted"]:
         left = res["tasks"] - res["identified"] - res["skipped"] - res["failed"]
         rest = (f"; run the same command again to identify the other {left}" if left > 0

@@ -289,7 +289,9 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
     (progress). Finished results are written at least every ``flush_every`` seconds and when the run is
     interrupted (Ctrl-C, or SIGTERM in the main thread): then ``interrupted`` is True and what finished is
     in the history. ``task_timeout`` (seconds; None or 0: none) per task. An entry listed twice (same
-    path) is run once (``duplicates``); a row another run wrote meanwhile counts as ``skipped``.
+    path) is run once (``duplicates``); a row another run wrote meanwhile counts as ``skipped``. A write
+    the history refuses (a full disk, no permission) ends the run: ``write_error`` says why, ``unwritten``
+    counts the results it could not keep; what was written before stays.
     """
     items: list[dict[str, Any]] = []
     paths: set[str] = set()
@@ -303,14 +305,26 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
     index = HashIndex(history)
     known = index.refresh()
     counts = {"tasks": len(items), "identified": 0, "untrusted": 0, "skipped": 0, "failed": 0,
-              "duplicates": duplicates}
+              "duplicates": duplicates, "unwritten": 0}
+    write_error: list[str] = []                   # why the history refused a write (the run then ends)
     failures: list[dict[str, Any]] = []
     pending: list[dict[str, Any]] = []
     oldest = 0.0                                  # when the oldest unwritten result arrived
 
     def flush() -> None:
+        if write_error:                           # nothing more can be kept
+            counts["unwritten"] += len(pending)
+            pending.clear()
+            return
         with _signals_deferred():
-            written = _append(history, pending, index)
+            try:
+                written = _append(history, pending, index)
+            except OSError as exc:
+                write_error.append(f"{exc.filename or history}: {exc.strerror or exc}")
+                counts["unwritten"] += len(pending)
+                pending.clear()
+                stop.set()
+                return
             counts["identified"] += len(written)
             counts["untrusted"] += sum(not r["trusted"] for r in written)
             counts["skipped"] += len(pending) - len(written)      # another run (or another path) had it
@@ -364,7 +378,7 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
         except KeyboardInterrupt:                 # from a callback, or a signal held through a write
             stop.set()
         if stop.is_set():
-            interrupted = True
+            interrupted = not write_error
             while not done.empty():               # what finished before the interrupt is kept too
                 take(done.get_nowait())
         try:
@@ -379,7 +393,8 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
             interrupted = True
         for sig, handler in old_signals.items():
             signal.signal(sig, handler)
-    return {**counts, "interrupted": interrupted, "failures": failures, "history": str(history),
+    return {**counts, "interrupted": interrupted, "write_error": write_error[0] if write_error else None,
+            "failures": failures, "history": str(history),
             "dashboard": cluster.dashboard, "scheduler": scheduler or "LocalCluster on 127.0.0.1"}
 
 

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
 
 from rt_ident.errors import ConfigError
 from rt_ident.fleet.history import query
@@ -324,6 +325,45 @@ def test_an_interrupt_keeps_what_finished(entries, cluster, tmp_path):
                          on_result=ctrl_c_at_the_second)
     assert res["interrupted"] and res["identified"] == len(seen) >= 2     # no periodic write: the interrupt's
     assert len(known_hashes(h)) == res["identified"]
+
+
+def test_a_history_that_refuses_a_write_ends_the_run_keeping_what_was_written_before(entries, cluster, tmp_path,
+                                                                                     monkeypatch):
+    import errno
+
+    import rt_ident.fleet.identify as ident
+
+    h = tmp_path / "h"
+    real_write, writes = ident.write_rows, []
+
+    def fill_up(history, table):                # the disk is full from the second write on
+        writes.append(table.num_rows)
+        if len(writes) > 1:
+            raise OSError(errno.ENOSPC, "No space left on device", str(history))
+        return real_write(history, table)
+
+    monkeypatch.setattr(ident, "write_rows", fill_up)
+    res = identify_fleet(entries, h, scheduler=cluster.scheduler_address, flush_every=0.05,
+                         on_result=lambda row: time.sleep(0.2))
+    assert res["write_error"] == f"{h}: No space left on device" and not res["interrupted"]
+    assert res["identified"] == writes[0] == len(known_hashes(h)) >= 1
+    assert res["unwritten"] >= 1 and res["identified"] + res["unwritten"] <= res["tasks"]
+
+
+def test_the_command_line_says_what_the_refused_history_kept_and_exits_4(monkeypatch, tmp_path):
+    import rt_ident.fleet.identify as ident
+    from rt_ident.cli import app
+
+    res = {"tasks": 6, "identified": 2, "untrusted": 0, "skipped": 0, "failed": 0, "duplicates": 0, "unwritten": 1,
+           "interrupted": False, "write_error": "/h: No space left on device", "failures": [], "history": "/h",
+           "dashboard": None, "scheduler": "LocalCluster on 127.0.0.1"}
+    monkeypatch.setattr(ident, "identify_fleet", lambda *a, **k: res)
+    monkeypatch.setattr("rt_ident.fleet.manifest.read_manifest", lambda *a, **k: [])
+    r = CliRunner().invoke(app, ["fleet", "identify", str(tmp_path / "m.csv"), "--history", str(tmp_path / "h")])
+    assert r.exit_code == 4, r.output
+    assert ("cannot write to the history: /h: No space left on device; the 2 results written before are in /h, "
+            "1 finished results could not be kept; make room and run the same command again to identify the "
+            "other 4") in " ".join(r.output.split())
 
 
 def _huge_sparse(folder: Path) -> Path:
