@@ -755,9 +755,33 @@ def _from_ctrl_c(exc: BaseException) -> bool:
     return False
 
 
+def _environment_error(exc: OSError) -> int | None:
+    """A full disk or a refused permission that no part of the command turned into its own message: one
+    line and exit 4 (its output is incomplete) or 2 (a permission to fix); None for any other OSError,
+    which is then an internal error."""
+    import errno
+
+    full = {errno.ENOSPC, errno.EDQUOT, errno.EROFS}
+    refused = {errno.EACCES, errno.EPERM}
+    if exc.errno not in full | refused:
+        return None
+    if _VERBOSE:
+        err.print_exception()
+    where = f"{exc.filename}: " if exc.filename else ""
+    if exc.errno in full:
+        fix = "write elsewhere" if exc.errno == errno.EROFS else "make room (or write elsewhere)"
+        err.print(f"[red]error:[/red] {escape(where)}{escape(exc.strerror or str(exc))}: what this command was "
+                  f"writing is incomplete; {fix} and run it again", highlight=False)
+        return 4
+    err.print(f"[red]error:[/red] {escape(where)}{escape(exc.strerror or str(exc))}: this user may not do that "
+              "there; choose another place or fix the permission", highlight=False)
+    return 2
+
+
 def main() -> None:
     """The ``rt-ident`` entry point. Exit codes: 0 ok, 2 bad input (one line naming the setting),
-    3 a run stopped by a fault or trip, 4 data lost, 1 an internal error (one line; -v: the traceback)."""
+    3 a run stopped by a fault or trip, 4 data lost (a full disk included), 1 an internal error (one line; -v: the
+    traceback)."""
     handler = logging.StreamHandler()
     handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.WARNING, handlers=[handler])
@@ -776,6 +800,9 @@ def main() -> None:
             err.print("interrupted")
         raise
     except Exception as exc:  # noqa: BLE001 - a bug: one line for the user, the traceback with -v
+        code = _environment_error(exc) if isinstance(exc, OSError) else None
+        if code is not None:
+            sys.exit(code)
         if _VERBOSE:
             err.print_exception()
         err.print(f"[red]internal error:[/red] {type(exc).__name__}: {escape(str(exc))} (rt-ident -v ... shows where; "

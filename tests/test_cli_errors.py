@@ -115,6 +115,34 @@ def test_an_unexpected_exception_is_one_internal_error_line_and_its_traceback_on
         assert res.stderr.strip() == last
 
 
+@pytest.mark.parametrize(("raised", "code", "says"), [
+    ("OSError(errno.ENOSPC, 'No space left on device')", 4, "No space left on device: what this command was writing "
+                                                            "is incomplete; make room (or write elsewhere)"),
+    ("OSError(errno.EROFS, 'Read-only file system', '/mnt/ro/out')", 4, "/mnt/ro/out: Read-only file system: what "
+                                                                       "this command was writing is incomplete; write "
+                                                                       "elsewhere"),
+    ("PermissionError(errno.EACCES, 'Permission denied', '/etc/x')", 2, "/etc/x: Permission denied: this user may "
+                                                                       "not do that there"),
+    ("OSError(errno.EBADF, 'Bad file descriptor')", 1, "internal error: OSError: [Errno 9] Bad file descriptor"),
+], ids=["full", "read-only", "permission", "other"])
+def test_a_full_disk_or_a_refused_permission_is_one_line_naming_the_fix_not_an_internal_error(tmp_path, raised, code,
+                                                                                                says):
+    script = _script(tmp_path, f"""
+        import errno
+        import sys
+        import rt_ident.config
+
+        def refused(*a, **k):
+            raise {raised}
+
+        rt_ident.config.load = refused
+    """)
+    res = subprocess.run([sys.executable, str(script), "run", "--no-telemetry"], cwd=tmp_path, env=_env(),
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == code, res.stderr[-2000:]
+    assert says in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr[-2000:]
+
+
 def test_a_ctrl_c_before_the_runs_own_handler_exits_130_saying_interrupted(tmp_path):
     script = _script(tmp_path, """
         import sys
