@@ -429,8 +429,16 @@ def _silent(_: str) -> None:
 def commission(cfg: RunConfig, out: Path, progress: Progress = _silent) -> dict[str, Any]:
     """Run the stages (module docstring); the result as ``commission --json`` prints it."""
     from rt_ident.commission import ledger, report
+    from rt_ident.outputs.paths import check_output
 
+    made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    try:        # stage c records into the folder: one without room is refused before stage a moves the axis
+        check_output(str(out / "identify.parquet"), ".parquet", "--out", overwrite=True)
+    except ConfigError:
+        if made:
+            out.rmdir()
+        raise
     result: dict[str, Any] = {"verdict": "fail", "stage_reached": None, "checks": [], "max_travel_m": None,
                               "max_speed_m_s": None, "parameters": None, "report": None, "axis_toml": None,
                               "config": cfg.source, "out": str(out)}

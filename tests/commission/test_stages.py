@@ -16,6 +16,7 @@ import pytest
 from rt_ident import config
 from rt_ident.commission import ledger
 from rt_ident.commission.stages import commission
+from rt_ident.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 LEAD = 7.96e-4
@@ -60,6 +61,20 @@ def test_a_miswired_sim_fails_the_check_that_names_its_key_within_budget_and_spe
     assert r["max_travel_m"] <= cfg.commission.travel_m and r["max_speed_m_s"] <= cfg.commission.max_speed_m_s
     assert (tmp_path / "out" / "report.html").is_file() and (tmp_path / "out" / "commission.json").is_file()
     assert ledger.lookup(cfg)["verdict"] == "fail"
+
+
+def test_a_folder_without_room_for_stage_cs_recording_is_refused_before_anything_moves(tmp_path, monkeypatch):
+    from rt_ident.outputs import paths
+
+    class Full:
+        free = 1 << 20
+
+    monkeypatch.setattr(paths.shutil, "disk_usage", lambda p: Full)
+    said = []
+    with pytest.raises(ConfigError, match="only 1 MiB free") as e:
+        commission(config.from_mapping(sim_data()), tmp_path / "out", said.append)
+    assert e.value.field == "--out" and not (tmp_path / "out").exists()
+    assert said == []                                   # stage a ("a: connect") never began
 
 
 @pytest.mark.slow
