@@ -18,6 +18,7 @@ carries them as ``config_defaulted``.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -63,6 +64,9 @@ class ExcitationConfig(_Section):
                              f"= {self.period_samples // 2 - 1}")
         return self
 
+
+#: What an ``[axes.NAME]`` name may be: it becomes part of file names and dashboard paths.
+_AXIS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,31}")
 
 #: Tick rates the loop runs at [Hz]. At least 100: the host writes to the device (torque, heartbeat)
 #: once per tick, and a serial board disables itself after 0.1 s without a host frame; the safety
@@ -316,6 +320,9 @@ class RunConfig(_Section):
         out: dict[str, RunConfig] = {}
         base = self.model_dump(exclude={"axes", "contour", "source"})
         for name, overlay in self.axes.items():
+            if not _AXIS_NAME.fullmatch(name):
+                raise ConfigError(f"axes.{name}", "an axis name is 1-32 letters, digits, '-' or '_', starting with a "
+                                                  "letter or digit (it names the axis's files and dashboard)")
             if not isinstance(overlay, dict):
                 raise ConfigError(f"axes.{name}", "must be a table")
             bad = sorted(set(overlay) - set(self._AXIS_SECTIONS))

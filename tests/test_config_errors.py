@@ -85,6 +85,18 @@ def test_a_folder_given_as_the_config_is_one_line_saying_so(tmp_path):
     assert e.value.field == str(tmp_path)
 
 
+@pytest.mark.parametrize("name", ["x y", "../z", "a/b", "-x", "x" * 33, "é"])
+def test_an_axis_name_that_could_not_name_its_files_is_refused_naming_it(name):
+    with pytest.raises(ConfigError, match="an axis name is") as e:
+        load("configs/xy-sim.toml").model_copy(update={"axes": {name: {}, "y": {}}}).axis_configs()
+    assert e.value.field == f"axes.{name}"
+
+
+def test_axis_names_of_letters_digits_dashes_and_underscores_are_taken():
+    cfg = load("configs/xy-sim.toml").model_copy(update={"axes": {"X_1": {}, "y-2": {}, "3": {}}})
+    assert list(cfg.axis_configs()) == ["X_1", "y-2", "3"]
+
+
 # 2 ------------------------------------------------------------------------- the safety window
 @pytest.mark.parametrize("window", [[0.04, -0.04], [0.01, 0.01], [math.nan, 0.04], [-0.04, math.inf]],
                          ids=["reversed", "empty", "nan", "inf"])
