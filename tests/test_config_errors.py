@@ -97,6 +97,24 @@ def test_axis_names_of_letters_digits_dashes_and_underscores_are_taken():
     assert list(cfg.axis_configs()) == ["X_1", "y-2", "3"]
 
 
+@pytest.mark.parametrize(("reference", "needle"), [
+    ({"kind": "sine", "amplitude": 0.005, "frequency_hz": 20.0}, "peak acceleration 78.9"),     # 20 for 2 Hz
+    ({"kind": "sine", "amplitude": 0.001, "frequency_hz": 1000.0}, "peak acceleration"),      # the tick's own rate
+    ({"kind": "moves", "positions": [0.01, 0.0], "v_max": 0.02, "a_max": 100.0, "j_max": 1e6}, "peak acceleration"),
+], ids=["sine-20-hz", "sine-at-the-tick-rate", "move-100-m-s2"])
+def test_a_reference_whose_acceleration_the_torque_limit_cannot_give_is_refused_before_enabling(reference, needle):
+    e = _refused(_run_cfg(reference=reference, excitation={"peak": 0.1}, backend={"torque_limit": 1.0}))
+    assert e.field == "reference" and needle in str(e) and "leaves beside the probe" in str(e), str(e)
+
+
+def test_a_reference_faster_than_a_set_speed_limit_is_refused_and_one_within_it_is_taken():
+    move = {"kind": "moves", "positions": [0.01, 0.0], "v_max": 0.02, "a_max": 0.5, "j_max": 50.0}
+    e = _refused(_run_cfg(reference=move, safety={"max_speed_m_s": 0.01}))
+    assert e.field == "reference" and "above safety.max_speed_m_s (10 mm/s)" in str(e), str(e)
+    preflight(from_mapping(_run_cfg(reference=move, safety={"max_speed_m_s": 0.025})))
+    preflight(from_mapping(_run_cfg(reference={"kind": "sine", "amplitude": 0.005, "frequency_hz": 2.0})))
+
+
 # 2 ------------------------------------------------------------------------- the safety window
 @pytest.mark.parametrize("window", [[0.04, -0.04], [0.01, 0.01], [math.nan, 0.04], [-0.04, math.inf]],
                          ids=["reversed", "empty", "nan", "inf"])

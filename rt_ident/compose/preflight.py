@@ -7,8 +7,9 @@
   start. Cheap: no kernel compiled, no process started, no file written;
 * :func:`safety_monitor` and :func:`stall_policy`: the host-side checks of ``[safety]``, with the
   speed limit sized from what the axis is asked to do when the config leaves it open;
-* :func:`check_config`: the probing multisine against the torque limit, and no host control only
-  where something else holds the axis;
+* :func:`check_config`: the probing multisine against the torque limit, the reference against the speed
+  limit and the torque it takes (:func:`check_reference`), and no host control only where something else
+  holds the axis;
 * :func:`check_start`: the table's position when the device is opened, against the window, the
   reference and the probe's own motion, so that nothing is energized that would trip on its first
   ticks.
@@ -17,6 +18,8 @@
 from __future__ import annotations
 
 import math
+
+import numpy as np
 
 from drivers import BackendNotFound, make_backend
 from rt_ident.compose.build import (
@@ -70,10 +73,38 @@ def check_config(cfg: RunConfig, torque_limit: float) -> None:
         raise ConfigError("safety.max_stall_s", f"{after:g} s is within the {held:g} s the drive holds the last plan "
                           "(torque_hold + 2 ticks): a resume would assume the torque dropped while the drive still "
                           "applies it; make it longer")
+    if cfg.control.mode != "off":
+        check_reference(cfg, torque_limit)
     if cfg.control.mode == "off" and not drive_holds(cfg):
         raise ConfigError("control.mode", "'off' leaves a torque-mode axis with nothing holding it; run with "
                           "control, or give it a drive-side hold ([control] drive_holds = true for a real drive "
                           "in a position mode, position_hold / hold for the sim and the emulators)")
+
+
+def check_reference(cfg: RunConfig, torque_limit: float) -> None:
+    """The reference within what the safety limits allow and the axis can do: its peak speed within a set
+    ``[safety] max_speed_m_s`` (else the run trips on it; unset, the limit is sized from the reference), and the
+    torque its peak acceleration takes at ``[axis]`` I1 + I2 within what the torque limit leaves beside the
+    probe (else the loop saturates and the table lags the path by millimetres, a typo such as
+    ``frequency_hz = 20`` for 2 asking for g's of the table)."""
+    path, _ = reference_path(cfg)
+    # ~7 samples a tick on a grid no tick or common frequency divides: a path at a multiple of the tick rate
+    # (a 1 kHz circle on a 1 kHz tick) does not hide its peaks between the samples
+    _, v, a = path_samples(path, step_s=1.0 / (7.31 * cfg.loop.tick_hz))
+    v_peak = float(np.max(np.abs(v))) if v.size else 0.0
+    a_peak = float(np.max(np.abs(a))) if a.size else 0.0
+    limit = cfg.safety.max_speed_m_s
+    if limit is not None and v_peak > limit:
+        raise ConfigError("reference", f"its peak speed {v_peak * 1e3:.4g} mm/s is above safety.max_speed_m_s "
+                          f"({limit * 1e3:.4g} mm/s): the run would trip on it; slow the reference or raise the limit")
+    p = cfg.axis_params()
+    need = (p.I1 + p.I2) * a_peak / p.lead
+    room = torque_limit - (cfg.excitation.peak if cfg.excitation.kind != "none" else 0.0)
+    if not need <= room:
+        raise ConfigError("reference", f"its peak acceleration {a_peak:.4g} m/s^2 takes {need:.4g} N m at [axis] "
+                          f"I1 + I2, more than the {room:.4g} N m the torque limit ({torque_limit:g} N m) leaves "
+                          "beside the probe: the table would lag the path; slow the reference (its speed, "
+                          "frequency or size)")
 
 
 def check_start(cfg: RunConfig, x: float, sample_period: float, where: str = "") -> None:
