@@ -306,12 +306,20 @@ class RunConfig(_Section):
     # several axes in one run (an XY table): [axes.x], [axes.y], each overlaying the sections above
     # (axis, backend, estimator, control, safety, reference, plant, excitation) on this config
     axes: dict[str, dict[str, Any]] = Field(default_factory=dict)
-    contour: dict[str, Any] = Field(default_factory=dict)   # [contour]: a coordinated XY reference
+    contour: dict[str, Any] = Field(default_factory=dict)   # [contour]: reserved for a coordinated XY reference
     source: str | None = None
     _defaulted: tuple[str, ...] = PrivateAttr(default=())    # set by load(): see the module docstring
 
     _AXIS_SECTIONS = ("axis", "backend", "emulator", "excitation", "estimator", "safety", "control", "reference",
                       "plant")
+
+    @field_validator("contour")
+    @classmethod
+    def _contour_not_read(cls, v: dict[str, Any]) -> dict[str, Any]:
+        if v:
+            raise ValueError("the run does not read [contour] (yet): give the circle per axis, e.g. [axes.x] reference "
+                             '= { kind = "circle", axis = "x", ... } as configs/xy-circle.toml does')
+        return v
 
     def axis_configs(self) -> dict[str, RunConfig]:
         """One validated config per ``[axes.NAME]`` (this config with the axis's sections laid over;

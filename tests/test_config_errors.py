@@ -115,6 +115,12 @@ def test_a_reference_faster_than_a_set_speed_limit_is_refused_and_one_within_it_
     preflight(from_mapping(_run_cfg(reference={"kind": "sine", "amplitude": 0.005, "frequency_hz": 2.0})))
 
 
+def test_a_contour_section_the_run_would_ignore_is_refused_naming_where_the_circle_goes():
+    with pytest.raises(ConfigError, match=r"does not read \[contour\].*per axis") as e:
+        from_mapping(_run_cfg(contour={"kind": "circle", "radius": 0.005}))
+    assert e.value.field == "contour"
+
+
 # 2 ------------------------------------------------------------------------- the safety window
 @pytest.mark.parametrize("window", [[0.04, -0.04], [0.01, 0.01], [math.nan, 0.04], [-0.04, math.inf]],
                          ids=["reversed", "empty", "nan", "inf"])
