@@ -15,14 +15,31 @@ from rt_ident.loop.loop import IdentificationLoop
 
 if TYPE_CHECKING:
     from rt_ident.control.adaptation import Supervisor
+    from rt_ident.control.reference import Circle
 
 log = logging.getLogger(__name__)
+
+
+#: the longest trace kept (40 bytes a tick): two hours at 1 kHz
+MAX_ROWS = 7_200_000
+
+
+def trace_rows(ref: Circle, tick_s: float, n_ticks: int) -> int:
+    """The rows a trace keeps: the ticks up to the circle's end (not the run's: a long run would preallocate
+    for nothing), 8 to spare, at most :data:`MAX_ROWS` (then the circle's first part; a warning)."""
+    end = max(t1 for _, t1 in ref.windows().values())
+    n = min(n_ticks, math.ceil(end / tick_s)) + 8
+    if n > MAX_ROWS:
+        log.warning("circular test: the trace keeps the first %.0f s of the circle (%d ticks), not all %d",
+                    MAX_ROWS * tick_s, MAX_ROWS, n)
+    return min(n, MAX_ROWS)
 
 
 class ContourTrace:
     """The table's path on X and Y, one point per tick, when both axes follow a :class:`Circle` reference
     (``kind = "circle"``, ``axis = "x"`` / ``"y"``): afterwards, the circular test's figures (ISO 230-4 G,
-    F, H: :mod:`rt_ident.control.contour`) and its polar plot. Preallocated; a tick stores three floats."""
+    F, H: :mod:`rt_ident.control.contour`) and its polar plot. Preallocated for the ticks up to the circle's
+    end (at most :data:`MAX_ROWS`), whatever the run's duration; a tick stores five floats."""
 
     def __init__(self, loops: dict[str, IdentificationLoop], n_ticks: int) -> None:
         from rt_ident.control.reference import Circle
@@ -39,7 +56,7 @@ class ContourTrace:
             refs["x"].windows() == refs["y"].windows()
         self.ref = refs.get("x")
         self.tick_s = 1.0 / loops["x"].tick_hz if self.active else 0.0
-        n = n_ticks + 8 if self.active else 0
+        n = trace_rows(self.ref, self.tick_s, n_ticks) if self.active and self.ref is not None else 0
         self.buf = np.full((n, 5), np.nan)        # t, x, y of the table, x, y of the reference
         self.n = 0
 

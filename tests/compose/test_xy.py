@@ -32,6 +32,16 @@ def test_axes_overlay_the_shared_sections_and_name_the_bad_field():
     assert e.value.field == "axes.y.loop"
 
 
+def test_the_circular_tests_trace_is_sized_by_the_circle_not_by_the_runs_duration():
+    from rt_ident.compose.contour import MAX_ROWS, trace_rows
+    from rt_ident.control.reference import Circle
+
+    c = Circle(0.005, 1.0, "x", 1, 4.0, 0.2)                      # xy-sim.toml's: over at 10.2 s
+    assert trace_rows(c, 1e-3, 10**10) == 10_200 + 8              # a run of 1e7 s: 10 208 rows, not 1e10
+    assert trace_rows(c, 1e-3, 500) == 508                         # a run that ends before the circle
+    assert trace_rows(Circle(0.005, 1.0, "x", 10**6, 4.0, 0.2), 1e-3, 10**10) == MAX_ROWS
+
+
 def test_a_one_axis_config_has_no_axes_and_keeps_its_summary_shape():
     assert load(None).axis_configs() == {}
 
