@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rt_ident.errors import RtIdentError
+from rt_ident.errors import ConfigError, RtIdentError
 from rt_ident.outputs.text import fmt, json_default, um
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: our kernels against their peers, the loop's capacity "
@@ -196,7 +196,15 @@ def _print_soak(seconds: float, rate: float, sink: str, json_out: bool, record: 
     from rt_ident.bench.loop import soak
 
     if sink not in ("rrd", "off"):
-        raise RtIdentError(f"--soak-sink must be rrd or off, got {sink!r}")
+        raise RtIdentError(f"--sink must be rrd or off, got {sink!r}")
+    from rt_ident.bench.loop import trial_config
+    from rt_ident.config import from_mapping
+
+    try:                                      # what the trial's own process would refuse, said here in one line
+        from_mapping(trial_config(rate, seconds, sink, record=record))
+    except ConfigError as exc:
+        raise ConfigError("--rate", f"{rate:g} samples/s makes a run config that is refused ({exc}); lower it"
+                          ) from None
     err.print(f"soak: {seconds:g} s at {rate / 1e3:g} k samples/s, telemetry {sink} ...")
     res = soak(seconds, rate, sink, record=record)
     if json_out:

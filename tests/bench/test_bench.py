@@ -170,6 +170,21 @@ def test_bench_soak_command_prints_the_memory_table(monkeypatch):
     assert "RSS flat within +-5 %" in res.output and "True" in res.output and "500.0" in res.output
 
 
+@pytest.mark.parametrize(("args", "says"), [
+    (["--rate", "1e12"], "--rate: 1e+12 samples/s makes a run config that is refused (excitation.period_samples"),
+    (["--sink", "foo"], "--sink must be rrd or off, got 'foo'"),
+], ids=["rate", "sink"])
+def test_bench_soak_refuses_what_its_run_would_refuse_naming_the_option_before_starting_it(monkeypatch, args, says):
+    from typer.testing import CliRunner
+
+    from rt_ident.bench import loop as bench_loop
+    from rt_ident.cli import app
+
+    monkeypatch.setattr(bench_loop, "loop_trial", lambda *a, **k: pytest.fail("a trial was started"))
+    res = CliRunner().invoke(app, ["bench", "soak", "5", *args])
+    assert res.exit_code != 0 and says in str(res.exception), (res.output, res.exception)
+
+
 def test_bench_loop_rates_option_is_parsed_sorted_and_bad_values_are_refused(monkeypatch):
     from typer.testing import CliRunner
 
