@@ -52,6 +52,7 @@ def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("
     from rt_ident.compose.offline import run_offline
     from rt_ident.config import load
     from rt_ident.fleet.manifest import Entry, write_manifest
+    from rt_ident.fleet.paths import output_path
 
     if machines < 1 or days < 1:
         raise ConfigError("--machines/--days", "must be at least 1")
@@ -90,7 +91,7 @@ def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("
             p = dict(base)
             for k, factor in WEAR[wear_of[(machine, axis)]].items() if onset is not None else ():
                 p[k] *= factor(worn_days)
-            path = rec_dir / f"{machine}-{axis}-day{day:03d}.parquet"
+            path = output_path(rec_dir, machine, axis, f"day{day:03d}", suffix=".parquet")    # a typed name: no path
             cfg = load(None, **{"loop.realtime": False, "telemetry.sink": "off", "recording.enabled": False,
                                 "loop.duration": duration, **{f"axis.{k}": v for k, v in p.items()},
                                 "backend.seed": int(rng.integers(1 << 31)), "backend.torque_meas_noise": 2e-4,

@@ -64,3 +64,15 @@ def test_read_only_commands_say_they_only_read_the_history_and_identify_says_it_
         assert "created if missing" not in text and "only read, never written" in text, cmd
     r = _run("-m", "rt_ident", "fleet", "identify", "--help", cwd=tmp_path)
     assert "created if missing" in " ".join(r.stdout.split())
+
+
+def test_an_axis_name_that_is_a_path_writes_its_recordings_inside_the_fleet_folder(tmp_path):
+    from rt_ident.fleet.make import make_fleet
+    from rt_ident.fleet.manifest import read_manifest
+
+    out = tmp_path / "fleet" / "a"
+    make_fleet(out, machines=1, axes=("x", "../../../../escaped"), days=1, worn=0.0, duration=0.2, seed=1)
+    files = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
+    assert all(p.parts[:2] == ("fleet", "a") for p in files), files
+    assert (out / "recordings" / "m01-x-day000.parquet").is_file()             # a plain name keeps its file name
+    assert sorted(e.axis for e in read_manifest(out / "manifest.csv")) == ["../../../../escaped", "x"]
