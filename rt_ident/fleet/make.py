@@ -99,7 +99,7 @@ def make_fleet(out: str | Path, *, machines: int = 4, axes: tuple[str, ...] = ("
             res = run_offline(cfg, record=str(path), overwrite=True)
             if res["stop"]:
                 raise RtIdentError(f"{path.name}: the simulated run stopped: {res['stop']}")
-            entries.append(Entry(str(path.relative_to(out)), machine, axis,
+            entries.append(Entry(str(path.relative_to(out.resolve())), machine, axis,
                                  day0 + dt.timedelta(days=day, minutes=int(rng.integers(0, 120)))))
             recs.append({"day": day, **p})
             done += 1
