@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from rt_ident.errors import ConfigError
 from rt_ident.fleet.drift import WATCHED, DriftSettings, drift
 from rt_ident.fleet.findings import Limits, limit_words
 from rt_ident.fleet.paths import output_path, safe_name
@@ -224,6 +225,8 @@ def write_report(history: str | Path, out_dir: str | Path, settings: DriftSettin
     settings = settings or DriftSettings()
     limits = limits or Limits()
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError("--out", f"{out} is a file; the report is a folder (its page, figures and data)")
     data = out / "data"
     data.mkdir(parents=True, exist_ok=True)
     res = drift(history, settings, limits)

@@ -152,6 +152,17 @@ def test_a_machine_named_dot_dot_slash_writes_nothing_outside_out_and_shows_as_t
     assert "<b>y</b>" not in html and "&lt;b&gt;y&lt;/b&gt;" in html and "../../x" in html
 
 
+def test_an_out_that_is_a_file_is_refused_naming_out_and_left_as_it_was(wear_fleet, tmp_path):
+    from rt_ident.errors import ConfigError
+
+    h = wear_fleet.history(tmp_path / "h", wear_fleet.series_rows(wear_fleet.kind(None)))
+    out = tmp_path / "notes.txt"
+    out.write_text("mine")
+    with pytest.raises(ConfigError, match="is a file") as e:
+        write_report(h, out)
+    assert e.value.field == "--out" and out.read_text() == "mine"
+
+
 def test_two_series_whose_names_clean_to_the_same_file_keep_apart(wear_fleet, tmp_path):
     a = wear_fleet.series_rows(wear_fleet.kind(None))
     b = wear_fleet.series_rows(wear_fleet.kind("b"))
