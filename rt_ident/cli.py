@@ -685,8 +685,8 @@ def commission(
         raise ConfigError("axes", "commission one axis at a time: give a config per axis (copy the axis's "
                                   "[axes.NAME] sections to the top level)")
     folder = out_dir or Path("runs") / f"commission-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
-    if folder.exists() and any(folder.iterdir()):
-        raise ConfigError("--out", f"{folder} exists and is not empty; choose another folder")
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        raise ConfigError("--out", f"{folder} exists and is not an empty folder; choose another folder")
     early = prestart()                           # its imports beside those of the stages
     try:
         from rt_ident.commission.stages import commission as run_commission
@@ -756,18 +756,23 @@ def _from_ctrl_c(exc: BaseException) -> bool:
 
 
 def _environment_error(exc: OSError) -> int | None:
-    """A full disk or a refused permission that no part of the command turned into its own message: one
-    line and exit 4 (its output is incomplete) or 2 (a permission to fix); None for any other OSError,
-    which is then an internal error."""
+    """A full disk, a refused permission or a path of the wrong kind that no part of the command turned into
+    its own message: one line and exit 4 (its output is incomplete) or 2 (a permission or a path to fix); None
+    for any other OSError, which is then an internal error."""
     import errno
 
     full = {errno.ENOSPC, errno.EDQUOT, errno.EROFS}
     refused = {errno.EACCES, errno.EPERM}
-    if exc.errno not in full | refused:
+    misplaced = {errno.ENOTDIR, errno.EISDIR}
+    if exc.errno not in full | refused | misplaced:
         return None
     if _VERBOSE:
         err.print_exception()
     where = f"{exc.filename}: " if exc.filename else ""
+    if exc.errno in misplaced:
+        err.print(f"[red]error:[/red] {escape(where)}{escape(exc.strerror or str(exc))}: a file where a folder was "
+                  "meant, or the other way round; choose another path", highlight=False)
+        return 2
     if exc.errno in full:
         fix = "write elsewhere" if exc.errno == errno.EROFS else "make room (or write elsewhere)"
         err.print(f"[red]error:[/red] {escape(where)}{escape(exc.strerror or str(exc))}: what this command was "

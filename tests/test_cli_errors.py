@@ -123,8 +123,11 @@ def test_an_unexpected_exception_is_one_internal_error_line_and_its_traceback_on
                                                                        "elsewhere"),
     ("PermissionError(errno.EACCES, 'Permission denied', '/etc/x')", 2, "/etc/x: Permission denied: this user may "
                                                                        "not do that there"),
+    ("NotADirectoryError(errno.ENOTDIR, 'Not a directory', '/tmp/a-file/data')", 2, "/tmp/a-file/data: Not a "
+                                                                                    "directory: a file where a folder "
+                                                                                    "was meant"),
     ("OSError(errno.EBADF, 'Bad file descriptor')", 1, "internal error: OSError: [Errno 9] Bad file descriptor"),
-], ids=["full", "read-only", "permission", "other"])
+], ids=["full", "read-only", "permission", "not-a-folder", "other"])
 def test_a_full_disk_or_a_refused_permission_is_one_line_naming_the_fix_not_an_internal_error(tmp_path, raised, code,
                                                                                                 says):
     script = _script(tmp_path, f"""

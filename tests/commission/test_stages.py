@@ -384,3 +384,15 @@ def test_ctrl_c_stops_a_commissioning_started_with_sigint_ignored_and_leaves_tha
         signal.signal(signal.SIGINT, old)
     r = json.loads((tmp_path / "c" / "commission.json").read_text())
     assert r["interrupted"] is True and r["failed"]["check"] == "interrupted"
+
+
+def test_an_out_that_is_a_file_is_refused_naming_out_and_left_as_it_was(tmp_path):
+    from typer.testing import CliRunner
+
+    from rt_ident.cli import app
+
+    out = tmp_path / "notes.txt"
+    out.write_text("mine")
+    r = CliRunner().invoke(app, ["commission", str(ROOT / "configs" / "sim.toml"), "--out", str(out)])
+    assert r.exit_code != 0 and isinstance(r.exception, ConfigError) and r.exception.field == "--out", r.output
+    assert "is not an empty folder" in str(r.exception) and out.read_text() == "mine"
