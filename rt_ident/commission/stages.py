@@ -61,15 +61,19 @@ HOST_FIX = "loop.realtime = true (or a less busy host): "
 
 
 def host_trouble(summary: dict[str, Any], sample_period: float, run_failed: bool = True) -> str | None:
-    """What the host did to a run that no axis setting explains: a loop stall, samples lost on the
-    device's link, or many late ticks; else None. ``run_failed`` (a run that stopped or failed its
-    check: the gaps may be why): any lost sample counts; else only enough to change what the run
+    """What the host did to a run that no axis setting explains: a stop the run put on the host (its fix
+    names ``loop.realtime``: a drive that stopped hearing the host, an emulated device starved), a loop
+    stall, samples lost on the device's link, or many late ticks; else None. ``run_failed`` (a run that
+    stopped or failed its check: the gaps may be why): any lost sample counts; else only enough to change what the run
     measures (more than ``LOST_SHARE`` of them, or one gap of ``LOST_GAP_S`` or longer): a move over a
     few short gaps measures the axis all the same. Overruns count only in a run that failed, and when
     more than ``OVERRUN_SHARE`` of its ticks: a non-real-time loop has a few in most runs."""
     loop = summary.get("loop") or {}
     stalls = loop.get("stalls") or {}
     said = []
+    stop = summary.get("stop") or {}
+    if str(stop.get("fix") or "").startswith("loop.realtime"):     # the run itself put its end on the host
+        said.append(f"the run stopped ({stop.get('cause')}: {stop.get('message')})")
     if stalls.get("count"):
         said.append(f"the loop stalled {stalls['count']} time(s), for {float(stalls.get('longest_ms') or 0):.0f} ms "
                     "at longest")

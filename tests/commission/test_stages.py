@@ -341,6 +341,18 @@ def test_late_ticks_name_the_host_only_in_a_run_that_failed_and_when_over_a_shar
         assert said == f"the loop was late on {overruns} of 3100 ticks (9.7 ms at most)"
 
 
+def test_a_stop_the_run_put_on_the_host_names_the_host_and_one_it_put_on_the_axis_does_not():
+    from drivers.errors import RpdoTimeout
+    from rt_ident.commission.stages import host_trouble
+
+    loop = {"stalls": {"count": 0}, "samples": 5600, "lost_samples": 0}
+    drive_deaf = {"cause": "device-fault", "message": "EMCY 0x8250 (RPDO timeout)", "fix": RpdoTimeout.fix}
+    said = host_trouble({"loop": loop, "stop": drive_deaf}, 0.5e-3)
+    assert said == "the run stopped (device-fault: EMCY 0x8250 (RPDO timeout))"
+    trip = {"cause": "travel-limit", "message": "table at 40 mm", "fix": "safety.window"}
+    assert host_trouble({"loop": loop, "stop": trip}, 0.5e-3) is None
+
+
 @pytest.mark.parametrize("passed", [True, False])
 def test_a_move_that_lost_a_few_samples_runs_again_only_when_it_failed(tmp_path, monkeypatch, passed):
     from rt_ident.commission import stages
