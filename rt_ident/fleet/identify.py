@@ -311,23 +311,26 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
     pending: list[dict[str, Any]] = []
     oldest = 0.0                                  # when the oldest unwritten result arrived
 
+    def write() -> list[dict[str, Any]] | None:
+        """The rows written; None once the history has refused a write (the run then ends)."""
+        if write_error:
+            return None
+        try:
+            return _append(history, pending, index)
+        except OSError as exc:
+            write_error.append(f"{exc.filename or history}: {exc.strerror or exc}")
+            stop.set()
+            return None
+
     def flush() -> None:
-        if write_error:                           # nothing more can be kept
-            counts["unwritten"] += len(pending)
-            pending.clear()
-            return
         with _signals_deferred():
-            try:
-                written = _append(history, pending, index)
-            except OSError as exc:
-                write_error.append(f"{exc.filename or history}: {exc.strerror or exc}")
+            written = write()
+            if written is None:
                 counts["unwritten"] += len(pending)
-                pending.clear()
-                stop.set()
-                return
-            counts["identified"] += len(written)
-            counts["untrusted"] += sum(not r["trusted"] for r in written)
-            counts["skipped"] += len(pending) - len(written)      # another run (or another path) had it
+            else:
+                counts["identified"] += len(written)
+                counts["untrusted"] += sum(not r["trusted"] for r in written)
+                counts["skipped"] += len(pending) - len(written)      # another run (or another path) had it
             pending.clear()
 
     def take(fut: Any) -> None:
