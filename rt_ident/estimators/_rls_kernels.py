@@ -10,14 +10,13 @@ numba's dispatcher costs ~80 ns per array argument, which dominated a 13-argumen
 The public attributes of the estimator are numpy views into ``S``.
 
 Compiled kernels are specialised per shape: one loop per form (``core``) in which n and q are
-compile-time constants (closure constants), so LLVM fully unrolls the 5 x 4 loops, built
-once per process (then loaded from numba's on-disk cache). :func:`block_kernel` runs it on
-the rows of a block and :func:`update_kernel` on one sample: one sample through either gives
-bit-identical results. ``fastmath={"contract"}`` only:
-a*b + c may become one fused multiply-add (one rounding instead of two: at least as
-accurate, and ~20 % faster on the 5 x 4 problem, which is bound by the multiply-add count
-and latency). No other fast-math flag: no reassociation (sums keep their order), and no
-``nnan``/``ninf``, which would break the NaN propagation used to reject bad samples.
+compile-time constants (closure constants), so LLVM fully unrolls the 5 x 4 loops, compiled
+once and then loaded from numba's on-disk cache. :func:`block_kernel` runs it on the rows of a
+block and :func:`update_kernel` on one sample: one sample through either gives bit-identical
+results, whether the kernels were just compiled or loaded from the cache. No fast-math flag: with
+``contract`` (fused multiply-adds), the kernels loaded from the cache rounded differently from the
+ones just compiled and from each other, for ~5 % of speed; no reassociation (sums keep their
+order), and no ``nnan``/``ninf``, which would break the NaN propagation used to reject bad samples.
 The plain-numpy references in :mod:`._rls_reference` (``compiled=False``) agree with them to
 1e-12 relative (tested).
 
@@ -77,6 +76,20 @@ def _offsets(n: int, q: int) -> tuple[int, ...]:
     return tuple(lay[name][0] for name in ("M", "d", "theta", "f", "g", "k", "am", "inv", "e", "W"))
 
 
+def _fixed_identity(dispatcher: Callable, name: str) -> None:
+    """Name the dispatcher the same in every process.
+
+    numba keys a cached closure by its pickled cells (with the dispatchers they call), and a dispatcher
+    pickles with a random uuid: the closures over ``core`` (``block``, ``update``) would miss the cache in
+    every new process, compile again and add files to it. numba has no public way to set it; where this
+    private one is gone, only the cache misses come back.
+    """
+    try:
+        dispatcher._set_uuid(name)  # type: ignore[attr-defined]
+    except (AttributeError, AssertionError):
+        pass
+
+
 @numba.njit(inline="always")
 def _cov_coeffs(r, trace, lam, variant, max_trace):  # noqa: ANN001, ANN202
     """(a, b, c) of ``P <- a P - b v v^T``, ``K = c v`` for r = phi^T P phi, v = P phi.
@@ -98,6 +111,9 @@ def _cov_coeffs(r, trace, lam, variant, max_trace):  # noqa: ANN001, ANN202
     return s, s * c, c
 
 
+_fixed_identity(_cov_coeffs, "rt_ident.rls.cov_coeffs")
+
+
 # --------------------------------------------------------------------------- shape-specialised kernels
 # Each form has one ``core`` loop on flat arrays (row t of Phi at Phi[t*n:(t+1)*n]); ``block`` (2-D
 # inputs) and ``update`` (one sample) both call it. Notation: U[i, j] (or P[i, j]) is S[oM + i*n + j],
@@ -109,7 +125,7 @@ def _make_ud(n: int, q: int) -> Callable:
     nq = n * q
     oM, oD, oT, oF, oG, oK, oA, oI, oE, oW = _offsets(n, q)
 
-    @numba.njit(cache=True, fastmath={"contract"})
+    @numba.njit(cache=True)
     def core(S, Phi, Y, m, hist, hpos, record):  # noqa: ANN001, ANN202
         lam = S[0]
         variant = int(S[1])
@@ -216,7 +232,7 @@ def _make_cov(n: int, q: int) -> Callable:
     nq = n * q
     oM, oD, oT, oF, oG, oK, oA, oI, oE, oW = _offsets(n, q)
 
-    @numba.njit(cache=True, fastmath={"contract"})
+    @numba.njit(cache=True)
     def core(S, Phi, Y, m, hist, hpos, record):  # noqa: ANN001, ANN202
         lam = S[0]
         variant = int(S[1])
@@ -279,7 +295,9 @@ def _make_cov(n: int, q: int) -> Callable:
 
 @functools.cache
 def _core(form: str, n: int, q: int) -> Callable:
-    return _make_ud(n, q) if form == "ud" else _make_cov(n, q)
+    core = _make_ud(n, q) if form == "ud" else _make_cov(n, q)
+    _fixed_identity(core, f"rt_ident.rls.{form}.{n}x{q}")
+    return core
 
 
 @functools.cache

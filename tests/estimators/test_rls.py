@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -153,6 +157,40 @@ def test_warmup_compiles_the_kernels_for_the_requested_shapes():
     for form in FORMS:
         assert len(update_kernel(form, 3, 2).signatures) == 1
         assert len(block_kernel(form, 3, 2).signatures) >= 1
+
+
+_KERNELS_IN_A_NEW_PROCESS = """
+import hashlib, numpy as np
+from rt_ident.estimators.rls import FORMS, RecursiveLeastSquares
+rng = np.random.default_rng(0)
+Phi = rng.standard_normal((300, 3))
+Y = Phi @ rng.standard_normal((3, 2)) + 0.05 * rng.standard_normal((300, 2))
+for form in FORMS:
+    a = RecursiveLeastSquares(3, 2, forgetting=0.99, variant="directional", form=form)
+    b = RecursiveLeastSquares(3, 2, forgetting=0.99, variant="directional", form=form)
+    a.update_block(Phi, Y)
+    for phi, y in zip(Phi, Y):
+        b.update(phi, y)
+    same = np.array_equal(a.theta, b.theta) and np.array_equal(a.P, b.P)
+    print("theta", form, same, hashlib.sha256(a.theta.tobytes() + a.P.tobytes()).hexdigest())
+"""
+
+
+def test_rls_kernels_compile_once_and_load_from_the_cache_bit_identical_to_the_fresh_compile(tmp_path):
+    # block and update are closures over a compiled core, and numba keys their cache entries by those cells
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "NUMBA_DEBUG_CACHE": "1"}
+    saved, results = [], []
+    for _ in range(2):
+        r = subprocess.run([sys.executable, "-c", _KERNELS_IN_A_NEW_PROCESS], env=env, capture_output=True,
+                           text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-500:]
+        saved.append([line for line in r.stdout.splitlines() if line.startswith("[cache] data saved")])
+        results.append([line.split() for line in r.stdout.splitlines() if line.startswith("theta")])
+    assert len(saved[0]) >= 3 * len(FORMS)          # core, block and update per form, compiled in the first
+    assert saved[1] == []
+    assert [form for _, form, _, _ in results[0]] == list(FORMS)
+    assert all(same == "True" for run in results for _, _, same, _ in run)   # one sample through either
+    assert results[0] == results[1]
 
 
 # --------------------------------------------------------------------------- forgetting
