@@ -153,21 +153,21 @@ def test_per_sample_update_and_block_update_give_identical_estimates(form):
 
 
 def test_warmup_compiles_the_kernels_for_the_requested_shapes():
-    warmup(shapes=((3, 2),))
+    warmup(shapes=((3, 1),))                  # a shape other tests use too: one compile fewer from a cold cache
     for form in FORMS:
-        assert len(update_kernel(form, 3, 2).signatures) == 1
-        assert len(block_kernel(form, 3, 2).signatures) >= 1
+        assert len(update_kernel(form, 3, 1).signatures) == 1
+        assert len(block_kernel(form, 3, 1).signatures) >= 1
 
 
 _KERNELS_IN_A_NEW_PROCESS = """
 import hashlib, numpy as np
 from rt_ident.estimators.rls import FORMS, RecursiveLeastSquares
 rng = np.random.default_rng(0)
-Phi = rng.standard_normal((300, 3))
-Y = Phi @ rng.standard_normal((3, 2)) + 0.05 * rng.standard_normal((300, 2))
+Phi = rng.standard_normal((300, 2))
+Y = Phi @ rng.standard_normal((2, 1)) + 0.05 * rng.standard_normal((300, 1))
 for form in FORMS:
-    a = RecursiveLeastSquares(3, 2, forgetting=0.99, variant="directional", form=form)
-    b = RecursiveLeastSquares(3, 2, forgetting=0.99, variant="directional", form=form)
+    a = RecursiveLeastSquares(2, 1, forgetting=0.99, variant="directional", form=form)
+    b = RecursiveLeastSquares(2, 1, forgetting=0.99, variant="directional", form=form)
     a.update_block(Phi, Y)
     for phi, y in zip(Phi, Y):
         b.update(phi, y)
@@ -347,12 +347,12 @@ def test_information_matrix_is_sum_of_outer_products_plus_prior():
 
 
 def test_single_output_accepts_scalar_targets_and_vector_theta0():
-    est = RecursiveLeastSquares(2, theta0=np.array([1.0, 2.0]), p0=[1.0, 4.0])
-    assert est.theta.shape == (2, 1)
-    assert est.update(np.array([1.0, 0.0]), 3.0)
+    est = RecursiveLeastSquares(3, theta0=np.array([1.0, 2.0, 0.5]), p0=[1.0, 4.0, 2.0])
+    assert est.theta.shape == (3, 1)
+    assert est.update(np.array([1.0, 0.0, 0.0]), 3.0)
     assert est.theta[0, 0] == pytest.approx(1.0 + 1.0 * (3.0 - 1.0) / 2.0)
-    assert est.update_block(np.ones((3, 2)), np.ones(3)) == 3
-    assert est.predict(np.array([1.0, 1.0])).shape == (1,)
+    assert est.update_block(np.ones((3, 3)), np.ones(3)) == 3
+    assert est.predict(np.array([1.0, 1.0, 1.0])).shape == (1,)
     with pytest.raises(ValueError):
         est.theta[0, 0] = 5.0                             # read-only view
 
