@@ -115,7 +115,7 @@ def check_start(cfg: RunConfig, x: float, sample_period: float, where: str = "")
     name = f"axis {where}: " if where else ""
     span = f"safety.window [{lo * 1e3:.3f}, {hi * 1e3:.3f}] mm"
     if not math.isfinite(x):
-        raise ConfigError("safety.window", f"{name}the table's position reads {x!r}; check the scale")
+        raise ConfigError("safety.window", f"{name}the table's position reads {float(x)}; check the scale")
     if not lo <= x <= hi:
         raise ConfigError("safety.window", f"{name}the table is at {x * 1e3:.3f} mm, outside {span}: move it inside "
                           "before enabling, or widen the window")

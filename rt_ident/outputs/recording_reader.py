@@ -94,7 +94,7 @@ def _decode_metadata(schema_metadata: dict[bytes, bytes] | None, where: Path) ->
 def _check_finite(name: str, x: np.ndarray, where: Path) -> None:
     bad = np.flatnonzero(~np.isfinite(x))
     if bad.size:
-        raise DataError(f"{where}: column {name!r} has a non-finite value {x[bad[0]]!r} at data row {bad[0] + 1}")
+        raise DataError(f"{where}: column {name!r} has a non-finite value {float(x[bad[0]])} at data row {bad[0] + 1}")
 
 
 #: magnitudes no axis of this kind reaches (the numerics overflow long before a fit means anything)
@@ -147,7 +147,7 @@ def _build(cols: dict[str, np.ndarray], metadata: dict[str, Any], source: str, w
     if steps.size:
         i = int(steps[0]) + 1
         raise DataError(
-            f"{where}: t is not strictly increasing at data row {i + 1} (t={t[i]!r} after {t[i - 1]!r})"
+            f"{where}: t is not strictly increasing at data row {i + 1} (t={float(t[i])!r} after {float(t[i - 1])!r})"
         )
     seq = cols.get("seq")
     return Recording(

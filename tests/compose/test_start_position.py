@@ -109,6 +109,13 @@ def test_a_start_outside_the_window_is_refused_before_the_device_is_enabled(monk
     assert activated == []
 
 
+def test_a_scale_that_reads_no_number_is_refused_in_plain_words():
+    from rt_ident.compose.preflight import check_start
+
+    with pytest.raises(ConfigError, match=r"axis x: the table's position reads nan; check the scale$"):
+        check_start(cfg(), np.float64("nan"), 1e-3, where="x")
+
+
 def test_a_reference_that_leaves_the_window_from_where_the_table_is_is_refused():
     c = cfg(plant__actual__x0=0.035, reference__kind="moves", reference__positions=[0.0, 0.01],
             reference__v_max=0.02, reference__a_max=0.5, reference__j_max=20.0)
