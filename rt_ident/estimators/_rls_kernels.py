@@ -13,10 +13,10 @@ Compiled kernels are specialised per shape: one loop per form (``core``) in whic
 compile-time constants (closure constants), so LLVM fully unrolls the 5 x 4 loops, compiled
 once and then loaded from numba's on-disk cache. :func:`block_kernel` runs it on the rows of a
 block and :func:`update_kernel` on one sample: one sample through either gives bit-identical
-results, whether the kernels were just compiled or loaded from the cache. No fast-math flag: with
-``contract`` (fused multiply-adds), the kernels loaded from the cache rounded differently from the
-ones just compiled and from each other, for ~5 % of speed; no reassociation (sums keep their
-order), and no ``nnan``/``ninf``, which would break the NaN propagation used to reject bad samples.
+results, whether the kernels were just compiled or loaded from the cache. No fast-math flag:
+``contract`` (fused multiply-adds) is a little faster, but kernels loaded from the cache then round
+differently from those just compiled and from each other; no reassociation (sums keep their order),
+and no ``nnan``/``ninf``, which would break the NaN propagation used to reject bad samples.
 The plain-numpy references in :mod:`._rls_reference` (``compiled=False``) agree with them to
 1e-12 relative (tested).
 
