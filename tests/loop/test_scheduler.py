@@ -220,3 +220,29 @@ def test_apply_realtime_locks_memory_and_collects_before_it_turns_sched_fifo(res
     assert seen["mlockall"] not in (os.SCHED_FIFO, fifo) and seen["gc"] not in (os.SCHED_FIFO, fifo)
     assert os.sched_getscheduler(0) in (os.SCHED_FIFO, fifo)
     assert list(report) == ["sched_fifo", "affinity", "mlockall", "gc_freeze"]
+
+
+_ARROW_CHILD = (
+    "import json, rt_ident, numpy as np, pyarrow as pa, pyarrow.parquet as pq, sys\n"
+    "def vm():\n"
+    "    return next(int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmSize'))\n"
+    "before = vm()\n"
+    "pq.write_table(pa.table({'t': np.arange(1e5)}), sys.argv[1]); pq.read_table(sys.argv[1])\n"
+    "print(json.dumps({'pool': pa.default_memory_pool().backend_name, 'grew_mb': (vm() - before) / 1024}))\n"
+)
+
+
+@pytest.mark.parametrize("env", [None, "jemalloc"], ids=["default", "users-own"])
+def test_a_recording_written_and_read_in_process_maps_no_arena_a_real_time_lock_would_pin(tmp_path, env):
+    """mlockall faults in every page a process maps: Arrow's mimalloc arena (1 GiB at its first
+    allocation) would be pinned by the next real-time run in the same process. A user's own pool stays."""
+    environ = {k: v for k, v in os.environ.items() if k != "ARROW_DEFAULT_MEMORY_POOL"}
+    if env is not None:
+        environ["ARROW_DEFAULT_MEMORY_POOL"] = env
+    out = subprocess.run([sys.executable, "-c", _ARROW_CHILD, str(tmp_path / "r.parquet")], env=environ,
+                         capture_output=True, text=True, timeout=120, check=True)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    if env is None:
+        assert got["pool"] == "system" and got["grew_mb"] < 256, got
+    else:
+        assert got["pool"] == env, got
