@@ -184,9 +184,10 @@ class LoopRealtime:
     opened (a collection holds the GIL for tenths of a second: the thread that sends the host's
     heartbeat until the SYNC runs would wait that long, and a drive watching it faults); :meth:`begin`
     is then quick; :meth:`end` stops the poller, gives the thread back the policy and CPUs it had
-    before and unlocks the memory the run locked. Register :meth:`end` before the backend's context,
-    so that on an error it runs after the backend's safe stop (the SYNC sender the poller could stall
-    is gone by then: see rt_ident.loop.idle_poll); on a normal end call it after ``safe_stop()``.
+    before, unlocks the memory the run locked and unfreezes the heap it froze. Register :meth:`end`
+    before the backend's context, so that on an error it runs after the backend's safe stop (the SYNC
+    sender the poller could stall is gone by then: see rt_ident.loop.idle_poll); on a normal end call
+    it after ``safe_stop()``.
     """
 
     def __init__(self, cfg: RunConfig, stop: threading.Event | None = None) -> None:
@@ -198,12 +199,17 @@ class LoopRealtime:
         self._saved: tuple[int, Any, set[int]] | None = None
         self._claim: CpuClaim | None = None
         self._unlock = False                       # end() unlocks the memory this run locked
+        self._unfreeze = False                     # end() unfreezes the heap this run froze
 
     def prepare(self) -> None:
         """The slow part, as an ordinary thread and before the device is opened (idempotent). First the
         claim on the loop's CPU (rt_ident.loop.cpu_claim): it may wait for another loop, and may refuse."""
         if self._prepared is not None:
             return
+        # objects frozen stay out of every collection: the run's own cycles (its helpers and their
+        # shared-memory rings, 80 MB a run) would outlive it in a process that goes on. A heap the
+        # caller froze before stays frozen.
+        self._unfreeze = gc.get_freeze_count() == 0
         if not self.cfg.loop.realtime:
             # no collector pause in the loop of an ordinary process either (a gen-1 pass of tens of ms
             # is a stall): collected and frozen here, turned off by begin(), back on after the run
@@ -256,7 +262,8 @@ class LoopRealtime:
         return self.report
 
     def end(self) -> None:
-        """Stop the idle poller, leave real time and free the CPU (idempotent; never raises)."""
+        """Stop the idle poller, leave real time, free the CPU and unfreeze the heap the run froze
+        (idempotent; never raises)."""
         poller, self.poller = self.poller, None
         if poller is not None:
             poller.stop()
@@ -281,6 +288,9 @@ class LoopRealtime:
         claim, self._claim = self._claim, None
         if claim is not None:
             claim.release()
+        if self._unfreeze:
+            self._unfreeze = False
+            gc.unfreeze()                              # collectable again once the caller enables the collector
 
 
 def start_idle_poll(cfg: RunConfig, realtime: dict[str, Any], tickers: list, *, poller: Any = None,

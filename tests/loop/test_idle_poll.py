@@ -271,6 +271,43 @@ def test_a_real_time_run_unlocks_the_memory_it_locked_before_its_final_fit_and_k
         assert seen["final fit"] == 0 and after == 0
 
 
+def _shared_heap_bytes() -> int:
+    """What multiprocessing's heap holds mapped in this process (the helpers' rings are there)."""
+    import multiprocessing.heap
+
+    return sum(a.size for a in multiprocessing.heap.BufferWrapper._heap._arenas)
+
+
+@pytest.mark.parametrize("frozen_by_caller", [False, True], ids=["unfrozen", "frozen-by-caller"])
+def test_runs_in_one_process_free_each_runs_helpers_and_rings_and_keep_a_callers_frozen_heap(frozen_by_caller):
+    # the run freezes the heap for its loop: left frozen, each run's cycles (its helpers and their
+    # 64 MB and 4 MB rings) would stay mapped for as long as the process lives
+    import gc
+
+    if gc.get_freeze_count():
+        pytest.skip(f"this process has a frozen heap already ({gc.get_freeze_count()} objects)")
+    cfg = load(None, **{**QUIET, "loop.duration": 0.2, "loop.realtime": False})
+    try:
+        if frozen_by_caller:
+            gc.freeze()
+        callers = gc.get_freeze_count()
+        run_mod.run(cfg)
+        gc.collect()
+        after_one = _shared_heap_bytes()
+        for _ in range(2):
+            run_mod.run(cfg)
+        gc.collect()
+        after_three = _shared_heap_bytes()
+        left_frozen = gc.get_freeze_count()
+    finally:
+        gc.unfreeze()
+        gc.enable()
+    if frozen_by_caller:
+        assert left_frozen >= callers > 0
+    else:
+        assert left_frozen == 0 and after_three <= after_one, (after_one, after_three)
+
+
 @pytest.mark.xdist_group("realtime")
 def test_a_run_that_fails_in_its_loop_leaves_real_time_after_the_safe_stop(restore_scheduling, monkeypatch):
     if len(os.sched_getaffinity(0)) < 2:
