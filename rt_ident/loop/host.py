@@ -207,8 +207,8 @@ class LoopRealtime:
         if self._prepared is not None:
             return
         # objects frozen stay out of every collection: the run's own cycles (its helpers and their
-        # shared-memory rings, 80 MB a run) would outlive it in a process that goes on. A heap the
-        # caller froze before stays frozen.
+        # shared-memory rings) would outlive it in a process that goes on. A heap the caller froze
+        # before stays frozen.
         self._unfreeze = gc.get_freeze_count() == 0
         if not self.cfg.loop.realtime:
             # no collector pause in the loop of an ordinary process either (a gen-1 pass of tens of ms
