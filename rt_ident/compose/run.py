@@ -63,6 +63,10 @@ from rt_ident.processes.jobs import make_fit_process
 log = logging.getLogger(__name__)
 
 
+#: how long the final fit's hand-offs to a telemetry process may wait for room in its ring [s]
+FINAL_HANDOFF_WAIT_S = 2.0
+
+
 @dataclass
 class _Axis:
     """One axis of a run: its config, device, helpers, loop and output files."""
@@ -322,6 +326,8 @@ def _final_fit(ax: _Axis) -> str | None:
     if ax.cfg.excitation.kind == "none":
         return "nothing to identify: no probing excitation (excitation.kind = \"none\")"
     assert ax.loop is not None                           # built before any run ends with a fit
+    if ax.helpers.telemetry is not None:                 # the dashboard ends on the values the summary reports
+        ax.helpers.telemetry.wait_for_room(FINAL_HANDOFF_WAIT_S)
     return final_fit(ax.loop, ax.loop.est)
 
 

@@ -672,6 +672,7 @@ class TelemetryProcess:
         self._schemas: dict[tuple[str, ...], int] = {}   # window names sent to the child -> their id
         self._row_keys: dict[tuple[str, ...], np.ndarray] = {}   # publish_rows: checked keys -> their words
         self._closed = False
+        self._room_until = -math.inf           # wait_for_room(): until when a full ring is waited on
         self._footer: dict[str, Any] = {}   # close(): whether the .rrd got its footer (_finish)
         self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
         self._sent_before = 0
@@ -743,6 +744,22 @@ class TelemetryProcess:
             return self.config.sink == "off"
         return bool(self._ready.wait(timeout))
 
+    def wait_for_room(self, seconds: float) -> None:
+        """From now on a hand-off that finds the ring full waits for the child to drain it, up to
+        ``seconds`` from now in all, instead of being dropped. For what follows the loop (the final fit's
+        estimate and FRF): nothing real-time waits then, and a child a busy host starved during the run
+        would otherwise leave the dashboard without the values the run reports."""
+        self._room_until = time.monotonic() + max(0.0, float(seconds))
+
+    def _retry(self, put: Callable[[MessageRing], bool]) -> bool:
+        """``put`` again until it fits, while :meth:`wait_for_room` allows and the child lives."""
+        ring = self._ring
+        while ring is not None and time.monotonic() < self._room_until and self.alive:
+            time.sleep(0.002)
+            if put(ring):
+                return True
+        return False
+
     def set_truth(self, truth: Mapping[str, float]) -> bool:
         """True values drawn next to the estimates (keys from ``ESTIMATE_KEYS``). Never blocks."""
         for k, v in truth.items():
@@ -779,7 +796,7 @@ class TelemetryProcess:
         msg = {prefix + "t": np.array([float(t)])}
         for k, v in arrays.items():
             msg[prefix + k] = np.asarray(v, dtype=np.float64).ravel()
-        if self._ring is None or self._closed or not self._ring.put(msg):
+        if self._ring is None or self._closed or not (self._ring.put(msg) or self._retry(lambda r: r.put(msg))):
             self._dropped += 1
             return False
         return True
@@ -787,7 +804,8 @@ class TelemetryProcess:
     def _push_truth(self) -> bool:
         if self._ring is None:  # not started: handed to the child at start()
             return self.config.sink != "off"
-        if self._closed or not self._ring.put({_TRUTH + k: np.array([v]) for k, v in self._truth.items()}):
+        msg = {_TRUTH + k: np.array([v]) for k, v in self._truth.items()}
+        if self._closed or not (self._ring.put(msg) or self._retry(lambda r: r.put(msg))):
             return False
         self._truth_pending = False
         return True
@@ -875,7 +893,8 @@ class TelemetryProcess:
         ring = self._ring
         if ring is None or self._closed or self._truth_pending or new_names:
             return self._send(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names), names, wid)
-        if not self._put_rows(ring, words, index, rows, n, wid, values, names):    # the usual hand-off
+        if not (self._put_rows(ring, words, index, rows, n, wid, values, names)    # the usual hand-off
+                or self._retry(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names))):
             self._dropped += 1
             return False
         self._published += 1
@@ -908,11 +927,12 @@ class TelemetryProcess:
         if self._truth_pending:
             self._push_truth()
         if names is not None and wid is not None and names not in self._schemas:   # (both or neither)
-            if not self._ring.put_object({_WINDOW_SCHEMA: (wid, names)}):
+            schema = {_WINDOW_SCHEMA: (wid, names)}
+            if not (self._ring.put_object(schema) or self._retry(lambda r: r.put_object(schema))):
                 self._dropped += 1
                 return False
             self._schemas[names] = wid      # the child has the names before the first vector that uses them
-        if not put(self._ring):
+        if not (put(self._ring) or self._retry(put)):
             self._dropped += 1
             return False
         self._published += 1

@@ -285,6 +285,58 @@ def test_a_run_without_any_fit_worker_result_still_ends_its_dashboard_on_the_fin
     assert "/frf/theta1/magnitude/model" in paths, sorted(paths)
 
 
+@pytest.mark.parametrize("wait_s", [2.0, 0.0], ids=["waits", "peer-drops"])
+def test_a_telemetry_process_starved_through_the_run_still_ends_the_dashboard_on_the_final_estimate(
+        tmp_path, monkeypatch, wait_s):
+    # its ring full from the first ticks on (a busy host's), the final fit's estimate and FRF wait for it to
+    # drain once the loop is over; the peer, not waiting, leaves the dashboard on an older estimate
+    import threading
+
+    from rerun.chunk import RrdReader
+
+    from rt_ident.compose import run as run_mod
+
+    stopped: list[int] = []
+
+    def hook(n):
+        if n == 5:
+            stopped.extend(p.pid for p in __import__("multiprocessing").active_children() if "telemetry" in p.name)
+            for pid in stopped:
+                os.kill(pid, signal.SIGSTOP)
+
+    def resume():
+        for pid in stopped:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+
+    final_fit = run_mod.final_fit
+
+    def final_fit_then_resume(*a, **k):               # the child runs again 0.3 s after the loop's end
+        threading.Timer(0.3, resume).start()
+        return final_fit(*a, **k)
+
+    monkeypatch.setattr(run_mod, "final_fit", final_fit_then_resume)
+    monkeypatch.setattr(run_mod, "FINAL_HANDOFF_WAIT_S", wait_s)
+    rrd = tmp_path / "r.rrd"
+    try:
+        s = run(cfg(telemetry__sink="rrd", recording__enabled=False), rrd=str(rrd), tick_hook=hook)
+    finally:
+        resume()
+    assert len(stopped) == 1 and s["stop"]["cause"] is None and s["telemetry"]["dropped"] > 0
+    last = {}
+    for chunk in RrdReader(str(rrd)).stream():
+        batch = chunk.to_record_batch()
+        if "Scalars:scalars" in batch.column_names and batch.num_rows:
+            last[str(chunk.entity_path)] = float(np.ravel(batch.column("Scalars:scalars").to_pylist()[-1])[0])
+    on_dashboard = last.get("/params/K/estimate")
+    if wait_s:
+        assert on_dashboard == pytest.approx(s["parameters"]["K"], rel=1e-12), (on_dashboard, s["telemetry"])
+    else:
+        assert on_dashboard != pytest.approx(s["parameters"]["K"], rel=1e-12), (on_dashboard, s["telemetry"])
+
+
 def test_a_run_without_excitation_starts_no_fit_process_and_says_why_it_has_no_estimate():
     s = run(cfg(loop__duration=0.3, excitation__kind="none", control__mode="fixed", recording__enabled=False))
     assert s["stop"]["cause"] is None and s["stop"]["final_torque"] == 0.0

@@ -494,3 +494,34 @@ def test_a_wild_fits_resonance_mark_never_ends_the_telemetry_process(monkeypatch
     sender.views["frf:"] = {"frf:marks_hz": np.array(new), "frf:t": np.array([1.0])}
     sender.draw_views()
     assert [k for k, _ in drawn] == ["frf:"] and sender.view_marks.tolist() == new
+
+
+@pytest.mark.parametrize("wait", [False, True], ids=["drops-at-once", "waits-for-room"])
+def test_after_wait_for_room_a_full_ring_is_waited_on_until_the_starved_child_drains_it(tmp_path: Path, wait):
+    """During the loop a full ring drops the block (nothing real-time waits); after it, the final fit's
+    hand-offs wait for a child a busy host starved, so the dashboard ends on the values the run reports."""
+    import threading
+
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "t.rrd"), queue_size=4)).start()
+    assert tp.wait_ready(20.0)
+    os.kill(tp.pid, signal.SIGSTOP)                  # starved: it drains nothing
+    resume = threading.Timer(0.3, os.kill, (tp.pid, signal.SIGCONT))
+    try:
+        k = 0
+        while tp.publish(_block(k)):                  # until the ring is full
+            k += 1
+            assert k < 100
+        dropped = tp.dropped
+        t0 = time.monotonic()
+        if wait:
+            resume.start()                            # the child drains again 0.3 s from now
+            tp.wait_for_room(5.0)
+        assert tp.publish_fit(1.0, {"f_hz": np.array([1.0, 2.0])}) is wait
+        assert tp.dropped == dropped + (not wait)
+        if wait:
+            assert time.monotonic() - t0 >= 0.25      # it was put once the child had made room
+    finally:
+        resume.cancel()
+        os.kill(tp.pid, signal.SIGCONT)
+        summary = tp.close(timeout=10.0)
+    assert summary["exitcode"] == 0
