@@ -439,7 +439,9 @@ def _print_run(s: dict) -> None:
               f"{loop.get('overruns', 0)} overruns, lateness p50 {fmt(lat.get('p50'))} us, "
               f"p99 {fmt(lat.get('p99'))} us, max {fmt(lat.get('max'))} us; "
               f"telemetry dropped {s['telemetry'].get('dropped', 0)}"
-              + (", [bold red]not delivered[/]" if s["telemetry"].get("delivered") is False else ""))
+              + (", [bold red]not delivered[/]" if s["telemetry"].get("delivered") is False else "")
+              + (", [yellow]its process did not finish and was ended (the dashboard holds what it had written)[/]"
+                 if s["telemetry"].get("terminated") else ""))
     _print_stalls(loop)
     lost, n = loop.get("lost_samples") or 0, loop.get("samples") or 0
     if lost and lost > 0.01 * (n + lost):

@@ -81,6 +81,17 @@ def test_the_stall_line_says_how_long_the_loop_read_the_backlog_before_re_planni
     assert "longest 40 ms" in second and "backlog" not in second
 
 
+@pytest.mark.parametrize("terminated", [False, True])
+def test_the_loop_line_says_when_the_dashboards_process_had_to_be_ended(monkeypatch, terminated):
+    buf = _capture(monkeypatch, 200)
+    s = _summary("runs/x")
+    s["telemetry"] = {"dropped": 466, "terminated": terminated}
+    cli._print_run(s)
+    line = next(ln for ln in buf.getvalue().splitlines() if ln.startswith("loop:"))
+    assert "telemetry dropped 466" in line
+    assert ("did not finish and was ended" in line) is terminated
+
+
 def test_file_hints_stay_on_one_line_when_piped(monkeypatch):
     buf = _capture(monkeypatch, 80)
     long = "runs/" + "a-very-long-directory-name/" * 3 + "run-20261125-022806-5971"
