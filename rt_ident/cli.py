@@ -485,10 +485,15 @@ def _print_run(s: dict) -> None:
     if files.get("rrd"):
         out.print(f"dashboard: {files['rrd']}   (open with: rerun --bind 127.0.0.1 {files['rrd']})", markup=False)
     for name, st in (s.get("helpers") or {}).items():
-        if st.get("deaths"):
-            codes = escape(str(st["exitcodes"]))
-            out.print(f"[yellow]helper {escape(name)} died[/] {st['deaths']}x (exit codes {codes}); "
-                      f"restarted {st['restarts']}x; {'running' if st['alive'] else 'not running'} at the end")
+        if st.get("deaths") or st.get("hangs"):
+            what = []
+            if st.get("deaths"):
+                what.append(f"died {st['deaths']}x (exit codes {escape(str(st['exitcodes']))})")
+            if st.get("hangs"):
+                what.append(f"gave no answer for {st.get('hang_s', 0):g} s {st['hangs']}x")
+            state = "hung" if st.get("hung") else "running" if st["alive"] else "not running"
+            out.print(f"[yellow]helper {escape(name)} {' and '.join(what)}[/]; restarted {st['restarts']}x; "
+                      f"{state} at the end")
     if (s.get("files") or {}).get("rrd_earlier"):
         out.print(f"dashboard before the telemetry restart: {', '.join(s['files']['rrd_earlier'])}", markup=False)
     if s.get("data_lost"):

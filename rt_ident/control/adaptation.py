@@ -282,6 +282,7 @@ class Supervisor:
         self._result: dict[str, Any] | None = None          # an accepted design waiting for a quiet tick
         self._result_t = 0.0
         self._req = 0
+        self._req_generation = 0                            # the control process a request went to
         self.now = np.zeros(NOW_FALLBACK_SINCE + 1)     # NOW_*: t, x_ref, error, state, reference, fallback clock
         self.now[NOW_FALLBACK_SINCE] = math.nan
         self.consts = np.array([self.lead, settings.max_error_m,
@@ -666,6 +667,7 @@ class Supervisor:
         if not self.jobs.submit(req):
             self._pending = False
             return
+        self._req_generation = getattr(self.jobs, "generation", 0)
         self._last_request_t = self.t
         st = self.stats
         st.requests += 1
@@ -699,6 +701,11 @@ class Supervisor:
                 self._adopt(res)
             return
         if self._taken is None:
+            if getattr(self.jobs, "generation", 0) != self._req_generation:
+                # the control process was restarted (it died or hung) with the request: ask again at once
+                self._pending, self._urgent = False, True
+                self.stats.events.append((self.t, "request lost", "the control process was restarted; asking again"))
+                return
             self._taken = self.jobs.take() or None
             return
         taken, self._taken = self._taken, None

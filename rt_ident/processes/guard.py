@@ -17,11 +17,13 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
 import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 _GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -202,40 +204,79 @@ class ParentWatch:
         return self._gone
 
 
+#: a job process (fit, control) that has not answered for this long is taken as hung [s]
+HANG_S = 10.0
+#: a gap this long between two looks means the watch itself was held up (a stalled loop): its time is not counted
+_LOOK_GAP_S = 1.0
+
+
 class HelperWatch:
-    """Notices, within ``every_ticks`` ticks, a helper process that died, says so at once (one log
-    line, and the run summary's ``helpers``), and restarts it once where that is safe (the fit and
-    control processes; telemetry, which then writes a new file). The recorder is watched by the loop
-    itself: its death stops the run (samples could no longer be recorded)."""
+    """Notices, within ``every_ticks`` ticks, a helper process that died, or a job process (one with
+    ``progress``) that has made no progress on waiting work for ``hang_s`` seconds of watching (stopped,
+    deadlocked, starved);
+    says so at once (one log line, and the run summary's ``helpers``), and restarts it once where that
+    is safe (the fit and control processes; telemetry, which then writes a new file). A hung process
+    that cannot be restarted is left running and reported. The recorder is watched by the loop itself:
+    its death stops the run (samples could no longer be recorded)."""
 
     def __init__(self, helpers: dict[str, Any], *, restartable: tuple[str, ...] = (), max_restarts: int = 1,
-                 every_ticks: int = 100) -> None:
+                 every_ticks: int = 100, hang_s: float | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.helpers = {k: v for k, v in helpers.items() if v is not None}
         self.restartable = set(restartable)
         self.max_restarts = max_restarts
         self.every_ticks = every_ticks
+        self.hang_s = HANG_S if hang_s is None else hang_s
+        self._clock = clock
+        self._waiting: dict[str, tuple[float, Any]] = {}   # name -> (since, progress then)
+        self._last_look = -math.inf
         self.status: dict[str, dict[str, Any]] = {
-            k: {"pid": getattr(v, "pid", None), "deaths": 0, "restarts": 0, "alive": True, "exitcodes": []}
+            k: {"pid": getattr(v, "pid", None), "deaths": 0, "hangs": 0, "restarts": 0, "alive": True,
+                "exitcodes": []}
             for k, v in self.helpers.items()}
 
     def __call__(self, tick: int) -> None:
         if tick % self.every_ticks:
             return
+        now = self._clock()
+        if now - self._last_look > _LOOK_GAP_S:
+            self._waiting.clear()                    # not watched meanwhile: start timing again
+        self._last_look = now
         for name, h in self.helpers.items():
             st = self.status[name]
-            if not st["alive"] or h.alive:
+            if not st["alive"]:
                 continue
-            code = h.exitcode
-            st["deaths"] += 1
-            st["exitcodes"].append(code)
-            if name in self.restartable and st["restarts"] < self.max_restarts:
-                st["restarts"] += 1
-                h.restart()
-                st["pid"] = getattr(h, "pid", None)
-                _log.error("helper %s died (exit code %s); restarted it (pid %s)", name, code, st["pid"])
+            if not h.alive:
+                code = h.exitcode
+                st["deaths"] += 1
+                st["exitcodes"].append(code)
+                self._restart(name, h, f"died (exit code {code})")
+            elif (progress := getattr(h, "progress", None)) is not None:
+                since, then = self._waiting.get(name, (now, None))
+                if progress != then:
+                    self._waiting[name] = (now, progress)
+                elif now - since >= self.hang_s and not st.get("hung"):
+                    st["hangs"] += 1
+                    st["hang_s"] = self.hang_s
+                    self._waiting.pop(name)
+                    self._restart(name, h, f"gave no answer for {now - since:.0f} s (hung, or starved by the host)",
+                                  alive=True)
             else:
-                st["alive"] = False
-                _log.error("helper %s died (exit code %s); not restarted", name, code)
+                self._waiting.pop(name, None)
+
+    def _restart(self, name: str, h: Any, what: str, alive: bool = False) -> None:
+        st = self.status[name]
+        if name in self.restartable and st["restarts"] < self.max_restarts:
+            st["restarts"] += 1
+            h.restart()
+            st["pid"] = getattr(h, "pid", None)
+            _log.error("helper %s %s; restarted it (pid %s)", name, what, st["pid"])
+        elif alive:
+            st["hung"] = True                        # left as it is: reported, not timed again
+            _log.error("helper %s %s; not restarted", name, what)
+        else:
+            st["alive"] = False
+            _log.error("helper %s %s; not restarted", name, what)
 
     def freeze(self) -> None:
         """Take the status when the loop ends (the helpers are closed after that)."""

@@ -119,6 +119,7 @@ class JobProcess:
     def __post_init__(self) -> None:
         self._make()
         self.skipped = 0
+        self.generation = 0             # restarts so far: a request sent to an earlier process gets no answer
         self.fits_at_restart = 0        # results before the last restart (see restart)
         self.fits = 0
         self.errors = 0
@@ -145,9 +146,11 @@ class JobProcess:
         return self._proc.exitcode
 
     def restart(self) -> JobProcess:
-        """A new job process (and rings) in place of a dead one; results in flight are lost."""
-        end_helper(self._proc)
+        """A new job process (and rings) in place of a dead or hung one; results in flight are lost. A live
+        one is killed at once (it ignores SIGTERM, and the loop's tick is waiting)."""
+        end_helper(self._proc, term_wait_s=0.0)
         self._make()
+        self.generation += 1
         self.fits_at_restart = self.fits
         return self.start()
 
@@ -174,6 +177,15 @@ class JobProcess:
     def ready(self) -> bool:
         """True when the job process waits for a snapshot (and none is on its way)."""
         return bool(self._in.flag) and not self._in.pending_messages
+
+    @property
+    def progress(self) -> tuple[int, int] | None:
+        """While work waits for the process (a snapshot in its inbox, or one it is on): how far it has got,
+        as (snapshots taken, results returned); None while it waits for work. A process whose progress
+        does not move is found hung by :class:`rt_ident.processes.guard.HelperWatch`."""
+        if self._in.flag and not self._in.pending_messages:
+            return None
+        return self._in.messages_read, self._out.messages_written
 
     def submit(self, snap: Any) -> bool:
         """Send ``snap`` if the job process is ready for it (True), else count it as skipped."""

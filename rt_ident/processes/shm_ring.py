@@ -154,6 +154,16 @@ class MessageRing:
         return h[_W_MSGS] - h[_R_MSGS]
 
     @property
+    def messages_read(self) -> int:
+        """Messages consumed since the ring was made."""
+        return int(self._h[_R_MSGS])
+
+    @property
+    def messages_written(self) -> int:
+        """Messages written since the ring was made."""
+        return int(self._h[_W_MSGS])
+
+    @property
     def used_bytes(self) -> int:
         h = self._h
         return h[_W_POS] - h[_R_POS]

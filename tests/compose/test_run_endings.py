@@ -145,3 +145,50 @@ def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_
     assert s["files"]["rrd_earlier"] == [str(rrd)] and Path(s["files"]["rrd"]).name == "d-2.rrd"
     assert Path(s["files"]["rrd"]).stat().st_size > 0
     assert s["helpers"]["fit"]["results_since_restart"] >= 1, s["helpers"]   # live estimates came back
+
+
+@pytest.mark.slow
+def test_a_control_process_that_stops_answering_is_restarted_and_the_load_change_still_gets_its_design(
+        tmp_path, monkeypatch):
+    # SIGSTOPped before the plant changes (I2 x 3 at 1.5 s): the request for the new plant is never taken.
+    # The watch finds it hung, restarts it without holding up the loop, and the supervisor asks again
+    import multiprocessing as mp
+
+    from rt_ident.compose import run as run_mod
+    from rt_ident.config import load
+    from rt_ident.processes import guard
+
+    monkeypatch.setattr(guard, "HANG_S", 3.0)
+    before = {p.pid for p in mp.active_children()}
+    stopped: list[int] = []
+
+    def hook(n: int) -> None:
+        if n == 500:
+            stopped.extend(p.pid for p in mp.active_children() if p.name == "rt_ident-control" and p.pid not in before)
+            for pid in stopped:
+                os.kill(pid, signal.SIGSTOP)
+
+    cfg = load(Path(__file__).resolve().parents[2] / "configs" / "sim-load-change.toml",
+               **{"loop.duration": 8.0, "loop.realtime": False, "recording.enabled": False,
+                  "telemetry.sink": "off"})
+    cfg = cfg.model_copy(update={"plant": cfg.plant.model_copy(update={
+        "change": [{**c, "at": 1.5} for c in cfg.plant.change]})})
+    try:
+        s = run_mod.run(cfg, tick_hook=hook)
+    finally:
+        for pid in stopped:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+    assert len(stopped) == 1 and s["stop"]["cause"] is None, (stopped, s["stop"])
+    assert s["loop"]["stalls"]["count"] == 0 or s["loop"]["stalls"]["longest_ms"] < 200, s["loop"]["stalls"]
+    st = s["helpers"]["control"]
+    assert st["hangs"] == 1 and st["restarts"] == 1 and st["alive"] and st["pid"] != stopped[0], st
+    with pytest.raises(ProcessLookupError):
+        os.kill(stopped[0], 0)                       # the hung process was ended, not left behind
+    events = s["control"]["events"]
+    lost = [e for e in events if e["kind"] == "request lost"]
+    assert len(lost) == 1 and lost[0]["t"] > 1.5, events
+    after = [a for a in s["control"]["applied"] if a["kind"] == "model" and a["t"] > lost[0]["t"]]
+    assert after and after[0]["model"]["I2"] == pytest.approx(3 * 8.3e-6, rel=0.1), (s["control"]["applied"], events)

@@ -1,0 +1,114 @@
+"""rt_ident.processes.guard.HelperWatch: a job process that dies or stops answering is found, said, restarted once."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from rt_ident.processes.guard import HelperWatch
+
+
+class FakeJob:
+    """A helper as the watch sees it: alive, progress (None: no work waits for it), restart()."""
+
+    def __init__(self) -> None:
+        self.alive, self.exitcode, self.pid, self.restarts = True, None, 100, 0
+        self.progress: tuple[int, int] | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self.progress is not None
+
+    @busy.setter
+    def busy(self, on: bool) -> None:              # work waits, and none is taken while it stays so
+        self.progress = (7, 7) if on else None
+
+    def restart(self) -> FakeJob:
+        self.restarts += 1
+        self.pid += 1
+        self.alive, self.progress = True, None
+        return self
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _watch(job: FakeJob, clock: Clock, restartable: bool = True) -> HelperWatch:
+    return HelperWatch({"control": job}, restartable=("control",) if restartable else (), every_ticks=1,
+                       hang_s=10.0, clock=clock)
+
+
+def _look_every(watch: HelperWatch, clock: Clock, seconds: float, step: float = 0.1) -> None:
+    for _ in range(int(round(seconds / step))):
+        clock.now += step
+        watch(0)
+
+
+def test_a_job_that_answers_within_the_hang_time_is_left_alone_however_often_it_is_busy():
+    job, clock = FakeJob(), Clock()
+    watch = _watch(job, clock)
+    for _ in range(5):                      # busy 9 s, then an answer, again and again
+        job.busy = True
+        _look_every(watch, clock, 9.0)
+        job.busy = False
+        _look_every(watch, clock, 0.5)
+    assert job.restarts == 0 and watch.summary()["control"]["hangs"] == 0
+
+
+def test_a_job_busy_for_the_hang_time_is_restarted_once_and_said(caplog):
+    job, clock = FakeJob(), Clock()
+    watch = _watch(job, clock)
+    job.busy = True
+    with caplog.at_level(logging.ERROR, logger="rt_ident.processes.guard"):
+        _look_every(watch, clock, 9.5)
+        assert job.restarts == 0
+        _look_every(watch, clock, 1.0)
+    st = watch.summary()["control"]
+    assert job.restarts == 1 and st["hangs"] == 1 and st["restarts"] == 1 and st["alive"] and st["pid"] == 101
+    assert any("helper control gave no answer for 10 s" in r.getMessage() and "restarted it (pid 101)" in r.getMessage()
+               for r in caplog.records)
+    job.busy = True                          # the restarted one hangs too: reported, not restarted again
+    _look_every(watch, clock, 11.0)
+    st = watch.summary()["control"]
+    assert job.restarts == 1 and st["hangs"] == 2 and st["hung"] is True
+
+
+def test_a_job_fed_without_pause_is_never_hung_while_it_takes_the_work():
+    # the fit process: a snapshot waits for it almost always, and it takes one every few hundred ms
+    job, clock = FakeJob(), Clock()
+    watch = _watch(job, clock)
+    for k in range(300):
+        job.progress = (k // 3, k // 3)
+        clock.now += 0.1
+        watch(0)
+    assert job.restarts == 0 and watch.summary()["control"]["hangs"] == 0
+
+
+@pytest.mark.parametrize("restartable", [True, False])
+def test_time_the_watch_did_not_look_is_not_counted_as_a_hang(restartable):
+    # a loop stalled for 30 s (the host, not the job): the job answered meanwhile as far as anyone knows
+    job, clock = FakeJob(), Clock()
+    watch = _watch(job, clock, restartable)
+    job.busy = True
+    _look_every(watch, clock, 5.0)
+    clock.now += 30.0
+    _look_every(watch, clock, 9.0)
+    assert job.restarts == 0 and watch.summary()["control"]["hangs"] == 0
+    _look_every(watch, clock, 1.5)
+    st = watch.summary()["control"]
+    assert st["hangs"] == 1 and job.restarts == (1 if restartable else 0) and st.get("hung", False) is not restartable
+
+
+def test_a_dead_job_is_still_restarted_at_once_and_counted_as_a_death():
+    job, clock = FakeJob(), Clock()
+    watch = _watch(job, clock)
+    job.alive, job.exitcode = False, -9
+    watch(0)
+    st = watch.summary()["control"]
+    assert job.restarts == 1 and st["deaths"] == 1 and st["hangs"] == 0 and st["exitcodes"] == [-9]
