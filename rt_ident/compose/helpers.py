@@ -62,11 +62,13 @@ class Helpers:
         report["names"] = {str(pid): n for pid, n in named.items()}
         return report
 
-    def start_watch(self) -> HelperWatch:
-        """Every tick's check that the helpers live (a dead one is restarted, the recorder's death stops the run)."""
+    def start_watch(self, tick_hz: float) -> HelperWatch:
+        """The check, ten times a second, that the helpers live and answer (a dead or hung one is restarted;
+        the recorder is the loop's to watch: its death stops the run)."""
         named = self.named()
         self.watch = HelperWatch({n: p for n, p in named.items() if helper_role(n) != "recorder"},
-                                 restartable=tuple(n for n in named if helper_role(n) != "recorder"))
+                                 restartable=tuple(n for n in named if helper_role(n) != "recorder"),
+                                 every_ticks=max(1, round(tick_hz / 10)))
         return self.watch
 
     def close(self) -> tuple[dict[str, dict[str, Any]], str | None]:

@@ -160,7 +160,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             loops: dict[str, IdentificationLoop] = {}
             for name, ax in axes.items():
                 loops[name] = _build_axis(ax, cfg, sink, live_url, port, several, stop, stack, overwrite)
-            watch = helpers.start_watch()
+            watch = helpers.start_watch(cfg.loop.tick_hz)
             trace = ContourTrace(loops, int(round(cfg.loop.duration * cfg.loop.tick_hz))) if several else None
 
             def hooks(n: int) -> None:

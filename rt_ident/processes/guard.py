@@ -213,11 +213,10 @@ _LOOK_GAP_S = 1.0
 class HelperWatch:
     """Notices, within ``every_ticks`` ticks, a helper process that died, or a job process (one with
     ``progress``) that has made no progress on waiting work for ``hang_s`` seconds of watching (stopped,
-    deadlocked, starved);
-    says so at once (one log line, and the run summary's ``helpers``), and restarts it once where that
-    is safe (the fit and control processes; telemetry, which then writes a new file). A hung process
-    that cannot be restarted is left running and reported. The recorder is watched by the loop itself:
-    its death stops the run (samples could no longer be recorded)."""
+    deadlocked, starved); says so at once (one log line, and the run summary's ``helpers``), and restarts
+    it once where that is safe (the fit and control processes; telemetry, which then writes a new file).
+    A hung process that cannot be restarted is left running and reported. The recorder is watched by the
+    loop itself: its death stops the run (samples could no longer be recorded)."""
 
     def __init__(self, helpers: dict[str, Any], *, restartable: tuple[str, ...] = (), max_restarts: int = 1,
                  every_ticks: int = 100, hang_s: float | None = None,
