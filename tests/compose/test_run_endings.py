@@ -150,7 +150,7 @@ def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_
 @pytest.mark.slow
 def test_a_control_process_that_stops_answering_is_restarted_and_the_load_change_still_gets_its_design(
         tmp_path, monkeypatch):
-    # SIGSTOPped before the plant changes (I2 x 3 at 1.5 s): the request for the new plant is never taken.
+    # SIGSTOPped before the plant changes (I2 x 3 at 1 s): the request for the new plant is never taken.
     # The watch finds it hung, restarts it without holding up the loop, and the supervisor asks again
     import multiprocessing as mp
 
@@ -158,21 +158,21 @@ def test_a_control_process_that_stops_answering_is_restarted_and_the_load_change
     from rt_ident.config import load
     from rt_ident.processes import guard
 
-    monkeypatch.setattr(guard, "HANG_S", 3.0)
+    monkeypatch.setattr(guard, "HANG_S", 1.0)
     before = {p.pid for p in mp.active_children()}
     stopped: list[int] = []
 
     def hook(n: int) -> None:
-        if n == 500:
+        if n == 300:
             stopped.extend(p.pid for p in mp.active_children() if p.name == "rt_ident-control" and p.pid not in before)
             for pid in stopped:
                 os.kill(pid, signal.SIGSTOP)
 
     cfg = load(Path(__file__).resolve().parents[2] / "configs" / "sim-load-change.toml",
-               **{"loop.duration": 8.0, "loop.realtime": False, "recording.enabled": False,
+               **{"loop.duration": 5.0, "loop.realtime": False, "recording.enabled": False,
                   "telemetry.sink": "off"})
     cfg = cfg.model_copy(update={"plant": cfg.plant.model_copy(update={
-        "change": [{**c, "at": 1.5} for c in cfg.plant.change]})})
+        "change": [{**c, "at": 1.0} for c in cfg.plant.change]})})
     try:
         s = run_mod.run(cfg, tick_hook=hook)
     finally:
@@ -189,6 +189,6 @@ def test_a_control_process_that_stops_answering_is_restarted_and_the_load_change
         os.kill(stopped[0], 0)                       # the hung process was ended, not left behind
     events = s["control"]["events"]
     lost = [e for e in events if e["kind"] == "request lost"]
-    assert len(lost) == 1 and lost[0]["t"] > 1.5, events
+    assert len(lost) == 1 and lost[0]["t"] > 1.0, events
     after = [a for a in s["control"]["applied"] if a["kind"] == "model" and a["t"] > lost[0]["t"]]
     assert after and after[0]["model"]["I2"] == pytest.approx(3 * 8.3e-6, rel=0.1), (s["control"]["applied"], events)
