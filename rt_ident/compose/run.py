@@ -63,7 +63,7 @@ from rt_ident.processes.jobs import make_fit_process
 log = logging.getLogger(__name__)
 
 
-#: how long the final fit's hand-offs to a telemetry process may wait for room in its ring [s]
+#: how long, in all, the final fit's hand-offs to a telemetry process may wait for room in its ring [s]
 FINAL_HANDOFF_WAIT_S = 2.0
 
 

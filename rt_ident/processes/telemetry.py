@@ -672,7 +672,7 @@ class TelemetryProcess:
         self._schemas: dict[tuple[str, ...], int] = {}   # window names sent to the child -> their id
         self._row_keys: dict[tuple[str, ...], np.ndarray] = {}   # publish_rows: checked keys -> their words
         self._closed = False
-        self._room_until = -math.inf           # wait_for_room(): until when a full ring is waited on
+        self._room_s = 0.0                     # wait_for_room(): how long full rings may still be waited on
         self._footer: dict[str, Any] = {}   # close(): whether the .rrd got its footer (_finish)
         self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
         self._sent_before = 0
@@ -745,20 +745,26 @@ class TelemetryProcess:
         return bool(self._ready.wait(timeout))
 
     def wait_for_room(self, seconds: float) -> None:
-        """From now on a hand-off that finds the ring full waits for the child to drain it, up to
-        ``seconds`` from now in all, instead of being dropped. For what follows the loop (the final fit's
-        estimate and FRF): nothing real-time waits then, and a child a busy host starved during the run
-        would otherwise leave the dashboard without the values the run reports."""
-        self._room_until = time.monotonic() + max(0.0, float(seconds))
+        """From now on a hand-off that finds the ring full waits for the child to drain it, ``seconds``
+        in all over the hand-offs that wait, instead of being dropped. For what follows the loop (the final
+        fit's estimate and FRF): nothing real-time waits then, and a child a busy host starved during the
+        run would otherwise leave the dashboard without the values the run reports."""
+        self._room_s = max(0.0, float(seconds))
 
     def _retry(self, put: Callable[[MessageRing], bool]) -> bool:
-        """``put`` again until it fits, while :meth:`wait_for_room` allows and the child lives."""
+        """``put`` again until it fits, while :meth:`wait_for_room`'s time lasts and the child lives."""
         ring = self._ring
-        while ring is not None and time.monotonic() < self._room_until and self.alive:
-            time.sleep(0.002)
-            if put(ring):
-                return True
-        return False
+        if ring is None or self._room_s <= 0.0:
+            return False
+        t0 = time.monotonic()
+        try:
+            while time.monotonic() - t0 < self._room_s and self.alive:
+                time.sleep(0.002)
+                if put(ring):
+                    return True
+            return False
+        finally:
+            self._room_s = max(0.0, self._room_s - (time.monotonic() - t0))
 
     def set_truth(self, truth: Mapping[str, float]) -> bool:
         """True values drawn next to the estimates (keys from ``ESTIMATE_KEYS``). Never blocks."""
