@@ -120,6 +120,7 @@ class JobProcess:
         self._make()
         self.skipped = 0
         self.generation = 0             # restarts so far: a request sent to an earlier process gets no answer
+        self._was_ready = False         # this process has said it is ready at least once (its imports are done)
         self.fits_at_restart = 0        # results before the last restart (see restart)
         self.fits = 0
         self.errors = 0
@@ -150,6 +151,7 @@ class JobProcess:
         one is killed at once (it ignores SIGTERM, and the loop's tick is waiting)."""
         end_helper(self._proc, term_wait_s=0.0)
         self._make()
+        self._was_ready = False
         self.generation += 1
         self.fits_at_restart = self.fits
         return self.start()
@@ -181,11 +183,14 @@ class JobProcess:
     @property
     def progress(self) -> tuple[int, int] | None:
         """While work waits for the process (a snapshot in its inbox, or one it is on): how far it has got,
-        as (snapshots taken, results returned); None while it waits for work. A process whose progress
-        does not move is found hung by :class:`rt_ident.processes.guard.HelperWatch`."""
-        if self._in.flag and not self._in.pending_messages:
+        as (snapshots taken, results returned); None while it waits for work or has not started yet (its
+        imports). A process whose progress does not move is found hung by
+        :class:`rt_ident.processes.guard.HelperWatch`."""
+        inbox = self._in
+        self._was_ready = self._was_ready or bool(inbox.flag) or inbox.messages_read > 0
+        if not self._was_ready or (inbox.flag and not inbox.pending_messages):
             return None
-        return self._in.messages_read, self._out.messages_written
+        return inbox.messages_read, self._out.messages_written
 
     def submit(self, snap: Any) -> bool:
         """Send ``snap`` if the job process is ready for it (True), else count it as skipped."""

@@ -19,3 +19,44 @@ def test_a_job_process_busy_past_its_close_timeout_is_killed_not_left_behind():
     t0 = time.monotonic()
     jp.close(timeout=0.2)
     assert not jp.alive and jp.exitcode is not None and time.monotonic() - t0 < 10
+
+
+def _submit_when_ready(jp: JobProcess, request) -> None:
+    deadline = time.monotonic() + 60
+    while not jp.submit(request):
+        assert time.monotonic() < deadline, "the job process never became ready"
+        time.sleep(0.01)
+
+
+def test_progress_moves_while_jobs_are_done_and_stands_still_while_one_hangs():
+    jp = JobProcess(time.sleep, min_interval=0.0).start()
+    try:
+        seen = set()
+        for _ in range(5):                           # short jobs, one after the other: each one moves it
+            _submit_when_ready(jp, 0.01)
+            seen.add(jp.progress)
+            while jp.progress is not None:           # answered and waiting for the next
+                time.sleep(0.005)
+        seen.discard(None)
+        assert len(seen) >= 4, seen
+        _submit_when_ready(jp, 30.0)                 # a job that does not come back: the sixth taken, five answered
+        deadline = time.monotonic() + 30
+        while jp.progress != (6, 5):
+            assert time.monotonic() < deadline, jp.progress
+            time.sleep(0.01)
+        time.sleep(0.5)
+        assert jp.progress == (6, 5)
+    finally:
+        jp.close(timeout=0.2)
+
+
+def test_a_restarted_job_process_has_no_progress_to_time_until_its_imports_are_done_and_restarts_count():
+    jp = JobProcess(time.sleep, min_interval=0.0).start()
+    try:
+        assert jp.generation == 0
+        jp.restart()
+        assert jp.generation == 1 and jp.progress is None      # starting: not timed as a hang
+        _submit_when_ready(jp, 30.0)
+        assert jp.progress is not None
+    finally:
+        jp.close(timeout=0.2)
