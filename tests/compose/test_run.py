@@ -285,11 +285,12 @@ def test_a_run_without_any_fit_worker_result_still_ends_its_dashboard_on_the_fin
     assert "/frf/theta1/magnitude/model" in paths, sorted(paths)
 
 
-@pytest.mark.parametrize("wait_s", [2.0, 0.0], ids=["waits", "peer-drops"])
+@pytest.mark.parametrize("wait_s", [4.0, 0.0], ids=["waits", "peer-drops"])
 def test_a_telemetry_process_starved_through_the_run_still_ends_the_dashboard_on_the_final_estimate(
         tmp_path, monkeypatch, wait_s):
     # its ring full from the first ticks on (a busy host's), the final fit's estimate and FRF wait for it to
-    # drain once the loop is over; the peer, not waiting, leaves the dashboard on an older estimate
+    # drain once the loop is over; the peer, not waiting, leaves the dashboard on an older estimate. The wait
+    # here is longer than the run's 2 s: the child resumes only well after the final fit, however slow
     import threading
 
     from rerun.chunk import RrdReader
@@ -313,8 +314,8 @@ def test_a_telemetry_process_starved_through_the_run_still_ends_the_dashboard_on
 
     final_fit = run_mod.final_fit
 
-    def final_fit_then_resume(*a, **k):               # the child runs again 0.3 s after the loop's end
-        threading.Timer(0.3, resume).start()
+    def final_fit_then_resume(*a, **k):   # the child runs again 1.5 s after the loop's end (after the final fit)
+        threading.Timer(1.5, resume).start()
         return final_fit(*a, **k)
 
     monkeypatch.setattr(run_mod, "final_fit", final_fit_then_resume)
