@@ -751,6 +751,10 @@ class TelemetryProcess:
         run would otherwise leave the dashboard without the values the run reports."""
         self._room_s = max(0.0, float(seconds))
 
+    def _put(self, put: Callable[[MessageRing], bool]) -> bool:
+        """``put`` into the ring; where it is full, again while :meth:`wait_for_room` allows."""
+        return self._ring is not None and (put(self._ring) or self._retry(put))
+
     def _retry(self, put: Callable[[MessageRing], bool]) -> bool:
         """``put`` again until it fits, while :meth:`wait_for_room`'s time lasts and the child lives."""
         ring = self._ring
@@ -802,7 +806,7 @@ class TelemetryProcess:
         msg = {prefix + "t": np.array([float(t)])}
         for k, v in arrays.items():
             msg[prefix + k] = np.asarray(v, dtype=np.float64).ravel()
-        if self._ring is None or self._closed or not (self._ring.put(msg) or self._retry(lambda r: r.put(msg))):
+        if self._closed or not self._put(lambda r: r.put(msg)):
             self._dropped += 1
             return False
         return True
@@ -811,7 +815,7 @@ class TelemetryProcess:
         if self._ring is None:  # not started: handed to the child at start()
             return self.config.sink != "off"
         msg = {_TRUTH + k: np.array([v]) for k, v in self._truth.items()}
-        if self._closed or not (self._ring.put(msg) or self._retry(lambda r: r.put(msg))):
+        if self._closed or not self._put(lambda r: r.put(msg)):
             return False
         self._truth_pending = False
         return True
@@ -900,7 +904,8 @@ class TelemetryProcess:
         if ring is None or self._closed or self._truth_pending or new_names:
             return self._send(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names), names, wid)
         if not (self._put_rows(ring, words, index, rows, n, wid, values, names)    # the usual hand-off
-                or self._retry(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names))):
+                or self._room_s > 0.0 and self._retry(lambda r: self._put_rows(r, words, index, rows, n, wid,
+                                                                               values, names))):
             self._dropped += 1
             return False
         self._published += 1
@@ -934,11 +939,11 @@ class TelemetryProcess:
             self._push_truth()
         if names is not None and wid is not None and names not in self._schemas:   # (both or neither)
             schema = {_WINDOW_SCHEMA: (wid, names)}
-            if not (self._ring.put_object(schema) or self._retry(lambda r: r.put_object(schema))):
+            if not self._put(lambda r: r.put_object(schema)):
                 self._dropped += 1
                 return False
             self._schemas[names] = wid      # the child has the names before the first vector that uses them
-        if not (put(self._ring) or self._retry(put)):
+        if not self._put(put):
             self._dropped += 1
             return False
         self._published += 1
