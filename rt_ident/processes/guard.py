@@ -270,11 +270,11 @@ class HelperWatch:
             h.restart()
             st["pid"] = getattr(h, "pid", None)
             _log.error("helper %s %s; restarted it (pid %s)", name, what, st["pid"])
-        elif alive:
-            st["hung"] = True                        # left as it is: reported, not timed again
-            _log.error("helper %s %s; not restarted", name, what)
         else:
-            st["alive"] = False
+            if alive:
+                st["hung"] = True                    # left as it is: reported, not timed again
+            else:
+                st["alive"] = False
             _log.error("helper %s %s; not restarted", name, what)
 
     def freeze(self) -> None:
