@@ -661,6 +661,7 @@ class Supervisor:
                      "model": {k: float(getattr(ctrl.model, k)) for k in KEYS}}
                     if ctrl.kind == "model" and not self.in_fallback else None)
         req = {"conservative": [float(v) for v in self.conservative.gains], "in_force": in_force,
+               "nominal": {**{k: float(getattr(self.nominal, k)) for k in KEYS}, "lead": self.lead},
                "params": {**{k: float(v) for k, v in zip(KEYS, values)}, "lead": self.lead},
                "ci95": {k: tuple(ci95[k]) for k in KEYS} if ci95 else None,
                "tick": self.tick_s, "settings": self.s, "seq": self._req}
@@ -751,6 +752,8 @@ class Supervisor:
         elif res.get("accepted"):
             st.accepted += 1
             text = _params_text(res["controller"].model)
+            if "confirms" in res:
+                text += f" (the configured axis's design, confirmed by the estimate {_params_text(res['confirms'])})"
             st.events.append((self.t, "accepted", text + (" (not applied: in fallback)" if self.in_fallback else "")))
             fb = res.get("fallback")
             if fb is not None:                   # the fallback itself no longer suited the axis
@@ -761,6 +764,9 @@ class Supervisor:
             if not self.in_fallback:
                 self._switch(res["controller"])
                 self._following = False
+                if "confirms" in res:       # the configured design, taken for this estimate: measure from it
+                    p = res["confirms"]
+                    self._model_of = (self.controller, np.array([float(getattr(p, k)) for k in KEYS]))
             else:
                 self._held = res["controller"]
             # recovering: onto the conservative controller that suits the axis
@@ -839,7 +845,7 @@ class Supervisor:
 
 def _designed_for(res: dict[str, Any]) -> AxisParams:
     """The model an accepted result is for: its new design's, or the estimate the design in force was kept for."""
-    return res["kept_for"] if "kept_for" in res else res["controller"].model
+    return res.get("kept_for") or res.get("confirms") or res["controller"].model
 
 
 def _spread(values: list[float]) -> dict[str, float] | None:

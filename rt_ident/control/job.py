@@ -6,7 +6,9 @@ conservative controller, and a replacement for it that suits the estimate.
   if it stabilizes the estimate *and* its family (each parameter x 0.7 and x 1.3, and the corners of
   the estimate's 95 % intervals) with the configured gain and phase margins;
 * the design in force is kept instead (:func:`keep_design`) where it passes that check on the new
-  estimate and the new design would not do better by more than ``keep_margin``.
+  estimate and the new design would not do better by more than ``keep_margin``;
+* likewise, while the conservative controller is in force, the configured axis's design (the one the
+  fixed mode runs) is the first model design where it would be kept on the estimate.
 
 :class:`ControlSettings` (the ``[control]`` table) is shared with the supervisor in the tick
 (:mod:`rt_ident.control.adaptation`).
@@ -112,7 +114,9 @@ def model_controller(p: AxisParams, tick: float, s: ControlSettings, kind: str =
 def redesign(request: dict[str, Any]) -> dict[str, Any]:
     """Job: design for ``request["params"]`` and check it over the family.
 
-    Returns ``{"accepted", "reason", "controller" (when accepted), "check", "seq", "cpu_s"}``.
+    Returns ``{"accepted", "reason", "check", "seq", "cpu_s"}`` and, when accepted, ``"controller"`` (the
+    design to switch in) or ``"kept_for"`` (the estimate the design in force was kept for); with the
+    configured axis's design as ``"controller"``, ``"confirms"`` is the estimate that confirmed it.
     """
     c0 = time.process_time()
     out = _redesign(request)
@@ -123,37 +127,61 @@ def redesign(request: dict[str, Any]) -> dict[str, Any]:
 def _redesign(request: dict[str, Any]) -> dict[str, Any]:
     s: ControlSettings = request["settings"]
     tick = request["tick"]
+    ci95 = request.get("ci95")
+    seq = request.get("seq")
     p = AxisParams(**{k: request["params"][k] for k in KEYS}, lead=request["params"].get("lead", 7.96e-4))
     try:
         ctrl = model_controller(p, tick, s)
     except Exception as exc:  # noqa: BLE001 - a design that fails is a rejected design, with its reason
-        return {"accepted": False, "reason": f"design failed: {exc}", "seq": request.get("seq")}
-    in_force = request.get("in_force")
-    kept = None if in_force is None else keep_design(np.asarray(in_force["gains"], dtype=float),
-                                                     AxisParams(**in_force["model"], lead=p.lead), ctrl.gains,
-                                                     p, tick, s, request.get("ci95"))
-    if kept is not None:
-        check, why = kept
-        out = {"accepted": True, "kept_for": p, "reason": why, "check": check.as_dict(), "seq": request.get("seq")}
-    else:
-        check = check_family(ctrl.gains, p, tick, gm_db=s.gain_margin_db, pm_deg=s.phase_margin_deg,
-                             factors=tuple(s.family_factors), ci95=request.get("ci95"))
-        out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": request.get("seq")}
-    if check.ok:
-        if kept is None:
-            out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict(),
-                                           ctrl.loop_view)
-        cons = request.get("conservative")
-        if cons is not None:
-            out["fallback"], out["fallback_reason"] = _fallback_for(np.asarray(cons, dtype=float), p, tick, s,
-                                                                    request.get("ci95"))
+        return {"accepted": False, "reason": f"design failed: {exc}", "seq": seq}
+    in_force, nominal = request.get("in_force"), request.get("nominal")
+    if in_force is not None:
+        kept = keep_design(np.asarray(in_force["gains"], dtype=float), AxisParams(**in_force["model"], lead=p.lead),
+                           ctrl.gains, p, tick, s, ci95)
+        if kept is not None:
+            check, ratio = kept
+            out = {"accepted": True, "kept_for": p, "check": check.as_dict(), "seq": seq,
+                   "reason": f"the design in force kept: {_keep_reason(ratio, s)}"}
+            return _with_fallback(out, request, p)
+    elif nominal is not None:
+        # the conservative controller in force: the configured axis's design (the fixed mode's) is the first
+        # model design where the estimate confirms it, by the rule that keeps a design in force
+        configured = model_controller(AxisParams(**nominal), tick, s)
+        kept = keep_design(configured.gains, configured.model, ctrl.gains, p, tick, s, ci95)
+        if kept is not None:
+            check, ratio = kept
+            out = {"accepted": True, "confirms": p, "controller": configured, "check": check.as_dict(), "seq": seq,
+                   "reason": f"the configured axis's design: {_keep_reason(ratio, s)}"}
+            return _with_fallback(out, request, p)
+    check = check_family(ctrl.gains, p, tick, gm_db=s.gain_margin_db, pm_deg=s.phase_margin_deg,
+                         factors=tuple(s.family_factors), ci95=ci95)
+    out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": seq}
+    if not check.ok:
+        return out
+    out["controller"] = Controller(ctrl.gains, p, "model", s.bandwidth_hz, check.nominal.as_dict(), ctrl.loop_view)
+    return _with_fallback(out, request, p)
+
+
+def _keep_reason(ratio: float, s: ControlSettings) -> str:
+    return (f"its error norm on the estimate is {ratio:.3f} x the new design's (a switch needs it better by more "
+            f"than {100 * s.keep_margin:g} %)")
+
+
+def _with_fallback(out: dict[str, Any], request: dict[str, Any], p: AxisParams) -> dict[str, Any]:
+    """``out`` with a conservative controller that suits ``p`` where the one in force does not."""
+    cons = request.get("conservative")
+    if cons is not None:
+        s = request["settings"]
+        out["fallback"], out["fallback_reason"] = _fallback_for(np.asarray(cons, dtype=float), p, request["tick"], s,
+                                                                request.get("ci95"))
     return out
 
 
 def keep_design(gains: np.ndarray, model: AxisParams, new_gains: np.ndarray, p: AxisParams, tick: float,
-                s: ControlSettings, ci95: dict[str, tuple[float, float]] | None) -> tuple[FamilyCheck, str] | None:
-    """(its family check, why) when the model design in force (``gains``, designed for ``model``)
-    should stay for the estimate ``p`` instead of the design ``new_gains`` made for it; else None.
+                s: ControlSettings, ci95: dict[str, tuple[float, float]] | None) -> tuple[FamilyCheck, float] | None:
+    """(its family check, its error norm over the new design's) when the model design in force (``gains``,
+    designed for ``model``) should stay for the estimate ``p`` instead of the design ``new_gains`` made for it;
+    else None.
 
     Every switch has a transient of its own (the re-seeded integral decays through the new loop), so a
     design is switched in only where it is predicted to do better by more than ``keep_margin``
@@ -170,8 +198,7 @@ def keep_design(gains: np.ndarray, model: AxisParams, new_gains: np.ndarray, p: 
                          factors=tuple(s.family_factors), ci95=ci95)
     if not check.ok:
         return None
-    return check, (f"the design in force kept: its error norm on the estimate is {old / new:.3f} x the new "
-                   f"design's (a switch needs it better by more than {100 * s.keep_margin:g} %)")
+    return check, old / new
 
 
 def _fallback_for(gains: np.ndarray, p: AxisParams, tick: float, s: ControlSettings,

@@ -341,6 +341,38 @@ def test_keep_margin_0_switches_in_every_accepted_design():
     assert sup.controller is not before and sup.controller.model == SOFT and sup.stats.kept == 0
 
 
+def _on_the_conservative_controller(est, **settings):
+    w = FakeControlProcess()
+    sup = Supervisor(ControlSettings(**settings), P, tick=1e-3, torque_limit=1.0, reference=Hold(0.0), jobs=w,
+                     per_sample=est)
+    assert sup.controller.kind == "conservative"
+    return sup, w
+
+
+NEAR = AxisParams(I1=P.I1 * 0.995, I2=P.I2 * 1.04, B=P.B * 0.98, K=P.K * 0.97)   # I2 4 % off: asks for a redesign
+
+
+def test_the_first_design_is_the_configured_axiss_where_the_estimate_confirms_it_and_looks_measure_from_the_estimate():
+    sup, w = _on_the_conservative_controller(_Estimate(NEAR))
+    _looks(sup, S.trust_window)
+    res = _answered_by_the_job(sup, w)
+    assert w.requests[-1]["in_force"] is None and res["confirms"] == NEAR
+    assert sup.controller.kind == "model" and sup.controller.model == P
+    assert np.array_equal(sup.controller.gains, model_controller(P, 1e-3, S).gains)     # the fixed mode's design
+    assert sup.stats.accepted == 1 and "the configured axis's design" in sup.stats.events[-1][2]
+    sup.t += S.redesign_interval_s
+    _looks(sup, 2 * S.trust_window)
+    assert not sup._pending and len(w.requests) == 1     # NEAR's 4 % in I2 not asked about: measured from NEAR
+
+
+def test_the_first_design_is_a_new_one_where_the_estimate_differs_or_keep_margin_is_0():
+    for est, over in ((_Estimate(HEAVY), {}), (_Estimate(NEAR), {"keep_margin": 0.0})):
+        sup, w = _on_the_conservative_controller(est, **over)
+        _looks(sup, S.trust_window)
+        res = _answered_by_the_job(sup, w)
+        assert res["accepted"] and "confirms" not in res and sup.controller.model == est.p
+
+
 def test_keep_design_needs_the_reference_error_the_error_norm_and_the_family_check_each():
     g = model_controller(P, 1e-3, S).gains
 
