@@ -80,6 +80,22 @@ def test_the_max_error_target_names_each_case_over_it_with_the_late_oracles_figu
     assert "case 1" not in line[2]
 
 
+def test_the_adaptive_against_fixed_target_prints_the_digits_that_decide_it():
+    def result(ratio):
+        r = {"name": "K x 0.6", "factors": {"K": 0.6}, "adaptive_over_oracle_max": 1.0, "adaptive_over_fixed": ratio,
+             "fixed": {"rms_error_m": 1.0}, "oracle": {"rms_error_m": 1.0}}
+        summary = {"change_to_redesign_s": {"median": 0.1, "worst": 0.2, "missing": 0},
+                   "adaptive_over_oracle": {"median": 1.0, "worst": 1.1}, "stops": 0, "adaptive_fallbacks": 0}
+        return {"control": {"summary": summary, "scenarios": [r], "cases": [], "perturbed": [],
+                            "random_plants": {"n": 1, "unstable": 0}}}
+
+    def line(ratio):
+        (t,) = [t for t in cb.targets(result(ratio)) if t[0].startswith("adaptive <= fixed")]
+        return t
+    assert line(0.99968)[1] is True and "worst 0.99968 of 1" in line(0.99968)[2]
+    assert line(1.00005)[1] is False and "worst 1.00005 of 1" in line(1.00005)[2]
+
+
 def test_after_k_x06_the_adaptive_loop_keeps_its_design_checked_on_the_new_estimate():
     row = cb.run_case(load("sim-load-change.toml"), "K x 0.6", {"K": 0.6}, change_at=2.0, duration=2.6,
                       modes=("adaptive",), cpu_latency=False)
