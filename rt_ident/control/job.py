@@ -146,9 +146,13 @@ def _redesign(request: dict[str, Any]) -> dict[str, Any]:
     elif nominal is not None:
         # the conservative controller in force: the configured axis's design (the fixed mode's) is the first
         # model design where the estimate confirms it, by the rule that keeps a design in force
-        configured = model_controller(AxisParams(**nominal), tick, s)
-        kept = keep_design(configured.gains, configured.model, ctrl.gains, p, tick, s, ci95)
-        if kept is not None:
+        try:
+            configured = model_controller(AxisParams(**nominal), tick, s)
+        except Exception:  # noqa: BLE001 - no configured design to offer: the estimate's own, below
+            configured = None
+        kept = None if configured is None else keep_design(configured.gains, configured.model, ctrl.gains, p, tick,
+                                                           s, ci95)
+        if configured is not None and kept is not None:
             check, ratio = kept
             out = {"accepted": True, "confirms": p, "controller": configured, "check": check.as_dict(), "seq": seq,
                    "reason": f"the configured axis's design: {_keep_reason(ratio, s)}"}

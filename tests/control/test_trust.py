@@ -373,6 +373,15 @@ def test_the_first_design_is_a_new_one_where_the_estimate_differs_or_keep_margin
         assert res["accepted"] and "confirms" not in res and sup.controller.model == est.p
 
 
+def test_a_configured_axis_that_cannot_be_designed_for_leaves_the_estimates_own_design():
+    sup, w = _on_the_conservative_controller(_Estimate(NEAR))
+    _looks(sup, S.trust_window)
+    sup.poll()
+    req = {**w.requests[-1], "nominal": {"I1": -1.0, "I2": P.I2, "B": P.B, "K": P.K, "lead": P.lead}}
+    res = J.redesign(req)
+    assert res["accepted"] and "confirms" not in res and res["controller"].model == NEAR
+
+
 def test_keep_design_needs_the_reference_error_the_error_norm_and_the_family_check_each():
     g = model_controller(P, 1e-3, S).gains
 
