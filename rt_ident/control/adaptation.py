@@ -587,7 +587,7 @@ class Supervisor:
             return
         if params is None or not trusted or per_sample:
             return
-        values = np.array([float(getattr(params, k)) for k in KEYS])
+        values = _values(params)
         self._consider(values, ci95, *largest_change(values, self._model_values(), self._trust_consts))
 
     def _audit(self, agreed: bool, why: str | None) -> None:
@@ -679,7 +679,7 @@ class Supervisor:
         """(I1, I2, B, K) of the model the controller in force was designed for."""
         ctrl = self.controller
         if self._model_of[0] is not ctrl:
-            self._model_of = (ctrl, np.array([float(getattr(ctrl.model, k)) for k in KEYS]))
+            self._model_of = (ctrl, _values(ctrl.model))
         return self._model_of[1]
 
     def poll(self) -> None:
@@ -765,8 +765,7 @@ class Supervisor:
                 self._switch(res["controller"])
                 self._following = False
                 if "confirms" in res:       # the configured design, taken for this estimate: measure from it
-                    p = res["confirms"]
-                    self._model_of = (self.controller, np.array([float(getattr(p, k)) for k in KEYS]))
+                    self._model_of = (self.controller, _values(res["confirms"]))
             else:
                 self._held = res["controller"]
             # recovering: onto the conservative controller that suits the axis
@@ -787,7 +786,7 @@ class Supervisor:
         st.events.append((self.t, "kept", f"{_params_text(p)}: {res.get('reason')}"))
         if self.in_fallback or self.controller.kind != "model":    # a fallback came while the job ran
             return
-        self._model_of = (self.controller, np.array([float(getattr(p, k)) for k in KEYS]))
+        self._model_of = (self.controller, _values(p))
         self._following = False
         self.law.consts[C_INERTIA] = self.controller.inertia
         st.applied.append((self.t, "kept", p))
@@ -841,6 +840,11 @@ class Supervisor:
                               "rejoins": self.anchor.rejoins, "last_rejoin": self.anchor.last_rejoin},
                 "per_sample": self._per_sample_summary(),
                 "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
+
+
+def _values(p: AxisParams) -> np.ndarray:
+    """(I1, I2, B, K) of ``p``."""
+    return np.array([float(getattr(p, k)) for k in KEYS])
 
 
 def _designed_for(res: dict[str, Any]) -> AxisParams:

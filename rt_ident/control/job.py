@@ -134,29 +134,19 @@ def _redesign(request: dict[str, Any]) -> dict[str, Any]:
         ctrl = model_controller(p, tick, s)
     except Exception as exc:  # noqa: BLE001 - a design that fails is a rejected design, with its reason
         return {"accepted": False, "reason": f"design failed: {exc}", "seq": seq}
-    in_force, nominal = request.get("in_force"), request.get("nominal")
-    if in_force is not None:
-        kept = keep_design(np.asarray(in_force["gains"], dtype=float), AxisParams(**in_force["model"], lead=p.lead),
-                           ctrl.gains, p, tick, s, ci95)
-        if kept is not None:
-            check, ratio = kept
-            out = {"accepted": True, "kept_for": p, "check": check.as_dict(), "seq": seq,
-                   "reason": f"the design in force kept: {_keep_reason(ratio, s)}"}
-            return _with_fallback(out, request, p)
-    elif nominal is not None:
-        # the conservative controller in force: the configured axis's design (the fixed mode's) is the first
-        # model design where the estimate confirms it, by the rule that keeps a design in force
-        try:
-            configured = model_controller(AxisParams(**nominal), tick, s)
-        except Exception:  # noqa: BLE001 - no configured design to offer: the estimate's own, below
-            configured = None
-        kept = None if configured is None else keep_design(configured.gains, configured.model, ctrl.gains, p, tick,
-                                                           s, ci95)
-        if configured is not None and kept is not None:
-            check, ratio = kept
-            out = {"accepted": True, "confirms": p, "controller": configured, "check": check.as_dict(), "seq": seq,
-                   "reason": f"the configured axis's design: {_keep_reason(ratio, s)}"}
-            return _with_fallback(out, request, p)
+    held = _held_design(request, p.lead, tick, s)
+    kept = None if held is None else keep_design(held[0], held[1], ctrl.gains, p, tick, s, ci95)
+    if held is not None and kept is not None:
+        check, ratio = kept
+        why = (f"its error norm on the estimate is {ratio:.3f} x the new design's (a switch needs it better by "
+               f"more than {100 * s.keep_margin:g} %)")
+        configured = held[2]
+        out = {"accepted": True, "check": check.as_dict(), "seq": seq}
+        if configured is None:
+            out.update(kept_for=p, reason=f"the design in force kept: {why}")
+        else:
+            out.update(confirms=p, controller=configured, reason=f"the configured axis's design: {why}")
+        return _with_fallback(out, request, p)
     check = check_family(ctrl.gains, p, tick, gm_db=s.gain_margin_db, pm_deg=s.phase_margin_deg,
                          factors=tuple(s.family_factors), ci95=ci95)
     out = {"accepted": check.ok, "reason": check.reason, "check": check.as_dict(), "seq": seq}
@@ -166,9 +156,21 @@ def _redesign(request: dict[str, Any]) -> dict[str, Any]:
     return _with_fallback(out, request, p)
 
 
-def _keep_reason(ratio: float, s: ControlSettings) -> str:
-    return (f"its error norm on the estimate is {ratio:.3f} x the new design's (a switch needs it better by more "
-            f"than {100 * s.keep_margin:g} %)")
+def _held_design(request: dict[str, Any], lead: float, tick: float,
+                 s: ControlSettings) -> tuple[np.ndarray, AxisParams, Controller | None] | None:
+    """The design that stays unless a new one pays, as (gains, its model, the controller to switch in):
+    the model design in force (nothing to switch in); with the conservative controller in force, the
+    configured axis's design (the fixed mode's), where it can be made; else None."""
+    in_force, nominal = request.get("in_force"), request.get("nominal")
+    if in_force is not None:
+        return np.asarray(in_force["gains"], dtype=float), AxisParams(**in_force["model"], lead=lead), None
+    if nominal is None:
+        return None
+    try:
+        configured = model_controller(AxisParams(**nominal), tick, s)
+    except Exception:  # noqa: BLE001 - no configured design to offer: the estimate's own
+        return None
+    return configured.gains, configured.model, configured
 
 
 def _with_fallback(out: dict[str, Any], request: dict[str, Any], p: AxisParams) -> dict[str, Any]:
