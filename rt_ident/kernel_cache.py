@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 #: the record of the sources the cache was last in step with, beside rt_ident's own entries
 RECORD = "kernel-sources.txt"
@@ -102,6 +103,16 @@ def sync(roots: list[Path] | None = None) -> bool:
     except OSError:
         return False
     return True
+
+
+def cache_variant(fn: Callable[..., Any], tag: str) -> Callable[..., Any]:
+    """``fn`` (a closure made per shape) named for its variant before ``numba.njit(cache=True)``: numba names a
+    compiled function's symbol from its qualified name, argument types and a counter that starts afresh in each
+    process, so two variants of one closure with the same argument types, compiled first in two processes and
+    both loaded from the cache into a third, define one symbol, and a caller can run the other variant's code
+    (on arrays sized for its own). The name also gives each variant its own index file in the cache."""
+    fn.__qualname__ = f"{fn.__qualname__}_{tag}"
+    return fn
 
 
 def tick_kernel_cached() -> bool:

@@ -18,6 +18,8 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
+from rt_ident.kernel_cache import cache_variant
+
 
 def _linear_recursion_for(nz: int) -> Callable[..., None]:
     """The loop of :func:`linear_recursion_py` with the state size ``nz`` fixed (a closure constant).
@@ -53,7 +55,7 @@ def linear_recursion_py(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.nda
 @functools.cache
 def _linear_recursion_nb(nz: int) -> Callable[..., None]:
     """Compiled :func:`_linear_recursion_for` (memoised per nz; nz is part of numba's cache key)."""
-    return numba.njit(cache=True)(_linear_recursion_for(nz))
+    return numba.njit(cache=True)(cache_variant(_linear_recursion_for(nz), f"nz{nz}"))
 
 
 def linear_recursion(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.ndarray,
@@ -126,7 +128,7 @@ def trajectory_recursion_py(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np
 @functools.cache
 def _trajectory_recursion_nb(nz: int) -> Callable[..., int]:
     """Compiled :func:`_trajectory_recursion_for` (memoised per nz)."""
-    return numba.njit(cache=True)(_trajectory_recursion_for(nz))
+    return numba.njit(cache=True)(cache_variant(_trajectory_recursion_for(nz), f"nz{nz}"))
 
 
 def trajectory_recursion(S: np.ndarray, G0: np.ndarray, G1: np.ndarray, u: np.ndarray,

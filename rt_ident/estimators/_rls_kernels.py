@@ -47,6 +47,8 @@ from collections.abc import Callable
 
 import numba
 
+from rt_ident.kernel_cache import cache_variant
+
 STANDARD = 0
 DIRECTIONAL = 1
 BOUNDED_TRACE = 2
@@ -126,6 +128,7 @@ def _make_ud(n: int, q: int) -> Callable:
     oM, oD, oT, oF, oG, oK, oA, oI, oE, oW = _offsets(n, q)
 
     @numba.njit(cache=True)
+    @functools.partial(cache_variant, tag=f"{n}x{q}")
     def core(S, Phi, Y, m, hist, hpos, record):  # noqa: ANN001, ANN202
         lam = S[0]
         variant = int(S[1])
@@ -233,6 +236,7 @@ def _make_cov(n: int, q: int) -> Callable:
     oM, oD, oT, oF, oG, oK, oA, oI, oE, oW = _offsets(n, q)
 
     @numba.njit(cache=True)
+    @functools.partial(cache_variant, tag=f"{n}x{q}")
     def core(S, Phi, Y, m, hist, hpos, record):  # noqa: ANN001, ANN202
         lam = S[0]
         variant = int(S[1])
@@ -310,6 +314,7 @@ def block_kernel(form: str, n: int, q: int) -> Callable:
     core = _core(form, int(n), int(q))
 
     @numba.njit(cache=True)
+    @functools.partial(cache_variant, tag=f"{form}_{n}x{q}")
     def block(S, Phi, Y, hist, hpos, record):  # noqa: ANN001, ANN202
         return core(S, Phi.ravel(), Y.ravel(), Phi.shape[0], hist.ravel(), hpos, record)
 
@@ -326,6 +331,7 @@ def update_kernel(form: str, n: int, q: int) -> Callable:
     core = _core(form, int(n), int(q))
 
     @numba.njit("boolean(float64[::1], float64[::1], float64[::1])", cache=True)
+    @functools.partial(cache_variant, tag=f"{form}_{n}x{q}")
     def update(S, phi, y):  # noqa: ANN001, ANN202
         return core(S, phi, y, 1, S[:1], 0, False)[0] == 1   # S[:1]: a history never written
 

@@ -160,37 +160,46 @@ def test_warmup_compiles_the_kernels_for_the_requested_shapes():
 
 
 _KERNELS_IN_A_NEW_PROCESS = """
-import hashlib, numpy as np
+import hashlib, sys, numpy as np
 from rt_ident.estimators.rls import FORMS, RecursiveLeastSquares
-rng = np.random.default_rng(0)
-Phi = rng.standard_normal((300, 2))
-Y = Phi @ rng.standard_normal((2, 1)) + 0.05 * rng.standard_normal((300, 1))
-for form in FORMS:
-    a = RecursiveLeastSquares(2, 1, forgetting=0.99, variant="directional", form=form)
-    b = RecursiveLeastSquares(2, 1, forgetting=0.99, variant="directional", form=form)
-    a.update_block(Phi, Y)
-    for phi, y in zip(Phi, Y):
-        b.update(phi, y)
-    same = np.array_equal(a.theta, b.theta) and np.array_equal(a.P, b.P)
-    print("theta", form, same, hashlib.sha256(a.theta.tobytes() + a.P.tobytes()).hexdigest())
+for n in map(int, sys.argv[1].split(",")):
+    rng = np.random.default_rng(n)
+    Phi = rng.standard_normal((300, n))
+    Y = Phi @ rng.standard_normal((n, 1)) + 0.05 * rng.standard_normal((300, 1))
+    for form in FORMS:
+        a = RecursiveLeastSquares(n, 1, forgetting=0.99, variant="directional", form=form)
+        b = RecursiveLeastSquares(n, 1, forgetting=0.99, variant="directional", form=form)
+        a.update_block(Phi, Y)
+        for phi, y in zip(Phi, Y):
+            b.update(phi, y)
+        same = np.array_equal(a.theta, b.theta) and np.array_equal(a.P, b.P)
+        print("theta", form, n, same, hashlib.sha256(a.theta.tobytes() + a.P.tobytes()).hexdigest())
 """
 
 
-def test_rls_kernels_compile_once_and_load_from_the_cache_bit_identical_to_the_fresh_compile(tmp_path):
-    # block and update are closures over a compiled core, and numba keys their cache entries by those cells
+def test_rls_kernels_of_two_sizes_compiled_in_two_processes_load_into_a_third_bit_identical_to_their_compiles(
+        tmp_path):
+    # block and update are closures over a compiled core, and numba keys their cache entries by those cells;
+    # each size compiled first in a process of its own gives the symbols the same counter there
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "NUMBA_DEBUG_CACHE": "1"}
-    saved, results = [], []
-    for _ in range(2):
-        r = subprocess.run([sys.executable, "-c", _KERNELS_IN_A_NEW_PROCESS], env=env, capture_output=True,
-                           text=True, timeout=300)
-        assert r.returncode == 0, r.stderr[-500:]
-        saved.append([line for line in r.stdout.splitlines() if line.startswith("[cache] data saved")])
-        results.append([line.split() for line in r.stdout.splitlines() if line.startswith("theta")])
-    assert len(saved[0]) >= 3 * len(FORMS)          # core, block and update per form, compiled in the first
-    assert saved[1] == []
-    assert [form for _, form, _, _ in results[0]] == list(FORMS)
-    assert all(same == "True" for run in results for _, _, same, _ in run)   # one sample through either
-    assert results[0] == results[1]
+
+    def start(sizes: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-c", _KERNELS_IN_A_NEW_PROCESS, sizes], env=env, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    def finish(p: subprocess.Popen) -> tuple[list[str], list[list[str]]]:
+        out, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-500:]
+        return ([line for line in out.splitlines() if line.startswith("[cache] data saved")],
+                [line.split() for line in out.splitlines() if line.startswith("theta")])
+
+    (saved2, two), (saved3, three) = [finish(p) for p in [start("2"), start("3")]]
+    saved, both = finish(start("3,2"))
+    assert len(saved2) >= 3 * len(FORMS) and len(saved3) >= 3 * len(FORMS)   # core, block, update per form
+    assert saved == []                                                      # all loaded from the cache
+    assert [(form, n) for _, form, n, _, _ in both] == [(f, n) for n in ("3", "2") for f in FORMS]
+    assert all(same == "True" for run in (two, three, both) for _, _, _, same, _ in run)   # one sample or a block
+    assert both == three + two
 
 
 # --------------------------------------------------------------------------- forgetting
