@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import rt_ident.processes.telemetry as tel
+from rt_ident.outputs.sinks import TelemetryConfig
 
 _ORIG_MAIN = tel._telemetry_main
 
@@ -64,7 +65,7 @@ def main() -> None:
     tel._telemetry_main = _scaled_main    # pickled by name: the spawned child imports this module too
     out = Path(a.out)
     out.unlink(missing_ok=True)
-    cfg = tel.TelemetryConfig(sink="rrd", rrd_path=str(out), queue_size=1024, ring_bytes=32 << 20)
+    cfg = TelemetryConfig(sink="rrd", rrd_path=str(out), queue_size=1024, ring_bytes=32 << 20)
     tp = tel.TelemetryProcess(cfg).start()
     tp.set_truth({"I1": 0.01, "I2": 0.02, "B": 1.0, "K": 1e5, "wn": 4162.0, "wd": 4159.0, "zeta": 0.04})
     assert tp.wait_ready(30.0)

@@ -176,7 +176,7 @@ def _axis(cfg: RunConfig) -> None:
 
 
 def _telemetry(cfg: RunConfig, sink: str, connect_url: str | None) -> None:
-    from rt_ident.processes.telemetry import TelemetryConfig
+    from rt_ident.outputs.sinks import TelemetryConfig
 
     try:
         TelemetryConfig(sink=sink, rrd_path="check.rrd", connect_url=connect_url, bind_ip=cfg.telemetry.bind_ip)

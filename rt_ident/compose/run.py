@@ -90,7 +90,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise. A config
     refused before any device is enabled raises its :class:`~rt_ident.errors.ConfigError`.
     """
-    from rt_ident.processes.telemetry import DEFAULT_PORT, TelemetryConfig, serve_port
+    from rt_ident.outputs.sinks import DEFAULT_PORT, TelemetryConfig, serve_port
 
     stop = stop_event or threading.Event()
     several = bool(cfg.axes)
@@ -138,7 +138,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
             if emulator is not None:
                 stack.callback(getattr(emulator, "close", None) or emulator.stop)   # after every backend's stop
             if several and sink == "spawn":
-                from rt_ident.processes.telemetry import ensure_viewer
+                from rt_ident.outputs.sinks import ensure_viewer
 
                 live_url = ensure_viewer(TelemetryConfig(sink="spawn", bind_ip=cfg.telemetry.bind_ip,
                                                          port=cfg.telemetry.port or DEFAULT_PORT))
@@ -285,8 +285,9 @@ def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port
                 stop: threading.Event, stack: contextlib.ExitStack, overwrite: bool) -> IdentificationLoop:
     """One axis's helpers (telemetry, recorder, fit and redesign processes), estimators, controller,
     safety monitor and loop (``ax.loop``, returned), warmed up."""
+    from rt_ident.outputs.sinks import TelemetryConfig
     from rt_ident.processes.recorder import RecorderProcess
-    from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.processes.telemetry import TelemetryProcess
 
     acfg, h, name = ax.cfg, ax.helpers, ax.name
     truth = acfg.axis_params()

@@ -22,34 +22,25 @@ with :meth:`TelemetryProcess.set_truth`, are drawn as a second series beside eac
 child sends the true value at the first and last time of every batch that holds that estimate
 (a horizontal line over the estimate's time span).
 
-Sinks: ``"rrd"`` file (complete after ``close()``: the child writes it without rerun's footer, whose
-per-chunk manifest would grow the child for as long as the run lasts, and ``close()`` then adds the
-footer in a process of its own: see :func:`finish_rrd`); ``"spawn"``
-starts ``rerun --bind <bind_ip> --port <port>`` (never 0.0.0.0 unless configured) and connects;
-``"connect"`` connects to ``connect_url``; ``"serve"`` hosts a gRPC server with
-``GrpcServerSink(bind_ip=bind_ip)``; ``"off"`` starts nothing. The child sets ``CI=1`` (rerun
-writes no analytics config) unless ``CI`` is already set.
+Sinks and their settings (:class:`TelemetryConfig`), the viewer and the .rrd's footer:
+:mod:`rt_ident.outputs.sinks`. The child sets ``CI=1`` (rerun writes no analytics config) unless
+``CI`` is already set.
 """
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 import math
 import os
-import socket
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Collection, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rt_ident.errors import ConfigError, DataError
+from rt_ident.errors import DataError
 from rt_ident.outputs.dashboard import (
     BLOCK_ENTITIES,
     CONTROL_ENTITIES,
@@ -61,13 +52,21 @@ from rt_ident.outputs.dashboard import (
     draw_loop_gain,
     truth_path,
 )
+from rt_ident.outputs.sinks import (
+    CLIENT_SINKS,
+    TelemetryConfig,
+    disk_full,
+    ensure_viewer,
+    finish_rrd,
+    port_open,
+    viewer_address,
+)
 from rt_ident.processes.context import helper_context
 from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, RingReused, key_words, put_rows
 
 log = logging.getLogger(__name__)
 
-SINKS: tuple[str, ...] = ("rrd", "spawn", "connect", "serve", "off")
 _CI_KEYS = tuple(f"{side}_{k}" for k in ESTIMATE_KEYS for side in ("lo", "hi"))
 TICK_KEYS: frozenset[str] = frozenset(ESTIMATE_KEYS + _CI_KEYS + ("lateness_us", "overruns", "stalls")
                                       + tuple(CONTROL_ENTITIES))
@@ -98,129 +97,8 @@ _VIEW_MOVED = 0.005        # a resonance that moved by more than this fraction: 
 _POLL_S = 0.01       # child: sleep between polls of an empty ring
 
 
-def default_sink(env: Mapping[str, str] | None = None) -> str:
-    """``"spawn"`` when a display is available, else ``"rrd"``."""
-    env = os.environ if env is None else env
-    return "spawn" if env.get("DISPLAY") or env.get("WAYLAND_DISPLAY") else "rrd"
-
-
-@dataclass(frozen=True)
-class TelemetryConfig:
-    """Where telemetry goes and how much of it. Validated on construction (no I/O)."""
-
-    sink: str = "rrd"
-    rrd_path: str | None = None
-    connect_url: str | None = None
-    bind_ip: str = "127.0.0.1"
-    decimation: int = 1
-    application_id: str = "rt_ident"
-    port: int = 9876  # viewer port for "spawn", server port for "serve"
-    queue_size: int = 64  # blocks buffered between the loop and the child
-    ring_bytes: int = 8 << 20  # and at most this many bytes of them
-    flush_timeout: float = 2.0  # child: max wait for rerun to flush at close
-    # child: send at most every batch_seconds (one chunk per entity per batch). Rerun stores each
-    # send_columns as its own chunk; one per 20-ms block gives ~8000 tiny chunks in 10 s and
-    # 2.4 MB/s of .rrd. Half a second keeps the live view fluid and the chunks big enough to compress.
-    batch_seconds: float = 1.0
-    min_free_bytes: int = 4 << 20  # an .rrd sink stops (and says so) when its filesystem has less left
-    finish_timeout: float = 60.0   # close(): max wait for the .rrd's footer (finish_rrd); else left without one
-
-    def __post_init__(self) -> None:
-        if self.sink not in SINKS:
-            raise ConfigError("sink", f"must be one of {', '.join(SINKS)}, got {self.sink!r}")
-        if self.sink == "rrd" and not self.rrd_path:
-            raise ConfigError("rrd_path", 'required when sink == "rrd"')
-        if self.sink == "connect":
-            url = self.connect_url or ""
-            if not url.startswith(("rerun://", "rerun+http://", "rerun+https://")) or not url.endswith("/proxy"):
-                raise ConfigError("connect_url", f"must look like rerun+http://HOST:PORT/proxy, got {url!r}")
-        try:
-            ipaddress.ip_address(self.bind_ip)
-        except ValueError as e:
-            raise ConfigError("bind_ip", f"not an IP address: {self.bind_ip!r}") from e
-        if isinstance(self.decimation, bool) or not isinstance(self.decimation, int) or self.decimation < 1:
-            raise ConfigError("decimation", f"must be an integer >= 1, got {self.decimation!r}")
-        if not isinstance(self.port, int) or not 1 <= self.port <= 65535:
-            raise ConfigError("port", f"must be in 1..65535, got {self.port!r}")
-        if not isinstance(self.queue_size, int) or self.queue_size < 1:
-            raise ConfigError("queue_size", f"must be an integer >= 1, got {self.queue_size!r}")
-        if isinstance(self.ring_bytes, bool) or not isinstance(self.ring_bytes, int) or self.ring_bytes < 1 << 16:
-            raise ConfigError("ring_bytes", f"must be an integer >= 65536, got {self.ring_bytes!r}")
-        if not self.application_id:
-            raise ConfigError("application_id", "must not be empty")
-        if not (math.isfinite(self.flush_timeout) and self.flush_timeout > 0):
-            raise ConfigError("flush_timeout", f"must be > 0 s, got {self.flush_timeout!r}")
-        if not (math.isfinite(self.finish_timeout) and self.finish_timeout > 0):
-            raise ConfigError("finish_timeout", f"must be > 0 s, got {self.finish_timeout!r}")
-        if not (math.isfinite(self.batch_seconds) and 0 <= self.batch_seconds <= 10):
-            raise ConfigError("batch_seconds", f"must be in 0..10 s, got {self.batch_seconds!r}")
-
-
-def viewer_command(cfg: TelemetryConfig) -> list[str]:
-    """The command that starts a local viewer bound to ``cfg.bind_ip:cfg.port`` (sink "spawn")."""
-    return [sys.executable, "-m", "rerun_cli", "--bind", cfg.bind_ip, "--port", str(cfg.port),
-            "--memory-limit", "25%", "--hide-welcome-screen"]
-
-
-def _local_host(bind_ip: str) -> str:
-    return "127.0.0.1" if ipaddress.ip_address(bind_ip).is_unspecified else bind_ip
-
-
-DEFAULT_PORT = 9876
-
-
-def serve_port(bind_ip: str, configured: int | None) -> int:
-    """The port to serve on: the configured one (refused in one line when taken), else 9876, or a
-    free port the system picks when 9876 is taken (a second run beside the first)."""
-    def free(port: int) -> bool:
-        with socket.socket(socket.AF_INET6 if ":" in bind_ip else socket.AF_INET) as s:
-            try:
-                s.bind((bind_ip, port))
-            except OSError:
-                return False
-            return True
-
-    if configured is not None:
-        if not free(configured):
-            raise ConfigError("telemetry.port", f"{bind_ip}:{configured} is in use (another run serving?); "
-                                                "choose another port or leave it unset for a free one")
-        return configured
-    if free(DEFAULT_PORT):
-        return DEFAULT_PORT
-    with socket.socket(socket.AF_INET6 if ":" in bind_ip else socket.AF_INET) as s:
-        s.bind((bind_ip, 0))
-        port = int(s.getsockname()[1])
-    log.warning("telemetry: port %d is in use; serving on %d instead", DEFAULT_PORT, port)
-    return port
-
-
-def _port_open(host: str, port: int) -> bool:
-    try:
-        with socket.create_connection((host, port), timeout=0.2):
-            return True
-    except OSError:
-        return False
-
-
-#: Sinks that send to a viewer over a gRPC client: rerun buffers and retries without telling the
-#: caller, so whether the viewer got the data is checked at the end (:meth:`TelemetryProcess._delivered`).
-CLIENT_SINKS = ("connect", "spawn")
 #: ``failed`` codes the child leaves for the parent (0: none)
 FAIL_DISK_FULL, FAIL_NO_VIEWER, FAIL_FLUSH, FAIL_CONNECT = 1, 2, 3, 4
-
-
-def viewer_address(cfg: TelemetryConfig) -> tuple[str, int]:
-    """(host, port) a client sink sends to: the connect URL's, or the spawned viewer's."""
-    if cfg.sink == "connect" and cfg.connect_url:
-        from urllib.parse import urlparse
-
-        u = urlparse(cfg.connect_url.replace("rerun+", "", 1).replace("rerun://", "http://", 1))
-        try:
-            port = u.port
-        except ValueError:
-            port = None
-        return u.hostname or "127.0.0.1", port or DEFAULT_PORT
-    return _local_host(cfg.bind_ip), cfg.port
 
 
 def _open_sink(rec: Any, cfg: TelemetryConfig, rr: Any) -> None:
@@ -257,20 +135,6 @@ def _connected(connecting: threading.Thread, timeout: float) -> bool:
     """Whether the connect thread ended within ``timeout`` (it sets ``failed`` itself if its connect failed)."""
     connecting.join(timeout)
     return not connecting.is_alive()
-
-
-def ensure_viewer(cfg: TelemetryConfig, wait_s: float = 15.0) -> str:
-    """Start a local viewer on ``cfg.bind_ip:cfg.port`` unless one listens there already (it outlives
-    the run, in its own session); returns the URL an SDK connects to. Waits up to ``wait_s`` for it."""
-    host = _local_host(cfg.bind_ip)
-    if not _port_open(host, cfg.port):
-        env = dict(os.environ, CI=os.environ.get("CI", "1"))
-        subprocess.Popen(viewer_command(cfg), env=env, start_new_session=True, stdin=subprocess.DEVNULL,
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + wait_s
-        while not _port_open(host, cfg.port) and time.monotonic() < deadline:
-            time.sleep(0.1)
-    return f"rerun+http://{host}:{cfg.port}/proxy"
 
 
 def _step_points(v: np.ndarray, last: np.ndarray | None, extend: bool) -> np.ndarray:
@@ -464,75 +328,6 @@ class _Sender:
             draw_loop_gain(rec, rr, t, view, margins)
 
 
-def _disk_full(path: str | None, min_free: int) -> str | None:
-    """Why an .rrd sink cannot go on writing (its filesystem is full), or None. Rerun's file sink
-    writes in a thread of its own and reports a failed write only to its log, never to the caller:
-    so the free space is checked before each batch instead."""
-    if not path:
-        return None
-    try:
-        st = os.statvfs(Path(path).resolve().parent)
-    except OSError:
-        return None
-    free = st.f_bavail * st.f_frsize
-    if free < min_free:
-        return f"no space left on the device of {path} ({free} bytes free)"
-    return None
-
-
-def _rerun_cli() -> str | None:
-    """The rerun binary itself, not the ``rerun`` script (whose child would outlive a kill at a timeout)."""
-    try:
-        import rerun_cli
-    except ImportError:
-        return None
-    exe = Path(rerun_cli.__file__).with_name("rerun")
-    return str(exe) if exe.is_file() else None
-
-
-def finish_rrd(path: str, timeout: float, min_free: int = 0) -> str | None:
-    """Add rerun's footer (the chunk manifest ``RrdReader.store()`` and ``rerun rrd verify`` need) to
-    the footerless .rrd at ``path``. None when done, else why not; the file is then left as it was
-    (complete, without a footer), never half rewritten.
-
-    ``rerun rrd filter`` with no filter copies every message as it is and ends the copy with the
-    footer; the copy then replaces the file. It runs as a process of its own: the manifest it builds
-    is freed when it exits, and it is killed at ``timeout`` (its copy removed)."""
-    p = Path(path).resolve()
-    tmp = p.with_name(p.name + ".part")
-    exe = _rerun_cli()
-    if exe is None:
-        return "the rerun CLI was not found"
-    try:
-        size = p.stat().st_size
-        st = os.statvfs(p.parent)
-    except OSError as e:
-        return f"{p}: {e.strerror or e}"
-    if st.f_bavail * st.f_frsize < size + min_free:
-        return f"no room for a {size / 1e6:.0f} MB copy beside {p}"
-    env = dict(os.environ, CI=os.environ.get("CI", "1"), RUST_LOG="warn")   # no analytics config, no INFO lines
-    proc = subprocess.Popen([exe, "rrd", "filter", str(p), "-o", str(tmp)], env=env, stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    done = False
-    try:
-        try:
-            _, err = proc.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return f"not done within {timeout:g} s ({size / 1e6:.0f} MB)"
-        if proc.returncode != 0 or not tmp.is_file():
-            last = err.decode(errors="replace").strip().splitlines()[-1:] or [f"exit code {proc.returncode}"]
-            return f"rerun rrd filter failed: {last[0][-300:]}"
-        os.replace(tmp, p)
-        done = True
-        return None
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if not done:
-            tmp.unlink(missing_ok=True)
-
-
 def _expand_window(m: dict[str, np.ndarray], schemas: Mapping[int, tuple[str, ...]]) -> None:
     """A tick block's window vector back into one array per name, its value at every tick."""
     values = m.pop(_WINDOW)
@@ -568,7 +363,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
         # connect_grpc blocks 5 s when nothing listens: the run goes on meanwhile, rerun buffering what is
         # logged until the sink is set (and a viewer started later still gets it)
         host, port = viewer_address(cfg)
-        if not _port_open(host, port):
+        if not port_open(host, port):
             log.warning("telemetry: nothing listens at %s:%d yet; the dashboard goes there if a viewer starts",
                         host, port)
         connecting = threading.Thread(target=_connect, args=(rec, cfg, rr, failed), name="telemetry connect",
@@ -609,7 +404,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
         now = time.monotonic()
         final = closed and not msgs
         if pending and (now - last_send >= cfg.batch_seconds or len(pending) >= _MAX_PENDING or final):
-            full = _disk_full(cfg.rrd_path, cfg.min_free_bytes) if cfg.sink == "rrd" else None
+            full = disk_full(cfg.rrd_path, cfg.min_free_bytes) if cfg.sink == "rrd" else None
             if full:                              # stop writing; the parent reports it (never "sent")
                 if not failed.value:
                     failed.value = FAIL_DISK_FULL
@@ -627,7 +422,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
                 break
             time.sleep(_POLL_S)
     client = cfg.sink in CLIENT_SINKS
-    if client and not _port_open(*viewer_address(cfg)):
+    if client and not port_open(*viewer_address(cfg)):
         failed.value = FAIL_NO_VIEWER
     elif connecting is not None and not _connected(connecting, cfg.flush_timeout):
         failed.value = FAIL_FLUSH                 # still connecting: a flush would only empty rerun's buffer

@@ -107,7 +107,7 @@ def test_a_run_that_fails_before_any_sample_says_why_once_and_leaves_no_file(tmp
 def test_serve_moves_to_a_free_port_when_9876_is_taken_and_refuses_a_taken_configured_port():
     import socket
 
-    from rt_ident.processes.telemetry import DEFAULT_PORT
+    from rt_ident.outputs.sinks import DEFAULT_PORT
 
     holder, mine = socket.socket(), socket.socket()
     try:
@@ -220,7 +220,8 @@ def test_a_full_disk_stops_the_dashboard_and_is_never_reported_as_written(tmp_pa
     nobody): with a bound no disk meets, nothing is sent and close() says why."""
     import numpy as np
 
-    from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.outputs.sinks import TelemetryConfig
+    from rt_ident.processes.telemetry import TelemetryProcess
 
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "f.rrd"), min_free_bytes=1 << 62))
     tp.start()
@@ -232,10 +233,10 @@ def test_a_full_disk_stops_the_dashboard_and_is_never_reported_as_written(tmp_pa
 
 
 def test_free_space_check_names_the_file(tmp_path):
-    from rt_ident.processes import telemetry as tel
+    from rt_ident.outputs.sinks import disk_full
 
-    assert tel._disk_full(str(tmp_path / "x.rrd"), 1) is None
-    why = tel._disk_full(str(tmp_path / "x.rrd"), 1 << 62)
+    assert disk_full(str(tmp_path / "x.rrd"), 1) is None
+    why = disk_full(str(tmp_path / "x.rrd"), 1 << 62)
     assert why is not None and "x.rrd" in why and "no space left" in why
 
 

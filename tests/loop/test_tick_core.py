@@ -50,7 +50,8 @@ def _counters(ring: MessageRing) -> list[int]:
 
 def _telemetry_process():
     """A TelemetryProcess without its child: its ring, drained by the test."""
-    from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.outputs.sinks import TelemetryConfig
+    from rt_ident.processes.telemetry import TelemetryProcess
 
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="unused.rrd"))
     tp._ring = MessageRing(1 << 22)
@@ -229,7 +230,8 @@ def test_the_compiled_ring_writes_are_the_python_puts_byte_for_byte():
 
 
 def test_publish_rows_queues_what_publish_queues_byte_for_byte():
-    from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
+    from rt_ident.outputs.sinks import TelemetryConfig
+    from rt_ident.processes.telemetry import TelemetryProcess
 
     def process() -> TelemetryProcess:
         tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path="unused.rrd"))

@@ -15,7 +15,8 @@ import pytest
 
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.outputs import dashboard
-from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess, default_sink, viewer_command
+from rt_ident.outputs.sinks import TelemetryConfig, default_sink, viewer_command
+from rt_ident.processes.telemetry import TelemetryProcess
 
 
 def _free_port() -> int:
@@ -329,9 +330,9 @@ def _fake_cli(tmp_path: Path, body: str) -> str:
 def test_a_footer_that_cannot_be_added_is_reported_and_the_file_left_whole(tmp_path, monkeypatch, body, why):
     """A finishing step that hangs is stopped at finish_timeout, one that fails is named; either
     way the file is the complete stream it was (no data lost: no write error), with no copy beside."""
-    from rt_ident.processes import telemetry as tel
+    from rt_ident.outputs import sinks
 
-    monkeypatch.setattr(tel, "_rerun_cli", lambda: _fake_cli(tmp_path / "bin", body))
+    monkeypatch.setattr(sinks, "_rerun_cli", lambda: _fake_cli(tmp_path / "bin", body))
     (tmp_path / "bin").mkdir()
     path = tmp_path / "d" / "nofooter.rrd"
     tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(path), queue_size=256,
@@ -351,7 +352,7 @@ def test_a_footer_that_cannot_be_added_is_reported_and_the_file_left_whole(tmp_p
 
 
 def test_no_room_for_the_copy_leaves_the_file_without_a_footer_and_says_so(tmp_path: Path) -> None:
-    from rt_ident.processes.telemetry import finish_rrd
+    from rt_ident.outputs.sinks import finish_rrd
 
     path = tmp_path / "x.rrd"
     path.write_bytes(b"x" * 1000)

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rt_ident.processes.telemetry import TelemetryConfig, TelemetryProcess
+from rt_ident.outputs.sinks import TelemetryConfig
+from rt_ident.processes.telemetry import TelemetryProcess
 
 REPO = Path(__file__).resolve().parents[2]
 
