@@ -14,6 +14,7 @@ from rt_ident.axis.excitation import schroeder_multisine
 from rt_ident.axis.integrators import Newmark
 from rt_ident.axis.params import thomson_x
 from rt_ident.estimators.frequency import fit_frequency
+from rt_ident.outputs import terminal
 
 
 def _data(periods: int = 4, noise: float = 0.0):
@@ -45,7 +46,9 @@ def test_non_converged_fit_is_never_trusted_and_says_why():
 
 def _capture(monkeypatch, width: int = 80) -> io.StringIO:
     buf = io.StringIO()
-    monkeypatch.setattr(cli, "out", Console(file=buf, width=width, soft_wrap=True, color_system=None))
+    console = Console(file=buf, width=width, soft_wrap=True, color_system=None)
+    monkeypatch.setattr(cli, "out", console)
+    monkeypatch.setattr(terminal, "out", console)
     return buf
 
 
@@ -64,7 +67,7 @@ def _summary(path: str) -> dict:
 
 def test_run_table_has_units_and_cuts_no_value_at_80_columns(monkeypatch):
     buf = _capture(monkeypatch, 80)
-    cli._print_run(_summary("runs/x"))
+    terminal.print_run(_summary("runs/x"))
     text = buf.getvalue()
     assert "…" not in text
     assert "kg m²" in text and "N m/rad" in text and "N m s/rad" in text
@@ -74,8 +77,8 @@ def test_run_table_has_units_and_cuts_no_value_at_80_columns(monkeypatch):
 
 def test_the_stall_line_says_how_long_the_loop_read_the_backlog_before_re_planning(monkeypatch):
     buf = _capture(monkeypatch, 200)
-    cli._print_stalls({"stalls": {"count": 1, "longest_ms": 90.0, "catch_up_longest_ms": 15.0}})
-    cli._print_stalls({"stalls": {"count": 2, "longest_ms": 40.0, "catch_up_longest_ms": 0.0}})
+    terminal.print_stalls({"stalls": {"count": 1, "longest_ms": 90.0, "catch_up_longest_ms": 15.0}})
+    terminal.print_stalls({"stalls": {"count": 2, "longest_ms": 40.0, "catch_up_longest_ms": 0.0}})
     first, second = buf.getvalue().splitlines()
     assert "longest 90 ms" in first and "backlog for up to 15 ms before re-planning" in first
     assert "longest 40 ms" in second and "backlog" not in second
@@ -86,7 +89,7 @@ def test_the_loop_line_says_when_the_dashboards_process_had_to_be_ended(monkeypa
     buf = _capture(monkeypatch, 200)
     s = _summary("runs/x")
     s["telemetry"] = {"dropped": 466, "terminated": terminated}
-    cli._print_run(s)
+    terminal.print_run(s)
     line = next(ln for ln in buf.getvalue().splitlines() if ln.startswith("loop:"))
     assert "telemetry dropped 466" in line
     assert ("did not finish and was ended" in line) is terminated
@@ -95,7 +98,7 @@ def test_the_loop_line_says_when_the_dashboards_process_had_to_be_ended(monkeypa
 def test_file_hints_stay_on_one_line_when_piped(monkeypatch):
     buf = _capture(monkeypatch, 80)
     long = "runs/" + "a-very-long-directory-name/" * 3 + "run-20261125-022806-5971"
-    cli._print_run(_summary(long))
+    terminal.print_run(_summary(long))
     lines = buf.getvalue().splitlines()
     hint = [ln for ln in lines if ln.startswith("recording:")]
     assert len(hint) == 1 and f"rt-ident identify {long}.parquet" in hint[0]
@@ -104,11 +107,11 @@ def test_file_hints_stay_on_one_line_when_piped(monkeypatch):
 def test_brackets_in_paths_reasons_and_stop_messages_are_printed_as_written_not_read_as_markup(monkeypatch):
     buf = _capture(monkeypatch, 200)
     ebuf = io.StringIO()
-    monkeypatch.setattr(cli, "err", Console(file=ebuf, width=200, soft_wrap=True, color_system=None))
+    monkeypatch.setattr(terminal, "err", Console(file=ebuf, width=200, soft_wrap=True, color_system=None))
     s = _summary("runs/[s]/rec[x]")
     s["trust"]["reasons"] = ["[axis] I2 disagrees [/red] with the fit"]
     s["stop"] = {"cause": "speed-trip", "message": "[axis] lead [s] is wrong [/]", "fix": "set [safety] max_speed"}
-    cli._print_run(s)
+    terminal.print_run(s)
     text, etext = buf.getvalue(), ebuf.getvalue()
     assert "rt-ident identify runs/[s]/rec[x].parquet" in text
     assert "[axis] I2 disagrees [/red] with the fit" in text
@@ -180,8 +183,8 @@ def test_an_frf_view_of_a_fit_with_a_wild_covariance_never_raises():
 
 def test_a_run_stopped_by_ctrl_c_or_sigterm_says_it_stopped_early_and_a_full_run_does_not(monkeypatch):
     buf = io.StringIO()
-    monkeypatch.setattr(cli, "err", Console(file=buf, width=120, soft_wrap=True, color_system=None))
-    cli._print_stop({"stop": {"cause": None, "message": None, "interrupted": True}, "loop": {"ticks": 1428}})
-    cli._print_stop({"stop": {"cause": None, "message": None, "interrupted": False}, "loop": {"ticks": 10000}})
+    monkeypatch.setattr(terminal, "err", Console(file=buf, width=120, soft_wrap=True, color_system=None))
+    terminal.print_stop({"stop": {"cause": None, "message": None, "interrupted": True}, "loop": {"ticks": 1428}})
+    terminal.print_stop({"stop": {"cause": None, "message": None, "interrupted": False}, "loop": {"ticks": 10000}})
     assert buf.getvalue().splitlines() == ["stopped early on request (Ctrl-C or SIGTERM) after 1428 ticks: the figures "
                                            "above cover only that part; torque zeroed, drive disabled"]

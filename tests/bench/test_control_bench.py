@@ -110,7 +110,7 @@ def test_after_k_x06_the_adaptive_loop_keeps_its_design_checked_on_the_new_estim
 
 
 def test_the_run_summary_counts_the_results_that_kept_the_design_in_force():
-    from rt_ident.cli import _kept
+    from rt_ident.outputs.terminal import kept
 
-    assert _kept({"accepted": 2, "kept": 3}) == " (3 more kept the design in force)"
-    assert _kept({"accepted": 2, "kept": 0}) == "" and _kept({"accepted": 2}) == ""
+    assert kept({"accepted": 2, "kept": 3}) == " (3 more kept the design in force)"
+    assert kept({"accepted": 2, "kept": 0}) == "" and kept({"accepted": 2}) == ""
