@@ -27,6 +27,7 @@ from rt_ident.errors import ConfigError
 log = logging.getLogger(__name__)
 
 SINKS: tuple[str, ...] = ("rrd", "spawn", "connect", "serve", "off")
+DEFAULT_PORT = 9876
 
 
 def default_sink(env: Mapping[str, str] | None = None) -> str:
@@ -45,7 +46,7 @@ class TelemetryConfig:
     bind_ip: str = "127.0.0.1"
     decimation: int = 1
     application_id: str = "rt_ident"
-    port: int = 9876  # viewer port for "spawn", server port for "serve"
+    port: int = DEFAULT_PORT  # viewer port for "spawn", server port for "serve"
     queue_size: int = 64  # blocks buffered between the loop and the child
     ring_bytes: int = 8 << 20  # and at most this many bytes of them
     flush_timeout: float = 2.0  # child: max wait for rerun to flush at close
@@ -96,8 +97,6 @@ def viewer_command(cfg: TelemetryConfig) -> list[str]:
 def _local_host(bind_ip: str) -> str:
     return "127.0.0.1" if ipaddress.ip_address(bind_ip).is_unspecified else bind_ip
 
-
-DEFAULT_PORT = 9876
 
 
 def serve_port(bind_ip: str, configured: int | None) -> int:
