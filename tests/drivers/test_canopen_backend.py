@@ -527,12 +527,14 @@ def test_delayed_tpdos_trip_the_watchdog():
 
 def test_corrupted_tpdos_raise_protocol_error():
     with rig(faults={"corrupt_tpdo_every": 1, "tpdo_faults_from_sample": 50}, stale_limit=40) as (drive, be):
-        with pytest.raises(ProtocolError, match=r"TPDO 0x[12]85 with \d bytes, [48] mapped"):
+        with pytest.raises(ProtocolError, match=r"TPDO 0x[12]85 with \d bytes, [48] mapped") as err:
             with be:
                 be.activate()
                 pump(be, 2.0, square(0.1))
-        # the run of 41 bad samples is mostly corrupt frames (a SYNC the starved drive missed is a stale one in it)
-        assert be.counters["corrupt"] > 20
+        # the message counts the corrupt frames up to the stop, the counter also those read while stopping (how
+        # many of the 41 bad samples were corrupt rather than missed depends on how busy the host kept the drive)
+        total = int(re.search(r"(\d+) corrupt frames in total", str(err.value)).group(1))
+        assert 0 < total <= be.counters["corrupt"]
         assert_drive_safe(drive)
 
 
