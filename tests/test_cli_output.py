@@ -147,7 +147,7 @@ def test_help_shows_flags_without_a_bool_value(command, capsys, monkeypatch):
 
 def test_a_frequency_fit_carries_its_frf_view_with_model_and_band():
     from rt_ident.axis.plant import HoldController, PlantSimulator
-    from rt_ident.estimators.frequency import compute_spectra
+    from rt_ident.estimators.spectra import compute_spectra
     from rt_ident.estimators.streaming import fit_snapshot
 
     p, dt = thomson_x(), 2.9481e-5      # closed loop: periodic response, so Theta/T is the FRF
@@ -170,8 +170,8 @@ def test_an_frf_view_of_a_fit_with_a_wild_covariance_never_raises():
     """A fit with absurd intervals (early in a run) can overflow in the band's parameter draws; that must
     not take the whole final fit down with it: the band collapses onto the model instead."""
     from rt_ident.axis.plant import HoldController, PlantSimulator
-    from rt_ident.estimators.frequency import compute_spectra
     from rt_ident.estimators.frf import frf_view
+    from rt_ident.estimators.spectra import compute_spectra
 
     p, dt = thomson_x(), 2.9481e-5
     ms = schroeder_multisine(512, (1, 60), peak=0.3)

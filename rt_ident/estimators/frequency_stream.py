@@ -13,14 +13,14 @@ A period whose response is not periodic (rigid-body drift in closed loop, the co
 recovery after a host stall) differs from the others by its leakage, the term ``z c`` of
 :mod:`rt_ident.estimators.sampled_model` that the fit estimates for the mean. Its period-to-period
 variation is not noise, and it is shared by every line, so the kernel also keeps the periods'
-leakage features ``f`` (:func:`rt_ident.estimators.frequency.leak_features`) in sums ``Sf``,
+leakage features ``f`` (:func:`rt_ident.estimators.spectra.leak_features`) in sums ``Sf``,
 ``Sff`` and ``Svf = sum v f^T``; the fit removes the part of the scatter they explain
-(:meth:`rt_ident.estimators.frequency.Spectra.from_sums`). It also counts the periods whose angles
+(:meth:`rt_ident.estimators.spectra.Spectra.from_sums`). It also counts the periods whose angles
 shifted by more than a quarter quantization step (their quantization errors are new ones,
 :func:`rt_ident.estimators.frequency.repeating_quantization`).
-All sums live in one flat complex buffer (:func:`rt_ident.estimators.frequency.sums_layout`).
+All sums live in one flat complex buffer (:func:`rt_ident.estimators.spectra.sums_layout`).
 :meth:`StreamingFrequencyEstimator.estimate` turns the sums into the same
-:class:`~rt_ident.estimators.frequency.Spectra` as the batch
+:class:`~rt_ident.estimators.spectra.Spectra` as the batch
 :func:`~rt_ident.estimators.frequency.fit_frequency` and runs the same Gauss-Newton
 fit, warm-started from the previous estimate (a few iterations).
 
@@ -41,19 +41,8 @@ import numpy as np
 from rt_ident.axis.kernels import first_non_finite3
 from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
-from rt_ident.estimators.frequency import (
-    DEFAULT_LEAD,
-    LEAK_FEATURES,
-    MOVED_STEPS,
-    FitResult,
-    Spectra,
-    SpectraSums,
-    check_hold,
-    fit_spectra,
-    identification_from_fit,
-    leak_window,
-    sums_layout,
-)
+from rt_ident.estimators.frequency import DEFAULT_LEAD, FitResult, check_hold, fit_spectra, identification_from_fit
+from rt_ident.estimators.spectra import LEAK_FEATURES, MOVED_STEPS, Spectra, SpectraSums, leak_window, sums_layout
 
 logger = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """The frequency-response view of a fit: measured FRF at the excited lines, the model's over it.
 
 Built in the fit process (never in the tick) from the streaming DFT sums of the ``frequency``
-method (:class:`~rt_ident.estimators.frequency.Spectra`) and the Gauss-Newton fit, and sent to
+method (:class:`~rt_ident.estimators.spectra.Spectra`) and the Gauss-Newton fit, and sent to
 the dashboard once per fit:
 
 * measured ``H1 = Theta1 / T`` and ``H2 = Theta2 / T`` at each excited harmonic: the ratio of the

@@ -35,7 +35,7 @@ from rt_ident.errors import ConfigError, DataError
 from rt_ident.estimators.base import Identification
 
 if TYPE_CHECKING:
-    from rt_ident.estimators.frequency import SpectraSums
+    from rt_ident.estimators.spectra import SpectraSums
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class FrequencyStream:
         self.inner.skip(n)
 
     def snapshot(self) -> SpectraSums | None:
-        """The running sums (:class:`~rt_ident.estimators.frequency.SpectraSums`), None before a period."""
+        """The running sums (:class:`~rt_ident.estimators.spectra.SpectraSums`), None before a period."""
         return self.inner.sums() if self.inner.periods >= 1 else None
 
     def final(self) -> Identification | None:

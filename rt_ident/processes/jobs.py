@@ -87,7 +87,7 @@ _CODEC = "codec"     # ring key naming the class of a snapshot sent as its field
 
 def _decoders() -> dict[str, Callable[[dict], Any]]:
     """Snapshot classes sent as their fields (``to_fields`` here, ``from_fields`` in the job process), by name."""
-    from rt_ident.estimators.frequency import Spectra, SpectraSums
+    from rt_ident.estimators.spectra import Spectra, SpectraSums
 
     return {"Spectra": Spectra.from_fields, "SpectraSums": SpectraSums.from_fields}
 

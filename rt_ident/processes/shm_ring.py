@@ -450,7 +450,7 @@ def put_rows(h, di, df, cap, max_messages, keys, index, rows, n, tail_keys, tail
 @numba.njit(cache=True)
 def put_sums(h, di, df, cap, max_messages, keys, harmonics, S1, S2, quantum, scalars, codec, codec_len) -> int:
     """:meth:`MessageRing.put` of a streaming estimator's running sums as
-    :meth:`rt_ident.estimators.frequency.SpectraSums.to_fields` lays them out, with the codec field the
+    :meth:`rt_ident.estimators.spectra.SpectraSums.to_fields` lays them out, with the codec field the
     fit process decodes them by (``{harmonics, sums, quantum, scalars, codec}``; ``keys`` their ten words,
     ``codec`` the name's bytes as int64 words, ``codec_len`` its length), compiled. Returns as
     :func:`put_seq_floats`. The codec field's padding bytes are zeros here (MessageRing.put leaves what

@@ -25,16 +25,16 @@ from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.errors import ConfigError, DataError, EstimationError
 from rt_ident.estimators import frequency_stream as fstream
 from rt_ident.estimators.consistent import fit_tustin_angles
-from rt_ident.estimators.frequency import (
+from rt_ident.estimators.frequency import fit_frequency
+from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator, rdft_accumulate, rdft_accumulate_py
+from rt_ident.estimators.spectra import (
     SpectraSums,
     compute_spectra,
     detect_period,
-    fit_frequency,
     leak_features,
     leak_window,
     sums_layout,
 )
-from rt_ident.estimators.frequency_stream import StreamingFrequencyEstimator, rdft_accumulate, rdft_accumulate_py
 
 FAST, SLOW = (2.9481e-5, 4096), (2.5e-4, 1024)    # (dt, period N) at 34 kHz and 4 kHz
 
@@ -390,7 +390,7 @@ def test_fit_worker_sends_the_frf_view_at_most_every_view_interval():
 
 
 def test_spectra_sent_as_fields_come_back_bit_for_bit():
-    from rt_ident.estimators.frequency import Spectra
+    from rt_ident.estimators.spectra import Spectra
 
     rng = np.random.default_rng(3)
     H = 7

@@ -13,7 +13,8 @@ from rt_ident.axis.modal import modal_parameters
 from rt_ident.axis.params import thomson_x
 from rt_ident.axis.plant import HoldController, PlantSimulator, SensorConfig
 from rt_ident.estimators.consistent import fit_tustin_angles
-from rt_ident.estimators.frequency import Spectra, fit_frequency, transfer
+from rt_ident.estimators.frequency import fit_frequency, transfer
+from rt_ident.estimators.spectra import Spectra
 from rt_ident.estimators.uncertainty import (
     MAX_REL_HALFWIDTH,
     MIN_EIG,

@@ -258,7 +258,7 @@ def test_publish_rows_queues_what_publish_queues_byte_for_byte():
 
 
 def test_the_kernels_snapshot_message_is_the_python_paths_for_the_fit_worker():
-    from rt_ident.estimators.frequency import SpectraSums
+    from rt_ident.estimators.spectra import SpectraSums
     from rt_ident.processes.shm_ring import put_sums
 
     rng = np.random.default_rng(2)
