@@ -324,7 +324,8 @@ def compute_spectra(theta1: np.ndarray, theta2: np.ndarray, torque: np.ndarray, 
                     period: int | None = None, harmonics: np.ndarray | None = None,
                     discard_periods: int | None = None, quantum: tuple[float, float] | None = None
                     ) -> Spectra:
-    """Period-averaged spectra of a recording (see :func:`fit_frequency` for the arguments)."""
+    """Period-averaged spectra of a recording (the arguments as for
+    :func:`rt_ident.estimators.frequency.fit_frequency`)."""
     x = [np.asarray(a, dtype=float) for a in (theta1, theta2, torque)]
     n = x[0].size
     if any(a.ndim != 1 or a.size != n for a in x):
