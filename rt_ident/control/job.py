@@ -16,6 +16,7 @@ conservative controller, and a replacement for it that suits the estimate.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from dataclasses import dataclass, replace
@@ -35,6 +36,7 @@ from rt_ident.control.design import (
     reference_error,
 )
 from rt_ident.control.law import Controller
+from rt_ident.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -167,10 +169,21 @@ def _held_design(request: dict[str, Any], lead: float, tick: float,
     if nominal is None:
         return None
     try:
-        configured = model_controller(AxisParams(**nominal), tick, s)
+        model = AxisParams(**nominal)
+    except (ConfigError, TypeError):    # no configured design to offer: the estimate's own
+        return None
+    configured = _configured_design(model, tick, s)
+    return None if configured is None else (configured.gains, configured.model, configured)
+
+
+@functools.lru_cache(maxsize=4)
+def _configured_design(nominal: AxisParams, tick: float, s: ControlSettings) -> Controller | None:
+    """The configured axis's design, made once per job process: asked for with every request while the
+    conservative controller is in force. None where it cannot be made (the estimate's own design then)."""
+    try:
+        return model_controller(nominal, tick, s)
     except Exception:  # noqa: BLE001 - no configured design to offer: the estimate's own
         return None
-    return configured.gains, configured.model, configured
 
 
 def _with_fallback(out: dict[str, Any], request: dict[str, Any], p: AxisParams) -> dict[str, Any]:

@@ -382,6 +382,21 @@ def test_a_configured_axis_that_cannot_be_designed_for_leaves_the_estimates_own_
     assert res["accepted"] and "confirms" not in res and res["controller"].model == NEAR
 
 
+def test_the_configured_axiss_design_is_made_once_for_the_requests_made_on_the_conservative_controller(monkeypatch):
+    sup, w = _on_the_conservative_controller(_Estimate(NEAR))
+    _looks(sup, S.trust_window)
+    sup.poll()
+    made = []
+    real = J.model_controller
+    monkeypatch.setattr(J, "model_controller", lambda p, *a, **k: made.append(p) or real(p, *a, **k))
+    J._configured_design.cache_clear()
+    req = w.requests[-1]
+    first, again = J.redesign(req), J.redesign({**req, "settings": ControlSettings(**vars(req["settings"]))})
+    assert first["confirms"] == again["confirms"] == NEAR and np.array_equal(first["controller"].gains,
+                                                                             again["controller"].gains)
+    assert made.count(P) == 1 and made.count(NEAR) == 2       # the estimate's own design: made for each request
+
+
 def test_keep_design_needs_the_reference_error_the_error_norm_and_the_family_check_each():
     g = model_controller(P, 1e-3, S).gains
 
