@@ -113,7 +113,7 @@ class EstimatorConfig(_Section):
     svf_memory_s: float = Field(0.05, gt=0)         # forgetting time constant of the per-sample estimate
     svf_quanta: tuple[float, float] | None = None  # rad (theta1, theta2) for bias compensation;
                                                     # None: from the backend's encoder and scale resolution
-    # the model the loop also identifies per sample (rt_ident.estimators.friction): two-inertia (the
+    # the model the loop also identifies per sample (rt_ident.estimators.friction_stream): two-inertia (the
     # linear frequency fit alone), two-inertia-friction (adds Fc1, Fv1, Fc2, Fv2, offset) or
     # rigid-friction (J, Fv, Fc, offset); its friction feeds the controller ([control] friction_feedforward)
     model: Literal["two-inertia", "two-inertia-friction", "rigid-friction"] = "two-inertia"

@@ -64,7 +64,7 @@ def friction_estimator(cfg: RunConfig, dt: float, quanta: tuple[float, float]):
     e = cfg.estimator
     if e.model == "two-inertia":
         return None
-    from rt_ident.estimators.friction import RecursiveFrictionEstimator
+    from rt_ident.estimators.friction_stream import RecursiveFrictionEstimator
 
     hz = e.friction_hz or (800.0 if e.model == "two-inertia-friction" else 100.0)
     hz = min(hz, 0.25 / dt)

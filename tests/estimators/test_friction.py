@@ -277,7 +277,7 @@ def test_emulated_serial_board_builds_its_plant_with_the_given_friction():
 
 
 def test_recursive_friction_estimator_per_sample_matches_the_truth_on_bench_like_data(bench_record):
-    from rt_ident.estimators.friction import RecursiveFrictionEstimator
+    from rt_ident.estimators.friction_stream import RecursiveFrictionEstimator
 
     th1, th2, tq, truth = bench_record
     est = RecursiveFrictionEstimator(DT, "two-inertia-friction", quanta=(2 * math.pi / 2**17, 1e-7 / thomson_x().lead))
@@ -290,7 +290,7 @@ def test_recursive_friction_estimator_per_sample_matches_the_truth_on_bench_like
 
 
 def test_recursive_rigid_friction_skips_nan_samples_and_recovers_the_stiff_axis():
-    from rt_ident.estimators.friction import RecursiveFrictionEstimator
+    from rt_ident.estimators.friction_stream import RecursiveFrictionEstimator
 
     t, th1, tq, truth = _stiff_record(seed=2)
     th1 = th1.copy()
