@@ -130,12 +130,10 @@ def main() -> None:
         print(f"{name:26s} peak reversal error: mean {1e6 * pk.mean():7.2f} um, max {1e6 * pk.max():7.2f} um "
               f"over {pk.size} reversals; RMS {1e6 * rms:6.2f} um; stop: {out['stop']}")
     if a.png:
-        import matplotlib
+        from matplotlib.figure import Figure
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(9, 4))
+        fig = Figure(figsize=(9, 4))
+        ax = fig.subplots()
         for name, (t, e) in res.items():
             ax.plot(t, 1e6 * e, lw=0.8, label=name)
         for k in range(int(a.duration * 2 * a.hz) + 1):

@@ -347,16 +347,14 @@ def _fig5(v: float | None) -> str:
 
 def control_comparison(result: dict[str, Any], path: str | Path) -> Path:
     """Bar chart: RMS and max table error after the change, per scenario, fixed / adaptive / oracle."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     rows = result["control"]["scenarios"]
     modes = ("fixed", "adaptive", "oracle")
     colors = {"fixed": "#7f7f7f", "adaptive": "#1f77b4", "oracle": "#2ca02c"}
     x = np.arange(len(rows))
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig = Figure(figsize=(10, 3.8))
+    axes = fig.subplots(1, 2)
     for ax, key, title in ((axes[0], "rms_error_m", "RMS from the change on"),
                            (axes[1], "max_error_m", "max from the change on")):
         for i, m in enumerate(modes):
@@ -372,5 +370,4 @@ def control_comparison(result: dict[str, Any], path: str | Path) -> Path:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
-    plt.close(fig)
     return out

@@ -45,10 +45,7 @@ def _phase(g: np.ndarray) -> np.ndarray:
 
 def _frf_svg(result: dict[str, Any], cfg: RunConfig) -> str:
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
     except ImportError:
         return "<p>Figures need the plots extra: <code>pip install 'rt-ident[plots]'</code>.</p>"
     ident = result.get("identification") or {}
@@ -59,7 +56,8 @@ def _frf_svg(result: dict[str, Any], cfg: RunConfig) -> str:
         return "<p>No FRF: the identification stage did not run.</p>"
     w, g = meas
     wf = np.geomspace(w[0], w[-1], 400)
-    fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    fig = Figure(figsize=(9, 6))
+    ax = fig.subplots(2, 1, sharex=True)
     ax[0].loglog(w / 2 / np.pi, np.abs(g), "o", ms=3, label="measured (multisine harmonics)")
     ax[0].loglog(wf / 2 / np.pi, np.abs(_model_frf(prm, wf)), "-", label="identified model")
     keys = [k for k in ("I1", "I2", "B", "K") if ci.get(k)]
@@ -80,7 +78,6 @@ def _frf_svg(result: dict[str, Any], cfg: RunConfig) -> str:
         a.grid(True, which="both", alpha=0.3)
     buf = io.StringIO()
     fig.savefig(buf, format="svg", bbox_inches="tight")
-    plt.close(fig)
     svg = buf.getvalue()
     return svg[svg.index("<svg"):]
 

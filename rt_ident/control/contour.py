@@ -74,15 +74,12 @@ def polar_plot(paths: dict[str, tuple[np.ndarray, np.ndarray]], radius: float, c
                figures: dict[str, Any], path: str, title: str = "") -> str:
     """The ballbar-style polar plot: each direction's radial deviation from the nominal circle,
     magnified, around a reference circle; the scale and G, H in the title. Writes ``path`` (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     devs = {d: np.hypot(x - centre[0], y - centre[1]) - radius for d, (x, y) in paths.items()}
     span = max((float(np.max(np.abs(v))) for v in devs.values() if v.size), default=1e-6) or 1e-6
     scale = 10 ** math.ceil(math.log10(span * 1e6))            # um per ring (1, 10, 100 ...)
-    fig = plt.figure(figsize=(5.2, 5.6))
+    fig = Figure(figsize=(5.2, 5.6))
     ax = fig.add_subplot(projection="polar")
     for d, color in (("ccw", "C0"), ("cw", "C3")):
         if d not in paths:
@@ -101,7 +98,6 @@ def polar_plot(paths: dict[str, tuple[np.ndarray, np.ndarray]], radius: float, c
     ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
     return path
 
 

@@ -5,14 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import NamedTuple
 
-import matplotlib
 import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-from rt_ident.reports.reproduce import CaseResult, ReproduceResult  # noqa: E402
+from rt_ident.reports.reproduce import CaseResult, ReproduceResult
 
 _RLS_FIGS = (("fig09_rls_K.png", "K", "Stiffness K [N m/rad]"),
              ("fig10_rls_B.png", "B", "Damping B [N m s/rad]"),
@@ -47,7 +43,8 @@ def write_figures(result: ReproduceResult, out_dir: str | Path) -> list[Path]:
     kept = [_arrays(c) for c in result.cases]
 
     # Fig. 4: the Schroeder excitation (first case, two periods)
-    fig, ax = plt.subplots(figsize=(8, 3.2))
+    fig = Figure(figsize=(8, 3.2))
+    ax = fig.subplots()
     a0 = kept[0]
     n = min(len(a0.t), 2 * c0.N)
     ax.plot(a0.t[:n] * 1e3, a0.torque[:n], lw=0.9)
@@ -60,7 +57,8 @@ def write_figures(result: ReproduceResult, out_dir: str | Path) -> list[Path]:
     # unreadable at N = 2048 (440 ms of dense multisine): the top panel zooms into a window of
     # ~60 samples where the traces can be told apart, the bottom one shows the errors over two periods.
     for num, c, a in zip((7, 8), result.cases, kept):
-        fig, (ax, ax_e) = plt.subplots(2, 1, figsize=(8, 5.4), gridspec_kw={"height_ratios": [1.2, 1]})
+        fig = Figure(figsize=(8, 5.4))
+        ax, ax_e = fig.subplots(2, 1, gridspec_kw={"height_ratios": [1.2, 1]})
         n = min(len(a.t), 2 * c.N)
         w0 = c.N // 2
         w = slice(w0, min(n, w0 + max(40, c.N // 32)))
@@ -82,7 +80,8 @@ def write_figures(result: ReproduceResult, out_dir: str | Path) -> list[Path]:
     # Figs. 9-12: recursive estimates over time, both cases, with the true value. The y range holds
     # the true value and the estimate after its first 10 % (the start-up transient may leave it).
     for fname, key, label in _RLS_FIGS:
-        fig, axes = plt.subplots(1, len(result.cases), figsize=(10, 3.2))
+        fig = Figure(figsize=(10, 3.2))
+        axes = fig.subplots(1, len(result.cases))
         for ax, c, a in zip(axes, result.cases, kept):
             h = a.rls_history[key]
             ax.plot(a.rls_history_t * 1e3, h, lw=1.0, label="RLS")
@@ -104,5 +103,4 @@ def write_figures(result: ReproduceResult, out_dir: str | Path) -> list[Path]:
 def _save(fig: Figure, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -86,12 +86,10 @@ def run_study(progress: Callable[[str, float], None] | None = None) -> list[dict
 
 
 def write_png(rows: list[dict], path: str | Path) -> Path:
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(TORQUE_NOISE_PCT), figsize=(11, 3.6), sharey=True)
+    fig = Figure(figsize=(11, 3.6))
+    axes = fig.subplots(1, len(TORQUE_NOISE_PCT), sharey=True)
     labels = ["ideal" if c == 0 else f"2^{int(math.log2(c))}" for c, _ in QUANTIZATION]
     for ax, noise in zip(axes, TORQUE_NOISE_PCT):
         for m, marker in zip(METHODS, "os^"):
@@ -109,5 +107,4 @@ def write_png(rows: list[dict], path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
