@@ -160,7 +160,9 @@ from drivers.cia402.emulator import start_emulator_for
 
 backend = {"interface": "virtual", "channel": f"n-{uuid.uuid4().hex[:8]}", "node_id": 5, "sync_rate_hz": 1000,
            "torque_limit": 1.0, "rated_torque": 0.64, "counts_per_rev": 131072, "scale_resolution": 1e-7,
-           "heartbeat_ms": 50, "stale_limit": 1000, "startup_timeout": 3.0}   # not the watchdog: a busy host's gaps
+           "heartbeat_ms": 50, "stale_limit": 1000, "startup_timeout": 3.0,
+           # not the watchdogs: this script's threads are not real-time, and a busy host holds them up for tens of ms
+           "rpdo_deadline_ms": 1000, "heartbeat_consumer_ms": 1000}
 drive = start_emulator_for({"backend": backend, "emulator": {"position_hold": True, "torque_meas_noise": 1e-4}})
 calls = []
 load = Dispatcher._compile_for_args              # a call with types not loaded yet: from the cache or compiled
