@@ -98,7 +98,6 @@ def _local_host(bind_ip: str) -> str:
     return "127.0.0.1" if ipaddress.ip_address(bind_ip).is_unspecified else bind_ip
 
 
-
 def serve_port(bind_ip: str, configured: int | None) -> int:
     """The port to serve on: the configured one (refused in one line when taken), else 9876, or a
     free port the system picks when 9876 is taken (a second run beside the first)."""
