@@ -66,18 +66,16 @@ def python_path_run_offline(cfg, **kw):
 
 def probe(hz: float, names: list[str]) -> list[dict[str, Any]]:
     base = load("sim-load-change.toml")
-    known = {c[0].split(":")[0]: (*c, c[2] + 3.5) for c in bench.random_cases(20)}     # as the bench runs them
-    known.update({n: (n, f, 4.0, 0, 8.0) for n, f in bench.SCENARIOS})
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        raise SystemExit(f"dob_probe: no case {unknown[0]!r}; give 'case 1'..'case 20' or one of "
-                         + ", ".join(n for n, _ in bench.SCENARIOS))
+    try:
+        cases = [bench.bench_case(n) for n in names]
+    except ValueError as exc:
+        raise SystemExit(f"dob_probe: {exc}") from None
     loop_mod.IdentificationLoop._control = observed_control(hz) if hz > 0 else _plain_control
     bench.run_offline = python_path_run_offline
     rows = []
     try:
-        for name in names:
-            rows.append(_row(hz, base, *known[name]))
+        for case in cases:
+            rows.append(_row(hz, base, *case))
     finally:
         loop_mod.IdentificationLoop._control = _plain_control
         bench.run_offline = offline.run_offline

@@ -191,6 +191,17 @@ def random_cases(n: int, *, seed: int = 1) -> list[tuple[str, dict[str, float], 
     return out
 
 
+def bench_case(name: str) -> tuple[str, dict[str, float], float, int, float]:
+    """A case as :func:`control_bench` runs it, by name (``case N`` of the randomized set, or a named
+    scenario): (label, factors, change time, sim seed, duration)."""
+    known = {c[0].split(":")[0]: (*c, c[2] + 3.5) for c in random_cases(20)}
+    known.update({n: (n, f, 4.0, 0, 8.0) for n, f in SCENARIOS})
+    if name not in known:
+        raise ValueError(f"no case {name!r}; give 'case 1'..'case 20' or one of "
+                         + ", ".join(n for n, _ in SCENARIOS))
+    return known[name]
+
+
 def perturbed_spread(base: RunConfig, *, repeats: int, change_at: float, duration: float,
                      progress: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
     """Each named scenario's adaptive / oracle RMS under ``repeats`` other sensor-noise seeds (the

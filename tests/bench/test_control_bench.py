@@ -36,6 +36,23 @@ def test_random_cases_are_reproducible_and_inside_the_stated_ranges():
         assert 1.5 <= f.get("I2", 2.0) <= 4.0 and 1.2 <= f.get("I1", 1.5) <= 2.0
 
 
+def test_bench_case_by_name_is_the_case_the_full_bench_runs_and_an_unknown_name_lists_the_known(monkeypatch):
+    ran = {}
+
+    def run_case(base, name, factors, *, change_at, duration, seed=0, **_):
+        ran[name] = (name, factors, change_at, seed, duration)
+        return {"name": name}
+
+    monkeypatch.setattr(cb, "run_case", run_case)
+    monkeypatch.setattr(cb, "random_plants", lambda *a, **k: {})
+    cb.control_bench(cases=20, repeats=0)
+    assert len(ran) == 24
+    for label, case in ran.items():
+        assert cb.bench_case(label.split(":")[0]) == case
+    with pytest.raises(ValueError, match="'case 21'.*case 1'..'case 20'.*I2 x 3"):
+        cb.bench_case("case 21")
+
+
 def test_summary_takes_medians_and_worsts_and_counts_what_is_missing():
     rows = [{"adaptive_over_oracle": 1.0, "change_to_redesign_s": 0.1, "adaptive": {"fallbacks": 0}},
             {"adaptive_over_oracle": 1.2, "change_to_redesign_s": None, "adaptive": {"fallbacks": 1}},
