@@ -20,7 +20,7 @@ from rt_ident.loop import tick_kernel as tk
 if TYPE_CHECKING:
     from rt_ident.control.adaptation import Supervisor
     from rt_ident.estimators.base import Identification
-    from rt_ident.loop.loop import LoopStats
+    from rt_ident.loop.stats import LoopStats
     from rt_ident.loop.tick_core import AxisCore
 
 _WINDOW_CI_KEYS = frozenset(("I1", "I2", "B", "K", "wn", "wd", "zeta"))
