@@ -54,6 +54,14 @@ class RpdoTimeout(DeviceFault):
            "torque write within its RPDO deadline")
 
 
+class HeartbeatLost(DeviceFault):
+    """The drive heard no heartbeat from this host within its consumer time (EMCY 0x8130). The EMCY itself came
+    over the bus, so the bus carries frames: the host sent its heartbeat late."""
+
+    fix = ("loop.realtime = true (or a less busy host; else a longer backend.heartbeat_consumer_ms): the drive "
+           "heard no heartbeat from this host within its consumer time")
+
+
 class SafetyTrip(DriverError):
     """A host-side safety check tripped (position window, watchdog, torque)."""
 

@@ -41,7 +41,15 @@ from drivers.cia402 import profile as p402
 from drivers.cia402.config import Cia402Config, validate
 from drivers.cia402.node import NodeSetup
 from drivers.cia402.stream import ECHO, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
-from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError, RpdoTimeout
+from drivers.errors import (
+    DeviceConnectionError,
+    DeviceFault,
+    DeviceTimeout,
+    DriverError,
+    HeartbeatLost,
+    ProtocolError,
+    RpdoTimeout,
+)
 
 log = logging.getLogger(__name__)
 
@@ -253,7 +261,7 @@ class Cia402Backend(Backend):
         cfg = self.config
         if self._emcy is not None:
             code, reg = self._emcy
-            fault = RpdoTimeout if code == p402.EMCY_RPDO_TIMEOUT else DeviceFault
+            fault = {p402.EMCY_RPDO_TIMEOUT: RpdoTimeout, p402.EMCY_HEARTBEAT: HeartbeatLost}.get(code, DeviceFault)
             raise fault(f"node {cfg.node_id} sent {p402.emcy_text(code)}, error register 0x{reg:02X}")
         age = time.monotonic() - self._hb_time
         if age > cfg.consumer_ms / 1000.0:

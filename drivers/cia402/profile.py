@@ -254,6 +254,8 @@ def abort_text(code: int) -> str:
 
 #: CiA 301 "RPDO timeout": no RPDO within its event timer (0x1400:05), so the host was late
 EMCY_RPDO_TIMEOUT = 0x8250
+#: CiA 301 "life guard error or heartbeat error": the drive's consumer of the host's heartbeat (0x1016) timed out
+EMCY_HEARTBEAT = 0x8130
 
 EMCY_TEXT = {
     0x1000: "generic error", 0x2310: "continuous over-current", 0x3210: "DC link over-voltage",

@@ -110,6 +110,12 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         if getattr(emulator, "port", None):
             opts["port"] = emulator.port
         backend = make_backend(cfg.backend.name, opts)
+        # stage b's real time, its slow part (a collection that holds the GIL, the CPU claim) before the device
+        # is opened and watches the host's heartbeat; its end after the device's stop
+        realtime = LoopRealtime(cfg.model_copy(update={"loop": cfg.loop.model_copy(update={"idle_poll": False})}))
+        stack.callback(gc.enable)                    # real time froze and disabled the collector, as in a run
+        stack.callback(realtime.end)
+        realtime.prepare()
         try:
             stack.enter_context(backend)                 # on exit, whatever happened: zero torque, disabled
         except RtIdentError as exc:
@@ -144,12 +150,12 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         progress("b: probe with torque pulses, the position controller off")
         result["stage_reached"] = "b"
         result["sample_period"] = backend.sample_period
-        realtime = LoopRealtime(cfg.model_copy(update={"loop": cfg.loop.model_copy(update={"idle_poll": False})}))
-        stack.callback(gc.enable)                    # real time froze and disabled the collector, as in a run
-        stack.callback(realtime.end)                 # after the backend's stop (registered before it)
-        realtime.prepare()
         realtime.begin([])
-        backend.activate()
+        try:
+            backend.activate()
+        except RtIdentError as exc:                   # the device refused to enable or faulted: it is stopped
+            checks.append(check("enable", False, str(exc), "the device enables", _device_fix(exc)))
+            return False
         prober = Prober(backend, probe_limits(cfg, backend.torque_limit))
         try:
             prober.settle(0.05)
@@ -167,9 +173,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             checks.append(check("probe", False, str(exc), "samples every tick", exc.key))
             return False
         except RtIdentError as exc:                   # the device stopped or failed: zero torque, disabled
-            key = exc.field if isinstance(exc, ConfigError) else \
-                getattr(exc, "fix", None) or f"backend ({getattr(exc, 'cause', 'device')})"
-            checks.append(check("probe", False, str(exc), "the device follows the pulses", key))
+            checks.append(check("probe", False, str(exc), "the device follows the pulses", _device_fix(exc)))
             return False
         finally:
             backend.safe_stop()
@@ -186,6 +190,13 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
                              "accel_per_nm": q.dynamics(backend.sample_period)[0]} for q in pulses]
         checks.extend(probe_checks(cfg, pulses, backend.sample_period))
         return all(c["ok"] for c in checks)
+
+
+def _device_fix(exc: RtIdentError) -> str:
+    """The setting a device's error names: a config field, the driver's fix, else the backend and the cause."""
+    if isinstance(exc, ConfigError):
+        return exc.field
+    return getattr(exc, "fix", None) or f"backend ({getattr(exc, 'cause', 'device')})"
 
 
 #: sections a derived config replaces whole (the others are merged key by key)

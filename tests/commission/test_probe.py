@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivers.base import SampleBlock
-from drivers.errors import DeviceFault, RpdoTimeout
+from drivers.errors import DeviceFault, HeartbeatLost, RpdoTimeout
 from drivers.sim import SimBackend
 from rt_ident import config
 from rt_ident.commission import probe
@@ -174,7 +174,8 @@ def test_a_ratio_off_by_two_names_one_sensor_only_when_every_pulse_points_to_it(
     assert "the pulses' " in failed[0]["fix"]
 
 
-@pytest.mark.parametrize(("fault", "fix"), [(RpdoTimeout, "loop.realtime"), (DeviceFault, "backend (device-fault)")])
+@pytest.mark.parametrize(("fault", "fix"), [(RpdoTimeout, "loop.realtime"), (HeartbeatLost, "loop.realtime"),
+                                            (DeviceFault, "backend (device-fault)")])
 def test_a_drive_faulted_by_the_hosts_late_torque_writes_names_the_host_and_any_other_fault_the_backend(
         monkeypatch, fault, fix):
     """A drive that got no torque write within its RPDO deadline stopped because the host was late: the

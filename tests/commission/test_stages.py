@@ -37,6 +37,48 @@ def state_dir(tmp_path, monkeypatch):
     return tmp_path / "state"
 
 
+@pytest.mark.parametrize(("fault", "fix"), [("HeartbeatLost", "loop.realtime"),
+                                            ("DeviceFault", "backend (device-fault)")])
+def test_a_device_that_faults_as_it_enables_fails_the_enable_check_with_its_fix_and_leaves_the_files(
+        tmp_path, monkeypatch, fault, fix):
+    """A drive that faults while it is walked to OPERATION ENABLED (one that stopped hearing the host's heartbeat:
+    the host's; any other fault: the backend's) ends commissioning at stage b with a failed check, the JSON and
+    the report, as any other failed check does; nothing is raised past the result."""
+    from drivers import errors
+    from drivers.sim import SimBackend
+
+    def refuse(self):
+        raise getattr(errors, fault)("node 5 sent EMCY, error register 0x11")
+
+    monkeypatch.setattr(SimBackend, "_activate", refuse)
+    r = commission(config.from_mapping(sim_data()), tmp_path / "out")
+    assert r["verdict"] == "fail" and r["stage_reached"] == "b" and r["failed"]["check"] == "enable", r["checks"]
+    assert r["failed"]["fix"].startswith(fix) and r["max_travel_m"] is None
+    assert json.loads((tmp_path / "out" / "commission.json").read_text())["failed"] == r["failed"]
+    assert "enable" in Path(r["report"]).read_text()
+
+
+def test_the_real_time_setup_is_made_before_the_device_is_opened_and_ended_after_its_stop(tmp_path, monkeypatch):
+    """The slow part of the loop's real-time setup (a collection holding the GIL, the CPU claim) runs before the
+    device watches the host's heartbeat, and the setup ends after the device is stopped and closed."""
+    from drivers.sim import SimBackend
+    from rt_ident.loop.host import LoopRealtime
+
+    order: list[str] = []
+    for cls, name in ((LoopRealtime, "prepare"), (LoopRealtime, "end"), (SimBackend, "_open"), (SimBackend, "_close")):
+        original = getattr(cls, name)
+
+        def recorded(self, *a, original=original, name=name, **k):
+            order.append(name)
+            return original(self, *a, **k)
+
+        monkeypatch.setattr(cls, name, recorded)
+    r = commission(config.from_mapping(sim_data({"torque_sign": -1})), tmp_path / "out")
+    assert r["stage_reached"] == "b" and r["failed"]["fix"].startswith("backend.torque_sign")
+    stage_b = order[:order.index("end") + 1]
+    assert stage_b.index("prepare") < stage_b.index("_open") and stage_b.index("_close") < stage_b.index("end"), order
+
+
 MISWIRED = [
     ({"torque_sign": -1}, "torque moves theta1 positive", "backend.torque_sign"),
     ({"motor_encoder_sign": -1}, "torque moves theta1 positive", "backend.motor_encoder_sign"),

@@ -27,7 +27,7 @@ from drivers.cia402.drive import Cia402Backend
 from drivers.cia402.emulator import start_emulator_for
 from drivers.cia402.profile import OPERATION_ENABLED, SWITCH_ON_DISABLED, decode_state, frame_bits
 from drivers.cia402.stream import CANCEL, ECHO, MARK, SampleAssembler, SyncSender, TorquePlan
-from drivers.errors import DeviceConnectionError, DeviceFault, ProtocolError, WatchdogTrip
+from drivers.errors import DeviceConnectionError, DeviceFault, HeartbeatLost, ProtocolError, WatchdogTrip
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.axis.plant import DEFAULT_KP
 from rt_ident.errors import ConfigError
@@ -463,15 +463,16 @@ def test_drive_heartbeat_loss_raises_device_fault():
         assert drive.state == SWITCH_ON_DISABLED
 
 
-def test_master_heartbeat_loss_faults_the_drive():
+def test_master_heartbeat_loss_faults_the_drive_and_names_the_host():
     with rig() as (drive, be):
-        with pytest.raises(DeviceFault, match=r"0x8130"):
+        with pytest.raises(HeartbeatLost, match=r"0x8130") as lost:
             with be:
                 be.activate()
                 pump(be, 0.1, square(0.1))
                 be._sender.heartbeat = None                # the host's heartbeat dies (sent by the SYNC thread)
                 pump(be, 2.0, square(0.1))
         assert 0x8130 in drive.emcy_codes
+        assert lost.value.fix.startswith("loop.realtime") and "heartbeat_consumer_ms" in lost.value.fix
         assert_drive_safe(drive)
 
 
