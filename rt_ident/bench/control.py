@@ -191,11 +191,17 @@ def random_cases(n: int, *, seed: int = 1) -> list[tuple[str, dict[str, float], 
     return out
 
 
+#: the named scenarios' change time and run length, and how long a randomized case runs on after its
+#: change [s]: the full bench's (False) and ``--quick``'s (True)
+TIMING: dict[bool, tuple[float, float, float]] = {False: (4.0, 8.0, 3.5), True: (3.0, 6.0, 2.5)}
+
+
 def bench_case(name: str) -> tuple[str, dict[str, float], float, int, float]:
     """A case as :func:`control_bench` runs it, by name (``case N`` of the randomized set, or a named
     scenario): (label, factors, change time, sim seed, duration)."""
-    known = {c[0].split(":")[0]: (*c, c[2] + 3.5) for c in random_cases(20)}
-    known.update({n: (n, f, 4.0, 0, 8.0) for n, f in SCENARIOS})
+    change_at, duration, after = TIMING[False]
+    known = {c[0].split(":")[0]: (*c, c[2] + after) for c in random_cases(20)}
+    known.update({n: (n, f, change_at, 0, duration) for n, f in SCENARIOS})
     if name not in known:
         raise ValueError(f"no case {name!r}; give 'case 1'..'case 20' or one of "
                          + ", ".join(n for n, _ in SCENARIOS))
@@ -289,10 +295,9 @@ def control_bench(*, quick: bool = False, cases: int = 20, repeats: int = 3,
     """The four named scenarios, ``cases`` randomized ones, each named scenario under ``repeats``
     other noise seeds, and the nominal design on random plants."""
     base = load("sim-load-change.toml")
-    duration = 6.0 if quick else 8.0
-    change_at = 3.0 if quick else 4.0
+    change_at, duration, after = TIMING[quick]
     rows = run_scenarios(base, change_at=change_at, duration=duration, progress=progress)
-    case_rows = [run_case(base, name, f, change_at=at, duration=at + (2.5 if quick else 3.5), seed=sd,
+    case_rows = [run_case(base, name, f, change_at=at, duration=at + after, seed=sd,
                           progress=progress, late_oracle=True)
                  for name, f, at, sd in random_cases(cases)]
     spread = perturbed_spread(base, repeats=repeats, change_at=change_at, duration=duration, progress=progress) \
