@@ -55,7 +55,7 @@ def test_a_device_that_faults_as_it_enables_fails_the_enable_check_with_its_fix_
     assert r["verdict"] == "fail" and r["stage_reached"] == "b" and r["failed"]["check"] == "enable", r["checks"]
     assert r["failed"]["fix"].startswith(fix) and r["max_travel_m"] is None
     assert json.loads((tmp_path / "out" / "commission.json").read_text())["failed"] == r["failed"]
-    assert "enable" in Path(r["report"]).read_text()
+    assert "node 5 sent EMCY" in Path(r["report"]).read_text()          # the failed check, in the report
 
 
 def test_the_real_time_setup_is_made_before_the_device_is_opened_and_ended_after_its_stop(tmp_path, monkeypatch):
