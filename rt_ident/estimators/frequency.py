@@ -162,8 +162,7 @@ def _alias_start(x: np.ndarray, dt: float) -> np.ndarray | None:
     return out
 
 
-def _fit_among_aliases(sp: Spectra, hold: str, start: np.ndarray, *, transient: bool, max_iter: int,
-                       tol: float) -> FitResult:
+def _fit_among_aliases(sp: Spectra, hold: str, start: np.ndarray, *, max_iter: int, tol: float) -> FitResult:
     """Gauss-Newton from ``start``, then from the mirrors about Nyquist of the start and of the fit.
 
     Sampled with a hold, a mode at w and one at 2 pi / dt - w alias onto the same line of the sampled
@@ -178,7 +177,7 @@ def _fit_among_aliases(sp: Spectra, hold: str, start: np.ndarray, *, transient: 
     on a few noisy periods, a spurious minimum could otherwise beat the true one by a hair (the aliased
     case differs by a factor of ten or more).
     """
-    best = fit_spectra(sp, hold, transient=transient, x0=start, max_iter=max_iter, tol=tol)
+    best = _gauss_newton(sp, hold, x0=start, max_iter=max_iter, tol=tol)
     seen = [_natural_frequency(start), _natural_frequency(best.x)]
     for k in range(2):
         mirror = _alias_start(start if k == 0 else best.x, sp.dt)
@@ -189,7 +188,7 @@ def _fit_among_aliases(sp: Spectra, hold: str, start: np.ndarray, *, transient: 
             continue
         seen.append(wm)
         try:
-            alt = fit_spectra(sp, hold, transient=transient, x0=mirror, max_iter=max_iter, tol=tol, quiet=True)
+            alt = _gauss_newton(sp, hold, x0=mirror, max_iter=max_iter, tol=tol)
         except EstimationError:
             continue
         seen.append(_natural_frequency(alt.x))
@@ -316,17 +315,29 @@ def fit_spectra(sp: Spectra, hold: str = "zoh", *, transient: bool = True, x0: n
 
     Weights are recomputed at each iterate and held fixed within its step-halving
     line search, so the fixed point is the weighted-LS stationary point (IRLS).
+    A fit that stops unconverged is logged as a warning unless ``quiet`` (its
+    :class:`FitResult` and the identification's checks say so either way).
     """
     hold = check_hold(hold)
     n_x = 8 if transient else 4
     if x0 is None:
         x = np.concatenate([linear_init(sp, hold), np.zeros(n_x - 4)])
-        if hold == "zoh":
-            return _fit_among_aliases(sp, hold, x, transient=transient, max_iter=max_iter, tol=tol)
     else:
         x = np.array(x0, dtype=float)[:n_x]
         if x.size < n_x:
             x = np.concatenate([x, np.zeros(n_x - x.size)])
+    if x0 is None and hold == "zoh":
+        fit = _fit_among_aliases(sp, hold, x, max_iter=max_iter, tol=tol)
+    else:
+        fit = _gauss_newton(sp, hold, x0=x, max_iter=max_iter, tol=tol)
+    if not fit.converged and not quiet:
+        logger.warning("frequency: Gauss-Newton stopped after %d iterations without converging", fit.iterations)
+    return fit
+
+
+def _gauss_newton(sp: Spectra, hold: str, *, x0: np.ndarray, max_iter: int, tol: float) -> FitResult:
+    """:func:`fit_spectra`'s iteration from ``x0`` (4 or 8 entries: with the leakage terms or not)."""
+    x = np.array(x0, dtype=float)
     converged = False
     it = 0
     model = _evaluate(x, sp, hold, True)
@@ -363,8 +374,6 @@ def fit_spectra(sp: Spectra, hold: str = "zoh", *, transient: bool = True, x0: n
     # the weights are absolute noise levels (period scatter + quantization model): s2 < 1 does
     # not narrow the intervals, s2 > 1 (model error, deterministic quantization) widens them
     cov, s2 = covariance_from_jacobian(J, r, min_scale=1.0)
-    if not converged and not quiet:
-        logger.warning("frequency: Gauss-Newton stopped after %d iterations without converging", it)
     return FitResult(x, cov, s2, float(r @ r), int(r.size - x.size), it, converged)
 
 

@@ -206,7 +206,7 @@ def fit_snapshot(method: str, snap: Any, *, hold: str = "zoh", lead: float = 7.9
 
         if hasattr(snap, "spectra"):              # the loop's snapshot: the running sums
             snap = snap.spectra()
-        fit = fit_spectra(snap, hold)
+        fit = fit_spectra(snap, hold, quiet=True)    # an unconverged fit fails its trust check instead
         ident = identification_from_fit(snap, fit, hold, lead=lead)
         try:                              # the dashboard's FRF view; a fit is never lost over it
             view = frf_view(snap, fit.x, fit.cov[:4, :4], hold)

@@ -12,6 +12,7 @@ response is periodic), so averaging does not remove them; a longer period (more 
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -358,10 +359,28 @@ def test_a_fit_that_lands_on_the_mirror_of_a_mode_below_nyquist_is_refitted_from
     assert abs(modal_parameters(p)["wn"] / (2 * math.pi) - 463.3) < 0.1
     for x0 in (start, _alias_start(start, dt)):                     # both starts end on the mirror
         assert abs(hz(fit_spectra(sp, "zoh", x0=x0).x) - 537.4) < 1.0
-    fit = _fit_among_aliases(sp, "zoh", start, transient=True, max_iter=50, tol=1e-10)
+    fit = _fit_among_aliases(sp, "zoh", start, max_iter=50, tol=1e-10)
     assert fit.converged and abs(hz(fit.x) - 463.3) < 0.5
     err = np.exp(fit.x[:4]) / np.array([p.I1, p.I2, p.B, p.K]) - 1.0
     assert np.max(np.abs(err)) < 0.01, err
+
+
+def test_an_unconverged_fit_is_one_warning_unless_quiet_and_its_identification_says_so_either_way(caplog):
+    from rt_ident.estimators.frequency import fit_spectra, identification_from_fit
+
+    p, dt, N = thomson_x(), 1e-3, 256
+    ms = schroeder_multisine(N, (4, 127), peak=0.3)
+    blk = PlantSimulator(p, dt, controller=HoldController(), seed=0).step_block(ms.periodic(4))
+    sp = compute_spectra(blk.theta1, blk.theta2, blk.torque_meas, dt, period=N)
+    for quiet, warnings in ((False, 1), (True, 0)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="rt_ident.estimators.frequency"):
+            fit = fit_spectra(sp, "zoh", max_iter=1, quiet=quiet)
+        assert not fit.converged
+        assert [r.getMessage() for r in caplog.records] == [
+            "frequency: Gauss-Newton stopped after 1 iterations without converging"] * warnings
+        ident = identification_from_fit(sp, fit, "zoh")
+        assert not ident.trusted and any("without converging" in why for why in ident.reasons)
 
 
 def test_fit_worker_sends_the_frf_view_at_most_every_view_interval():
