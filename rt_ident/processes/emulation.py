@@ -25,13 +25,14 @@ from __future__ import annotations
 import importlib
 import logging
 import socket
+from multiprocessing import current_process
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 from drivers.placement import clear_heap, device_placement, keep_to, settle_heap, start_realtime
 from rt_ident.errors import RtIdentError
 from rt_ident.processes.context import helper_context
-from rt_ident.processes.guard import ParentWatch, start_with_helper_env
+from rt_ident.processes.guard import ParentWatch, helper_comm, name_process, start_with_helper_env
 
 if TYPE_CHECKING:
     from rt_ident.config import RunConfig
@@ -39,6 +40,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 EMULATORS = {"canopen": "drivers.cia402.emulator", "serial": "drivers.encoder_board.emulator"}
+#: what the device process is called (its process name, and its kernel name without "_ident")
+DEVICE_NAMES = {"drivers.cia402.emulator": "rt_ident-drive", "drivers.encoder_board.emulator": "rt_ident-board"}
 
 
 def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dict[str, Any] | None) -> None:
@@ -50,6 +53,7 @@ def _serve(module: str, config: dict[str, Any], conn: Connection, placement: dic
     run in this thread at ordinary scheduling: at SCHED_FIFO they would hold the CPU against every other
     thread there, other emulated devices at the same priority included.
     """
+    name_process(helper_comm(current_process().name))
     placement = placement or {}
     placed = keep_to(placement.get("cpus"))
     parent = ParentWatch(every_s=0.0)
@@ -107,7 +111,7 @@ class EmulatorProcess:
         self._conn, child = ctx.Pipe()
         self.module = module
         self._proc = ctx.Process(target=_serve, args=(module, config, child, placement),
-                                 name=f"rt_ident-emulator-{module.rsplit('.', 1)[-1]}", daemon=True)
+                                 name=DEVICE_NAMES.get(module, "rt_ident-device"), daemon=True)
         # one BLAS thread: a device thread under SCHED_FIFO that calls a multithreaded BLAS (the plant's
         # matrix exponential at enable) spins on its CPU waiting for a BLAS worker that cannot run there
         # until the RT throttle lets it, up to 1 s later - long enough to trip the board's heartbeat watchdog

@@ -1,8 +1,12 @@
-"""rt_ident.processes.guard.HelperWatch: a job process that dies or stops answering is found, said, restarted once."""
+"""rt_ident.processes.guard: a job process that dies or stops answering is found, said, restarted once;
+a run's helpers carry their own names."""
 
 from __future__ import annotations
 
 import logging
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -112,3 +116,35 @@ def test_a_dead_job_is_still_restarted_at_once_and_counted_as_a_death():
     watch(0)
     st = watch.summary()["control"]
     assert job.restarts == 1 and st["deaths"] == 1 and st["hangs"] == 0 and st["exitcodes"] == [-9]
+
+
+def _comm_becomes(pid: int, want: str, timeout: float = 20.0) -> str:
+    comm = ""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        comm = Path(f"/proc/{pid}/comm").read_text().strip()
+        if comm == want:
+            break
+        time.sleep(0.02)
+    return comm
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="kernel thread names are Linux's")
+def test_a_runs_helpers_and_its_emulated_device_carry_their_own_names_for_ps_top_and_pgrep():
+    # forked from one forkserver, every helper has the forkserver's command line: only the kernel name
+    # (/proc/PID/comm) tells the fit process from the recorder or the emulated board
+    from rt_ident.axis.params import CONFIG_DIR
+    from rt_ident.config import load
+    from rt_ident.processes.emulation import start_emulator
+    from rt_ident.processes.jobs import JobProcess
+
+    jp = JobProcess(time.sleep, name="rt_ident-fit", min_interval=0.0).start()
+    try:
+        assert jp.pid is not None and _comm_becomes(jp.pid, "rt-fit") == "rt-fit"
+    finally:
+        jp.close()
+    board = start_emulator(load(CONFIG_DIR / "serial-virtual.toml", **{"loop.realtime": False}))
+    try:
+        assert Path(f"/proc/{board.pid}/comm").read_text().strip() == "rt-board"
+    finally:
+        board.close()
