@@ -39,3 +39,28 @@ def require(module: str, extra: str, what: str) -> None:
 
     if importlib.util.find_spec(module) is None:
         raise MissingExtra(f"{what} needs {module}: pip install 'rt-ident[{extra}]' (or -e '.[{extra}]' in a checkout)")
+
+
+#: how a fix begins that puts a failure on the host's load (a drive, a device or the loop itself starved);
+#: :func:`host_fix` says it as it applies to the run
+HOST_FIX = "loop.realtime = true (or a less busy host"
+
+
+def host_fix(fix: str | None, realtime: dict | bool | None) -> str | None:
+    """``fix`` as it applies to a run: one that asks for ``loop.realtime = true`` (:data:`HOST_FIX`) says,
+    where the run had it on, what is left to change. ``realtime``: the run's real-time report (its
+    ``sched_fifo`` is True where the loop got SCHED_FIFO, else why not), or False where the run was not
+    real-time. The result still begins with ``loop.realtime``, the mark of a failure put on the host."""
+    if not fix or not fix.startswith(HOST_FIX) or not isinstance(realtime, dict):
+        return fix
+    rest = fix[len(HOST_FIX):]                   # ")..." or "; else <another setting>)..."
+    close = rest.find(")")
+    if close < 0:
+        return fix
+    other, tail = rest[:close].removeprefix(";").strip(), rest[close + 1:]
+    host = f"a less busy host ({other})" if other else "a less busy host"
+    granted = realtime.get("sched_fifo")
+    if granted is True:
+        return f"loop.realtime is on and the loop ran at SCHED_FIFO: {host}{tail}"
+    return (f"loop.realtime is on but the loop ran without SCHED_FIFO ({granted}): real-time privileges for it "
+            f"(an rtprio and memlock limit, or root; see docs/operation/loop.md), or {host}{tail}")

@@ -37,7 +37,7 @@ import numpy as np
 from rt_ident.commission.checks import check, probe_checks, probe_limits
 from rt_ident.commission.probe import LAPSED_RETRIES, ProbeError, Prober
 from rt_ident.config import RunConfig, from_mapping
-from rt_ident.errors import ConfigError, RtIdentError
+from rt_ident.errors import HOST_FIX, ConfigError, RtIdentError, host_fix
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ OVERRUN_SHARE = 0.01
 Progress = Callable[[str], None]
 
 #: a check a run failed while the host disturbed it names the host, not the axis's settings
-HOST_FIX = "loop.realtime = true (or a less busy host): "
+HOST = f"{HOST_FIX}): "
 
 
 def host_trouble(summary: dict[str, Any], sample_period: float, run_failed: bool = True) -> str | None:
@@ -150,7 +150,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         progress("b: probe with torque pulses, the position controller off")
         result["stage_reached"] = "b"
         result["sample_period"] = backend.sample_period
-        realtime.begin([])
+        result["realtime"] = realtime.begin([])
         try:
             backend.activate()
         except RtIdentError as exc:                   # the device refused to enable or faulted: it is stopped
@@ -281,11 +281,11 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
     # an estimate from a run the host disturbed enough to change what it measured may be untrusted for that
     disturbed = None if trusted else host_trouble(s, period, run_failed=False)
     if stop is None and disturbed is not None:
-        fix = f"{HOST_FIX}{disturbed} while identifying; else commission.identify_s (longer)"
+        fix = f"{HOST}{disturbed} while identifying; else commission.identify_s (longer)"
     elif stop is None:
         fix = "commission.identify_s (longer), excitation.peak / excitation.band"
     elif host is not None:
-        fix = f"{HOST_FIX}{host}, then the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"
+        fix = f"{HOST}{host}, then the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"
     else:
         fix = f"the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"
     result["checks"].append(check("identification trusted", trusted and stop is None, measured,
@@ -385,7 +385,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
         {k: got.get(k) for k in ("max_error_m", "overshoot_m", "settling_s", "stop")},
         {k: want.get(k) for k in ("max_error_m", "overshoot_m", "settling_s")} | {
             "tolerance": f"x{VERIFY_FACTOR:g} + {VERIFY_FLOOR_M * 1e6:g} um"},
-        f"{HOST_FIX}in the move {1 + STALLED_MOVE_RETRIES} times: {host} (on a host that keeps time: "
+        f"{HOST}in the move {1 + STALLED_MOVE_RETRIES} times: {host} (on a host that keeps time: "
         "control.bandwidth_hz, lower)" if host is not None
         else "control.bandwidth_hz (lower) - the axis does not move as the identified model predicts"
         if got["stop"] is None else f"the move stopped: {got['stop']}"))
@@ -476,6 +476,9 @@ def commission(cfg: RunConfig, out: Path, progress: Progress = _silent) -> dict[
     finally:
         for sig, handler in old_handlers.items():
             signal.signal(sig, handler)
+        rt = result.get("realtime") if cfg.loop.realtime else False
+        for c in result["checks"]:
+            c["fix"] = host_fix(c["fix"], rt)
         first = next((c for c in result["checks"] if c["ok"] is False), None)
         result["failed"] = None if first is None else {"check": first["name"], "fix": first["fix"]}
         rep = out / "report.html"

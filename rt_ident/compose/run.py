@@ -53,7 +53,7 @@ from rt_ident.compose.build import (
 from rt_ident.compose.contour import ContourTrace
 from rt_ident.compose.helpers import AxisHelpers, Helpers
 from rt_ident.config import RunConfig
-from rt_ident.errors import ConfigError, RtIdentError
+from rt_ident.errors import ConfigError, RtIdentError, host_fix
 from rt_ident.loop.host import HostSteal, LoopCpuInterrupts, LoopRealtime
 from rt_ident.loop.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.outputs.paths import check_methods, check_output, prepare_outputs, remove_empty_outputs
@@ -257,7 +257,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         stop_fix = "loop.realtime = true (or a less busy host): the emulated drive's process was starved"
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set()}
     if stop_fix:
-        summary["stop"]["fix"] = stop_fix
+        summary["stop"]["fix"] = host_fix(stop_fix, summary.get("realtime") if cfg.loop.realtime else False)
     if several:
         summary["stop"].update({"axis": stop_axis, "final_torque": {n: b.last_torque for n, b in backends.items()},
                                 "backend_state": {n: b.state.value for n, b in backends.items()}})

@@ -58,6 +58,27 @@ def test_a_device_that_faults_as_it_enables_fails_the_enable_check_with_its_fix_
     assert "node 5 sent EMCY" in Path(r["report"]).read_text()          # the failed check, in the report
 
 
+@pytest.mark.xdist_group("realtime")
+def test_a_real_time_commissioning_the_host_failed_says_so_instead_of_asking_for_real_time(
+        tmp_path, monkeypatch, restore_scheduling):
+    from drivers import errors
+    from drivers.sim import SimBackend
+
+    def refuse(self):
+        raise errors.HeartbeatLost("node 5 sent EMCY 0x8130")
+
+    monkeypatch.setattr(SimBackend, "_activate", refuse)
+    data = sim_data()
+    data["loop"]["realtime"] = True
+    r = commission(config.from_mapping(data), tmp_path / "out")
+    assert r["failed"]["check"] == "enable", r["checks"]
+    granted = r["realtime"]["sched_fifo"]
+    want = ("loop.realtime is on and the loop ran at SCHED_FIFO: a less busy host" if granted is True
+            else f"loop.realtime is on but the loop ran without SCHED_FIFO ({granted})")
+    assert r["failed"]["fix"].startswith(want), r["failed"]
+    assert json.loads((tmp_path / "out" / "commission.json").read_text())["failed"] == r["failed"]
+
+
 def test_the_real_time_setup_is_made_before_the_device_is_opened_and_ended_after_its_stop(tmp_path, monkeypatch):
     """The slow part of the loop's real-time setup (a collection holding the GIL, the CPU claim) runs before the
     device watches the host's heartbeat, and the setup ends after the device is stopped and closed."""

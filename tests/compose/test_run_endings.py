@@ -191,3 +191,30 @@ def test_a_control_process_that_stops_answering_is_restarted_and_the_load_change
     assert len(lost) == 1 and lost[0]["t"] > 1.0, events
     after = [a for a in s["control"]["applied"] if a["kind"] == "model" and a["t"] > lost[0]["t"]]
     assert after and after[0]["model"]["I2"] == pytest.approx(3 * 8.3e-6, rel=0.1), (s["control"]["applied"], events)
+
+
+@pytest.mark.xdist_group("realtime")
+@pytest.mark.parametrize("realtime", [True, False], ids=["real-time", "not-real-time"])
+def test_a_run_the_host_ended_names_what_is_left_to_change_given_its_real_time(realtime, restore_scheduling):
+    # a stop put on the host asks for loop.realtime = true only where the run was not real-time already
+    from drivers.errors import HeartbeatLost
+    from rt_ident.compose import run as run_mod
+    from rt_ident.config import load
+
+    def drive_heard_nothing(tick: int) -> None:
+        if tick == 100:
+            raise HeartbeatLost("node 5 sent EMCY 0x8130")
+
+    cfg = load(None, **{"loop.duration": 0.5, "loop.realtime": realtime, "telemetry.sink": "off",
+                        "recording.enabled": False, "control.mode": "off", "backend.position_hold": True})
+    s = run_mod.run(cfg, tick_hook=drive_heard_nothing)
+    fix = s["stop"]["fix"]
+    assert s["stop"]["cause"] == "device-fault" and run_mod.exit_code(s) == 3
+    if not realtime:
+        assert fix == HeartbeatLost.fix
+    elif s["realtime"]["sched_fifo"] is True:
+        assert fix.startswith("loop.realtime is on and the loop ran at SCHED_FIFO: a less busy host (else a "
+                              "longer backend.heartbeat_consumer_ms)"), fix
+    else:
+        refused = s["realtime"]["sched_fifo"]
+        assert fix.startswith(f"loop.realtime is on but the loop ran without SCHED_FIFO ({refused})"), fix
