@@ -148,3 +148,21 @@ def test_a_runs_helpers_and_its_emulated_device_carry_their_own_names_for_ps_top
         assert Path(f"/proc/{board.pid}/comm").read_text().strip() == "rt-board"
     finally:
         board.close()
+
+
+def test_a_process_that_exits_without_closing_its_helper_ends_it_instead_of_waiting_for_ever():
+    # multiprocessing's exit sends a daemonic child SIGTERM (which helpers ignore) and joins it without a timeout
+    import subprocess
+
+    script = ("import time\n"
+              "from rt_ident.processes.jobs import JobProcess\n"
+              "jp = JobProcess(time.sleep, min_interval=0.0).start()\n"
+              "print(jp.pid, flush=True)\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    pid = int(r.stdout.split()[0])
+    assert r.returncode == 0, r.stderr
+    assert f"rt_ident-job (pid {pid}) was still running at exit" in r.stderr
+    end = time.monotonic() + 5.0                 # reaped by the forkserver, which ends with its starter
+    while Path(f"/proc/{pid}").exists() and time.monotonic() < end:
+        time.sleep(0.05)
+    assert not Path(f"/proc/{pid}").exists()
