@@ -19,6 +19,7 @@ from __future__ import annotations
 import atexit
 import logging
 import math
+import multiprocessing.util  # noqa: F401 - its exit handler is registered before this module's (below)
 import os
 import signal
 import sys
@@ -43,9 +44,7 @@ HELPER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THRE
 def start_with_helper_env(proc: Any) -> None:
     """``proc.start()`` with :data:`HELPER_ENV` in the environment the child is spawned with (a
     variable the user set is kept); this process's environment is restored afterwards. A child forked
-    by the forkserver gets this process's stdout, stderr and environment too (:class:`_StartersStdio`).
-    The first start registers :func:`_end_left_helpers` for this process's exit."""
-    _watch_exit()
+    by the forkserver gets this process's stdout, stderr and environment too (:class:`_StartersStdio`)."""
     added = [k for k in HELPER_ENV if k not in os.environ]
     for k in added:
         os.environ[k] = HELPER_ENV[k]
@@ -56,16 +55,6 @@ def start_with_helper_env(proc: Any) -> None:
     finally:
         for k in added:
             os.environ.pop(k, None)
-
-
-_exit_watched = False
-
-
-def _watch_exit() -> None:
-    global _exit_watched
-    if not _exit_watched:
-        _exit_watched = True
-        atexit.register(_end_left_helpers)    # runs before multiprocessing's own exit handler, registered earlier
 
 
 def _end_left_helpers() -> None:
@@ -79,6 +68,10 @@ def _end_left_helpers() -> None:
             _log.warning("%s (pid %s) was still running at exit (never closed by what started it): ended",
                          proc.name, proc.pid)
             end_helper(proc, term_wait_s=0.2)
+
+
+# after multiprocessing.util's import registered its exit handler: handlers run last-registered first
+atexit.register(_end_left_helpers)
 
 
 class _StartersStdio:
