@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from rt_ident.errors import RtIdentError
+from rt_ident.errors import RtIdentError, ask_realtime
 
 
 class DriverError(RtIdentError):
@@ -50,16 +50,15 @@ class DeviceFault(DriverError):
 class RpdoTimeout(DeviceFault):
     """The drive got no torque write within its RPDO deadline (EMCY 0x8250): the host was late, not the axis."""
 
-    fix = ("loop.realtime = true (or a less busy host; else a longer backend.rpdo_deadline_ms): the drive got no "
-           "torque write within its RPDO deadline")
+    fix = ask_realtime("the drive got no torque write within its RPDO deadline", "a longer backend.rpdo_deadline_ms")
 
 
 class HeartbeatLost(DeviceFault):
     """The drive heard no heartbeat from this host within its consumer time (EMCY 0x8130). The EMCY itself came
     over the bus, so the bus carries frames: the host sent its heartbeat late."""
 
-    fix = ("loop.realtime = true (or a less busy host; else a longer backend.heartbeat_consumer_ms): the drive "
-           "heard no heartbeat from this host within its consumer time")
+    fix = ask_realtime("the drive heard no heartbeat from this host within its consumer time",
+                       "a longer backend.heartbeat_consumer_ms")
 
 
 class SafetyTrip(DriverError):

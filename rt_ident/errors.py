@@ -42,8 +42,14 @@ def require(module: str, extra: str, what: str) -> None:
 
 
 #: how a fix begins that puts a failure on the host's load (a drive, a device or the loop itself starved);
-#: :func:`host_fix` says it as it applies to the run
+#: :func:`ask_realtime` writes it, :func:`host_fix` says it as it applies to the run
 HOST_FIX = "loop.realtime = true (or a less busy host"
+
+
+def ask_realtime(why: str, otherwise: str | None = None) -> str:
+    """The fix for a failure the host's load caused: ``loop.realtime = true (or a less busy host[; else
+    OTHERWISE]): WHY``."""
+    return f"{HOST_FIX}{f'; else {otherwise}' if otherwise else ''}): {why}"
 
 
 def host_fix(fix: str | None, realtime: dict | bool | None) -> str | None:

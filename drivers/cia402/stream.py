@@ -60,6 +60,7 @@ from collections.abc import Callable
 import numpy as np
 
 from drivers.errors import ProtocolError, WatchdogTrip
+from rt_ident.errors import ask_realtime
 
 log = logging.getLogger(__name__)
 
@@ -591,8 +592,8 @@ class SampleAssembler:
                 trip = WatchdogTrip(f"no fresh TPDO data for {self._bad_run} SYNCs in a row "
                                     f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total); {whose}")
                 if host:
-                    trip.fix = ("loop.realtime = true (or a less busy host; else a larger backend.stale_limit): "
-                                "the host's SYNCs were late, not the drive's answers")
+                    trip.fix = ask_realtime("the host's SYNCs were late, not the drive's answers",
+                                            "a larger backend.stale_limit")
                 raise trip
             return
         self._bad_run = 0

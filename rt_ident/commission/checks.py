@@ -11,6 +11,7 @@ import numpy as np
 
 from rt_ident.commission.probe import CAP_HOLD_S, ProbeLimits, Pulse
 from rt_ident.config import RunConfig
+from rt_ident.errors import ask_realtime
 
 #: the scale may differ from ``lead`` by this much (relative) before the check fails
 LEAD_TOLERANCE = 0.10
@@ -62,8 +63,7 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
         out.append(check("motion", False, f"the torque cap was in force for {q.cap_held_s * 1e3:.0f} ms only; "
                          f"{q.starved} samples of the pulse had no torque plan in force (the host wrote late)",
                          f"the cap in force for {CAP_HOLD_S * 1e3:.0f} ms",
-                         "loop.realtime = true (or a less busy host): the probe's torque plans lapsed between "
-                         "the host's writes"))
+                         ask_realtime("the probe's torque plans lapsed between the host's writes")))
         return out
     out.append(check("motion", not still, f"moved at {max(brk, default=0):.4g} N m" if not still
                      else f"no motion up to {cap:.4g} N m ({'+' if still[0].direction > 0 else '-'}), in force "
@@ -94,10 +94,10 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
     if len(set(s_th)) > 1 or len(set(s_x)) > 1 or 0 in s_th or 0 in s_x:
         lost, starved = sum(q.lost(dt) for q in pulses), sum(q.starved for q in pulses)
         out.append(check("direction", False, f"theta1 {s_th}, x {s_x} per pulse (+, -)", "the same each way",
-                         f"loop.realtime = true (or a less busy host): the pulses lost {lost} samples and had "
-                         f"{starved} without a torque plan in force, so the host's lateness may have made the "
-                         f"inconsistent motion (if it recurs on a host that keeps time: a load, a brake or "
-                         f"backlash? check the mechanics)" if lost or starved else
+                         ask_realtime(f"the pulses lost {lost} samples and had {starved} without a torque plan in "
+                                      "force, so the host's lateness may have made the inconsistent motion (if it "
+                                      "recurs on a host that keeps time: a load, a brake or backlash? check the "
+                                      "mechanics)") if lost or starved else
                          "the axis moved inconsistently (a load, a brake or backlash?); check the mechanics"))
         return out
     sth, sx = s_th[0], s_x[0]
@@ -121,8 +121,8 @@ def probe_checks(cfg: RunConfig, pulses: list[Pulse], dt: float) -> list[dict[st
         lost = sum(q.lost(dt) for q in pulses) if any(q.gapped(dt) for q in pulses) else 0
         out.append(check("acceleration measured", False, f"no fit ({lost} samples lost)" if lost else "no fit",
                          "an acceleration per N m from the pulses",
-                         f"loop.realtime = true (or a less busy host; else check the bus): the device's link lost "
-                         f"{lost} of the pulses' samples, too many at once to fit the motion" if lost else
+                         ask_realtime(f"the device's link lost {lost} of the pulses' samples, too many at once to "
+                                      "fit the motion", "check the bus") if lost else
                          "commission.max_speed_m_s / commission.travel_m (larger: longer pulses)"))
         return out
     inv_j = float(np.median(fits))

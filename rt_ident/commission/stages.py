@@ -37,7 +37,7 @@ import numpy as np
 from rt_ident.commission.checks import check, probe_checks, probe_limits
 from rt_ident.commission.probe import LAPSED_RETRIES, ProbeError, Prober
 from rt_ident.config import RunConfig, from_mapping
-from rt_ident.errors import HOST_FIX, ConfigError, RtIdentError, host_fix
+from rt_ident.errors import ConfigError, RtIdentError, ask_realtime, host_fix
 
 log = logging.getLogger(__name__)
 
@@ -55,10 +55,6 @@ LOST_SHARE, LOST_GAP_S = 0.01, 0.01
 OVERRUN_SHARE = 0.01
 
 Progress = Callable[[str], None]
-
-#: a check a run failed while the host disturbed it names the host, not the axis's settings
-HOST = f"{HOST_FIX}): "
-
 
 def host_trouble(summary: dict[str, Any], sample_period: float, run_failed: bool = True) -> str | None:
     """What the host did to a run that no axis setting explains: a stop the run put on the host (its fix
@@ -281,11 +277,11 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
     # an estimate from a run the host disturbed enough to change what it measured may be untrusted for that
     disturbed = None if trusted else host_trouble(s, period, run_failed=False)
     if stop is None and disturbed is not None:
-        fix = f"{HOST}{disturbed} while identifying; else commission.identify_s (longer)"
+        fix = ask_realtime(f"{disturbed} while identifying; else commission.identify_s (longer)")
     elif stop is None:
         fix = "commission.identify_s (longer), excitation.peak / excitation.band"
     elif host is not None:
-        fix = f"{HOST}{host}, then the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"
+        fix = ask_realtime(f"{host}, then the run stopped: {stop} - {(s.get('stop') or {}).get('message')}")
     else:
         fix = f"the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"
     result["checks"].append(check("identification trusted", trusted and stop is None, measured,
@@ -385,8 +381,8 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
         {k: got.get(k) for k in ("max_error_m", "overshoot_m", "settling_s", "stop")},
         {k: want.get(k) for k in ("max_error_m", "overshoot_m", "settling_s")} | {
             "tolerance": f"x{VERIFY_FACTOR:g} + {VERIFY_FLOOR_M * 1e6:g} um"},
-        f"{HOST}in the move {1 + STALLED_MOVE_RETRIES} times: {host} (on a host that keeps time: "
-        "control.bandwidth_hz, lower)" if host is not None
+        ask_realtime(f"in the move {1 + STALLED_MOVE_RETRIES} times: {host} (on a host that keeps time: "
+                     "control.bandwidth_hz, lower)") if host is not None
         else "control.bandwidth_hz (lower) - the axis does not move as the identified model predicts"
         if got["stop"] is None else f"the move stopped: {got['stop']}"))
     return ok

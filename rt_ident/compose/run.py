@@ -53,7 +53,7 @@ from rt_ident.compose.build import (
 from rt_ident.compose.contour import ContourTrace
 from rt_ident.compose.helpers import AxisHelpers, Helpers
 from rt_ident.config import RunConfig
-from rt_ident.errors import ConfigError, RtIdentError, host_fix
+from rt_ident.errors import ConfigError, RtIdentError, ask_realtime, host_fix
 from rt_ident.loop.host import HostSteal, LoopCpuInterrupts, LoopRealtime
 from rt_ident.loop.loop import IdentificationLoop, MultiAxisLoop
 from rt_ident.outputs.paths import check_methods, check_output, prepare_outputs, remove_empty_outputs
@@ -254,7 +254,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     starved = starved_emulator(stop_cause, stop_message, emulated)
     if starved:
         stop_message = f"{stop_message}; {starved}"
-        stop_fix = "loop.realtime = true (or a less busy host): the emulated drive's process was starved"
+        stop_fix = ask_realtime("the emulated drive's process was starved")
     summary["stop"] = {"cause": stop_cause, "message": stop_message, "interrupted": stop.is_set()}
     if stop_fix:
         summary["stop"]["fix"] = host_fix(stop_fix, summary.get("realtime") if cfg.loop.realtime else False)
