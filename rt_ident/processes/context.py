@@ -18,11 +18,15 @@ instead (the default where the platform has no forkserver).
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing as mp
+import multiprocessing.util  # noqa: F401 - its exit handler is registered before this module's (below)
 import os
 import signal
 import threading
+import time
 from multiprocessing.context import ForkServerContext, SpawnContext
+from typing import Any
 
 #: modules the forkserver imports once (one missing is skipped by multiprocessing). Not rerun nor pyarrow:
 #: they start threads at import (tokio's workers, jemalloc's), and a process with threads must not fork. Nor
@@ -67,19 +71,57 @@ class Prestart:
         if not self.started:
             return
         self.started = False
-        from multiprocessing import forkserver
+        end_forkserver(0.0)
 
-        server = forkserver._forkserver                 # multiprocessing keeps no public handle on it
+
+def end_forkserver(wait_s: float) -> None:
+    """End the forkserver this process started and reap it: its pipe closed, then ``wait_s`` for it to exit
+    (it reads the pipe only once its preloads are imported), then SIGKILL (it ignores SIGTERM)."""
+    from multiprocessing import forkserver, util
+
+    server: Any = forkserver._forkserver                # multiprocessing keeps no public handle on it
+    with _lock:
         pid = getattr(server, "_forkserver_pid", None)
         if pid is None:
             return
+        fd = getattr(server, "_forkserver_alive_fd", None)
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        deadline = time.monotonic() + wait_s
         try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
+            while os.waitpid(pid, os.WNOHANG)[0] == 0:
+                if time.monotonic() >= deadline:
+                    os.kill(pid, signal.SIGKILL)
+                    os.waitpid(pid, 0)
+                    break
+                time.sleep(0.002)
+        except (ChildProcessError, ProcessLookupError):
             pass
-        stop = getattr(server, "_stop", None)           # reaps it, closes its pipe, removes its socket
-        if stop is not None:
-            stop()
+        address = getattr(server, "_forkserver_address", None)
+        if address and not util.is_abstract_socket_namespace(address):
+            try:
+                os.unlink(address)
+            except OSError:
+                pass
+        server._forkserver_pid = server._forkserver_alive_fd = server._forkserver_address = None
+
+
+def _at_exit() -> None:
+    """At this process's exit: the helpers its starters never closed, then the forkserver, which would end by
+    itself a moment after this process, as an orphan. The forkserver goes last and only with no child left:
+    a forked child's exit status comes through it."""
+    from rt_ident.processes.guard import end_left_helpers
+
+    end_left_helpers()
+    if not mp.active_children():
+        end_forkserver(1.0)
+
+
+# after multiprocessing.util's import registered its exit handler: handlers run last-registered first
+atexit.register(_at_exit)
 
 
 def prestart() -> Prestart:
@@ -147,4 +189,4 @@ def _restore_scheduling(saved: tuple | None) -> None:
         pass
 
 
-__all__ = ["PRELOAD", "Prestart", "helper_context", "prestart", "start_method"]
+__all__ = ["PRELOAD", "Prestart", "end_forkserver", "helper_context", "prestart", "start_method"]

@@ -16,10 +16,8 @@
 
 from __future__ import annotations
 
-import atexit
 import logging
 import math
-import multiprocessing.util  # noqa: F401 - its exit handler is registered before this module's (below)
 import os
 import signal
 import sys
@@ -57,10 +55,11 @@ def start_with_helper_env(proc: Any) -> None:
             os.environ.pop(k, None)
 
 
-def _end_left_helpers() -> None:
-    """At this process's exit: end every helper its starter never closed. multiprocessing's exit handler
-    sends its daemonic children SIGTERM, which helpers ignore, then joins them without a timeout: one left
-    running would hold the exit for ever (it ends itself only once this process is gone)."""
+def end_left_helpers() -> None:
+    """End every helper its starter never closed (at this process's exit, :mod:`rt_ident.processes.context`).
+    multiprocessing's exit handler sends its daemonic children SIGTERM, which helpers ignore, then joins them
+    without a timeout: one left running would hold the exit for ever (it ends itself only once this process
+    is gone)."""
     import multiprocessing
 
     for proc in multiprocessing.active_children():
@@ -68,10 +67,6 @@ def _end_left_helpers() -> None:
             _log.warning("%s (pid %s) was still running at exit (never closed by what started it): ended",
                          proc.name, proc.pid)
             end_helper(proc, term_wait_s=0.2)
-
-
-# after multiprocessing.util's import registered its exit handler: handlers run last-registered first
-atexit.register(_end_left_helpers)
 
 
 class _StartersStdio:

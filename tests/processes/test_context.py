@@ -145,3 +145,15 @@ def test_a_ctrl_c_while_a_helper_starts_from_the_forkserver_reaches_the_starters
     if waited_past_the_signal != "True":
         pytest.skip("the forkserver preloaded in under 0.2 s: the start did not span the signal")
     assert got == "1", r.stderr[-2000:]
+
+
+@FORKSERVER
+def test_a_process_that_started_the_forkserver_reaps_it_before_it_exits():
+    """No forkserver outlives the command that started it (it would end by itself a moment later, an orphan)."""
+    code = ("from multiprocessing import forkserver as f\n"
+            "from rt_ident.processes import context\n"
+            "context.helper_context()\n"
+            "print(f._forkserver._forkserver_pid, flush=True)\n")
+    r = _fresh_python(code)
+    pid = int(r.stdout.split()[0])
+    assert not os.path.exists(f"/proc/{pid}"), (open(f"/proc/{pid}/stat").read(), r.stderr[-2000:])
