@@ -135,6 +135,7 @@ class Backend(ABC):
         self.clamped = 0            # commands clamped to the torque limit
         self.last_torque = 0.0      # last value that left the host
         self.stop_cause: str | None = None
+        self.stop_unconfirmed: str | None = None  # after safe_stop(): what the device did not confirm (None: all)
 
     # ----- properties each backend provides --------------------------------
     @property
@@ -268,9 +269,10 @@ class Backend(ABC):
         if cause and self.stop_cause is None:
             self.stop_cause = cause
         try:
-            self._safe_stop()
-        except Exception:  # noqa: BLE001 - must not raise from a stop path
+            self.stop_unconfirmed = self._safe_stop()
+        except Exception as exc:  # noqa: BLE001 - must not raise from a stop path
             log.exception("%s: safe_stop failed", self.name)
+            self.stop_unconfirmed = f"the stop failed: {type(exc).__name__}: {exc}"
         self.last_torque = 0.0
         self.state = State.STOPPED
 
@@ -322,8 +324,10 @@ class Backend(ABC):
         self._write_plan(_ZERO, start_seq + torques.size + lease)
 
     @abstractmethod
-    def _safe_stop(self) -> None:
-        """Quick stop, zero torque, disable. Called at most once per activation."""
+    def _safe_stop(self) -> str | None:
+        """Quick stop, zero torque, disable. Called at most once per activation. Returns None when the device
+        confirmed its disable (or was never enabled by this host), else one line: what was not confirmed, and
+        what the device does on its own once the host falls silent."""
 
     @abstractmethod
     def _close(self) -> None: ...

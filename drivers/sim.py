@@ -444,7 +444,7 @@ class SimBackend(Backend):
         self.drive_enabled = False
 
     def _safe_stop(self) -> None:
-        self._disable()
+        self._disable()                 # the simulated drive is this process: disabled once this returns
 
     def _close(self) -> None:
         self._disable()

@@ -67,12 +67,15 @@ def test_a_serial_board_that_dies_mid_run_is_reported_once_without_traceback(tmp
     assert "Traceback" not in text and "During handling" not in text and "direct cause" not in text
     stops = [ln for ln in res.stderr.splitlines() if ln.startswith("stopped by ")]
     assert len(stops) == 1, res.stderr
-    cause = re.match(r"stopped by [\w-]+: (.*) - torque zeroed", stops[0]).group(1)
-    assert text.count(cause) == 1                      # the cause, once
+    cause = re.match(r"stopped by [\w-]+: (.*) - zero torque commanded, the disable NOT confirmed", stops[0]).group(1)
+    assert text.count(cause) == 1 and "link went away" in cause     # the cause, once, and what it means
+    # the stop frames could not reach a dead board: never called disabled, said once in a line of its own
+    (unconfirmed,) = [ln for ln in res.stderr.splitlines() if ln.startswith("disable not confirmed")]
+    assert "the stop frames could not be sent" in unconfirmed
     # the final fit of the few seconds measured may warn about its own convergence: not the board's failure
     warnings = [ln for ln in res.stderr.splitlines() if ln.startswith(("WARNING", "ERROR"))
                 and "rt_ident.estimators" not in ln]
-    assert len(warnings) <= 1, warnings                # at most: the stop frames could not be sent
+    assert warnings == [], warnings
 
 
 def _record_with_exception() -> logging.LogRecord:

@@ -188,3 +188,18 @@ def test_a_run_stopped_by_ctrl_c_or_sigterm_says_it_stopped_early_and_a_full_run
     terminal.print_stop({"stop": {"cause": None, "message": None, "interrupted": False}, "loop": {"ticks": 10000}})
     assert buf.getvalue().splitlines() == ["stopped early on request (Ctrl-C or SIGTERM) after 1428 ticks: the figures "
                                            "above cover only that part; torque zeroed, drive disabled"]
+
+
+def test_a_device_that_did_not_confirm_its_disable_is_never_called_disabled_and_gets_a_line_of_its_own(monkeypatch):
+    buf = io.StringIO()
+    monkeypatch.setattr(terminal, "err", Console(file=buf, width=400, soft_wrap=True, color_system=None))
+    note = "node 5 did not report itself disabled within 0.2 s"
+    terminal.print_stop({"stop": {"cause": "watchdog", "message": "no fresh TPDO data", "interrupted": False,
+                                  "disable_unconfirmed": note}})
+    terminal.print_stop({"stop": {"cause": None, "message": None, "interrupted": False, "disable_unconfirmed": note}})
+    terminal.print_stop({"stop": {"cause": "watchdog", "message": "no fresh TPDO data", "interrupted": False}})
+    lines = buf.getvalue().splitlines()
+    assert lines[0] == ("stopped by watchdog: no fresh TPDO data - zero torque commanded, the disable NOT confirmed "
+                        "(below)")
+    assert lines[1].startswith(f"disable not confirmed: {note}: check the device") and lines[2] == lines[1]
+    assert lines[3] == "stopped by watchdog: no fresh TPDO data - torque zeroed, drive disabled" and len(lines) == 4

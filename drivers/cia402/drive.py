@@ -333,15 +333,18 @@ class Cia402Backend(Backend):
                 return False
             time.sleep(self.config.sample_period)
 
-    def _stop_drive(self) -> None:
-        """Quick stop, torque 0, disable voltage, stop SYNC. Bounded in time; never raises."""
+    def _stop_drive(self) -> str | None:
+        """Quick stop, torque 0, disable voltage, stop SYNC. Bounded in time; never raises. Returns what the
+        drive did not confirm (None: disabled, or never enabled by this host)."""
         cfg, sender, ch = self.config, self._sender, self._channel
         self._plan.hold(0.0)
         if sender is None or ch is None:          # never activated: the drive was not enabled by us
-            return
+            return None
         if not sender.running:
-            self._sdo_disable()
-            return
+            if self._sdo_disable():
+                return None
+            return f"disable voltage could not be written by SDO (the SYNC stream had stopped); {self._on_its_own()}"
+        unconfirmed = None
         try:
             asm = self._asm
             if asm is not None:
@@ -353,33 +356,45 @@ class Cia402Backend(Backend):
                             cfg.node_id, cfg.stop_timeout)
             ch.controlword = p402.CW_DISABLE_VOLTAGE
             if not self._wait_state((p402.SWITCH_ON_DISABLED, p402.FAULT), cfg.stop_timeout):
-                log.warning("canopen: node %d did not confirm disable voltage within %.3f s",
-                            cfg.node_id, cfg.stop_timeout)
+                unconfirmed = (f"node {cfg.node_id} did not report itself disabled within {cfg.stop_timeout:g} s; "
+                               f"{self._on_its_own()}")
         finally:
             self._leave_sync()
             if self._setup is not None:
                 self._setup.receive_in_thread()     # SDO (close) needs a receiver again
             self._deque.clear()
+        return unconfirmed
+
+    def _on_its_own(self) -> str:
+        """What this drive does by itself once the host falls silent, as this host set it up."""
+        deadline = self._setup.rpdo_deadline_ms if self._setup is not None else None
+        watch = f"at its heartbeat consumer time ({self.config.consumer_ms} ms without this host's heartbeat, " \
+                "left on for that reason)"
+        if deadline:
+            return f"the drive faults at its RPDO deadline ({deadline} ms without a torque write) or {watch}"
+        return f"the drive faults {watch}"
 
     def _leave_sync(self) -> None:
         """This drive's RPDO out of the SYNC cycle (the last drive's leave stops the SYNC)."""
         if self._setup is not None and self._setup.conn is not None and self._channel is not None:
             self._setup.conn.leave_sync(self._channel)
 
-    def _sdo_disable(self) -> None:
-        """Without a running SYNC stream, write the controlword by SDO (best effort)."""
-        if self._setup is not None:
-            self._leave_sync()
-            self._setup.receive_in_thread()     # SDO needs a receiver
-            self._setup.try_download(p402.CONTROLWORD, 0, struct.pack("<H", p402.CW_DISABLE_VOLTAGE))
+    def _sdo_disable(self) -> bool:
+        """Without a running SYNC stream, write the controlword by SDO (best effort). True: the drive took it."""
+        if self._setup is None:
+            return False
+        self._leave_sync()
+        self._setup.receive_in_thread()     # SDO needs a receiver
+        return self._setup.try_download(p402.CONTROLWORD, 0, struct.pack("<H", p402.CW_DISABLE_VOLTAGE))
 
-    def _safe_stop(self) -> None:
-        self._stop_drive()
+    def _safe_stop(self) -> str | None:
+        return self._stop_drive()
 
     def _close(self) -> None:
         self._leave_sync()
         if self._setup is not None:
-            self._setup.teardown(drive_consumer_off=True)
+            # a drive that did not confirm its disable keeps watching this host's heartbeat, which stops now
+            self._setup.teardown(drive_consumer_off=self.stop_unconfirmed is None)
             self._setup = None
 
 

@@ -40,6 +40,18 @@ log = logging.getLogger(__name__)
 
 _MAX_READ = 1 << 16  # bytes drained per read() at most (~109 ms of frames at 20 kHz)
 
+#: errnos of a tty whose device went away under an open port (EIO, ENXIO, ENODEV)
+_GONE_ERRNOS = (5, 6, 19)
+
+
+def _gone(exc: BaseException) -> str:
+    """What an I/O error of an open port means for the user, where it means the board went away."""
+    text = str(exc)                     # pyserial re-raises some OSErrors as text: "read failed: [Errno 5] ..."
+    if getattr(exc, "errno", None) in _GONE_ERRNOS or "device disconnected" in text \
+            or any(f"[Errno {n}]" in text for n in _GONE_ERRNOS):
+        return " (the board's link went away: unplugged, powered off or reset)"
+    return ""
+
 
 class SerialBoardBackend(Backend):
     """The serial encoder board. Constructor validates only (no I/O)."""
@@ -110,7 +122,7 @@ class SerialBoardBackend(Backend):
                                         f"{self.config.write_timeout} s, twice") from exc
                 self.write_retries += 1
             except (serial.SerialException, OSError) as exc:
-                raise DeviceConnectionError(f"serial port {self.port!r}: write failed: {exc}") from exc
+                raise DeviceConnectionError(f"serial port {self.port!r}: write failed: {exc}{_gone(exc)}") from exc
         self._last_tx = self.clock()
 
     def _recv(self) -> bytes:
@@ -120,7 +132,7 @@ class SerialBoardBackend(Backend):
             while data and len(data) < _MAX_READ and (more := self._ser.in_waiting):
                 data += self._ser.read(more)
         except (serial.SerialException, OSError) as exc:
-            raise DeviceConnectionError(f"serial port {self.port!r}: read failed: {exc}") from exc
+            raise DeviceConnectionError(f"serial port {self.port!r}: read failed: {exc}{_gone(exc)}") from exc
         self.bytes_read += len(data)
         return data
 
@@ -132,11 +144,11 @@ class SerialBoardBackend(Backend):
             try:
                 self._send(frame)
             except Exception as exc:  # noqa: BLE001 - a stop path must not raise
-                # one line, once: the link's failure is the run's stop cause, reported by the caller
+                # once: the link's failure is the stop's cause, and safe_stop() reports the disable unconfirmed
                 if not getattr(self, "_stop_unsent", False):
                     self._stop_unsent = True
-                    log.warning("serial board %s: stop frames not sent (%s); the board disables itself when the "
-                                "host's heartbeats stop", self.port, type(exc).__name__)
+                    log.info("serial board %s: stop frames not sent (%s); the board disables itself when the "
+                             "host's heartbeats stop", self.port, type(exc).__name__)
                 log.debug("serial board %s: stop frame failed", self.port, exc_info=True)
                 return False
         return True
@@ -350,9 +362,12 @@ class SerialBoardBackend(Backend):
                               f"the board queues at most plan_capacity={cap}")
         return sp.encode_torque_plan(start_seq, torques)
 
-    def _safe_stop(self) -> None:
-        if not self._stop_frames() or self.config.stop_timeout <= 0:
-            return                                   # no link: no acknowledgement to wait for
+    def _safe_stop(self) -> str | None:
+        on_its_own = "the board's firmware disables it when the host's frames stop (its heartbeat timeout)"
+        if not self._stop_frames():
+            return f"the stop frames could not be sent (the link had failed); {on_its_own}"
+        if self.config.stop_timeout <= 0:
+            return f"not awaited (backend.stop_timeout = 0); {on_its_own}"
         try:
             got = self._wait_for(lambda s: int(np.argmax((s["status"] & sp.ST_ENABLED) == 0))
                                  if np.any((s["status"] & sp.ST_ENABLED) == 0) else -1,
@@ -362,6 +377,8 @@ class SerialBoardBackend(Backend):
         if got is None:
             log.warning("serial board %s: disable not confirmed within %.3f s", self.port,
                         self.config.stop_timeout)
+            return f"the board did not report itself disabled within {self.config.stop_timeout:g} s; {on_its_own}"
+        return None
 
     def _close(self) -> None:
         ser, self._ser = self._ser, None

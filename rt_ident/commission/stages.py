@@ -173,6 +173,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             return False
         finally:
             backend.safe_stop()
+            _disable_confirmed(checks, backend.stop_unconfirmed)
         result["max_travel_m"] = prober.max_travel
         result["max_speed_m_s"] = prober.max_speed
         truth = [q.truth for q in pulses if q.truth]
@@ -186,6 +187,14 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
                              "accel_per_nm": q.dynamics(backend.sample_period)[0]} for q in pulses]
         checks.extend(probe_checks(cfg, pulses, backend.sample_period))
         return all(c["ok"] for c in checks)
+
+
+def _disable_confirmed(checks: list[dict[str, Any]], unconfirmed: str | dict[str, str] | None) -> bool:
+    """A device that did not report itself disabled at a stop fails commissioning, in a check of its own."""
+    if unconfirmed:
+        checks.append(check("disable confirmed", False, unconfirmed, "the device reports itself disabled at each stop",
+                            "backend.stop_timeout (longer), else the device's link and firmware"))
+    return not unconfirmed
 
 
 def _device_fix(exc: RtIdentError) -> str:
@@ -252,8 +261,11 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
                      loop={"duration": duration}, telemetry={"sink": "off"},
                      recording={"enabled": True, "path": str(out / "identify.parquet")})
         s = run_loop(c, sink="off", overwrite=True)
+        disabled = _disable_confirmed(result["checks"], (s.get("stop") or {}).get("disable_unconfirmed"))
         if (s.get("stop") or {}).get("interrupted"):
             raise KeyboardInterrupt                # Ctrl-C or SIGTERM during the run: commissioning ends
+        if not disabled:
+            return None
         stop = (s.get("stop") or {}).get("cause")
         trusted = bool(s.get("trusted"))
         reasons = (s.get("trust") or {}).get("reasons") or []
@@ -362,8 +374,11 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
     p = run_offline(pred, record=str(model_rec), overwrite=True) | {"files": {"recording": str(model_rec)}}
     for _ in range(1 + STALLED_MOVE_RETRIES):
         s = run_loop(meas, sink="off", overwrite=True)
+        disabled = _disable_confirmed(result["checks"], (s.get("stop") or {}).get("disable_unconfirmed"))
         if (s.get("stop") or {}).get("interrupted"):
             raise KeyboardInterrupt
+        if not disabled:
+            return False
         ok, got, want = _judge_move(s, p, cfg.axis_params().lead, move, t_arrive)
         # a move that failed or stopped with samples lost may have failed on the gaps: any count then
         host = host_trouble(s, period, run_failed=not ok)

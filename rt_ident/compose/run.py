@@ -261,6 +261,9 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     if several:
         summary["stop"].update({"axis": stop_axis, "final_torque": {n: b.last_torque for n, b in backends.items()},
                                 "backend_state": {n: b.state.value for n, b in backends.items()}})
+        unconfirmed = {n: b.stop_unconfirmed for n, b in backends.items() if b.stop_unconfirmed}
+        if unconfirmed:
+            summary["stop"]["disable_unconfirmed"] = unconfirmed
         summary["files"] = files
         summary["axes"] = {n: {**reports[n], "files": files[n], **_axis_summary(ax)} for n, ax in axes.items()}
         if isinstance(runner, MultiAxisLoop):
@@ -273,6 +276,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     elif axes:
         ax = axes[""]
         summary["stop"].update({"final_torque": ax.backend.last_torque, "backend_state": ax.backend.state.value})
+        if ax.backend.stop_unconfirmed:
+            summary["stop"]["disable_unconfirmed"] = ax.backend.stop_unconfirmed
         summary.update(reports[""])
         summary["files"] = files[""]
         summary.update(_axis_summary(ax, host))

@@ -198,10 +198,11 @@ def print_axes(s: dict) -> None:
     if stop.get("cause"):
         where = f" on axis {stop['axis']}" if stop.get("axis") else ""
         message = escape(str(stop.get("message")))
-        err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {message} - every axis at zero torque, disabled")
+        err.print(f"[red]stopped by {stop['cause']}{where}:[/red] {message} - {_stopped(stop, True)}")
         print_fix(stop)
     elif stop.get("interrupted"):
-        err.print(_INTERRUPTED.format(ticks=loop.get("ticks", 0)))
+        err.print(_INTERRUPTED.format(ticks=loop.get("ticks", 0), stopped=_stopped(stop, True)))
+    print_unconfirmed(stop)
 
 
 def print_fix(stop: dict) -> None:
@@ -236,14 +237,34 @@ def print_trust(trust: dict | None, trusted: bool | None = None) -> None:
 
 
 _INTERRUPTED = ("stopped early on request (Ctrl-C or SIGTERM) after {ticks} ticks: the figures above cover only "
-                "that part; torque zeroed, drive disabled")
+                "that part; {stopped}")
+
+
+def _stopped(stop: dict, several: bool) -> str:
+    """How the device(s) were left: disabled only where every device confirmed it."""
+    if stop.get("disable_unconfirmed"):
+        return "zero torque commanded, the disable NOT confirmed (below)"
+    return "every axis at zero torque, disabled" if several else "torque zeroed, drive disabled"
+
+
+def print_unconfirmed(stop: dict) -> None:
+    """A device that did not confirm its disable, in a line of its own whatever the run's ending."""
+    note = stop.get("disable_unconfirmed")
+    if not note:
+        return
+    notes = note.items() if isinstance(note, dict) else [("", note)]
+    for axis, why in notes:
+        where = f" (axis {axis})" if axis else ""
+        err.print(f"[bold red]disable not confirmed{where}:[/] {escape(str(why))}: check the device before "
+                  "anyone works near the axis")
 
 
 def print_stop(s: dict) -> None:
     stop = s.get("stop") or {}
     if stop.get("cause"):
         message = escape(str(stop.get("message")))
-        err.print(f"[red]stopped by {stop['cause']}:[/red] {message} - torque zeroed, drive disabled")
+        err.print(f"[red]stopped by {stop['cause']}:[/red] {message} - {_stopped(stop, False)}")
         print_fix(stop)
     elif stop.get("interrupted"):
-        err.print(_INTERRUPTED.format(ticks=(s.get("loop") or {}).get("ticks", 0)))
+        err.print(_INTERRUPTED.format(ticks=(s.get("loop") or {}).get("ticks", 0), stopped=_stopped(stop, False)))
+    print_unconfirmed(stop)

@@ -58,6 +58,25 @@ def test_a_device_that_faults_as_it_enables_fails_the_enable_check_with_its_fix_
     assert "node 5 sent EMCY" in Path(r["report"]).read_text()          # the failed check, in the report
 
 
+def test_a_device_that_does_not_confirm_its_disable_fails_commissioning_naming_it(tmp_path, monkeypatch):
+    """A probe that went well on a device that then did not report itself disabled is no pass."""
+    from drivers.sim import SimBackend
+
+    disable = SimBackend._safe_stop
+
+    def unconfirmed(self):
+        disable(self)
+        return "the drive did not report itself disabled within 0.2 s"
+
+    monkeypatch.setattr(SimBackend, "_safe_stop", unconfirmed)
+    r = commission(config.from_mapping(sim_data()), tmp_path / "out")
+    assert r["verdict"] == "fail" and r["stage_reached"] == "b", r["checks"]
+    assert r["failed"]["check"] == "disable confirmed" and r["failed"]["fix"].startswith("backend.stop_timeout")
+    (failed,) = [c for c in r["checks"] if c["name"] == "disable confirmed"]
+    assert failed["measured"] == "the drive did not report itself disabled within 0.2 s"
+    assert "did not report itself disabled" in Path(r["report"]).read_text()
+
+
 @pytest.mark.xdist_group("realtime")
 def test_a_real_time_commissioning_the_host_failed_says_so_instead_of_asking_for_real_time(
         tmp_path, monkeypatch, restore_scheduling):

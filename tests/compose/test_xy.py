@@ -356,3 +356,27 @@ def test_the_axes_supervisors_take_their_redesign_steps_on_alternate_ticks(monke
     # the first redesigns follow the first trusted fits: ~0.5 s on an idle machine, later beside other tests
     assert len({sup for both in steps.values() for sup in both}) == 2          # both axes asked for a redesign
     assert all(len(both) == 1 for both in steps.values()), sorted(t for t, b in steps.items() if len(b) > 1)
+
+
+@pytest.mark.parametrize("several", [False, True], ids=["one-axis", "xy"])
+def test_a_device_that_did_not_confirm_its_disable_is_named_in_the_summary_on_one_axis_and_two(several, monkeypatch):
+    from drivers.sim import SimBackend
+
+    stops: list[SimBackend] = []
+    disable = SimBackend._safe_stop
+
+    def first_unconfirmed(self):
+        disable(self)
+        stops.append(self)
+        return "the drive did not report itself disabled" if len(stops) == 1 else None
+
+    monkeypatch.setattr(SimBackend, "_safe_stop", first_unconfirmed)
+    over = {"loop.duration": 0.3, "telemetry.sink": "off", "recording.enabled": False, "loop.realtime": False}
+    s = run_axes(_xy(**over) if several else load(None, **over))
+    assert s["stop"]["cause"] is None and run_mod.exit_code(s) == 0   # the run itself ended as asked
+    got = s["stop"]["disable_unconfirmed"]
+    if several:
+        assert len(stops) == 2 and len(got) == 1 and set(got) <= {"x", "y"}      # the one axis that said so
+        assert list(got.values()) == ["the drive did not report itself disabled"]
+    else:
+        assert got == "the drive did not report itself disabled" and len(stops) == 1

@@ -483,9 +483,9 @@ def _count_calls(monkeypatch: pytest.MonkeyPatch, be: Backend, hook: str) -> lis
     calls = [0]
     orig = getattr(be, hook)
 
-    def counted() -> None:
+    def counted() -> Any:
         calls[0] += 1
-        orig()
+        return orig()
 
     monkeypatch.setattr(be, hook, counted)
     return calls
@@ -501,6 +501,7 @@ def test_safe_stop_zeroes_torque_disables_the_drive_and_stop_and_close_are_idemp
     stops, closes = _count_calls(monkeypatch, be, "_safe_stop"), _count_calls(monkeypatch, be, "_close")
     be.safe_stop()
     assert be.state is State.STOPPED and be.last_torque == 0.0
+    assert be.stop_unconfirmed is None, be.stop_unconfirmed        # the device reported itself disabled
     assert_de_energized(rig)
     be.safe_stop()
     assert be.state is State.STOPPED and stops[0] == 1
@@ -526,7 +527,7 @@ def test_context_manager_exit_on_exception_ends_with_zero_torque_disabled_and_pr
         be.write(c)
         settle_on(rig, c)
         raise ContractBoom("inside the with-block")
-    assert be.state is State.CLOSED and be.last_torque == 0.0
+    assert be.state is State.CLOSED and be.last_torque == 0.0 and be.stop_unconfirmed is None
     assert be.stop_cause == "ContractBoom"
     assert_de_energized(rig)
 

@@ -575,6 +575,33 @@ def test_safe_stop_is_bounded_and_silent_when_the_drive_vanished():
         be.safe_stop("test")                           # must not raise
         be.close()
         assert time.monotonic() - t0 < 15.0            # two stop steps + one SDO timeout, not forever
+        assert be.stop_unconfirmed is not None and "node 5 did not report itself disabled" in be.stop_unconfirmed
+
+
+def test_a_drive_that_confirms_its_disable_is_left_without_its_watch_of_the_hosts_heartbeat():
+    with rig() as (drive, be):
+        be.open()
+        be.activate()
+        pump(be, 0.1)
+        assert drive._master[1] == 1000                # the host set the drive's consumer time
+        be.safe_stop("test")
+        be.close()
+        assert be.stop_unconfirmed is None and drive.state == SWITCH_ON_DISABLED
+        assert drive._master[1] == 0                   # its heartbeat ends now: the drive stops watching it
+
+
+def test_a_drive_whose_disable_is_not_confirmed_is_named_and_keeps_watching_the_hosts_heartbeat(monkeypatch):
+    with rig(stop_timeout=0.1) as (drive, be):
+        be.open()
+        be.activate()
+        pump(be, 0.1)
+        monkeypatch.setattr(be, "_wait_state", lambda accept, timeout: False)   # its statusword answers lost
+        be.safe_stop("test")
+        be.close()
+        note = be.stop_unconfirmed
+        assert note is not None and note.startswith("node 5 did not report itself disabled within 0.1 s"), note
+        assert "RPDO deadline (1000 ms" in note and "heartbeat consumer time (1000 ms" in note, note
+        assert drive._master[1] == 1000                # left on: the drive faults when this host falls silent
 
 
 def test_no_node_at_that_id_raises_one_error_naming_the_settings_without_canopens_own_abort_line(caplog):

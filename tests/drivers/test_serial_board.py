@@ -448,6 +448,23 @@ def test_safe_stop_disables_the_board_and_is_idempotent(rig):
         be.read()
 
 
+def test_safe_stop_reports_a_disable_the_board_confirmed_as_confirmed(rig):
+    board, be = rig()
+    be.write(0.1)
+    be.safe_stop()
+    assert be.stop_unconfirmed is None and not board.enabled
+
+
+def test_a_board_gone_before_the_stop_is_reported_unconfirmed_naming_what_it_does_on_its_own(rig):
+    board, be = rig()
+    be.write(0.1)
+    board.stop()                                       # unplugged: the pty's far side is gone
+    be.safe_stop()
+    note = be.stop_unconfirmed
+    assert note is not None and "heartbeat timeout" in note, note
+    assert note.startswith(("the stop frames could not be sent", "the board did not report itself disabled")), note
+
+
 def test_exception_in_context_manager_leaves_the_board_disabled():
     with start_emulator_for({}) as board:
         with pytest.raises(RuntimeError):
