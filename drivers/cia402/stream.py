@@ -233,16 +233,25 @@ class SyncSender:
     def channels(self) -> int:
         """Channels sending now or about to (joins and leaves not yet applied counted)."""
         with self._lock:
-            n = len(self._channels)
-            for join, _ch in self._changes:
-                n += 1 if join else -1
-            return n
+            return len(self._members())
+
+    def _members(self) -> list[RpdoChannel]:
+        """Under the lock: the channels once the pending joins and leaves are applied, as the thread applies
+        them (a second leave of a channel removes nothing: it must not count as another channel's leave)."""
+        members = list(self._channels)
+        for join, ch in self._changes:
+            if join and ch not in members:
+                members.append(ch)
+            elif not join and ch in members:
+                members.remove(ch)
+        return members
 
     def join(self, channel: RpdoChannel) -> None:
         """Add a drive's channel from the next period on (a no-op if it sends already)."""
         with self._lock:
             if self.running:
-                self._changes.append((True, channel))
+                if channel not in self._members():
+                    self._changes.append((True, channel))
             elif channel not in self._channels:
                 self._channels.append(channel)
 
@@ -250,7 +259,8 @@ class SyncSender:
         """Stop sending this channel's RPDO from the next period on (idempotent)."""
         with self._lock:
             if self.running:
-                self._changes.append((False, channel))
+                if channel in self._members():
+                    self._changes.append((False, channel))
             elif channel in self._channels:
                 self._channels.remove(channel)
 

@@ -106,6 +106,27 @@ def test_one_sender_sends_every_drives_rpdo_before_one_sync_and_marks_where_a_jo
     assert marks_b[-1] - marks_b[0] + 1 - len(marks_b) <= sender.overruns
 
 
+def test_a_drive_that_leaves_the_sync_twice_leaves_the_other_drives_sync_running():
+    """A drive leaves at its stop and again at its close: the second leave is not the other drive's."""
+    a = RpdoChannel(0x205, TorquePlan(), lambda t: (0, t), collections.deque())
+    b = RpdoChannel(0x206, TorquePlan(), lambda t: (0, t), collections.deque())
+    sender = SyncSender.for_channel(lambda cob, data: None, 0.002, a)
+    sender.start()
+    try:
+        sender.join(b)
+        sender.join(b)                                   # joined twice: still one channel more
+        assert sender.channels == 2
+        sender.leave(b)
+        n = sender.sent
+        deadline = time.monotonic() + 10.0
+        while sender.sent < n + 3 and time.monotonic() < deadline:
+            time.sleep(0.002)                            # the thread applied the leave
+        sender.leave(b)
+        assert sender.channels == 1 and sender.running
+    finally:
+        sender.stop()
+
+
 def test_the_sync_thread_sends_the_host_heartbeat_every_n_periods_right_after_a_sync():
     frames: list[int] = []
     ch = RpdoChannel(0x205, TorquePlan(), lambda t: (0, t), collections.deque())
@@ -151,6 +172,8 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
     drives = start_emulator_for({"drives": cfgs})
     try:
         x, y = Cia402Backend(cfgs[0]["backend"]), Cia402Backend(cfgs[1]["backend"])
+        by_sdo = []
+        x._sdo_disable = lambda: by_sdo.append(x.config.node_id) or False   # type: ignore[method-assign]
         with x, y:
             x.activate()
             y.activate()
@@ -178,6 +201,8 @@ def test_two_drives_on_one_bus_share_one_connection_and_one_sync_and_both_end_sa
             dy = got[6][-1].theta1[-1] - got[6][0].theta1[0]
             assert dx * dy < 0, (dx, dy)
         assert x._sender.heartbeats >= x._sender.sent // 50 - 1 > 0
+        # Y stopped and closed first (the with-block's order), and X still stopped over the SYNC cycle it shares
+        assert by_sdo == [] and x.stop_unconfirmed is None and y.stop_unconfirmed is None
         for n in (5, 6):
             assert_drive_safe(drives[n])
             assert 0x8130 not in drives[n].emcy_codes
