@@ -343,7 +343,8 @@ class Cia402Backend(Backend):
         if not sender.running:
             if self._sdo_disable():
                 return None
-            return f"disable voltage could not be written by SDO (the SYNC stream had stopped); {self._on_its_own()}"
+            return f"the drive did not acknowledge the disable written by SDO (no SYNC cycle left to send it in); " \
+                   f"{self._on_its_own()}"
         unconfirmed = None
         try:
             asm = self._asm

@@ -261,18 +261,18 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
                      loop={"duration": duration}, telemetry={"sink": "off"},
                      recording={"enabled": True, "path": str(out / "identify.parquet")})
         s = run_loop(c, sink="off", overwrite=True)
-        disabled = _disable_confirmed(result["checks"], (s.get("stop") or {}).get("disable_unconfirmed"))
+        unconfirmed = (s.get("stop") or {}).get("disable_unconfirmed")
         if (s.get("stop") or {}).get("interrupted"):
+            _disable_confirmed(result["checks"], unconfirmed)
             raise KeyboardInterrupt                # Ctrl-C or SIGTERM during the run: commissioning ends
-        if not disabled:
-            return None
         stop = (s.get("stop") or {}).get("cause")
         trusted = bool(s.get("trusted"))
         reasons = (s.get("trust") or {}).get("reasons") or []
         attempts.append({"duration_s": duration, "trusted": trusted, "stop": stop, "reasons": reasons,
                          "lost_samples": (s.get("loop") or {}).get("lost_samples"),
                          "stalls": ((s.get("loop") or {}).get("stalls") or {}).get("count", 0)})
-        longer = _longer(s, duration) if not trusted and stop is None and len(attempts) == 1 else None
+        again = not trusted and stop is None and not unconfirmed and len(attempts) == 1
+        longer = _longer(s, duration) if again else None
         if longer is None:
             break
         progress(f"c: {reasons[0]}: identifying again for {longer:g} s")
@@ -298,7 +298,8 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
         fix = f"the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"
     result["checks"].append(check("identification trusted", trusted and stop is None, measured,
                                   "trusted, run ended normally", fix))
-    return s if trusted and stop is None else None
+    disabled = _disable_confirmed(result["checks"], unconfirmed)
+    return s if trusted and stop is None and disabled else None
 
 
 def _move_metrics(path: str, lead: float, origin: float, move: float, t_arrive: float) -> dict[str, float]:
@@ -374,14 +375,14 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
     p = run_offline(pred, record=str(model_rec), overwrite=True) | {"files": {"recording": str(model_rec)}}
     for _ in range(1 + STALLED_MOVE_RETRIES):
         s = run_loop(meas, sink="off", overwrite=True)
-        disabled = _disable_confirmed(result["checks"], (s.get("stop") or {}).get("disable_unconfirmed"))
+        unconfirmed = (s.get("stop") or {}).get("disable_unconfirmed")
         if (s.get("stop") or {}).get("interrupted"):
+            _disable_confirmed(result["checks"], unconfirmed)
             raise KeyboardInterrupt
-        if not disabled:
-            return False
         ok, got, want = _judge_move(s, p, cfg.axis_params().lead, move, t_arrive)
-        # a move that failed or stopped with samples lost may have failed on the gaps: any count then
-        host = host_trouble(s, period, run_failed=not ok)
+        # a move that failed or stopped with samples lost may have failed on the gaps: any count then; a device
+        # that did not confirm its disable is not moved again
+        host = None if unconfirmed else host_trouble(s, period, run_failed=not ok)
         if host is None:
             break
         result["stalled_moves"] = result.get("stalled_moves", 0) + 1   # the host's doing, not the axis's
@@ -400,7 +401,8 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
                      "control.bandwidth_hz, lower)") if host is not None
         else "control.bandwidth_hz (lower) - the axis does not move as the identified model predicts"
         if got["stop"] is None else f"the move stopped: {got['stop']}"))
-    return ok
+    disabled = _disable_confirmed(result["checks"], unconfirmed)
+    return ok and disabled
 
 
 def _judge_move(s: dict[str, Any], p: dict[str, Any], lead: float, move: float,

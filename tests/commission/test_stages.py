@@ -77,6 +77,32 @@ def test_a_device_that_does_not_confirm_its_disable_fails_commissioning_naming_i
     assert "did not report itself disabled" in Path(r["report"]).read_text()
 
 
+@pytest.mark.parametrize(("stage", "own_check"), [("c", "identification trusted"), ("d", "verification move")])
+def test_a_run_whose_device_did_not_confirm_its_disable_fails_its_stage_after_the_stages_own_check(
+        tmp_path, monkeypatch, stage, own_check):
+    """The stage's own check keeps what the run showed (here: passed); the unconfirmed disable follows it, fails
+    the stage, and the run is not repeated."""
+    from rt_ident.compose import run as run_mod
+
+    real, runs = run_mod.run, []
+
+    def run(cfg, **kw):
+        s = real(cfg, **kw)
+        runs.append(cfg)
+        if len(runs) == {"c": 1, "d": 2}[stage]:
+            s["stop"]["disable_unconfirmed"] = "the drive did not report itself disabled within 0.2 s"
+        return s
+
+    monkeypatch.setattr(run_mod, "run", run)
+    data = sim_data()
+    data["commission"] = {"identify_s": 2.0}
+    r = commission(config.from_mapping(data), tmp_path / "out")
+    names = [c["name"] for c in r["checks"]]
+    assert r["verdict"] == "fail" and r["stage_reached"] == stage and len(runs) == {"c": 1, "d": 2}[stage], names
+    assert names[-2:] == [own_check, "disable confirmed"] and r["checks"][-2]["ok"] is True, r["checks"][-2:]
+    assert r["failed"] == {"check": "disable confirmed", "fix": r["checks"][-1]["fix"]}
+
+
 @pytest.mark.xdist_group("realtime")
 def test_a_real_time_commissioning_the_host_failed_says_so_instead_of_asking_for_real_time(
         tmp_path, monkeypatch, restore_scheduling):
