@@ -375,8 +375,6 @@ class SerialBoardBackend(Backend):
         except Exception:  # noqa: BLE001
             got = None
         if got is None:
-            log.warning("serial board %s: disable not confirmed within %.3f s", self.port,
-                        self.config.stop_timeout)
             return f"the board did not report itself disabled within {self.config.stop_timeout:g} s; {on_its_own}"
         return None
 
