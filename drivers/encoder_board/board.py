@@ -39,6 +39,7 @@ from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, Dr
 log = logging.getLogger(__name__)
 
 _MAX_READ = 1 << 16  # bytes drained per read() at most (~109 ms of frames at 20 kHz)
+_TTY_PIECE = 4095    # bytes a tty read returns at most (Linux N_TTY's 4 KiB buffer, raw mode)
 
 #: errnos of a tty whose device went away under an open port (EIO, ENXIO, ENODEV)
 _GONE_ERRNOS = (5, 6, 19)
@@ -126,11 +127,21 @@ class SerialBoardBackend(Backend):
         self._last_tx = self.clock()
 
     def _recv(self) -> bytes:
-        """Everything that has arrived (the kernel hands a pty/tty over in <= 4 KiB pieces)."""
+        """Everything that has arrived. The kernel hands a tty over in pieces of at most its line discipline's
+        buffer (:data:`_TTY_PIECE`) and refills that buffer from its queue a moment after each read, so
+        ``in_waiting`` can read 0 with more queued. A read that found a backlog (a piece's worth or more) goes on
+        with timed reads (``poll_timeout`` each) until one finds nothing: a backlog is drained in one tick, not
+        a piece a tick. A read of less (the board's few frames per tick) pays no wait."""
         try:
             data = self._ser.read(self._ser.in_waiting or 1)
-            while data and len(data) < _MAX_READ and (more := self._ser.in_waiting):
-                data += self._ser.read(more)
+            while data and len(data) < _MAX_READ:
+                more = self._ser.in_waiting
+                if not more and len(data) < _TTY_PIECE:
+                    break
+                piece = self._ser.read(more or _TTY_PIECE)
+                if not piece:
+                    break
+                data += piece
         except (serial.SerialException, OSError) as exc:
             raise DeviceConnectionError(f"serial port {self.port!r}: read failed: {exc}{_gone(exc)}") from exc
         self.bytes_read += len(data)
