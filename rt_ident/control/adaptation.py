@@ -60,6 +60,12 @@ FOLLOW_INTERVAL = 0.05
 SWITCH_BUMP = 0.002
 
 
+#: an estimate is trusted, designed for and followed only this far inside the plausible box
+#: (``ControlSettings.plausible``); it has diverged only outside the box itself. Without the margin an estimate at
+#: the box's edge (an axis whose I1 is 5 x the configured one) was trusted, designed for, then called diverged a
+#: tick later, every ~0.3 s: a controller switch and a fallback each time.
+PLAUSIBLE_MARGIN = 0.1
+
 #: B's share of the torque is small and its estimate scatters most; the family check keeps the margins
 #: for B x 0.7..1.3, so two estimates of B agree (and a design still fits) within this
 DAMPING_TOLERANCE = 0.25
@@ -144,6 +150,11 @@ def window_look(win, n, vetoed, tc, R, Sigma, acc, p, scale, model, look):
     worst, change = largest_change(look[LOOK_MEAN:LOOK_MEAN + 4], model, tc)
     look[LOOK_WORST], look[LOOK_CHANGE] = worst, change
     return WINDOW_TRUSTED
+
+
+def _inner(box: tuple[float, float]) -> tuple[float, float]:
+    """The plausible box's factors narrowed by PLAUSIBLE_MARGIN: where an estimate is trusted."""
+    return box[0] * (1.0 + PLAUSIBLE_MARGIN), box[1] / (1.0 + PLAUSIBLE_MARGIN)
 
 
 def _intervals(look: np.ndarray) -> dict[str, tuple[float, float]]:
@@ -295,7 +306,7 @@ class Supervisor:
         self._look = np.zeros(LOOK_SIZE)
         s = settings
         thresholds = np.maximum([s.min_change, s.min_change, s.min_change_damping, s.min_change], 1e-12)  # divisors
-        self._trust_consts = np.array([*(float(getattr(nominal, k)) for k in KEYS), *s.plausible,
+        self._trust_consts = np.array([*(float(getattr(nominal, k)) for k in KEYS), *_inner(s.plausible),
                                        s.settle_tolerance, s.interval_tolerance, *thresholds])
         self._model_of: tuple[Controller | None, np.ndarray] = (None, np.ones(4))  # (controller, its model's values)
         if per_sample is not None and s.mode == "adaptive" and s.trust == "per-sample":   # assess's look:
@@ -478,8 +489,12 @@ class Supervisor:
             return None, None, False, None
         p = est.params
         why = self.diverged(p)
-        if why is not None or self.diverged(ident) is not None:
-            return p, None, False, why                 # a frequency fit that diverged only withholds trust
+        if why is not None:
+            return p, None, False, why
+        fit_why = self.diverged(ident)
+        if fit_why is not None:                        # a frequency fit that diverged only withholds trust
+            self.stats.last_disagreement = f"t={self.t:.3f} s: the frequency fit's {fit_why}"
+            return p, None, False, None
         worst, rel, agree = worst_difference(p, ident.params, self.s.trust_tolerance)
         st = self.stats
         if agree:
@@ -556,7 +571,7 @@ class Supervisor:
         seen = self._inertia_seen
         seen[0], seen[1], seen[2] = seen[1], seen[2], inertia
         nom = self.nominal.I1 + self.nominal.I2
-        lo, hi = self.s.plausible
+        lo, hi = _inner(self.s.plausible)
         if not bool(np.all((seen >= lo * nom) & (seen <= hi * nom))):      # NaN (no look yet) fails too
             return
         if (seen.max() - seen.min()) > 2.5 * self.s.settle_tolerance * inertia:
@@ -588,7 +603,11 @@ class Supervisor:
         if params is None or not trusted or per_sample:
             return
         values = _values(params)
-        self._consider(values, ci95, *largest_change(values, self._model_values(), self._trust_consts))
+        tc = self._trust_consts
+        if not np.all((tc[TC_LO] * tc[TC_NOMINAL:TC_NOMINAL + 4] <= values)
+                      & (values <= tc[TC_HI] * tc[TC_NOMINAL:TC_NOMINAL + 4])):
+            return                                     # plausible, but not inside the margin: no design from it
+        self._consider(values, ci95, *largest_change(values, self._model_values(), tc))
 
     def _audit(self, agreed: bool, why: str | None) -> None:
         """The frequency fit's verdict on the per-sample estimate: agreeing lifts a veto; disagreeing
@@ -806,6 +825,22 @@ class Supervisor:
                 f"{getattr(p, worst):.4g} ({100 * rel:.0f} % off)")
 
     # --------------------------------------------------------------- summary
+    def outside_design_box(self) -> str | None:
+        """Why the loop makes no design for the axis as it identifies: the per-sample estimate outside the part
+        of the plausible box it designs in (an [axis] far from the axis), or None."""
+        est = self.per_sample
+        if est is None or not est.ready or self.s.mode != "adaptive":
+            return None
+        values = est.values_array()
+        lo, hi = _inner(self.s.plausible)
+        for k, v in zip(KEYS, values, strict=True):
+            ref = float(getattr(self.nominal, k))
+            if not lo * ref <= v <= hi * ref:
+                return (f"the axis identifies as {k} = {v:.4g}, {v / ref:.3g} x the configured axis.{k} ({ref:.4g}); "
+                        f"the loop designs only within x{lo:.3g}..x{hi:.3g} of [axis]: correct [axis] (rt-ident "
+                        "commission writes it)")
+        return None
+
     def _per_sample_summary(self) -> dict[str, Any] | None:
         est, st = self.per_sample, self.stats
         if est is None:
@@ -839,6 +874,7 @@ class Supervisor:
                 "reference": {"origin": self.anchor.options.origin, "origin_m": self.anchor.origin,
                               "rejoins": self.anchor.rejoins, "last_rejoin": self.anchor.last_rejoin},
                 "per_sample": self._per_sample_summary(),
+                "no_design": self.outside_design_box(),
                 "events": [{"t": round(t, 4), "kind": k, "detail": d} for t, k, d in st.events[-50:]]}
 
 

@@ -103,6 +103,7 @@ def print_run(s: dict) -> None:
         out.print(line)
         for reason in rd.get("rejected_reasons") or []:
             out.print(f"  rejected: {reason}", markup=False)
+        print_no_design(ctl)
     elif ctl:
         out.print("control: off (the host sends the excitation only; the drive must hold the axis)")
     te = s.get("torque_estimate") or {}
@@ -161,6 +162,7 @@ def print_axes(s: dict) -> None:
                       f"max {fmt(um(ctl.get('max_error_m')))} um; redesigns accepted {rd.get('accepted', 0)}"
                       f"{kept(rd)}, "
                       f"rejected {rd.get('rejected', 0)}; running the {ctl.get('controller')} controller")
+            print_no_design(ctl)
         files = ax.get("files") or {}
         for key, what in (("rrd", "dashboard"), ("recording", "recording")):
             if files.get(key):
@@ -203,6 +205,11 @@ def print_axes(s: dict) -> None:
     elif stop.get("interrupted"):
         err.print(_INTERRUPTED.format(ticks=loop.get("ticks", 0), stopped=_stopped(stop, True)))
     print_unconfirmed(stop)
+
+
+def print_no_design(ctl: dict) -> None:
+    if ctl.get("no_design"):
+        out.print(f"[yellow]  no design:[/] {escape(str(ctl['no_design']))}")
 
 
 def print_fix(stop: dict) -> None:

@@ -430,3 +430,19 @@ def test_error_norm_is_the_impulse_responses_energy_and_inf_for_an_unstable_loop
         x = Acl @ x
     assert error_norm(g, P, 1e-3) == pytest.approx(math.sqrt(energy), rel=1e-8)
     assert error_norm(-g, P, 1e-3) == math.inf
+
+
+def test_an_estimate_at_the_plausible_boxs_edge_is_neither_designed_for_nor_cycled_through_the_fallback():
+    """I1 at 5 x nominal, the box's edge: trusted only 10 % inside the box, diverged only outside it."""
+    for side in (1 - 1e-4, 1 + 1e-4):                          # just inside, just outside
+        est = _Estimate(AxisParams(I1=5 * side * P.I1, I2=P.I2, B=P.B, K=P.K))
+        sup, w = _supervisor(est)
+        _looks(sup, 8)
+        assert not sup.own_trust and not sup._pending and not w.requests, side
+        why = sup.summary()["no_design"]                        # and the run says why, naming the setting
+        assert why.startswith("the axis identifies as I1 = ") and "x the configured axis.I1" in why, why
+    inside = _Estimate(AxisParams(I1=5 / (1 + A.PLAUSIBLE_MARGIN) * 0.99 * P.I1, I2=P.I2, B=P.B, K=P.K))
+    sup, w = _supervisor(inside)
+    _looks(sup, S.trust_window)
+    assert sup.own_trust and sup._pending                       # 1 % inside the margin: designed for
+    assert sup.summary()["no_design"] is None
