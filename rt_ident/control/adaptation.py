@@ -831,10 +831,10 @@ class Supervisor:
         est = self.per_sample
         if est is None or not est.ready or self.s.mode != "adaptive":
             return None
-        values = est.values_array()
+        p = est.params
         lo, hi = _inner(self.s.plausible)
-        for k, v in zip(KEYS, values, strict=True):
-            ref = float(getattr(self.nominal, k))
+        for k in KEYS:
+            v, ref = float(getattr(p, k)), float(getattr(self.nominal, k))
             if not lo * ref <= v <= hi * ref:
                 return (f"the axis identifies as {k} = {v:.4g}, {v / ref:.3g} x the configured axis.{k} ({ref:.4g}); "
                         f"the loop designs only within x{lo:.3g}..x{hi:.3g} of [axis]: correct [axis] (rt-ident "
