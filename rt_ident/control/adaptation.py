@@ -602,12 +602,10 @@ class Supervisor:
             return
         if params is None or not trusted or per_sample:
             return
-        values = _values(params)
-        tc = self._trust_consts
-        if not np.all((tc[TC_LO] * tc[TC_NOMINAL:TC_NOMINAL + 4] <= values)
-                      & (values <= tc[TC_HI] * tc[TC_NOMINAL:TC_NOMINAL + 4])):
+        if self._outside_margin(params) is not None:
             return                                     # plausible, but not inside the margin: no design from it
-        self._consider(values, ci95, *largest_change(values, self._model_values(), tc))
+        values = _values(params)
+        self._consider(values, ci95, *largest_change(values, self._model_values(), self._trust_consts))
 
     def _audit(self, agreed: bool, why: str | None) -> None:
         """The frequency fit's verdict on the per-sample estimate: agreeing lifts a veto; disagreeing
@@ -831,10 +829,13 @@ class Supervisor:
         est = self.per_sample
         if est is None or not est.ready or self.s.mode != "adaptive":
             return None
-        p = est.params
+        return self._outside_margin(est.params)
+
+    def _outside_margin(self, params: AxisParams) -> str | None:
+        """Which parameter of ``params`` lies outside the plausible box narrowed by PLAUSIBLE_MARGIN, or None."""
         lo, hi = _inner(self.s.plausible)
         for k in KEYS:
-            v, ref = float(getattr(p, k)), float(getattr(self.nominal, k))
+            v, ref = float(getattr(params, k)), float(getattr(self.nominal, k))
             if not lo * ref <= v <= hi * ref:
                 return (f"the axis identifies as {k} = {v:.4g}, {v / ref:.3g} x the configured axis.{k} ({ref:.4g}); "
                         f"the loop designs only within x{lo:.3g}..x{hi:.3g} of [axis]: correct [axis] (rt-ident "

@@ -446,3 +446,14 @@ def test_an_estimate_at_the_plausible_boxs_edge_is_neither_designed_for_nor_cycl
     _looks(sup, S.trust_window)
     assert sup.own_trust and sup._pending                       # 1 % inside the margin: designed for
     assert sup.summary()["no_design"] is None
+
+
+def test_a_frequency_fit_agreeing_at_the_plausible_boxs_edge_gets_no_design_either():
+    """trust = "cross-check": the per-sample estimate the fit agrees with, just inside the box's edge."""
+    from types import SimpleNamespace
+
+    edge = AxisParams(I1=5 * (1 - 1e-4) * P.I1, I2=P.I2, B=P.B, K=P.K)
+    sup, w = _supervisor(_Estimate(edge), trust="cross-check")
+    sup.offer(SimpleNamespace(params=edge), True)
+    sup.poll()
+    assert sup.stats.checks_agreed == 1 and not sup._pending and not w.requests
