@@ -153,9 +153,9 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             checks.append(check("enable", False, str(exc), "the device enables", _device_fix(exc)))
             return False
         prober = Prober(backend, probe_limits(cfg, backend.torque_limit))
+        pulses, probed = [], False
         try:
             prober.settle(0.05)
-            pulses = []
             for d in (1, -1):
                 for _ in range(1 + LAPSED_RETRIES):
                     q = prober.pulse(d)
@@ -165,15 +165,16 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
                 pulses.append(q)
                 if q.aborted or q.breakaway_nm is None or q.fault:
                     break
+            probed = True
         except ProbeError as exc:
             checks.append(check("probe", False, str(exc), "samples every tick", exc.key))
-            return False
         except RtIdentError as exc:                   # the device stopped or failed: zero torque, disabled
             checks.append(check("probe", False, str(exc), "the device follows the pulses", _device_fix(exc)))
-            return False
         finally:
             backend.safe_stop()
+        if not probed:                                # the probe's own failure first, then the stop's
             _disable_confirmed(checks, backend.stop_unconfirmed)
+            return False
         result["max_travel_m"] = prober.max_travel
         result["max_speed_m_s"] = prober.max_speed
         truth = [q.truth for q in pulses if q.truth]
@@ -186,6 +187,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
                              "ratio_m_per_rad": q.ratio(),
                              "accel_per_nm": q.dynamics(backend.sample_period)[0]} for q in pulses]
         checks.extend(probe_checks(cfg, pulses, backend.sample_period))
+        _disable_confirmed(checks, backend.stop_unconfirmed)
         return all(c["ok"] for c in checks)
 
 
@@ -193,7 +195,7 @@ def _disable_confirmed(checks: list[dict[str, Any]], unconfirmed: str | dict[str
     """A device that did not report itself disabled at a stop fails commissioning, in a check of its own."""
     if unconfirmed:
         checks.append(check("disable confirmed", False, unconfirmed, "the device reports itself disabled at each stop",
-                            "backend.stop_timeout (longer), else the device's link and firmware"))
+                            "the device's link and power; backend.stop_timeout (longer) if it answers late"))
     return not unconfirmed
 
 

@@ -71,10 +71,26 @@ def test_a_device_that_does_not_confirm_its_disable_fails_commissioning_naming_i
     monkeypatch.setattr(SimBackend, "_safe_stop", unconfirmed)
     r = commission(config.from_mapping(sim_data()), tmp_path / "out")
     assert r["verdict"] == "fail" and r["stage_reached"] == "b", r["checks"]
-    assert r["failed"]["check"] == "disable confirmed" and r["failed"]["fix"].startswith("backend.stop_timeout")
+    assert r["failed"]["check"] == "disable confirmed" and r["failed"]["fix"].startswith("the device's link and power")
     (failed,) = [c for c in r["checks"] if c["name"] == "disable confirmed"]
     assert failed["measured"] == "the drive did not report itself disabled within 0.2 s"
     assert "did not report itself disabled" in Path(r["report"]).read_text()
+
+
+def test_a_probe_that_failed_on_a_device_that_did_not_confirm_its_disable_names_the_probe_first(tmp_path,
+                                                                                              monkeypatch):
+    from drivers.sim import SimBackend
+
+    disable = SimBackend._safe_stop
+
+    def unconfirmed(self):
+        disable(self)
+        return "the stop frames could not be sent (the link had failed)"
+
+    monkeypatch.setattr(SimBackend, "_safe_stop", unconfirmed)
+    r = commission(config.from_mapping(sim_data({"torque_sign": -1})), tmp_path / "out")   # miswired: fails
+    assert r["stage_reached"] == "b" and r["failed"]["check"] != "disable confirmed", r["checks"]
+    assert r["checks"][-1]["name"] == "disable confirmed" and not r["checks"][-1]["ok"]
 
 
 @pytest.mark.parametrize(("stage", "own_check"), [("c", "identification trusted"), ("d", "verification move")])
