@@ -61,9 +61,9 @@ SWITCH_BUMP = 0.002
 
 
 #: an estimate is trusted, designed for and followed only this far inside the plausible box
-#: (``ControlSettings.plausible``); it has diverged only outside the box itself. Without the margin an estimate at
-#: the box's edge (an axis whose I1 is 5 x the configured one) was trusted, designed for, then called diverged a
-#: tick later, every ~0.3 s: a controller switch and a fallback each time.
+#: (``ControlSettings.plausible``); it has diverged only outside the box itself. Without the margin an estimate
+#: at the box's edge is trusted and designed for, then called diverged by the next fit, over and over: a
+#: controller switch and a fallback each time.
 PLAUSIBLE_MARGIN = 0.1
 
 #: B's share of the torque is small and its estimate scatters most; the family check keeps the margins
