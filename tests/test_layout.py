@@ -36,8 +36,10 @@ def test_every_rt_ident_folder_has_a_layer_in_the_contract():
 
 def test_no_module_left_at_the_top_of_rt_ident_but_the_face():
     top = sorted(p.name for p in (ROOT / "rt_ident").glob("*.py"))
-    # and kernel_cache, which the package's import runs before any compiled kernel loads
-    assert top == ["__init__.py", "__main__.py", "cli.py", "config.py", "errors.py", "kernel_cache.py"], top
+    # and kernel_cache, which the package's import runs before any compiled kernel loads, and hostlock, the
+    # host-wide locks the devices, the loop and the outputs take (below all of them)
+    assert top == ["__init__.py", "__main__.py", "cli.py", "config.py", "errors.py", "hostlock.py",
+                   "kernel_cache.py"], top
 
 
 def test_drivers_top_holds_only_the_contract_sim_and_shared_emulator_placement():
@@ -64,9 +66,10 @@ def test_tests_live_in_a_folder_per_package():
     folders = {p.name for p in (ROOT / "tests").iterdir() if p.is_dir() and p.name != "__pycache__"}
     assert folders <= packages, sorted(folders - packages)
     top = sorted(p.stem for p in (ROOT / "tests").glob("test_*.py"))
-    # at the top: what tests the project as a whole or its top-level modules (cli, config, errors, kernel_cache,
-    # the layout, the README)
-    assert all(name.split("_")[1] in ("cli", "config", "errors", "kernel", "layout", "readme") for name in top), top
+    # at the top: what tests the project as a whole or its top-level modules (cli, config, errors, hostlock,
+    # kernel_cache, the layout, the README)
+    assert all(name.split("_")[1] in ("cli", "config", "errors", "hostlock", "kernel", "layout", "readme")
+               for name in top), top
 
 
 def test_the_code_tells_what_and_why_not_its_history():

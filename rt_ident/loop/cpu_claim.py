@@ -5,8 +5,8 @@ Every real-time loop takes the host's last CPU at SCHED_FIFO (rt_ident.loop.host
 cycle waits for the other's, and their spins together pass the kernel's RT budget (95 % of each second),
 after which both are paused for the rest of the second, up to 50 ms. A drive watching its RPDOs then
 faults, and an axis coasts. So a loop claims its CPU before it turns real-time: an ``flock`` on a file
-named after the CPU in /run/lock (else the temporary directory), which the kernel drops when the process ends,
-however it ends. A second loop waits for the first to end (``[loop] cpu_wait_s``), saying once whom it
+named after the CPU (:mod:`rt_ident.hostlock`), which the kernel drops when the process ends, however it
+ends. A second loop waits for the first to end (``[loop] cpu_wait_s``), saying once whom it
 waits for, and then refuses to start, before anything is energized.
 """
 
@@ -15,12 +15,12 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
-import tempfile
 import threading
 import time
 from pathlib import Path
 
 from rt_ident.errors import ConfigError, RtIdentError
+from rt_ident.hostlock import holder, lock_dir, open_lock_file
 
 log = logging.getLogger(__name__)
 
@@ -34,36 +34,9 @@ class CpuWaitInterrupted(RtIdentError):
     cause = None
 
 
-#: Where the claims live: the host's lock directory (one for every user and every TMPDIR), when writable.
-LOCK_DIR = Path("/run/lock")
-
-
 def claim_path(cpu: int, directory: str | os.PathLike[str] | None = None) -> Path:
-    """The file whose lock is the claim on ``cpu``: in ``directory``, else /run/lock, else the temporary
-    directory."""
-    if directory is None:
-        directory = LOCK_DIR if LOCK_DIR.is_dir() and os.access(LOCK_DIR, os.W_OK) else tempfile.gettempdir()
-    return Path(directory) / f"rt-ident-loop-cpu{int(cpu)}.lock"
-
-
-def holder(path: Path) -> str | None:
-    """Who holds the lock on ``path`` (``pid N (command line)``), from /proc/locks; None when unknown."""
-    try:
-        inode = path.stat().st_ino
-        lines = Path("/proc/locks").read_text().splitlines()
-    except OSError:
-        return None
-    for line in lines:
-        parts = line.split()
-        if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5].rsplit(":", 1)[-1] == str(inode):
-            pid = parts[4]
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            except OSError:
-                cmd = ""
-            cmd = " ".join(cmd.split())[:80]
-            return f"pid {pid}" + (f" ({cmd})" if cmd else "")
-    return None
+    """The file whose lock is the claim on ``cpu``: in ``directory``, else the host's lock directory."""
+    return lock_dir(directory) / f"rt-ident-loop-cpu{int(cpu)}.lock"
 
 
 class CpuClaim:
@@ -85,20 +58,13 @@ class CpuClaim:
         self.waited_s = 0.0
         self._mine = False
 
-    def _open(self) -> int:
-        try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
-        except PermissionError:                       # another user's file: a read-only descriptor locks too
-            fd = os.open(self.path, os.O_RDONLY | os.O_CLOEXEC)
-        return fd
-
     def _try(self) -> bool:
         with CpuClaim._lock:
             held = CpuClaim._held.get(self.path)
             if held is not None:
                 CpuClaim._held[self.path] = (held[0], held[1] + 1)
                 return True
-            fd = self._open()
+            fd = open_lock_file(self.path)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -147,4 +113,4 @@ class CpuClaim:
         os.close(fd)                                  # closing the only descriptor drops the lock
 
 
-__all__ = ["CpuClaim", "CpuWaitInterrupted", "claim_path", "holder"]
+__all__ = ["CpuClaim", "CpuWaitInterrupted", "claim_path"]
