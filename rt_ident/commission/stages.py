@@ -457,7 +457,19 @@ def _silent(_: str) -> None:
 
 
 def commission(cfg: RunConfig, out: Path, progress: Progress = _silent) -> dict[str, Any]:
-    """Run the stages (module docstring); the result as ``commission --json`` prints it."""
+    """Run the stages (module docstring); the result as ``commission --json`` prints it. The folder is
+    claimed host-wide for the commissioning's length: a second one into it is refused before it starts."""
+    from rt_ident.outputs.paths import OutputClaims
+
+    claims = OutputClaims()
+    claims.claim(out, "--out", by="commissioning")
+    try:
+        return _commission(cfg, out, progress)
+    finally:
+        claims.release()
+
+
+def _commission(cfg: RunConfig, out: Path, progress: Progress) -> dict[str, Any]:
     from rt_ident.commission import ledger, report
     from rt_ident.outputs.paths import check_output
 

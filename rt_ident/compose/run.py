@@ -56,7 +56,7 @@ from rt_ident.config import RunConfig
 from rt_ident.errors import ConfigError, RtIdentError, ask_realtime, host_fix
 from rt_ident.loop.host import HostSteal, LoopCpuInterrupts, LoopRealtime
 from rt_ident.loop.loop import IdentificationLoop, MultiAxisLoop
-from rt_ident.outputs.paths import check_methods, check_output, prepare_outputs, remove_empty_outputs
+from rt_ident.outputs.paths import OutputClaims, check_methods, check_output, prepare_outputs, remove_empty_outputs
 from rt_ident.processes.guard import install_stop_signals
 from rt_ident.processes.jobs import make_fit_process
 
@@ -89,7 +89,18 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached or Ctrl-C/SIGTERM)
     and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise. A config
     refused before any device is enabled raises its :class:`~rt_ident.errors.ConfigError`.
+    Its output files are claimed host-wide from their check to the end (:class:`OutputClaims`).
     """
+    claims = OutputClaims()
+    try:
+        return _run(cfg, claims, rrd=rrd, record=record, sink=sink, connect_url=connect_url, stop_event=stop_event,
+                    tick_hook=tick_hook, overwrite=overwrite)
+    finally:
+        claims.release()
+
+
+def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str | None, sink: str | None,
+         connect_url: str | None, stop_event: threading.Event | None, tick_hook, overwrite: bool) -> dict[str, Any]:
     from rt_ident.outputs.sinks import DEFAULT_PORT, TelemetryConfig, serve_port
 
     stop = stop_event or threading.Event()
@@ -107,15 +118,16 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         if not live_url:
             raise ConfigError("telemetry.connect_url", "--connect needs the viewer's URL (rerun+http://HOST:PORT/proxy)")
         TelemetryConfig(sink="connect", connect_url=live_url)          # the URL's form, checked before anything starts
-    rrd_base, rec_base = prepare_outputs(cfg, rrd, record, sink, overwrite)
+    rrd_base, rec_base = prepare_outputs(cfg, rrd, record, sink, overwrite, claims)
     contour_rrd = contour_png = None
     if several:
         for name, acfg in axes_cfg.items():                # the per-axis files must not exist either
-            prepare_outputs(acfg, _axis_path(rrd_base, name), _axis_path(rec_base, name), sink, overwrite)
+            prepare_outputs(acfg, _axis_path(rrd_base, name), _axis_path(rec_base, name), sink, overwrite, claims)
         contour_rrd = _sibling(rrd_base, "-contour.rrd")      # the circular test's dashboard, both axes
         contour_png = _sibling(rec_base or rrd_base, "-contour.png")
-        check_output(contour_rrd, ".rrd", "--rrd / telemetry.rrd (the contour dashboard beside it)", overwrite)
-        check_output(contour_png, ".png", "the contour plot beside the recording", overwrite)
+        check_output(contour_rrd, ".rrd", "--rrd / telemetry.rrd (the contour dashboard beside it)", overwrite,
+                     claims)
+        check_output(contour_png, ".png", "the contour plot beside the recording", overwrite, claims)
     port = serve_port(cfg.telemetry.bind_ip, cfg.telemetry.port) if sink == "serve" else \
         (cfg.telemetry.port or DEFAULT_PORT)
 

@@ -1,5 +1,6 @@
 """A run's output files, decided before anything starts: names, suffixes, no silent overwrite, a
-writable directory with room; and no empty file left by a run that read nothing."""
+writable directory with room, no file another run is writing; and no empty file left by a run that
+read nothing."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from typing import Any
 from rt_ident.config import RunConfig
 from rt_ident.errors import ConfigError
 from rt_ident.estimators.streaming import STREAMING_METHODS
+from rt_ident.hostlock import NamedLock
 
 
 def default_paths(stamp: str | None = None) -> tuple[Path, Path]:
@@ -31,14 +33,40 @@ def default_paths(stamp: str | None = None) -> tuple[Path, Path]:
 MIN_FREE_BYTES = 32 << 20
 
 
-def check_output(path: str | None, suffix: str, what: str, overwrite: bool) -> None:
-    """One line, before anything is energized: the suffix, no silent overwrite, a writable
-    directory with room."""
+class OutputClaims:
+    """The files a run writes, each locked host-wide (:class:`~rt_ident.hostlock.NamedLock` on its
+    resolved path) from its check to the run's end: a second run given the same file is refused before
+    anything starts, instead of writing into the first one's files or removing them as its own."""
+
+    def __init__(self, directory: str | os.PathLike[str] | None = None) -> None:
+        self.directory = directory
+        self._locks: list[NamedLock] = []
+
+    def claim(self, path: str | os.PathLike[str], what: str, by: str = "run") -> None:
+        lock = NamedLock("out", str(Path(path).resolve()), self.directory)
+        if not lock.try_acquire():
+            raise ConfigError(what, f"{path} is being written by another {by} ({lock.who()}): choose another "
+                                    "path, or let that one end first")
+        self._locks.append(lock)
+
+    def release(self) -> None:
+        """Drop every claim (idempotent)."""
+        for lock in self._locks:
+            lock.release()
+        self._locks.clear()
+
+
+def check_output(path: str | None, suffix: str, what: str, overwrite: bool,
+                 claims: OutputClaims | None = None) -> None:
+    """One line, before anything is energized: the suffix, not another run's file (claimed in
+    ``claims`` for this run), no silent overwrite, a writable directory with room."""
     if not path:
         return
     p = Path(path)
     if p.suffix != suffix:
         raise ConfigError(what, f"{path!r} must end in {suffix}")
+    if claims is not None:
+        claims.claim(p, what)
     siblings = [p, p.with_name(p.name + ".part"), p.with_name(p.name + ".arrows")]
     existing = [str(x) for x in siblings if x.exists()]
     if existing and not overwrite:
@@ -58,15 +86,16 @@ def check_output(path: str | None, suffix: str, what: str, overwrite: bool) -> N
 
 
 def prepare_outputs(cfg: RunConfig, rrd: str | None, record: str | None, sink: str,
-                    overwrite: bool) -> tuple[str | None, str | None]:
-    """(rrd path, recording path) of a run, checked before any device or helper starts."""
+                    overwrite: bool, claims: OutputClaims | None = None) -> tuple[str | None, str | None]:
+    """(rrd path, recording path) of a run, checked (and claimed in ``claims``) before any device or
+    helper starts."""
     rrd_default, rec_default = default_paths()
     rrd_path = rrd or cfg.telemetry.rrd or (str(rrd_default) if sink == "rrd" else None)
     if sink != "rrd":
         rrd_path = None
     rec_path = record or cfg.recording.path or (str(rec_default) if cfg.recording.enabled else None)
-    check_output(rrd_path, ".rrd", "--rrd / telemetry.rrd", overwrite)
-    check_output(rec_path, ".parquet", "--record / recording.path", overwrite)
+    check_output(rrd_path, ".rrd", "--rrd / telemetry.rrd", overwrite, claims)
+    check_output(rec_path, ".parquet", "--record / recording.path", overwrite, claims)
     if rrd_path and rec_path and Path(rrd_path).resolve() == Path(rec_path).resolve():
         raise ConfigError("--rrd", "the dashboard and the recording cannot be the same file")
     return rrd_path, rec_path

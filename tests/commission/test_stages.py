@@ -37,6 +37,26 @@ def state_dir(tmp_path, monkeypatch):
     return tmp_path / "state"
 
 
+def test_a_folder_another_commissioning_writes_is_refused_before_the_device_is_touched(tmp_path, monkeypatch):
+    import drivers
+
+    out = tmp_path / "out"
+    other = subprocess.Popen([sys.executable, "-c", "import sys; from rt_ident.outputs.paths import OutputClaims; "
+                              "c = OutputClaims(); c.claim(sys.argv[1], '--out'); print('held', flush=True); sys.stdin.read(); "
+                              "c.release()",
+                              str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    touched = []
+    monkeypatch.setattr(drivers, "make_backend", lambda *a, **k: touched.append(a))
+    try:
+        assert other.stdout is not None and other.stdout.readline().strip() == "held"
+        with pytest.raises(ConfigError, match=rf"^--out: {out} is being written by another commissioning "
+                                              rf"\(pid {other.pid} "):
+            commission(config.from_mapping(sim_data()), out)
+        assert not touched and not out.exists()
+    finally:
+        other.communicate(timeout=30)
+
+
 @pytest.mark.parametrize(("fault", "fix"), [("HeartbeatLost", "loop.realtime"),
                                             ("DeviceFault", "backend (device-fault)")])
 def test_a_device_that_faults_as_it_enables_fails_the_enable_check_with_its_fix_and_leaves_the_files(

@@ -67,6 +67,34 @@ def test_overwrite_replaces_an_existing_recording(tmp_path):
     assert s["recording"]["complete"] and len(read_recording(rec)) == s["loop"]["samples"]
 
 
+_WRITING = ("import sys; from rt_ident.outputs.paths import OutputClaims; c = OutputClaims(); "
+            "[c.claim(p, 'x') for p in sys.argv[1:]]; open(sys.argv[1] + '.arrows', 'wb').write(b'live'); "
+            "print('held', flush=True); sys.stdin.read(); c.release()")
+
+
+def test_files_another_run_is_writing_are_refused_before_anything_starts_even_with_overwrite(tmp_path, monkeypatch):
+    rec, rrd = tmp_path / "r.parquet", tmp_path / "d.rrd"           # its journal exists; its dashboard not yet
+    other = subprocess.Popen([sys.executable, "-c", _WRITING, str(rec), str(rrd)], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    cfg = load(None, **{"loop.duration": 0.3, "loop.realtime": False})
+    try:
+        assert other.stdout is not None and other.stdout.readline().strip() == "held"
+        made = []
+        with monkeypatch.context() as m:
+            m.setattr(run_mod, "make_backend", lambda *a, **k: made.append(a) or pytest.fail("backend made"))
+            with pytest.raises(ConfigError, match=rf"^--record / recording.path: {rec} is being written by another "
+                                                  rf"run \(pid {other.pid} "):
+                run_mod.run(cfg, record=str(rec), sink="off", overwrite=True)
+            with pytest.raises(ConfigError, match=rf"^--rrd / telemetry.rrd: {rrd} is being written .*pid {other.pid}"):
+                run_mod.run(cfg, rrd=str(rrd), sink="rrd", record=str(tmp_path / "mine.parquet"))
+        assert not made and (tmp_path / "r.parquet.arrows").read_bytes() == b"live" and not rrd.exists()
+    finally:
+        other.communicate(timeout=30)                 # ends it, its claims released
+    for _ in range(2):                                # the other run gone, and this one's claims let go at its end
+        s = run_mod.run(cfg, record=str(rec), sink="off", overwrite=True)
+        assert s["recording"]["complete"]
+
+
 @pytest.mark.parametrize("args,needle", [
     (["--record", "r.txt"], "must end in .parquet"),
     (["--rrd", "dash.png"], "must end in .rrd"),
