@@ -190,6 +190,21 @@ def test_a_run_stopped_by_ctrl_c_or_sigterm_says_it_stopped_early_and_a_full_run
                                            "above cover only that part; torque zeroed, drive disabled"]
 
 
+def test_a_device_the_run_never_opened_is_not_said_to_be_disabled(monkeypatch):
+    buf = io.StringIO()
+    monkeypatch.setattr(terminal, "err", Console(file=buf, width=400, soft_wrap=True, color_system=None))
+    terminal.print_stop({"stop": {"cause": "no-connection", "message": "port in use", "interrupted": False,
+                                  "backend_state": "created"}})
+    terminal.print_axes({"axes": {}, "stop": {"cause": "no-connection", "message": "port in use", "interrupted": False,
+                                              "backend_state": {"X": "closed", "Y": "created"}}})
+    terminal.print_stop({"stop": {"cause": "watchdog", "message": "late", "interrupted": False,
+                                  "backend_state": "closed"}})
+    assert buf.getvalue().splitlines() == [
+        "stopped by no-connection: port in use - nothing energized: the device was never opened",
+        "stopped by no-connection: port in use - every opened axis at zero torque, disabled; never opened: axis Y",
+        "stopped by watchdog: late - torque zeroed, drive disabled"]
+
+
 def test_a_device_that_did_not_confirm_its_disable_is_never_called_disabled_and_gets_a_line_of_its_own(monkeypatch):
     buf = io.StringIO()
     monkeypatch.setattr(terminal, "err", Console(file=buf, width=400, soft_wrap=True, color_system=None))

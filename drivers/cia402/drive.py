@@ -50,6 +50,7 @@ from drivers.errors import (
     ProtocolError,
     RpdoTimeout,
 )
+from rt_ident.hostlock import NamedLock
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,10 @@ class Cia402Backend(Backend):
         self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
         self.statusword = 0
         self._ident: dict[str, Any] = {}
+        # one master per drive on this host: a second program commanding the node would each send it torque
+        kw = cfg.bus_kwargs()
+        self._node_lock = NamedLock("can-node", f"{kw.get('interface')}:{kw.get('channel')}:{kw.get('port')}:"
+                                                f"{cfg.node_id}")
 
     # ----- properties -------------------------------------------------------------------
     @property
@@ -140,6 +145,18 @@ class Cia402Backend(Backend):
 
     # ----- lifecycle hooks --------------------------------------------------------------
     def _open(self) -> None:
+        cfg = self.config
+        if not self._node_lock.try_acquire():
+            raise DeviceConnectionError(f"node {cfg.node_id} on {cfg.interface} {cfg.channel} is in use: "
+                                        f"{self._node_lock.who()} is its master; let it end first (two masters "
+                                        "would each send the drive torque)")
+        try:
+            self._connect()
+        except BaseException:
+            self._node_lock.release()
+            raise
+
+    def _connect(self) -> None:
         cfg = self.config
         setup = NodeSetup(cfg, on_tpdo=self._on_tpdo, on_heartbeat=self._on_heartbeat, on_emcy=self._on_emcy,
                           on_sync_echo=self._on_sync_echo)
@@ -397,6 +414,7 @@ class Cia402Backend(Backend):
             # a drive that did not confirm its disable keeps watching this host's heartbeat, which stops now
             self._setup.teardown(drive_consumer_off=self.stop_unconfirmed is None)
             self._setup = None
+        self._node_lock.release()
 
 
 __all__ = ["Cia402Backend"]

@@ -22,6 +22,7 @@ it in ``close()``.
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import time
@@ -35,6 +36,7 @@ from drivers.base import Backend, SampleBlock
 from drivers.encoder_board import protocol as sp
 from drivers.encoder_board.config import EmulatorConfig, parse_emulator, parse_serial
 from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
+from rt_ident.hostlock import holder
 
 log = logging.getLogger(__name__)
 
@@ -230,8 +232,10 @@ class SerialBoardBackend(Backend):
             self.emulator = board_for(cfg, ecfg).start()
             self.port = self.emulator.port
         try:
+            # exclusive: an flock on the port, so a second program that asks for one (another run) is refused
+            # instead of reading half the frames and sending torque frames of its own
             self._ser = serial.serial_for_url(self.port, baudrate=cfg.baudrate, timeout=cfg.poll_timeout,
-                                              write_timeout=cfg.write_timeout)
+                                              write_timeout=cfg.write_timeout, exclusive=True)
         except (serial.SerialException, OSError, ValueError) as exc:
             self._stop_emulator()
             hint = ""
@@ -239,6 +243,9 @@ class SerialBoardBackend(Backend):
                 hint = " (no permission: add your user to the group that owns the port, e.g. dialout, and log in again)"
             elif getattr(exc, "errno", None) == 2 or "No such file" in str(exc):
                 hint = " (no such device: is the board plugged in? backend.port names it, e.g. /dev/ttyACM0)"
+            elif getattr(exc, "errno", None) == errno.EAGAIN or "exclusively lock" in str(exc):
+                hint = (f" (in use: {holder(self.port or '') or 'another program'} has the port: let it end first; "
+                        "two programs on one board would each send it torque)")
             elif "Inappropriate ioctl" in str(exc):
                 hint = " (not a serial device: backend.port names the board's tty, e.g. /dev/ttyACM0)"
             raise DeviceConnectionError(f"cannot open serial port {self.port!r}: {exc}{hint}") from exc

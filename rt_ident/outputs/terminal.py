@@ -248,10 +248,21 @@ _INTERRUPTED = ("stopped early on request (Ctrl-C or SIGTERM) after {ticks} tick
 
 
 def _stopped(stop: dict, several: bool) -> str:
-    """How the device(s) were left: disabled only where every device confirmed it."""
+    """How the device(s) were left: disabled only where every device confirmed it; nothing said of a
+    device this run never opened (another program may be driving it)."""
+    state = stop.get("backend_state")
+    states = state if isinstance(state, dict) else {"": state}
+    never = [n for n, s in states.items() if s == "created"]
+    if state is not None and len(never) == len(states):
+        return "nothing energized: the device was never opened" if not several else \
+            "nothing energized: no device was opened"
     if stop.get("disable_unconfirmed"):
-        return "zero torque commanded, the disable NOT confirmed (below)"
-    return "every axis at zero torque, disabled" if several else "torque zeroed, drive disabled"
+        done = "zero torque commanded, the disable NOT confirmed (below)"
+    else:
+        done = "every axis at zero torque, disabled" if several else "torque zeroed, drive disabled"
+    if never:
+        done = done.replace("every axis", "every opened axis") + f"; never opened: axis {', '.join(never)}"
+    return done
 
 
 def print_unconfirmed(stop: dict) -> None:

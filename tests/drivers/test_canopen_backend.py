@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import os
 import re
 import struct
 import time
@@ -383,6 +384,20 @@ def test_startup_reaches_operation_enabled_with_cst_mode_verified():
             assert drive._values[(0x6072, 0)] == round(1.0 / RATED * 1000)   # drive-side torque limit
         assert_drive_safe(drive)
         assert drive.state == SWITCH_ON_DISABLED and drive.nmt_state == "PRE-OPERATIONAL"
+
+
+def test_a_second_master_for_the_same_node_is_refused_before_it_touches_the_bus_and_may_open_once_it_ends():
+    with rig() as (drive, be):
+        second = Cia402Backend(be.config.model_dump())
+        with be:
+            be.activate()
+            with pytest.raises(DeviceConnectionError, match=rf"node 5 on virtual .* in use: pid {os.getpid()} "):
+                second.open()
+            assert second.state.value == "created" and drive.state == OPERATION_ENABLED
+        with second:                                       # the first master gone: the node is free
+            second.activate()
+            assert drive.state == OPERATION_ENABLED
+        assert_drive_safe(drive)
 
 
 def test_samples_carry_plausible_angles_and_torque():

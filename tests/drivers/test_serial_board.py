@@ -163,6 +163,24 @@ def test_a_port_with_no_board_behind_it_times_out_at_open():
         os.close(slave)
 
 
+def test_a_port_another_program_holds_is_refused_naming_it_and_nothing_is_sent_to_the_board():
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    other = serial.Serial(os.ttyname(slave), exclusive=True)        # another run, serving the board
+    try:
+        be = SerialBoardBackend({"port": os.ttyname(slave), "startup_timeout": 0.1})
+        with pytest.raises(DeviceConnectionError, match=rf"in use: pid {os.getpid()} .*has the port"):
+            be.open()
+        with pytest.raises(BlockingIOError):
+            os.read(master, 100)                                     # not even a disable frame under the other
+        assert be.state.value == "created"
+    finally:
+        other.close()
+        os.close(master)
+        os.close(slave)
+
+
 # ----- data and torque -----------------------------------------------------------------------
 def test_streams_contiguous_samples_on_the_board_clock(rig):
     board, be = rig()
