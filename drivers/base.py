@@ -97,6 +97,27 @@ class SampleBlock:
         return SampleBlock(z, np.empty(0, dtype=np.int64), z, z, z, z if with_measured else None)
 
 
+#: the identity keys that name one physical unit (the board's INFO, the drive's 0x1018)
+UNIT_KEYS = ("vendor_id", "product_code", "model", "serial_number")
+
+
+def unit_of(identity: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The unit a device says it is (its serial number, with the model or vendor and product it is
+    unique within); None when it reports no serial number (0 or absent: no unit can be told apart)."""
+    if not identity.get("serial_number"):
+        return None
+    return {k: identity[k] for k in UNIT_KEYS if identity.get(k) is not None}
+
+
+def describe_unit(unit: Mapping[str, Any] | None) -> str:
+    """``serial 7 (model emulated-board)``; "a unit that reports no serial number" for None."""
+    if not unit:
+        return "a unit that reports no serial number"
+    rest = ", ".join(f"{k.replace('_', ' ')} {v:#x}" if isinstance(v, int) else f"{k} {v}"
+                     for k, v in unit.items() if k != "serial_number")
+    return f"serial {unit['serial_number']}" + (f" ({rest})" if rest else "")
+
+
 def _sign(cfg: Mapping[str, Any], key: str) -> int:
     v = cfg.get(key, 1)
     if isinstance(v, bool) or v not in (1, -1):

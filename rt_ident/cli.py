@@ -336,7 +336,10 @@ def run(
         if not kernel_cache.tick_kernel_cached():
             err.print("compiling the loop's kernels first (after an install or a change of the sources; "
                       "about 20 s, before anything is energized)")
-    summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite)
+    summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite,
+                       commissioned_unit=(commissioned or {}).get("unit"), require_commissioned=require_commissioned)
+    if commissioned is not None and summary.get("commissioned_unit"):      # a pass of another unit is none
+        commissioned = {"verdict": None, "warning": summary["commissioned_unit"]["message"]}
     if commissioned is not None:
         summary["commissioning"] = commissioned
     if cfg.defaulted:
@@ -359,7 +362,7 @@ def _commissioning(cfg, config: Path | None, required: bool) -> dict | None:
         return None
     entry = ledger.lookup(cfg)
     if entry is not None and entry.get("verdict") == "pass":
-        return {"verdict": "pass", "report": entry.get("report")}
+        return {"verdict": "pass", "report": entry.get("report"), "unit": entry.get("unit")}
     why = ("has never been commissioned" if entry is None else
            f"failed commissioning ({(entry.get('failed') or {}).get('check')}: "
            f"{(entry.get('failed') or {}).get('fix')})")

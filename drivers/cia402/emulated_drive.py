@@ -139,7 +139,7 @@ class EmulatedCia402Drive:
                  rated_torque: float | None = None, poll_s: float | None | Literal["auto"] = "auto",
                  torque_sign: int = 1, motor_encoder_sign: int = 1, scale_sign: int = 1, torque_scale: float = 1.0,
                  polarity: int = 0, profile: str | DriveProfile = "generic",
-                 run_through_silence: bool = True) -> None:
+                 run_through_silence: bool = True, serial_number: int | None = None) -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node_id must be 1..127, got {node_id!r}")
         self.node_id = int(node_id)
@@ -164,6 +164,7 @@ class EmulatedCia402Drive:
         self.profile = drive_profile(profile)
         self._polarity0 = int(polarity) or (self.profile.polarity or 0)
         self._rated_override = rated_torque
+        self._serial_number = serial_number
         self.rated_torque = rated_torque or 0.0
         self._controller = plant.controller
         # receive thread: poll on udp_multicast (another process: keep its vCPU awake), block in-process
@@ -280,6 +281,8 @@ class EmulatedCia402Drive:
         if od.get_variable(p402.SYNC_OVERFLOW) is not None:
             self._sync_overflow = self.profile.sync_overflow
             self._values[(p402.SYNC_OVERFLOW, 0)] = self._sync_overflow
+        if self._serial_number is not None:
+            self._values[(p402.IDENTITY, 4)] = self._serial_number
         if od.get_variable(p402.POLARITY) is not None:
             self._values[(p402.POLARITY, 0)] = self._polarity0
         elif self._polarity0:

@@ -78,6 +78,7 @@ class EmulatorConfig(BaseModel):
     actual: DriveTruth = Field(default_factory=DriveTruth)   # the true device ([plant.actual])
     polarity: int = Field(0, ge=0, le=255)      # 0x607E at power-up: bit 7 position, bit 6 velocity polarity
     profile: str = "generic"                    # the vendor variant of the drive (drivers.cia402.variants.PROFILES)
+    serial_number: int | None = Field(None, ge=0, lt=2**32)   # 0x1018:04; None: the EDS's (another unit: another)
     # true: the table moves on while the master is silent (a real drive holds its torque); false: it steps
     # only on SYNCs (tests that compare two drives SYNC by SYNC, whose own SYNC thread is not real-time)
     run_through_silence: bool = True
@@ -152,7 +153,7 @@ def build_emulator_for(config: Any) -> EmulatedCia402Drive:
                                torque_sign=truth.torque_sign, motor_encoder_sign=truth.motor_encoder_sign,
                                scale_sign=truth.scale_sign, torque_scale=truth.torque_scale,
                                polarity=emu.polarity, profile=emu.profile,
-                               run_through_silence=emu.run_through_silence)
+                               run_through_silence=emu.run_through_silence, serial_number=emu.serial_number)
 
 
 class EmulatedDrives:

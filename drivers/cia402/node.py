@@ -522,16 +522,21 @@ class NodeSetup:
             return None
 
     def identity_objects(self) -> dict[str, Any]:
-        """What the drive says it is, by SDO (start-up only): 0x1000, 0x6502, 0x6076, 0x6072, 0x607E and
-        the node id. An object the drive lacks is None and named in ``notes``."""
+        """What the drive says it is, by SDO (start-up only): 0x1000, 0x6502, 0x6076, 0x6072, 0x607E, the
+        identity object 0x1018 (vendor, product, revision, serial number) and the node id. An object the
+        drive lacks is None and named in ``notes``."""
         modes = self.optional_upload(p402.SUPPORTED_MODES, 0, 0x07)
         polarity = self.optional_upload(p402.POLARITY, 0, 0x05)
         notes = [f"0x{index:04X}: not present" for index, v in ((p402.SUPPORTED_MODES, modes),
                                                                 (p402.RATED_TORQUE, self.drive_rated_torque),
                                                                 (p402.POLARITY, polarity)) if v is None]
+        unit = {k: self.optional_upload(p402.IDENTITY, sub, 0x07)
+                for k, sub in (("vendor_id", 1), ("product_code", 2), ("revision", 3), ("serial_number", 4))}
+        if unit["serial_number"] is None:
+            notes.append("0x1018:04 (serial number): not present")
         return {"node_id": self.cfg.node_id, "device_type": self.device_type, "supported_drive_modes": modes,
                 "rated_torque_nm": self.drive_rated_torque, "max_torque_permille": self.upload(p402.MAX_TORQUE, 0),
-                "polarity": polarity, "notes": notes}
+                "polarity": polarity, **unit, "notes": notes}
 
     def _rated_torque(self) -> float:
         cfg = self.cfg

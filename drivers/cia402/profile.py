@@ -34,6 +34,7 @@ CYCLE_PERIOD = 0x1006
 SYNC_OVERFLOW = 0x1019     # UNSIGNED8; 0: SYNCs carry no counter, 2..240: they carry one, 1..that value
 CONSUMER_HEARTBEAT = 0x1016
 PRODUCER_HEARTBEAT = 0x1017
+IDENTITY = 0x1018          # sub 1 vendor-ID, 2 product code, 3 revision, 4 serial number
 
 #: Modes of operation 0x6060 and the bit of each in "supported drive modes" 0x6502.
 MODE_CST = 10

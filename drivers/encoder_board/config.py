@@ -131,6 +131,7 @@ class EmulatorConfig(BaseModel):
     x0: float = Field(0.0, ge=-10.0, le=10.0, allow_inf_nan=False)   # [m] where the table truly starts (at rest)
     actual: BoardTruth = Field(default_factory=BoardTruth)   # the true device (BoardTruth)
     answer_info: bool = True                   # false: INFO_REQUEST ignored (as by a version 1 board)
+    serial_number: int = Field(1, ge=0, lt=2**32)   # in INFO (0: a board without one; another unit: another)
 
     @field_validator("actual", mode="before")
     @classmethod

@@ -329,7 +329,7 @@ class EmulatedBoard:
 
     def info(self) -> sp.Info:
         """The INFO frame: what the board is configured for (its encoders as they truly are)."""
-        return sp.Info(sp.PROTOCOL_VERSION, FIRMWARE, 0, MODEL, self.sample_rate_hz,
+        return sp.Info(sp.PROTOCOL_VERSION, FIRMWARE, self.cfg.serial_number, MODEL, self.sample_rate_hz,
                        min(self.torque_limit / self.torque_constant, MAX_CURRENT_A), self.torque_constant,
                        self.counts_per_rev, self.scale_resolution)
 

@@ -1,7 +1,8 @@
 """The record of commissioning ``run`` consults: one JSON file per device configuration, named by the
 hash of what commissioning checks (the backend's options and ``[plant.actual]``), in the user's state
 directory (``$RT_IDENT_STATE_DIR``, else ``$XDG_STATE_HOME/rt_ident``, else ``~/.local/state/rt_ident``).
-The file names are hashes: nothing the user types becomes a path."""
+The file names are hashes: nothing the user types becomes a path. An entry keeps the unit the device said
+it was (its serial number), so that a run can tell the commissioned unit from another one put in its place."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from drivers.base import unit_of
 from rt_ident.config import RunConfig
 
 
@@ -39,7 +41,8 @@ def record(cfg: RunConfig, result: dict[str, Any]) -> Path | None:
     try:
         d.mkdir(parents=True, exist_ok=True)
         entry = {"verdict": result.get("verdict"), "failed": result.get("failed"), "config": cfg.source,
-                 "report": result.get("report"), "stage_reached": result.get("stage_reached")}
+                 "report": result.get("report"), "stage_reached": result.get("stage_reached"),
+                 "unit": unit_of(result.get("identity") or {})}
         fd, tmp = tempfile.mkstemp(dir=d, suffix=".tmp")
         with os.fdopen(fd, "w") as f:
             json.dump(entry, f)

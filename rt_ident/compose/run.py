@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers import make_backend
+from drivers.base import describe_unit, unit_of
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.compose import preflight
 from rt_ident.compose.build import (
@@ -83,24 +84,28 @@ class _Axis:
 
 def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
         connect_url: str | None = None, stop_event: threading.Event | None = None,
-        tick_hook=None, overwrite: bool = False) -> dict[str, Any]:
+        tick_hook=None, overwrite: bool = False, commissioned_unit: dict[str, Any] | None = None,
+        require_commissioned: bool = False) -> dict[str, Any]:
     """Run the loop described by ``cfg``; returns the summary (also on a safety stop).
 
     ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached or Ctrl-C/SIGTERM)
     and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise. A config
     refused before any device is enabled raises its :class:`~rt_ident.errors.ConfigError`.
     Its output files are claimed host-wide from their check to the end (:class:`OutputClaims`).
+    ``commissioned_unit``: the unit the device's commissioning was of (:func:`drivers.base.unit_of`), checked
+    once the device is open and before it is enabled (:func:`_check_unit`).
     """
     claims = OutputClaims()
     try:
         return _run(cfg, claims, rrd=rrd, record=record, sink=sink, connect_url=connect_url, stop_event=stop_event,
-                    tick_hook=tick_hook, overwrite=overwrite)
+                    tick_hook=tick_hook, overwrite=overwrite, unit=(commissioned_unit, require_commissioned))
     finally:
         claims.release()
 
 
 def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str | None, sink: str | None,
-         connect_url: str | None, stop_event: threading.Event | None, tick_hook, overwrite: bool) -> dict[str, Any]:
+         connect_url: str | None, stop_event: threading.Event | None, tick_hook, overwrite: bool,
+         unit: tuple[dict[str, Any] | None, bool]) -> dict[str, Any]:
     from rt_ident.outputs.sinks import DEFAULT_PORT, TelemetryConfig, serve_port
 
     stop = stop_event or threading.Event()
@@ -199,6 +204,9 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
             stack.callback(sys.setswitchinterval, sys.getswitchinterval())
             for ax in axes.values():                     # open as late as possible: a device streams from open()
                 stack.enter_context(ax.backend)          # on exit (any axis's error too): safe stop, close
+            expected_unit, unit_required = unit
+            if expected_unit is not None and not several:
+                _check_unit(axes[""].backend, expected_unit, unit_required, summary)
             for name, ax in axes.items():                # nothing energized that would trip on its first ticks
                 start = ax.backend.read_position()
                 if start is not None:
@@ -296,6 +304,21 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
         if emulated is not None:
             summary["emulator"] = emulated
     return summary
+
+
+def _check_unit(backend: Any, expected: dict[str, Any], required: bool, summary: dict[str, Any]) -> None:
+    """The device opened is the unit its commissioning was of. Another unit in its place (or one that no
+    longer says which it is) is refused with ``--require-commissioned``; else named at once and in the summary
+    (``commissioned_unit``): that commissioning is not its own."""
+    found = unit_of(backend.identity())
+    if found == expected:
+        return
+    msg = (f"the device opened is {describe_unit(found)}, but the commissioning on record is of "
+           f"{describe_unit(expected)}: this unit has not been commissioned (run `rt-ident commission` on it)")
+    if required:
+        raise ConfigError("--require-commissioned", msg)
+    log.warning(msg)
+    summary["commissioned_unit"] = {"expected": expected, "found": found, "message": msg}
 
 
 def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port: int, several: bool,

@@ -42,8 +42,8 @@ def test_a_folder_another_commissioning_writes_is_refused_before_the_device_is_t
 
     out = tmp_path / "out"
     other = subprocess.Popen([sys.executable, "-c", "import sys; from rt_ident.outputs.paths import OutputClaims; "
-                              "c = OutputClaims(); c.claim(sys.argv[1], '--out'); print('held', flush=True); sys.stdin.read(); "
-                              "c.release()",
+                              "c = OutputClaims(); c.claim(sys.argv[1], '--out'); print('held', flush=True); "
+                              "sys.stdin.read(); c.release()",
                               str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     touched = []
     monkeypatch.setattr(drivers, "make_backend", lambda *a, **k: touched.append(a))

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from drivers import make_backend
+from drivers.base import describe_unit, unit_of
 from drivers.cia402.config import bus_budget, validate
 from drivers.cia402.drive import Cia402Backend
 from drivers.cia402.emulator import start_emulator_for
@@ -398,6 +399,14 @@ def test_a_second_master_for_the_same_node_is_refused_before_it_touches_the_bus_
             second.activate()
             assert drive.state == OPERATION_ENABLED
         assert_drive_safe(drive)
+
+
+def test_the_drives_identity_names_its_unit_from_0x1018():
+    with rig(emulator={"serial_number": 42}) as (_drive, be), be:
+        ident = be.identity()
+        assert (ident["vendor_id"], ident["product_code"], ident["serial_number"]) == (0, 0x402, 42)
+        assert unit_of(ident) == {"vendor_id": 0, "product_code": 0x402, "serial_number": 42}
+        assert describe_unit(unit_of(ident)) == "serial 42 (vendor id 0x0, product code 0x402)"
 
 
 def test_samples_carry_plausible_angles_and_torque():

@@ -262,7 +262,8 @@ def test_identity_returns_the_drive_objects_read_at_open_and_the_rpdo_deadline_s
             ident = be.identity()
             assert ident == {"node_id": 5, "device_type": 0x00020192, "supported_drive_modes": 0x3AD,
                              "rated_torque_nm": pytest.approx(RATED), "max_torque_permille": 1562,
-                             "polarity": 0, "notes": [], "rpdo_deadline_ms": cfg["backend"]["rpdo_deadline_ms"]}
+                             "polarity": 0, "vendor_id": 0, "product_code": 0x402, "revision": 0x10000,
+                             "serial_number": 1, "notes": [], "rpdo_deadline_ms": cfg["backend"]["rpdo_deadline_ms"]}
             be.activate()
             assert be.identity() == ident                  # cached: no SDO at tick time
             # a drive takes no polarity change with its power stage on (SDO abort 0x08000022); the active

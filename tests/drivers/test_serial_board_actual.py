@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from drivers.base import unit_of
 from drivers.encoder_board.board import SerialBoardBackend
 from drivers.encoder_board.emulator import start_emulator_for
 from drivers.errors import DeviceFault
@@ -157,10 +158,10 @@ def test_plant_actual_of_a_run_config_reaches_the_emulated_board():
 
 
 # ----- identity (the INFO answer) -------------------------------------------------------------
-def test_identity_returns_the_boards_info_while_open_and_active(rig, caplog):
+def test_identity_returns_the_boards_info_and_its_unit_while_open_and_active(rig, caplog):
     with caplog.at_level(logging.WARNING, logger="drivers.encoder_board.board"):
-        board, be = rig({"torque_limit": 0.5}, actual={"counts_per_rev": 4096})
-    want = {"model": "emulated-board", "firmware": "1.0.0", "serial_number": 0, "protocol_version": 2,
+        board, be = rig({"torque_limit": 0.5}, actual={"counts_per_rev": 4096}, serial_number=7)
+    want = {"model": "emulated-board", "firmware": "1.0.0", "serial_number": 7, "protocol_version": 2,
             "sample_rate_hz": 20000.0, "current_limit_a": 5.0, "torque_constant": 0.1,
             "counts_per_rev": 4096, "scale_resolution": 1e-7}
     assert be.identity() == want
@@ -169,6 +170,7 @@ def test_identity_returns_the_boards_info_while_open_and_active(rig, caplog):
         f"serial board on {board.port} is configured for counts_per_rev = 4096 ([backend]: 131072)"]
     be.activate()
     assert be.identity() == want
+    assert unit_of(be.identity()) == {"model": "emulated-board", "serial_number": 7}
 
 
 def test_a_board_that_never_answers_the_info_request_still_opens(rig):
@@ -178,3 +180,4 @@ def test_a_board_that_never_answers_the_info_request_still_opens(rig):
     assert be.identity() == {"info": "not available"}
     be.activate()
     assert board.enabled and be.identity() == {"info": "not available"}
+    assert unit_of(be.identity()) is None                       # no unit it could be told apart by

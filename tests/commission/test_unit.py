@@ -1,0 +1,85 @@
+"""A commissioning is of one unit: the ledger keeps the serial number the device gave, and a run on another
+unit put in its place (same config) is refused with --require-commissioned, else warned about, and never
+reported as commissioned."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from drivers.sim import SimBackend
+from rt_ident import config
+from rt_ident.commission import ledger
+from rt_ident.compose.run import run
+from rt_ident.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[2]
+BOARD_1 = {"model": "emulated-board", "serial_number": 1}
+
+
+@pytest.fixture(autouse=True)
+def state_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("RT_IDENT_STATE_DIR", str(tmp_path / "state"))
+    return tmp_path / "state"
+
+
+def _sim() -> config.RunConfig:
+    return config.from_mapping({"loop": {"realtime": False, "duration": 0.3},
+                                "backend": {"name": "sim", "paced": False}, "recording": {"enabled": False}})
+
+
+def test_the_ledger_keeps_the_unit_a_passed_commissioning_was_of():
+    cfg = _sim()
+    ledger.record(cfg, {"verdict": "pass", "identity": {**BOARD_1, "firmware": "1.0.0", "sample_rate_hz": 2e4}})
+    assert ledger.lookup(cfg)["unit"] == BOARD_1
+    ledger.record(cfg, {"verdict": "pass", "identity": {"model": "emulated-board", "serial_number": 0}})
+    assert ledger.lookup(cfg)["unit"] is None                  # a device without a serial number names no unit
+
+
+def test_another_unit_is_refused_with_require_before_the_device_is_enabled_and_named_without(monkeypatch):
+    enabled = []
+    monkeypatch.setattr(SimBackend, "_activate", lambda self: enabled.append(self))
+    with pytest.raises(ConfigError, match=r"^--require-commissioned: the device opened is a unit that reports no "
+                                          r"serial number, but the commissioning on record is of serial 1 \(model "
+                                          r"emulated-board\)"):
+        run(_sim(), sink="off", commissioned_unit=BOARD_1, require_commissioned=True)
+    assert not enabled
+    monkeypatch.undo()
+    s = run(_sim(), sink="off", commissioned_unit=BOARD_1)
+    assert s["stop"]["cause"] is None and s["commissioned_unit"]["expected"] == BOARD_1
+    assert s["commissioned_unit"]["found"] is None and "has not been commissioned" in s["commissioned_unit"]["message"]
+
+
+def _board_run(tmp_path: Path, serial: int, *args: str) -> subprocess.CompletedProcess:
+    text = (ROOT / "configs" / "serial-virtual.toml").read_text().replace("seed = 1\n", f"seed = 1\nserial_number = "
+                                                                                         f"{serial}\n", 1)
+    cfgfile = tmp_path / f"board-{serial}.toml"
+    cfgfile.write_text(text.replace("realtime = true", "realtime = false"))
+    env = {**os.environ, "RT_IDENT_STATE_DIR": str(tmp_path / "state")}
+    return subprocess.run([sys.executable, "-m", "rt_ident", "run", str(cfgfile), "--duration", "1", "--no-telemetry",
+                           "--json", *args], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+
+
+def test_a_board_swapped_for_another_unit_is_not_run_as_commissioned(tmp_path):
+    text = (ROOT / "configs" / "serial-virtual.toml").read_text().replace("realtime = true", "realtime = false")
+    ledger.record(config.from_mapping(tomllib.loads(text)), {"verdict": "pass", "identity": BOARD_1})
+    same = _board_run(tmp_path, 1, "--require-commissioned")
+    assert same.returncode == 0, same.stderr[-2000:]
+    assert json.loads(same.stdout)["commissioning"]["verdict"] == "pass"
+    files = sorted((tmp_path / "runs").iterdir())
+    swapped = _board_run(tmp_path, 2, "--require-commissioned")
+    assert swapped.returncode == 2, swapped.stderr[-2000:]
+    assert ("--require-commissioned: the device opened is serial 2 (model emulated-board), but the commissioning on "
+            "record is of serial 1 (model emulated-board)") in swapped.stderr
+    assert sorted((tmp_path / "runs").iterdir()) == files                       # refused: no file of its own
+    warned = _board_run(tmp_path, 2)
+    assert warned.returncode == 0, warned.stderr[-2000:]
+    s = json.loads(warned.stdout)
+    assert s["commissioning"]["verdict"] is None and "serial 2" in s["commissioning"]["warning"]
+    assert "has not been commissioned" in warned.stderr
