@@ -29,6 +29,7 @@ from rt_ident.outputs.terminal import (
     print_axes,
     print_run,
     print_trust,
+    tolerate_gone_terminal,
 )
 from rt_ident.outputs.text import fmt, json_default
 from rt_ident.processes.context import prestart
@@ -460,7 +461,7 @@ def commission(
 ) -> None:
     """Check a real axis before closing the loop on it: signs, scales, torque, then identify, design and
     verify with a small move; write an HTML report and an \\[axis] snippet. Exit 0 pass, 3 a failed check,
-    130 interrupted (Ctrl-C, SIGTERM: the device stopped, the report and commission.json written)."""
+    130 interrupted (Ctrl-C, SIGTERM, SIGHUP: the device stopped, the report and commission.json written)."""
     import datetime as _dt
 
     from rt_ident import config as cfgmod
@@ -572,6 +573,7 @@ def main() -> None:
     """The ``rt-ident`` entry point. Exit codes: 0 ok, 2 bad input (one line naming the setting),
     3 a run stopped by a fault or trip, 4 data lost (a full disk included), 1 an internal error (one line; -v: the
     traceback)."""
+    tolerate_gone_terminal()                     # a run outlives its terminal's hang-up: its exit code is its own
     handler = logging.StreamHandler()
     handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.WARNING, handlers=[handler])

@@ -186,8 +186,8 @@ def test_a_run_stopped_by_ctrl_c_or_sigterm_says_it_stopped_early_and_a_full_run
     monkeypatch.setattr(terminal, "err", Console(file=buf, width=120, soft_wrap=True, color_system=None))
     terminal.print_stop({"stop": {"cause": None, "message": None, "interrupted": True}, "loop": {"ticks": 1428}})
     terminal.print_stop({"stop": {"cause": None, "message": None, "interrupted": False}, "loop": {"ticks": 10000}})
-    assert buf.getvalue().splitlines() == ["stopped early on request (Ctrl-C or SIGTERM) after 1428 ticks: the figures "
-                                           "above cover only that part; torque zeroed, drive disabled"]
+    assert buf.getvalue().splitlines() == ["stopped early on request (Ctrl-C, SIGTERM or SIGHUP) after 1428 ticks: the "
+                                           "figures above cover only that part; torque zeroed, drive disabled"]
 
 
 def test_a_device_the_run_never_opened_is_not_said_to_be_disabled(monkeypatch):

@@ -38,6 +38,7 @@ from rt_ident.commission.checks import check, probe_checks, probe_limits
 from rt_ident.commission.probe import LAPSED_RETRIES, ProbeError, Prober
 from rt_ident.config import RunConfig, from_mapping
 from rt_ident.errors import ConfigError, RtIdentError, ask_realtime, host_fix
+from rt_ident.processes.guard import stop_signals
 
 log = logging.getLogger(__name__)
 
@@ -497,7 +498,7 @@ def _commission(cfg: RunConfig, out: Path, progress: Progress) -> dict[str, Any]
         result["verdict"] = "pass" if ok else "fail"
     except KeyboardInterrupt:
         result["interrupted"] = True
-        result["checks"].append(check("interrupted", False, "Ctrl-C or SIGTERM", "the stages run to the end",
+        result["checks"].append(check("interrupted", False, "Ctrl-C, SIGTERM or SIGHUP", "the stages run to the end",
                                       "run rt-ident commission again"))
         raise
     finally:
@@ -521,16 +522,16 @@ def _commission(cfg: RunConfig, out: Path, progress: Progress) -> dict[str, Any]
 
 
 def _interrupts() -> dict[int, Any]:
-    """SIGINT and SIGTERM unwind as Ctrl-C does (the device's context stops it, the files are written), even in
-    a process started with SIGINT ignored (a shell script's background job), as ``rt-ident run`` stops on them;
-    returns the handlers they had (none off the main thread)."""
+    """The stop signals (:func:`~rt_ident.processes.guard.stop_signals`: a closed terminal's SIGHUP too, but
+    under nohup) unwind as Ctrl-C does (the device's context stops it, the files are written), as ``rt-ident
+    run`` stops on them; returns the handlers they had (none off the main thread)."""
     if threading.current_thread() is not threading.main_thread():
         return {}
 
     def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
         raise KeyboardInterrupt
 
-    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    return {sig: signal.signal(sig, handler) for sig in stop_signals()}
 
 
 def _json(o: Any) -> Any:

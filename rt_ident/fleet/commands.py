@@ -47,7 +47,7 @@ def identify_cmd(
                                        "manifest's folder and URLs of any fsspec filesystem (a recording must "
                                        "still be a regular file)."),
     flush_every: float = typer.Option(2.0, "--flush-every", min=0.05, help="Seconds between writes of finished "
-                                      "results to the history (they are written on Ctrl-C/SIGTERM too)."),
+                                      "results to the history (they are written on Ctrl-C/SIGTERM/SIGHUP too)."),
     task_timeout: float = typer.Option(600.0, "--task-timeout", min=0.0, help="Seconds one recording may take; "
                                        "a task still running then is reported failed and the run goes on "
                                        "(0: no limit)."),

@@ -10,7 +10,7 @@ to a Parquet history partitioned by machine.
   others go on. Failed rows are reported, not stored (a fixed file is identified on the next run). A local
   recording must be a regular file (a device such as ``/dev/zero`` or a pipe would be read forever); a
   task that runs longer than its timeout comes back failed ("timed out") and the run goes on.
-* Results are written as they arrive, at least every ``flush_every`` seconds, and on Ctrl-C or SIGTERM
+* Results are written as they arrive, at least every ``flush_every`` seconds, and on Ctrl-C, SIGTERM or SIGHUP
   before the run ends; each write takes the history's lock and drops the rows whose recording (content
   hash) the history already holds, so concurrent runs and a recording listed twice give one row each
   (:mod:`rt_ident.fleet.store`: the lock, the atomic writes).
@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 from rt_ident import __version__
 from rt_ident.fleet.manifest import Entry
 from rt_ident.fleet.store import HashIndex, history_lock, write_rows
-from rt_ident.processes.guard import install_stop_signals
+from rt_ident.processes.guard import install_stop_signals, stop_signals
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -264,18 +264,19 @@ class _Cluster:
 
 @contextmanager
 def _children_ignore_ctrl_c() -> Iterator[None]:
-    """SIGINT ignored while the LocalCluster starts its worker processes, which inherit that: Ctrl-C in a
-    terminal reaches the whole process group, and only this process is to handle it (it ends the run and
-    the cluster). A Ctrl-C during those seconds is lost (blocking it in this thread would not hold it: a
-    thread that libraries imported before had started takes it, and ignores it)."""
+    """SIGINT and SIGHUP ignored while the LocalCluster starts its worker processes, which inherit that: Ctrl-C
+    in a terminal (or its closing) reaches the whole process group, and only this process is to handle it (it
+    ends the run and the cluster). A Ctrl-C during those seconds is lost (blocking it in this thread would not
+    hold it: a thread that libraries imported before had started takes it, and ignores it)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    old = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGHUP)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: str | None = None,
@@ -287,7 +288,7 @@ def identify_fleet(entries: Iterable[Entry], history: str | Path, *, scheduler: 
 
     ``on_start(n_tasks, dashboard_url)`` once the cluster is up; ``on_result(row)`` per finished task
     (progress). Finished results are written at least every ``flush_every`` seconds and when the run is
-    interrupted (Ctrl-C, or SIGTERM in the main thread): then ``interrupted`` is True and what finished is
+    interrupted (Ctrl-C, or SIGTERM or SIGHUP in the main thread): then ``interrupted`` is True and what finished is
     in the history. ``task_timeout`` (seconds; None or 0: none) per task. An entry listed twice (same
     path) is run once (``duplicates``); a row another run wrote meanwhile counts as ``skipped``. A write
     the history refuses (a full disk, no permission) ends the run: ``write_error`` says why, ``unwritten``
@@ -413,7 +414,7 @@ def _result(fut: Any, item: dict[str, Any]) -> dict[str, Any]:
 
 @contextmanager
 def _signals_deferred() -> Iterator[None]:
-    """Ctrl-C and SIGTERM during a write take effect once it is done (as KeyboardInterrupt): a write is
+    """Ctrl-C, SIGTERM and SIGHUP during a write take effect once it is done (as KeyboardInterrupt): a write is
     never cut between its files and the count of what it wrote."""
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -423,7 +424,7 @@ def _signals_deferred() -> Iterator[None]:
     def note(signum: int, frame: Any) -> None:  # noqa: ARG001
         got.append(signum)
 
-    old = {sig: signal.signal(sig, note) for sig in (signal.SIGINT, signal.SIGTERM)}
+    old = {sig: signal.signal(sig, note) for sig in stop_signals()}
     try:
         yield
     finally:

@@ -4,13 +4,61 @@ the loop's and the controller's lines, the stalls, and how the run ended with th
 
 from __future__ import annotations
 
+import errno
+import sys
 from collections.abc import Sequence
+from typing import Any, TextIO
 
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
 from rt_ident.outputs.text import fmt, um
+
+
+class GoneTolerant:
+    """A standard stream whose terminal may go away while the command works (a closed window, a dropped ssh
+    session: EIO; a reader that quit: EPIPE). What can no longer be written is dropped, so the command ends
+    as its work did (files closed, its exit code), not on its own output."""
+
+    _GONE = frozenset({errno.EIO, errno.EPIPE, errno.ENXIO})
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+        self.gone = False
+
+    def _guard(self, call: Any, *args: Any) -> Any:
+        if self.gone:
+            return None
+        try:
+            return call(*args)
+        except OSError as exc:
+            if exc.errno not in self._GONE:
+                raise
+            self.gone = True
+            return None
+
+    def write(self, text: str) -> int:
+        self._guard(self._stream.write, text)
+        return len(text)
+
+    def writelines(self, lines: Any) -> None:
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        self._guard(self._stream.flush)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+def tolerate_gone_terminal() -> None:
+    """Wrap stdout and stderr in :class:`GoneTolerant` (the command line's entry point, once)."""
+    for name in ("stdout", "stderr"):
+        stream = getattr(sys, name)
+        if stream is not None and not isinstance(stream, GoneTolerant):
+            setattr(sys, name, GoneTolerant(stream))
 
 # soft_wrap: a line (a file path, a command to copy) is never broken at 80 columns when piped;
 # tables still fit the width (their columns fold instead of cutting values to "2.948...")
@@ -243,8 +291,8 @@ def print_trust(trust: dict | None, trusted: bool | None = None) -> None:
                       markup=False)
 
 
-_INTERRUPTED = ("stopped early on request (Ctrl-C or SIGTERM) after {ticks} ticks: the figures above cover only "
-                "that part; {stopped}")
+_INTERRUPTED = ("stopped early on request (Ctrl-C, SIGTERM or SIGHUP) after {ticks} ticks: the figures above cover "
+                "only that part; {stopped}")
 
 
 def _stopped(stop: dict, several: bool) -> str:

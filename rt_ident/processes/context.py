@@ -7,8 +7,10 @@ modules once (:data:`PRELOAD`). Each child still starts from a clean, single-thr
 forkserver runs no threads (a test checks) and holds nothing of the run.
 
 What spawned children got from their parent at ``start()`` they get from the forkserver, so the
-forkserver is started the way helpers must be born: SIGINT and SIGTERM ignored (its children inherit
-that, with no window before :func:`rt_ident.processes.guard.become_helper`) and
+forkserver is started the way helpers must be born: the group's signals ignored (SIGINT, SIGTERM, SIGHUP;
+its children inherit that, with no window before :func:`rt_ident.processes.guard.become_helper`, and so
+does multiprocessing's resource tracker, started with it: one killed by a closed terminal's SIGHUP
+would leave the run's semaphores in /dev/shm) and
 :data:`~rt_ident.processes.guard.HELPER_ENV` in its environment (one BLAS thread; it is read at
 numpy's import, which the forkserver does). Each child takes its starter's current stdout, stderr and
 environment as it starts (:func:`rt_ident.processes.guard.start_with_helper_env`). The forkserver exits
@@ -141,14 +143,14 @@ def _ensure_forkserver(ctx: ForkServerContext) -> None:
     with _lock:
         from multiprocessing import forkserver
 
-        from rt_ident.processes.guard import HELPER_ENV
+        from rt_ident.processes.guard import GROUP_SIGNALS, HELPER_ENV
 
         ctx.set_forkserver_preload(list(PRELOAD))
         added = [k for k in HELPER_ENV if k not in os.environ]
         for k in added:
             os.environ[k] = HELPER_ENV[k]
         main = threading.current_thread() is threading.main_thread()
-        old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+        old = {s: signal.signal(s, signal.SIG_IGN) for s in GROUP_SIGNALS} if main else {}
         sched = _ordinary_scheduling()
         try:
             forkserver.ensure_running()

@@ -1,9 +1,11 @@
 """How a run's helper processes (recorder, telemetry, fit and control processes) live and die.
 
 * **Signals go to the main process only.** Ctrl-C in a terminal sends SIGINT to the whole process
-  group, systemd's stop sends SIGTERM to the whole group. A helper that took them would die in the
+  group, systemd's stop sends SIGTERM to the whole group, a closed terminal or a dropped ssh session
+  SIGHUP (the shell passes it to its jobs). A helper that took them would die in the
   middle of its work (the recorder with samples still in its ring) or print a KeyboardInterrupt
-  traceback. So helpers are started with SIGINT and SIGTERM *ignored* (:func:`start_ignoring_signals`:
+  traceback; the main process would die without stopping the device. So the main process takes all
+  three as a request to stop, and helpers are started with them *ignored* (:func:`start_ignoring_signals`:
   the disposition is inherited through the spawn's exec, and Python keeps an inherited SIG_IGN, so
   there is no window during the child's start-up), and set them ignored again first thing
   (:func:`become_helper`). The main process stops them in order: loop, then recorder (drains every
@@ -26,7 +28,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-_GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 _log = logging.getLogger("rt_ident.processes.guard")
 
 
@@ -131,7 +133,7 @@ def quick_exit(code: int = 0) -> None:
 
 
 def start_ignoring_signals(proc: Any) -> None:
-    """``proc.start()`` with the child born ignoring SIGINT/SIGTERM (and with :data:`HELPER_ENV`).
+    """``proc.start()`` with the child born ignoring :data:`GROUP_SIGNALS` (and with :data:`HELPER_ENV`).
 
     A child of the forkserver inherits that from the forkserver (rt_ident.processes.context), so this
     process's own handlers stay in place: its start waits for the forkserver's preloads (up to a second
@@ -141,7 +143,7 @@ def start_ignoring_signals(proc: Any) -> None:
             or getattr(proc, "_start_method", None) == "forkserver"):
         start_with_helper_env(proc)  # off the main thread dispositions cannot change; become_helper() covers it
         return
-    old = {s: signal.signal(s, signal.SIG_IGN) for s in _GROUP_SIGNALS}
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in GROUP_SIGNALS}
     try:
         start_with_helper_env(proc)
     finally:
@@ -149,10 +151,16 @@ def start_ignoring_signals(proc: Any) -> None:
             signal.signal(s, h)
 
 
+def stop_signals() -> tuple[int, ...]:
+    """The signals a command's main process stops on: SIGINT and SIGTERM whatever their disposition (an
+    inherited SIG_IGN included: a shell script's background job), SIGHUP unless it is ignored (``nohup``
+    asked the command to outlive its terminal)."""
+    return tuple(s for s in GROUP_SIGNALS if s != signal.SIGHUP or signal.getsignal(s) != signal.SIG_IGN)
+
+
 def install_stop_signals(stop: threading.Event) -> dict[int, Any]:
-    """SIGINT and SIGTERM set ``stop`` (in the main thread), whatever their disposition was, an inherited
-    SIG_IGN included (a shell script's background job): the main process of a run that energizes a device,
-    or of any long command, ends on them at a point of its choosing. Returns the handlers they had."""
+    """:func:`stop_signals` set ``stop`` (in the main thread): the main process of a run that energizes a
+    device, or of any long command, ends on them at a point of its choosing. Returns the handlers they had."""
     old: dict[int, Any] = {}
     if threading.current_thread() is not threading.main_thread():
         return old
@@ -160,7 +168,7 @@ def install_stop_signals(stop: threading.Event) -> dict[int, Any]:
     def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
         stop.set()
 
-    for sig in _GROUP_SIGNALS:
+    for sig in stop_signals():
         old[sig] = signal.signal(sig, handler)
     return old
 
@@ -185,15 +193,15 @@ def helper_comm(process_name: str) -> str:
 
 
 def become_helper() -> ParentWatch:
-    """First call in a helper's main: ignore the group's SIGINT/SIGTERM, name it (:func:`name_process`),
-    leave the loop's CPU; returns the parent watch.
+    """First call in a helper's main: ignore the group's signals (:data:`GROUP_SIGNALS`), name it
+    (:func:`name_process`), leave the loop's CPU; returns the parent watch.
 
     A helper started from the loop thread (a restart during the run) may inherit its single-CPU
     affinity (its scheduling policy is reset: the loop sets SCHED_RESET_ON_FORK): it moves to every
     other CPU here, as the helpers started before the loop were moved by the run."""
     import multiprocessing
 
-    for s in _GROUP_SIGNALS:
+    for s in GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
     name_process(helper_comm(multiprocessing.current_process().name))
     try:

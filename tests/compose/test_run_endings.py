@@ -1,10 +1,11 @@
-"""However a run ends (Ctrl-C to the group, SIGTERM to the group, kill -9 of the main process), it
-leaves complete files, no orphan process, and an exit code and summary that tell the truth."""
+"""However a run ends (Ctrl-C, SIGTERM or SIGHUP to the group, its terminal closed, kill -9 of the main
+process), it leaves complete files, no orphan process, and an exit code and summary that tell the truth."""
 
 from __future__ import annotations
 
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -56,7 +57,7 @@ def _wait_group_empty(pgid: int, timeout: float) -> list[int]:
     return _group(pgid)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["ctrl-c", "sigterm", "sighup"])
 @pytest.mark.slow
 def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_path, sig):
     proc, rec, rrd = _start(tmp_path)
@@ -74,6 +75,48 @@ def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_
     assert len(read_recording(rec)) == s["loop"]["samples"] == s["recording"]["rows_written"]
     assert rrd.exists() and rrd.stat().st_size > 0
     assert _wait_group_empty(proc.pid, 5.0) == []
+
+
+@pytest.mark.slow
+def test_a_run_whose_terminal_closes_stops_safely_with_complete_files_and_its_own_exit_code(tmp_path):
+    import pty
+
+    rec, rrd = tmp_path / "r.parquet", tmp_path / "r.rrd"
+    pid, fd = pty.fork()                        # the run on a terminal of its own, as in an ssh session
+    if pid == 0:
+        os.chdir(tmp_path)
+        os.execv(sys.executable, [sys.executable, "-m", "rt_ident", "run", "--duration", "60", "--no-realtime",
+                                  "--record", str(rec), "--rrd", str(rrd)])
+    journal = rec.with_name(rec.name + ".arrows")
+    seen = b""
+    deadline = time.monotonic() + 90
+    status = None
+    try:
+        while time.monotonic() < deadline and (not journal.exists() or journal.stat().st_size < 100_000):
+            try:
+                seen += os.read(fd, 65536) if select.select([fd], [], [], 0.1)[0] else b""
+            except OSError:
+                break
+        assert journal.exists(), seen.decode(errors="replace")[-2000:]
+        os.close(fd)                            # the terminal goes away: SIGHUP, then EIO on every write
+        fd = -1
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            done, st = os.waitpid(pid, os.WNOHANG)
+            if done:
+                status = st
+                break
+            time.sleep(0.05)
+        assert status is not None, "the run went on after its terminal closed"
+    finally:
+        if fd >= 0:
+            os.close(fd)
+        if status is None:
+            os.killpg(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0      # stopped on request, as Ctrl-C; not the output's failure
+    assert len(read_recording(rec)) > 0 and not journal.exists() and rrd.stat().st_size > 0
+    assert _wait_group_empty(pid, 5.0) == []
 
 
 @pytest.mark.slow

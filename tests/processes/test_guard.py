@@ -4,6 +4,7 @@ a run's helpers carry their own names."""
 from __future__ import annotations
 
 import logging
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -166,3 +167,13 @@ def test_a_process_that_exits_without_closing_its_helper_ends_it_instead_of_wait
     while Path(f"/proc/{pid}").exists() and time.monotonic() < end:
         time.sleep(0.05)
     assert not Path(f"/proc/{pid}").exists()
+
+
+def test_a_closed_terminals_sighup_stops_the_main_process_but_not_under_nohup():
+    probe = ("import signal, threading; from rt_ident.processes.guard import install_stop_signals, stop_signals; "
+             "stop = threading.Event(); install_stop_signals(stop); signal.raise_signal(signal.SIGHUP); "
+             "print(signal.SIGHUP in stop_signals(), stop.is_set())")
+    plain = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    assert plain.stdout.split() == ["True", "True"], plain.stderr
+    nohup = subprocess.run(["nohup", sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    assert nohup.returncode == 0 and nohup.stdout.split() == ["False", "False"], nohup.stderr   # it runs on
