@@ -104,8 +104,10 @@ class Helpers:
 def recording_lost(r: dict[str, Any]) -> str:
     """A recording that is not complete, in words (``RecorderProcess.close()``'s report), and where its
     journal keeps what was recorded up to the last flush, when it does."""
-    why = f": {r['failure']}" if r.get("failure") else f" (recorder exit code {r['exitcode']})"
-    text = f"recording {r['path']} incomplete: {r['rows_written']} of {r['samples_put']} samples written{why}"
+    why = f": {r['failure'] or r.get('refusal')}" if r.get("failure") or r.get("refusal") else \
+        f" (recorder exit code {r['exitcode']})"
+    had = r["samples_put"] + r.get("samples_refused", 0)
+    text = f"recording {r['path']} incomplete: {r['rows_written']} of {had} samples written{why}"
     journal = journal_path(r["path"])
     if journal.is_file() and journal.stat().st_size > 0:
         text += f" (what was recorded up to the last flush is in {journal}: rt-ident identify {r['path']} reads it)"

@@ -389,10 +389,12 @@ class RecorderProcess:
     thread, no pickling, no system call in the loop). ``queue_size`` bounds the blocks in
     flight and ``ring_bytes`` the bytes: the defaults (65536 blocks, 64 MiB) hold > 30 s at
     34 k samples/s (~50 bytes per sample) and > 6 s at 200 k samples/s: far longer than the
-    recorder's flushes take. Samples are never dropped: if the ring is ever
-    full, ``put`` waits up to ``put_timeout`` seconds (counted in ``full_waits``) and raises
-    :class:`RtIdentError` if it is still full or the recorder process has failed/died. The
-    recorder flushes every ``flush_interval`` (<= 1 s) seconds.
+    recorder's flushes take. A full ring is a recorder a whole ring behind (its disk or its
+    process stalled): ``put`` then waits at most ``put_timeout`` seconds (default 0: the caller is the
+    real-time loop, which a wait would stall with the device under its last torque; counted in
+    ``full_waits``) and raises :class:`RtIdentError`, as it does when the recorder process has
+    failed or died. The samples of a block it refused are counted (``samples_refused``): the
+    recording is then not complete. The recorder flushes every ``flush_interval`` (<= 1 s) seconds.
     """
 
     def __init__(
@@ -403,7 +405,7 @@ class RecorderProcess:
         *,
         ring_bytes: int = 64 << 20,
         flush_interval: float = 0.5,
-        put_timeout: float = 2.0,
+        put_timeout: float = 0.0,
         overwrite: bool = False,
     ) -> None:
         if not 0.0 < flush_interval <= 1.0:
@@ -427,6 +429,8 @@ class RecorderProcess:
         self._ready: Any = None
         self._reason: Any = None
         self.full_waits = 0
+        self.samples_refused = 0
+        self.refusal: str | None = None            # why the first block was refused
         # blocks and samples handed over, in place: the compiled tick (rt_ident.loop.tick_core),
         # which puts into the ring itself, counts into a view of it
         self.put_counts = np.zeros(2, dtype=np.int64)
@@ -516,26 +520,35 @@ class RecorderProcess:
         cols = _block_message(block)
         if self._closed or self._ring is None:
             raise RtIdentError("RecorderProcess.put(): not started or already closed")
-        self._check_alive()
-        if not self._ring.put(cols):
-            self.full_waits += 1
-            log.warning("recorder ring full (%d blocks, %d bytes used): waiting up to %.1f s",
-                        self._ring.pending_messages, self._ring.used_bytes, self.put_timeout)
-            deadline = time.monotonic() + self.put_timeout
-            while not self._ring.put(cols):
-                self._check_alive(force=True)
-                if time.monotonic() >= deadline:
-                    raise RtIdentError(f"recorder ring for {self.path} stayed full for {self.put_timeout} s; "
-                                       "recorder stalled")
-                time.sleep(1e-4)
+        try:
+            self._check_alive()
+            if not self._ring.put(cols):
+                self._wait_for_room(cols)
+        except RtIdentError as exc:
+            self.samples_refused += len(cols["seq"])
+            self.refusal = self.refusal or str(exc)
+            raise
         self.put_counts[0] += 1
         self.put_counts[1] += len(cols["seq"])
+
+    def _wait_for_room(self, cols: Mapping[str, Any]) -> None:
+        assert self._ring is not None
+        self.full_waits += 1
+        behind = (f"{self._ring.pending_messages} blocks, {self._ring.used_bytes / 2**20:.0f} MiB not yet "
+                  "written")
+        deadline = time.monotonic() + self.put_timeout
+        while not self._ring.put(cols):
+            self._check_alive(force=True)
+            if time.monotonic() >= deadline:
+                raise RtIdentError(f"the recorder of {self.path} fell a whole ring behind ({behind}): its disk "
+                                   "or its process stalled; recording stopped")
+            time.sleep(1e-4)
 
     def close(self, timeout: float = 10.0) -> dict[str, Any]:
         """Let the recorder drain the ring, finalize the file and join. Terminates it after ``timeout``."""
         summary: dict[str, Any] = {"path": str(self.path), "blocks_put": self.blocks_put,
-                                   "samples_put": self.samples_put, "full_waits": self.full_waits,
-                                   "terminated": False}
+                                   "samples_put": self.samples_put, "samples_refused": self.samples_refused,
+                                   "refusal": self.refusal, "full_waits": self.full_waits, "terminated": False}
         if self._proc is None or self._ring is None or self._closed:     # (started: both)
             self._closed = True
             summary.update(rows_written=self.rows_written, exitcode=getattr(self._proc, "exitcode", None))
@@ -556,8 +569,8 @@ class RecorderProcess:
         return summary
 
     def _complete(self, summary: Mapping[str, Any]) -> bool:
-        """Every sample handed over is in the finished file, and the recorder exited cleanly."""
-        return (summary.get("exitcode") == 0 and not summary.get("terminated")
+        """Every sample the loop had for it is in the finished file, and the recorder exited cleanly."""
+        return (summary.get("exitcode") == 0 and not summary.get("terminated") and not self.samples_refused
                 and summary.get("rows_written") == self.samples_put and self.path.exists())
 
     def __enter__(self) -> RecorderProcess:

@@ -95,6 +95,44 @@ def test_files_another_run_is_writing_are_refused_before_anything_starts_even_wi
         assert s["recording"]["complete"]
 
 
+def test_a_recorder_that_stalls_stops_the_run_without_holding_the_loop_and_its_lost_samples_are_counted(
+        tmp_path, monkeypatch):
+    import signal
+    import threading
+
+    from rt_ident.processes import recorder as recorder_mod
+
+    class SmallRing(recorder_mod.RecorderProcess):         # fills in ~40 blocks, not ~30 s
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**kwargs, "ring_bytes": 1 << 16})
+
+    monkeypatch.setattr(recorder_mod, "RecorderProcess", SmallRing)
+    made: list[SmallRing] = []
+    real_start = SmallRing.start
+    monkeypatch.setattr(SmallRing, "start", lambda self: made.append(self) or real_start(self))
+    waits: list[float] = []
+    real_sleep = recorder_mod.time.sleep
+
+    def hook(n: int) -> None:
+        if n == 300:                                         # the recorder's disk hangs for 2 s
+            os.kill(made[0].pid, signal.SIGSTOP)
+            threading.Timer(2.0, os.kill, (made[0].pid, signal.SIGCONT)).start()
+            monkeypatch.setattr(recorder_mod.time, "sleep", lambda s: (waits.append(s) if sys._getframe(1).f_code
+                                                                       is recorder_mod.RecorderProcess._wait_for_room
+                                                                       .__code__ else None) or real_sleep(s))
+
+    rec = tmp_path / "r.parquet"
+    cfg = load(None, **{"loop.duration": 5.0, "loop.realtime": False, "telemetry.sink": "off"})
+    s = run_mod.run(cfg, record=str(rec), tick_hook=hook)
+    assert s["stop"]["cause"] == "error" and "fell a whole ring behind" in s["stop"]["message"], s["stop"]
+    assert waits == []                                       # the tick never waited for room
+    r = s["recording"]
+    assert r["samples_refused"] > 0 and not r["complete"]
+    assert s["loop"]["samples"] == r["rows_written"] + r["samples_refused"] == len(read_recording(rec)) + \
+        r["samples_refused"]
+    assert f"{r['rows_written']} of {s['loop']['samples']} samples written: the recorder of" in s["data_lost"]
+
+
 @pytest.mark.parametrize("args,needle", [
     (["--record", "r.txt"], "must end in .parquet"),
     (["--rrd", "dash.png"], "must end in .rrd"),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -166,6 +167,34 @@ def test_recorder_process_close_writes_complete_parquet(tmp_path: Path) -> None:
     rec = read_recording(path)
     assert rec.source == "parquet" and len(rec) == 800
     _assert_matches_oracle(rec)
+
+
+def test_a_stalled_recorder_whose_ring_fills_refuses_the_block_at_once_and_counts_it_lost(tmp_path, monkeypatch):
+    import rt_ident.processes.recorder as recorder_mod
+
+    path = tmp_path / "stalled.parquet"
+    rp = RecorderProcess(path, {"backend": "sim"}, ring_bytes=1 << 16).start()
+    slept = []                                               # time.sleep in the put's wait for room
+    real_sleep = recorder_mod.time.sleep
+    monkeypatch.setattr(recorder_mod.time, "sleep", lambda s: (slept.append(s) if sys._getframe(1).f_code
+                                                               is RecorderProcess._wait_for_room.__code__
+                                                               else None) or real_sleep(s))
+    os.kill(rp.pid, signal.SIGSTOP)                          # its disk hangs: it takes nothing more
+    try:
+        k = 0
+        with pytest.raises(RtIdentError, match=r"fell a whole ring behind \(\d+ blocks, 0 MiB not yet written\): "
+                                               r"its disk or its process stalled"):
+            while k < 10_000:
+                rp.put(_signals(np.arange(40 * k, 40 * (k + 1), dtype=np.int64)))
+                k += 1
+        assert slept == [] and rp.full_waits == 1            # the real-time caller was not held
+    finally:
+        os.kill(rp.pid, signal.SIGCONT)
+    monkeypatch.undo()
+    summary = rp.close()
+    assert summary["samples_put"] == 40 * k and summary["samples_refused"] == 40
+    assert summary["rows_written"] == 40 * k and not summary["complete"]   # the refused block is not in it
+    assert "fell a whole ring behind" in summary["refusal"]
 
 
 def test_sigkilled_recorder_process_is_readable_up_to_last_flush(tmp_path: Path) -> None:
