@@ -459,7 +459,8 @@ def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfi
 def load(path: str | Path | None = None, **overrides: Any) -> RunConfig:
     """Load a run configuration (default: ``configs/sim.toml`` if shipped, else built-in defaults).
 
-    A relative path that does not exist is also looked up in the shipped ``configs/`` folder.
+    A relative path that does not exist is also looked up in the shipped ``configs/`` folder; a relative
+    file the config names is looked up beside it first (:func:`_files_beside`).
     """
     if path is None:
         candidate = CONFIG_DIR / "sim.toml"
@@ -485,6 +486,7 @@ def load(path: str | Path | None = None, **overrides: Any) -> RunConfig:
         if not data:
             raise ConfigError(str(path), "config is empty (no section, no key); give at least [backend], "
                                          "or run without a config for the built-in defaults")
+        _files_beside(data, p.parent)
         source = str(p)
     for dotted, value in overrides.items():
         if value is None:
@@ -497,6 +499,21 @@ def load(path: str | Path | None = None, **overrides: Any) -> RunConfig:
     if path is not None:
         cfg._defaulted = defaulted_sections(data)
     return cfg
+
+
+def _files_beside(data: dict[str, Any], folder: Path) -> None:
+    """A relative file a config names (a drive's EDS) is the one beside the config file, where there is
+    one: the folder the command runs in and the shipped ``configs/`` are looked in after it."""
+    tables = [data] + [a for a in (data.get("axes") or {}).values() if isinstance(a, dict)] \
+        if isinstance(data.get("axes"), dict) else [data]
+    for table in tables:
+        for section in ("backend", "emulator"):
+            sec = table.get(section)
+            if not isinstance(sec, dict):
+                continue
+            name = sec.get("eds")
+            if isinstance(name, str) and name and not Path(name).is_absolute() and (folder / name).is_file():
+                sec["eds"] = str((folder / name).resolve())
 
 
 #: Sections whose absence from a config file is reported (the run then drives the built-in sim

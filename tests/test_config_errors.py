@@ -319,3 +319,23 @@ def test_an_axis_lead_that_differs_from_the_backends_is_refused_naming_axis_lead
 def test_scale_and_encoder_counts_that_cannot_be_true_of_the_window_are_refused(backend, key):
     with pytest.raises(ConfigError, match=rf"backend\.{key}"):
         from_mapping({"backend": backend})
+
+
+def test_an_eds_beside_the_config_is_the_one_used_from_any_folder_and_a_missing_one_names_the_key_set(
+        tmp_path, monkeypatch):
+    from rt_ident.axis.params import CONFIG_DIR
+
+    bench = tmp_path / "bench"
+    bench.mkdir()
+    (bench / "drive.eds").write_text((CONFIG_DIR / "cia402_generic.eds").read_text())
+    text = (CONFIG_DIR / "canopen-virtual.toml").read_text().replace('eds = "cia402_generic.eds"', 'eds = "drive.eds"')
+    (bench / "axis.toml").write_text(text)
+    (bench / "other.toml").write_text(text.replace('"drive.eds"', '"nothere.eds"'))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert load(str(bench / "axis.toml")).backend.options()["eds"] == str(bench / "drive.eds")
+    from drivers.cia402.emulator import build_emulator_for
+
+    with pytest.raises(ConfigError, match=r"^backend.eds: EDS file not found: nothere.eds \(looked in "):
+        build_emulator_for(load(str(bench / "other.toml")))

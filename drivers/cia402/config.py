@@ -123,7 +123,9 @@ class Cia402Config(BaseModel):
         if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p).is_file():
             p = CONFIG_DIR / p
         if not p.is_file():
-            raise ConfigError("backend.eds", f"EDS file not found: {self.eds} (also looked in {CONFIG_DIR})")
+            raise ConfigError("backend.eds", f"EDS file not found: {self.eds} (looked in {Path.cwd()} and "
+                                             f"{CONFIG_DIR}; a relative path is looked for beside the config file "
+                                             "first)")
         return p
 
 

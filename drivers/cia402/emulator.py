@@ -99,12 +99,13 @@ def _sections(config: Any) -> tuple[dict, dict, AxisParams]:
         AxisParams.from_mapping(axis, where="axis") if axis else thomson_x())
 
 
-def _eds_path(name: str) -> Path:
+def _eds_path(name: str, key: str = "emulator.eds") -> Path:
     p = Path(name)
     if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p).is_file():
         p = CONFIG_DIR / p
     if not p.is_file():
-        raise ConfigError("emulator.eds", f"EDS file not found: {name}")
+        raise ConfigError(key, f"EDS file not found: {name} (looked in {Path.cwd()} and {CONFIG_DIR}; a relative "
+                               "path is looked for beside the config file first)")
     return p
 
 
@@ -144,7 +145,8 @@ def build_emulator_for(config: Any) -> EmulatedCia402Drive:
                            integrator=emu.integrator, seed=emu.seed, friction=friction,
                            x0=rest_at(emu.x0, axis.lead))
     bus = cfg.bus_kwargs()
-    return EmulatedCia402Drive(emu.node_id or cfg.node_id, _eds_path(emu.eds or cfg.eds), bus, plant,
+    eds = _eds_path(emu.eds or cfg.eds, "emulator.eds" if emu.eds else "backend.eds")
+    return EmulatedCia402Drive(emu.node_id or cfg.node_id, eds, bus, plant,
                                FaultConfig.from_mapping(emu.faults), counts_per_rev=counts_per_rev,
                                scale_resolution=scale_resolution, scale_index=cfg.scale_index,
                                scale_subindex=cfg.scale_subindex,
