@@ -109,6 +109,23 @@ def unit_of(identity: Mapping[str, Any]) -> dict[str, Any] | None:
     return {k: identity[k] for k in UNIT_KEYS if identity.get(k) is not None}
 
 
+#: the settings a device may report (the board's INFO) that the host must be told the same: the scales of
+#: its angles and the period of its samples
+DEVICE_SETTINGS = ("counts_per_rev", "scale_resolution", "sample_rate_hz")
+
+
+def settings_differ(identity: Mapping[str, Any], options: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
+    """``{key: (the device's, the config's)}`` for each of :data:`DEVICE_SETTINGS` the device reports
+    (non-zero: zero is "not configured") unlike the config's backend ``options``."""
+    out = {}
+    for k in DEVICE_SETTINGS:
+        dev, told = identity.get(k), options.get(k)
+        if isinstance(dev, (int, float)) and dev and isinstance(told, (int, float)) \
+                and not math.isclose(float(dev), float(told), rel_tol=1e-6):
+            out[k] = (float(dev), float(told))
+    return out
+
+
 def describe_unit(unit: Mapping[str, Any] | None) -> str:
     """``serial 7 (model emulated-board)``; "a unit that reports no serial number" for None."""
     if not unit:

@@ -89,6 +89,7 @@ def host_trouble(summary: dict[str, Any], sample_period: float, run_failed: bool
 def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progress) -> bool:
     """Stages a and b. True when every check passed."""
     from drivers import make_backend
+    from drivers.base import settings_differ
     from rt_ident.compose.build import backend_options
     from rt_ident.loop.host import LoopRealtime, keep_off_loop_cpu
     checks = result["checks"]
@@ -121,10 +122,7 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
             return False
         result["identity"] = {**backend.identity(), **backend.signs}
         checks.append(check("connect", True, backend.name, "the device answers"))
-        opts_told = cfg.backend.options()
-        differ = {k: (v, opts_told[k]) for k, v in result["identity"].items()
-                  if k in ("counts_per_rev", "scale_resolution", "sample_rate_hz") and k in opts_told
-                  and isinstance(v, (int, float)) and abs(float(v) - float(opts_told[k])) > 1e-9 * abs(float(v))}
+        differ = settings_differ(result["identity"], cfg.backend.options())
         checks.append(check("device settings", not differ,
                             {k: v[0] for k, v in differ.items()} or "as configured",
                             "what [backend] says, where the device reports it",

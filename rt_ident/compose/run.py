@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers import make_backend
-from drivers.base import describe_unit, unit_of
+from drivers.base import describe_unit, settings_differ, unit_of
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.compose import preflight
 from rt_ident.compose.build import (
@@ -207,6 +207,8 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
             expected_unit, unit_required = unit
             if expected_unit is not None and not several:
                 _check_unit(axes[""].backend, expected_unit, unit_required, summary)
+            for name, ax in axes.items():                # what the device says it is set to, before enabling it
+                _named(name, _check_settings, ax.backend, ax.cfg)
             for name, ax in axes.items():                # nothing energized that would trip on its first ticks
                 start = ax.backend.read_position()
                 if start is not None:
@@ -304,6 +306,16 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
         if emulated is not None:
             summary["emulator"] = emulated
     return summary
+
+
+def _check_settings(backend: Any, cfg: RunConfig) -> None:
+    """A device that reports its angles' scales or its sample rate unlike ``[backend]`` is refused before it
+    is enabled: the position loop would close on angles off by that factor."""
+    differ = settings_differ(backend.identity(), cfg.backend.options())
+    if differ:
+        key, (dev, told) = next(iter(differ.items()))
+        raise ConfigError(f"backend.{key}", f"the device reports {dev:g}, the config says {told:g}: correct "
+                                            f"backend.{key} (rt-ident commission checks every such setting)")
 
 
 def _check_unit(backend: Any, expected: dict[str, Any], required: bool, summary: dict[str, Any]) -> None:

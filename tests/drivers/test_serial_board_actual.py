@@ -159,13 +159,13 @@ def test_plant_actual_of_a_run_config_reaches_the_emulated_board():
 
 # ----- identity (the INFO answer) -------------------------------------------------------------
 def test_identity_returns_the_boards_info_and_its_unit_while_open_and_active(rig, caplog):
-    with caplog.at_level(logging.WARNING, logger="drivers.encoder_board.board"):
+    with caplog.at_level(logging.INFO, logger="drivers.encoder_board.board"):
         board, be = rig({"torque_limit": 0.5}, actual={"counts_per_rev": 4096}, serial_number=7)
     want = {"model": "emulated-board", "firmware": "1.0.0", "serial_number": 7, "protocol_version": 2,
             "sample_rate_hz": 20000.0, "current_limit_a": 5.0, "torque_constant": 0.1,
             "counts_per_rev": 4096, "scale_resolution": 1e-7}
     assert be.identity() == want
-    # the board is configured for other counts than the host is told: one warning at open
+    # the board is configured for other counts than the host is told: said at open (a run refuses it)
     assert [r.getMessage() for r in caplog.records if "configured for" in r.getMessage()] == [
         f"serial board on {board.port} is configured for counts_per_rev = 4096 ([backend]: 131072)"]
     be.activate()

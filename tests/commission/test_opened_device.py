@@ -1,6 +1,7 @@
-"""A commissioning is of one unit: the ledger keeps the serial number the device gave, and a run on another
-unit put in its place (same config) is refused with --require-commissioned, else warned about, and never
-reported as commissioned."""
+"""What a run checks of the device it opens, before enabling it. A commissioning is of one unit: the ledger keeps
+the serial number the device gave, and a run on another unit put in its place (same config) is refused with
+--require-commissioned, else warned about, and never reported as commissioned. A device that reports settings
+unlike the config's is refused."""
 
 from __future__ import annotations
 
@@ -83,3 +84,17 @@ def test_a_board_swapped_for_another_unit_is_not_run_as_commissioned(tmp_path):
     s = json.loads(warned.stdout)
     assert s["commissioning"]["verdict"] is None and "serial 2" in s["commissioning"]["warning"]
     assert "has not been commissioned" in warned.stderr
+
+
+def test_a_board_set_to_other_counts_than_the_config_is_refused_before_it_is_enabled(tmp_path, monkeypatch):
+    from drivers.encoder_board.board import SerialBoardBackend
+
+    enabled = []
+    monkeypatch.setattr(SerialBoardBackend, "_activate", lambda self: enabled.append(self))
+    data = tomllib.loads((ROOT / "configs" / "serial-virtual.toml").read_text())
+    data["loop"]["realtime"] = False
+    data["plant"] = {"actual": {"counts_per_rev": 4096}}       # the board's encoder setting, not the config's
+    with pytest.raises(ConfigError, match=r"^backend.counts_per_rev: the device reports 4096, the config says "
+                                          r"131072: correct backend.counts_per_rev"):
+        run(config.from_mapping(data), sink="off", record=str(tmp_path / "r.parquet"))
+    assert not enabled and not (tmp_path / "r.parquet").exists()
