@@ -325,8 +325,9 @@ def _check_unit(backend: Any, expected: dict[str, Any], required: bool, summary:
     found = unit_of(backend.identity())
     if found == expected:
         return
-    msg = (f"the device opened is {describe_unit(found)}, but the commissioning on record is of "
-           f"{describe_unit(expected)}: this unit has not been commissioned (run `rt-ident commission` on it)")
+    said = f"is {describe_unit(found)}" if found else "did not say which unit it is (no serial number at open)"
+    msg = (f"the device opened {said}, but the commissioning on record is of {describe_unit(expected)}: this "
+           "unit has not been commissioned (run `rt-ident commission` on it)")
     if required:
         raise ConfigError("--require-commissioned", msg)
     log.warning(msg)

@@ -46,9 +46,9 @@ def test_the_ledger_keeps_the_unit_a_passed_commissioning_was_of():
 def test_another_unit_is_refused_with_require_before_the_device_is_enabled_and_named_without(monkeypatch):
     enabled = []
     monkeypatch.setattr(SimBackend, "_activate", lambda self: enabled.append(self))
-    with pytest.raises(ConfigError, match=r"^--require-commissioned: the device opened is a unit that reports no "
-                                          r"serial number, but the commissioning on record is of serial 1 \(model "
-                                          r"emulated-board\)"):
+    with pytest.raises(ConfigError, match=r"^--require-commissioned: the device opened did not say which unit it "
+                                          r"is \(no serial number at open\), but the commissioning on record is of "
+                                          r"serial 1 \(model emulated-board\)"):
         run(_sim(), sink="off", commissioned_unit=BOARD_1, require_commissioned=True)
     assert not enabled
     monkeypatch.undo()
