@@ -337,10 +337,17 @@ def run(
         if not kernel_cache.tick_kernel_cached():
             err.print("compiling the loop's kernels first (after an install or a change of the sources; "
                       "about 20 s, before anything is energized)")
+    per_axis = (commissioned or {}).get("axes") or ({"": commissioned} if commissioned else {})
     summary = run_loop(cfg, rrd=rrd, record=record, sink=sink, connect_url=connect, overwrite=overwrite,
-                       commissioned_unit=(commissioned or {}).get("unit"), require_commissioned=require_commissioned)
-    if commissioned is not None and summary.get("commissioned_unit"):      # a pass of another unit is none
-        commissioned = {"verdict": None, "warning": summary["commissioned_unit"]["message"]}
+                       commissioned_units={n: c.get("unit") for n, c in per_axis.items()},
+                       require_commissioned=require_commissioned)
+    for name, other in (summary.get("commissioned_unit") or {}).items():   # a pass of another unit is none
+        per_axis[name] = {"verdict": None, "warning": other["message"]}
+    if commissioned is not None and cfg.axes:
+        verdicts = {c.get("verdict") for c in per_axis.values()}
+        commissioned = {"verdict": "pass" if verdicts == {"pass"} else None, "axes": per_axis}
+    elif commissioned is not None:
+        commissioned = per_axis[""]
     if commissioned is not None:
         summary["commissioning"] = commissioned
     if cfg.defaulted:
@@ -356,19 +363,32 @@ def run(
 
 def _commissioning(cfg, config: Path | None, required: bool) -> dict | None:
     """The device's last commissioning verdict, said before anything is enabled: a warning when it never
-    passed (an error with ``--require-commissioned``). None for a run that needs none (the plain sim)."""
+    passed (an error with ``--require-commissioned``). None for a run that needs none (the plain sim). With
+    several axes, each axis's device is looked up as the config of that axis alone: ``{"axes": {NAME: ...}}``."""
     from rt_ident.commission import ledger
 
+    if cfg.axes and cfg.control.mode != "off":
+        per = {name: _commissioning_of(acfg, config, required, name) for name, acfg in cfg.axis_configs().items()
+               if ledger.needs_commissioning(acfg)}
+        return {"axes": per} if per else None
     if not ledger.needs_commissioning(cfg):
         return None
+    return _commissioning_of(cfg, config, required)
+
+
+def _commissioning_of(cfg, config: Path | None, required: bool, axis: str = "") -> dict:
+    from rt_ident.commission import ledger
+
     entry = ledger.lookup(cfg)
     if entry is not None and entry.get("verdict") == "pass":
         return {"verdict": "pass", "report": entry.get("report"), "unit": entry.get("unit")}
     why = ("has never been commissioned" if entry is None else
            f"failed commissioning ({(entry.get('failed') or {}).get('check')}: "
            f"{(entry.get('failed') or {}).get('fix')})")
-    msg = (f"this device configuration {why}; a wrong sign or scale makes the host's position loop run away: "
-           f"run `rt-ident commission {config or 'CONFIG'}` first")
+    what, how = (f"axis {axis}'s device configuration", "give the axis a config of its own (its [axes.NAME] "
+                 "sections at the top level) and run `rt-ident commission` on it") if axis else \
+        ("this device configuration", f"run `rt-ident commission {config or 'CONFIG'}`")
+    msg = f"{what} {why}; a wrong sign or scale makes the host's position loop run away: {how} first"
     if required:
         raise ConfigError("--require-commissioned", msg)
     err.print(f"[yellow]warning:[/yellow] {escape(msg)}", highlight=False)

@@ -84,7 +84,7 @@ class _Axis:
 
 def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, sink: str | None = None,
         connect_url: str | None = None, stop_event: threading.Event | None = None,
-        tick_hook=None, overwrite: bool = False, commissioned_unit: dict[str, Any] | None = None,
+        tick_hook=None, overwrite: bool = False, commissioned_units: dict[str, dict[str, Any] | None] | None = None,
         require_commissioned: bool = False) -> dict[str, Any]:
     """Run the loop described by ``cfg``; returns the summary (also on a safety stop).
 
@@ -92,20 +92,20 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise. A config
     refused before any device is enabled raises its :class:`~rt_ident.errors.ConfigError`.
     Its output files are claimed host-wide from their check to the end (:class:`OutputClaims`).
-    ``commissioned_unit``: the unit the device's commissioning was of (:func:`drivers.base.unit_of`), checked
-    once the device is open and before it is enabled (:func:`_check_unit`).
+    ``commissioned_units``: per axis (``""`` for a run of one), the unit its device's commissioning was of
+    (:func:`drivers.base.unit_of`), checked once the device is open and before it is enabled (:func:`_check_unit`).
     """
     claims = OutputClaims()
     try:
         return _run(cfg, claims, rrd=rrd, record=record, sink=sink, connect_url=connect_url, stop_event=stop_event,
-                    tick_hook=tick_hook, overwrite=overwrite, unit=(commissioned_unit, require_commissioned))
+                    tick_hook=tick_hook, overwrite=overwrite, units=(commissioned_units or {}, require_commissioned))
     finally:
         claims.release()
 
 
 def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str | None, sink: str | None,
          connect_url: str | None, stop_event: threading.Event | None, tick_hook, overwrite: bool,
-         unit: tuple[dict[str, Any] | None, bool]) -> dict[str, Any]:
+         units: tuple[dict[str, dict[str, Any] | None], bool]) -> dict[str, Any]:
     from rt_ident.outputs.sinks import DEFAULT_PORT, TelemetryConfig, serve_port
 
     stop = stop_event or threading.Event()
@@ -204,9 +204,11 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
             stack.callback(sys.setswitchinterval, sys.getswitchinterval())
             for ax in axes.values():                     # open as late as possible: a device streams from open()
                 stack.enter_context(ax.backend)          # on exit (any axis's error too): safe stop, close
-            expected_unit, unit_required = unit
-            if expected_unit is not None and not several:
-                _check_unit(axes[""].backend, expected_unit, unit_required, summary)
+            expected_units, unit_required = units
+            for name, ax in axes.items():                # the unit commissioned, before it is enabled
+                expected_unit = expected_units.get(name)
+                if expected_unit is not None:
+                    _check_unit(ax.backend, expected_unit, unit_required, summary, name)
             for name, ax in axes.items():                # what the device says it is set to, before enabling it
                 _named(name, _check_settings, ax.backend, ax.cfg)
             for name, ax in axes.items():                # nothing energized that would trip on its first ticks
@@ -318,20 +320,21 @@ def _check_settings(backend: Any, cfg: RunConfig) -> None:
                                             f"backend.{key} (rt-ident commission checks every such setting)")
 
 
-def _check_unit(backend: Any, expected: dict[str, Any], required: bool, summary: dict[str, Any]) -> None:
+def _check_unit(backend: Any, expected: dict[str, Any], required: bool, summary: dict[str, Any], axis: str) -> None:
     """The device opened is the unit its commissioning was of. Another unit in its place (or one that no
     longer says which it is) is refused with ``--require-commissioned``; else named at once and in the summary
-    (``commissioned_unit``): that commissioning is not its own."""
+    (``commissioned_unit``, per axis name, ``""`` for a run of one): that commissioning is not its own."""
     found = unit_of(backend.identity())
     if found == expected:
         return
     said = f"is {describe_unit(found)}" if found else "did not say which unit it is (no serial number at open)"
-    msg = (f"the device opened {said}, but the commissioning on record is of {describe_unit(expected)}: this "
-           "unit has not been commissioned (run `rt-ident commission` on it)")
+    where = f"axis {axis}: " if axis else ""
+    msg = (f"{where}the device opened {said}, but the commissioning on record is of {describe_unit(expected)}: "
+           "this unit has not been commissioned (run `rt-ident commission` on it)")
     if required:
         raise ConfigError("--require-commissioned", msg)
     log.warning(msg)
-    summary["commissioned_unit"] = {"expected": expected, "found": found, "message": msg}
+    summary.setdefault("commissioned_unit", {})[axis] = {"expected": expected, "found": found, "message": msg}
 
 
 def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port: int, several: bool,

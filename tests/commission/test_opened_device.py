@@ -49,12 +49,13 @@ def test_another_unit_is_refused_with_require_before_the_device_is_enabled_and_n
     with pytest.raises(ConfigError, match=r"^--require-commissioned: the device opened did not say which unit it "
                                           r"is \(no serial number at open\), but the commissioning on record is of "
                                           r"serial 1 \(model emulated-board\)"):
-        run(_sim(), sink="off", commissioned_unit=BOARD_1, require_commissioned=True)
+        run(_sim(), sink="off", commissioned_units={"": BOARD_1}, require_commissioned=True)
     assert not enabled
     monkeypatch.undo()
-    s = run(_sim(), sink="off", commissioned_unit=BOARD_1)
-    assert s["stop"]["cause"] is None and s["commissioned_unit"]["expected"] == BOARD_1
-    assert s["commissioned_unit"]["found"] is None and "has not been commissioned" in s["commissioned_unit"]["message"]
+    s = run(_sim(), sink="off", commissioned_units={"": BOARD_1})
+    other = s["commissioned_unit"][""]
+    assert s["stop"]["cause"] is None and other["expected"] == BOARD_1
+    assert other["found"] is None and "has not been commissioned" in other["message"]
 
 
 def _board_run(tmp_path: Path, serial: int, *args: str) -> subprocess.CompletedProcess:
@@ -98,3 +99,25 @@ def test_a_board_set_to_other_counts_than_the_config_is_refused_before_it_is_ena
                                           r"131072: correct backend.counts_per_rev"):
         run(config.from_mapping(data), sink="off", record=str(tmp_path / "r.parquet"))
     assert not enabled and not (tmp_path / "r.parquet").exists()
+
+
+def _xy(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    (tmp_path / "xy.toml").write_text((ROOT / "configs" / "xy-canopen-virtual.toml").read_text())
+    env = {**os.environ, "RT_IDENT_STATE_DIR": str(tmp_path / "state")}
+    return subprocess.run([sys.executable, "-m", "rt_ident", "run", "xy.toml", "--duration", "1", "--no-telemetry",
+                           "--json", *args], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+
+
+@pytest.mark.xdist_group("realtime")
+def test_an_xy_run_needs_each_axis_commissioned_as_a_config_of_its_own(tmp_path):
+    refused = _xy(tmp_path, "--require-commissioned")
+    assert refused.returncode == 2, refused.stderr[-2000:]
+    assert "--require-commissioned: axis x's device configuration has never been commissioned" in refused.stderr
+    xy = config.from_mapping(tomllib.loads((tmp_path / "xy.toml").read_text()))
+    for acfg in xy.axis_configs().values():                # as `rt-ident commission` records each axis's config
+        ledger.record(acfg, {"verdict": "pass", "identity": {"vendor_id": 0, "product_code": 0x402,
+                                                             "serial_number": 1}})
+    ok = _xy(tmp_path, "--require-commissioned")
+    assert ok.returncode != 2, ok.stderr[-2000:]              # let through (how the drives' run ends is theirs)
+    s = json.loads(ok.stdout)
+    assert s["commissioning"]["verdict"] == "pass" and set(s["commissioning"]["axes"]) == {"x", "y"}
