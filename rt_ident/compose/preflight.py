@@ -176,13 +176,17 @@ def _axis(cfg: RunConfig) -> None:
 
 
 def _telemetry(cfg: RunConfig, sink: str, connect_url: str | None) -> None:
-    from rt_ident.outputs.sinks import TelemetryConfig
+    from rt_ident.outputs.sinks import DEFAULT_PORT, TelemetryConfig, spawn_refusal
 
     try:
-        TelemetryConfig(sink=sink, rrd_path="check.rrd", connect_url=connect_url, bind_ip=cfg.telemetry.bind_ip)
+        tel = TelemetryConfig(sink=sink, rrd_path="check.rrd", connect_url=connect_url,
+                              bind_ip=cfg.telemetry.bind_ip, port=cfg.telemetry.port or DEFAULT_PORT)
     except ConfigError as exc:
         field = {"connect_url": "--connect / telemetry.connect_url"}.get(exc.field, f"telemetry.{exc.field}")
         raise ConfigError(field, str(exc)[len(exc.field) + 2:]) from None
+    why = spawn_refusal(tel)
+    if why:
+        raise ConfigError("--spawn / telemetry.sink", why)
 
 
 def _emulator(cfg: RunConfig) -> None:

@@ -32,8 +32,7 @@ DEFAULT_PORT = 9876
 
 def default_sink(env: Mapping[str, str] | None = None) -> str:
     """``"spawn"`` when a display is available, else ``"rrd"``."""
-    env = os.environ if env is None else env
-    return "spawn" if env.get("DISPLAY") or env.get("WAYLAND_DISPLAY") else "rrd"
+    return "spawn" if has_display(env) else "rrd"
 
 
 @dataclass(frozen=True)
@@ -149,6 +148,22 @@ def viewer_address(cfg: TelemetryConfig) -> tuple[str, int]:
             port = None
         return u.hostname or "127.0.0.1", port or DEFAULT_PORT
     return _local_host(cfg.bind_ip), cfg.port
+
+
+def has_display(env: Mapping[str, str] | None = None) -> bool:
+    """A display a viewer window can open on (X11 or Wayland)."""
+    env = os.environ if env is None else env
+    return bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY") or env.get("WAYLAND_SOCKET"))
+
+
+def spawn_refusal(cfg: TelemetryConfig, env: Mapping[str, str] | None = None) -> str | None:
+    """Why ``--spawn`` cannot show the dashboard here (no display, as in an ssh session, and no viewer
+    already listening where it would connect), or None."""
+    if cfg.sink != "spawn" or has_display(env) or port_open(*viewer_address(cfg)):
+        return None
+    return ("no display here for a viewer window (DISPLAY and WAYLAND_DISPLAY unset, as in an ssh session): "
+            "leave the dashboard to its .rrd file (the default; open it later with rerun FILE), or --serve and "
+            "connect a viewer from a machine with a display")
 
 
 def ensure_viewer(cfg: TelemetryConfig, wait_s: float = 15.0) -> str:

@@ -195,6 +195,37 @@ def test_serve_moves_to_a_free_port_when_9876_is_taken_and_refuses_a_taken_confi
         mine.close()
 
 
+def test_spawn_without_a_display_is_refused_in_one_line_unless_a_viewer_already_listens(tmp_path, monkeypatch):
+    import socket
+
+    from rt_ident.outputs.sinks import TelemetryConfig, spawn_refusal
+
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.chdir(tmp_path)
+    free = socket.socket()
+    free.bind(("127.0.0.1", 0))
+    port = free.getsockname()[1]
+    free.close()
+    from rt_ident.axis.params import CONFIG_DIR
+
+    text = (CONFIG_DIR / "sim.toml").read_text().replace('[telemetry]\nsink = "rrd"', f'[telemetry]\nport = {port}')
+    assert f"port = {port}" in text
+    Path("spawn.toml").write_text(text)                            # a port no other test's viewer may hold
+    res = runner.invoke(app, ["run", "spawn.toml", "--duration", "0.2", "--no-realtime", "--spawn"])
+    assert res.exit_code != 0 and str(res.exception).startswith("--spawn / telemetry.sink: no display here")
+    assert not Path("runs").exists()                               # refused before anything started
+    assert spawn_refusal(TelemetryConfig(sink="spawn", port=port), {"DISPLAY": ":0"}) is None
+    viewer = socket.socket()                                       # a viewer someone left running on this host
+    viewer.bind(("127.0.0.1", port))
+    viewer.listen()
+    try:
+        assert spawn_refusal(TelemetryConfig(sink="spawn", port=port), {}) is None
+    finally:
+        viewer.close()
+    assert "ssh session" in (spawn_refusal(TelemetryConfig(sink="spawn", port=port), {}) or "")
+
+
 def test_a_bad_eds_is_named_without_echoing_its_contents(tmp_path):
     from drivers import make_backend
 
