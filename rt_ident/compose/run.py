@@ -8,7 +8,7 @@ its :class:`~rt_ident.loop.loop.IdentificationLoop`, several axes one
 controlled, then every plan written). Order matters: the helper processes are spawned first (so they
 do not inherit real-time scheduling), compiled kernels are warmed up, the devices are opened and their
 position checked, then real-time treatment is requested for this process, the devices are activated
-and the loop ticks. Whatever ends the loop (duration, Ctrl-C, SIGTERM, a safety trip or device error
+and the loop ticks. Whatever ends the loop (duration, Ctrl-C, SIGTERM, SIGHUP, a safety trip or device error
 on any axis, any exception), every backend's context manager stops it: zero torque, drive disabled.
 Files are then closed and one summary is returned (for several axes, each axis's part under ``axes``
 and the axis that stopped the run named).
@@ -88,7 +88,7 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
         require_commissioned: bool = False) -> dict[str, Any]:
     """Run the loop described by ``cfg``; returns the summary (also on a safety stop).
 
-    ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached or Ctrl-C/SIGTERM)
+    ``summary["stop"]["cause"]`` is ``None`` for a normal end (duration reached, Ctrl-C, SIGTERM, SIGHUP)
     and a cause tag (``"watchdog"``, ``"travel-limit"``, ``"device-fault"``, ...) otherwise. A config
     refused before any device is enabled raises its :class:`~rt_ident.errors.ConfigError`.
     Its output files are claimed host-wide from their check to the end (:class:`OutputClaims`).
