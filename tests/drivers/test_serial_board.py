@@ -522,10 +522,12 @@ def test_a_real_time_loop_at_100_hz_reads_a_20_khz_board_without_losing_samples(
     from rt_ident.compose.run import run
     from rt_ident.config import load
 
-    # the link's and the board's watches widened (a busy host), as in the other rigs: the subject is the reads
+    # the link's and the board's watches widened (a busy host), as in the other rigs, and the board holding the
+    # axis (the host's position loop off): the subject is the reads, not control at a 100 Hz tick
     cfg = load(CONFIG_DIR / "serial-virtual.toml",
                **{"loop.tick_hz": 100, "loop.duration": 2.0, "loop.realtime": True, "telemetry.sink": "off",
-                  "recording.enabled": False, "backend.read_timeout": 0.5, "emulator.heartbeat_timeout": 1.0})
+                  "recording.enabled": False, "backend.read_timeout": 0.5, "emulator.heartbeat_timeout": 1.0,
+                  "control.mode": "off", "emulator.hold": True})
     s = run(cfg)
     loop = s["loop"]
     assert s["stop"]["cause"] is None and loop["lost_samples"] <= 0.01 * loop["samples"], (s["stop"], loop)
