@@ -52,6 +52,9 @@ log = logging.getLogger(__name__)
 
 MODEL = "emulated-board"       # what the emulated board's INFO frame says it is
 FIRMWARE = (1, 0, 0)
+#: the board's loop not run for this many bursts: it was paused with its host (a starved process, a paused
+#: VM), which a real board, on a processor of its own, never is; that time is no silence of the host
+OWN_PAUSE_BURSTS = 10
 
 
 @dataclass
@@ -108,6 +111,7 @@ class EmulatedBoard:
         self.torque_limit = float(torque_limit)
         self.plan_capacity = int(plan_capacity)
         self.clock = clock
+        self.paused_s = 0.0            # time the board's own loop was not run (not counted as the host's silence)
         c = self.cfg
         self.faults = Faults(c.drop_probability, c.corrupt_probability, c.garbage_probability,
                              16, c.stuck_encoder, c.silent, c.deaf)
@@ -236,9 +240,13 @@ class EmulatedBoard:
         try:
             origin = self.clock()
             self._last_host = origin
-            next_wake = origin
+            next_wake = prev = origin
             while not self._stop.is_set():
                 now = self.clock()
+                if now - prev > OWN_PAUSE_BURSTS * self.cfg.burst_period:
+                    self.paused_s += now - prev
+                    self._last_host += now - prev
+                prev = now
                 self._service_host(now)
                 due = int((now - origin) * self.sample_rate_hz) - self._k
                 if due > 0:
