@@ -288,8 +288,9 @@ def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     from rt_ident.axis.params import CONFIG_DIR
 
     cfg_path.write_text((CONFIG_DIR / "sim.toml").read_text().replace("[safety]", "[safety]\non_stall = \"stop\""))
-    # on a busy machine the run may stall by itself before the SIGSTOP: it must end the same way
-    rc, s, r, err, _ = _sigstop_run(tmp_path, str(cfg_path), early_ok=True)
+    # on a busy machine the run may stall by itself before the SIGSTOP: it must end the same way; and its
+    # recorder may lag seconds behind the loop, whose journal times the SIGSTOP: 5 s keep it inside the loop
+    rc, s, r, err, _ = _sigstop_run(tmp_path, str(cfg_path), early_ok=True, duration=5.0)
     assert rc == 3 and s["stop"]["cause"] == "loop-stall", (s["stop"], err[-2000:])
     assert re.match(r"loop stalled for \d+ ms", s["stop"]["message"])
     # the stalled tick's samples are in the recording (one that ended too early to read back has under 10)
