@@ -54,6 +54,17 @@ def open_lock_file(path: Path) -> int:
         return os.open(path, os.O_RDONLY | os.O_CLOEXEC)
 
 
+def try_flock(path: Path) -> int | None:
+    """A descriptor of ``path`` holding its exclusive ``flock``, or None when another one holds it (no wait)."""
+    fd = open_lock_file(path)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
 class NamedLock:
     """An exclusive host-wide lock named by ``key`` (any string: a resolved path, a bus and node).
 
@@ -77,11 +88,8 @@ class NamedLock:
         if self._fd is not None:
             return True
         for _ in range(100):
-            fd = open_lock_file(self.path)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                os.close(fd)
+            fd = try_flock(self.path)
+            if fd is None:
                 return False
             try:
                 same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
@@ -106,4 +114,4 @@ class NamedLock:
         os.close(fd)
 
 
-__all__ = ["LOCK_DIR", "NamedLock", "holder", "lock_dir", "open_lock_file"]
+__all__ = ["LOCK_DIR", "NamedLock", "holder", "lock_dir", "open_lock_file", "try_flock"]

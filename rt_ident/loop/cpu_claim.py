@@ -12,7 +12,6 @@ waits for, and then refuses to start, before anything is energized.
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import threading
@@ -20,7 +19,7 @@ import time
 from pathlib import Path
 
 from rt_ident.errors import ConfigError, RtIdentError
-from rt_ident.hostlock import holder, lock_dir, open_lock_file
+from rt_ident.hostlock import holder, lock_dir, try_flock
 
 log = logging.getLogger(__name__)
 
@@ -64,11 +63,8 @@ class CpuClaim:
             if held is not None:
                 CpuClaim._held[self.path] = (held[0], held[1] + 1)
                 return True
-            fd = open_lock_file(self.path)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                os.close(fd)
+            fd = try_flock(self.path)
+            if fd is None:
                 return False
             CpuClaim._held[self.path] = (fd, 1)
             return True
