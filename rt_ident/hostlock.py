@@ -76,6 +76,7 @@ class NamedLock:
     def __init__(self, kind: str, key: str, directory: str | os.PathLike[str] | None = None) -> None:
         digest = hashlib.sha1(key.encode()).hexdigest()[:16]
         self.key = key
+        self.kind = kind
         self.path = lock_dir(directory) / f"rt-ident-{kind}-{digest}.lock"
         self._fd: int | None = None
 
@@ -105,13 +106,28 @@ class NamedLock:
         return holder(self.path) or "another process"
 
     def release(self) -> None:
-        """Drop the lock (idempotent)."""
+        """Drop the lock (idempotent), and delete the files of its kind that nobody holds (left by a process
+        that was killed)."""
         fd, self._fd = self._fd, None
         if fd is None:
             return
         with contextlib.suppress(OSError):
             self.path.unlink()
         os.close(fd)
+        for left in self.path.parent.glob(f"rt-ident-{self.kind}-*.lock"):
+            try:
+                stale = try_flock(left)
+            except OSError:
+                continue
+            if stale is None:
+                continue
+            try:
+                if os.fstat(stale).st_ino == os.stat(left).st_ino:
+                    left.unlink()
+            except OSError:
+                pass
+            finally:
+                os.close(stale)
 
 
 __all__ = ["LOCK_DIR", "NamedLock", "holder", "lock_dir", "open_lock_file", "try_flock"]

@@ -64,3 +64,19 @@ def test_a_file_opened_before_its_release_and_deletion_does_not_count_as_the_loc
     second = NamedLock("t", "k", tmp_path)
     assert not second.try_acquire()                             # its flock on the deleted file is no lock
     third.release()
+
+
+def test_a_release_deletes_the_files_of_killed_holders_and_leaves_a_live_ones(tmp_path):
+    proc = _holder("live", tmp_path)                           # another process, holding its lock
+    killed = _holder("killed", tmp_path)
+    killed.kill()                                               # its file stays behind, unlocked
+    killed.wait(30)
+    try:
+        mine = NamedLock("t", "mine", tmp_path)
+        assert mine.try_acquire() and len(list(tmp_path.iterdir())) == 3
+        mine.release()
+        assert [p.name for p in tmp_path.iterdir()] == [NamedLock("t", "live", tmp_path).path.name]
+        assert not NamedLock("t", "live", tmp_path).try_acquire()          # still held, by the live process
+    finally:
+        proc.kill()
+        proc.wait(30)
