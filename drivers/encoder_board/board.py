@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import serial
 
-from drivers.base import Backend, SampleBlock
+from drivers.base import Backend, SampleBlock, settings_differ
 from drivers.encoder_board import protocol as sp
 from drivers.encoder_board.config import EmulatorConfig, parse_emulator, parse_serial
 from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
@@ -213,10 +213,10 @@ class SerialBoardBackend(Backend):
         cfg = self.config
         told = {"sample_rate_hz": cfg.sample_rate_hz, "counts_per_rev": cfg.counts_per_rev,
                 "scale_resolution": cfg.scale_resolution}
-        differ = [f"{k} = {info[k]:g} ([backend]: {v:g})" for k, v in told.items()
-                  if info[k] and not math.isclose(info[k], v, rel_tol=1e-6)]
+        differ = settings_differ(info, told)
         if differ:                             # the run refuses it, commissioning fails its check: said there
-            log.info("serial board on %s is configured for %s", self.port, ", ".join(differ))
+            log.info("serial board on %s is configured for %s", self.port,
+                     ", ".join(f"{k} = {dev:g} ([backend]: {v:g})" for k, (dev, v) in differ.items()))
 
     def _position(self, sample: np.ndarray) -> tuple[float, float]:
         return float(sample["enc"]) * self._rad_per_count, float(sample["scale"]) * self._rad_per_scale
