@@ -12,16 +12,20 @@
   holds the axis;
 * :func:`check_start`: the table's position when the device is opened, against the window, the
   reference and the probe's own motion, so that nothing is energized that would trip on its first
-  ticks.
+  ticks; :func:`check_settings` and :func:`check_unit`: what the opened device reports of its settings
+  and which unit it is, against ``[backend]`` and the commissioning on record.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+from typing import Any
 
 import numpy as np
 
 from drivers import BackendNotFound, make_backend
+from drivers.base import describe_unit, settings_differ, unit_of
 from rt_ident.compose.build import (
     backend_options,
     check_axes,
@@ -40,6 +44,8 @@ from rt_ident.estimators import make_streaming
 from rt_ident.estimators.state_estimation import AxisStateEstimator
 from rt_ident.loop.scheduler import Ticker
 from rt_ident.outputs.paths import check_methods
+
+log = logging.getLogger(__name__)
 
 #: the probe may take at most this share of the torque limit: the position loop needs the rest
 PROBE_SHARE = 0.5
@@ -201,4 +207,31 @@ def _emulator(cfg: RunConfig) -> None:
         build_emulator_for(cfg)                       # the drive's model, not started: no bus opened
 
 
-__all__ = ["check_config", "check_start", "drive_holds", "preflight"]
+def check_settings(backend: Any, cfg: RunConfig) -> None:
+    """A device that reports its angles' scales or its sample rate unlike ``[backend]`` is refused before it
+    is enabled: the position loop would close on angles off by that factor."""
+    differ = settings_differ(backend.identity(), cfg.backend.options())
+    if differ:
+        key, (dev, told) = next(iter(differ.items()))
+        raise ConfigError(f"backend.{key}", f"the device reports {dev:g}, the config says {told:g}: correct "
+                                            f"backend.{key} (rt-ident commission checks every such setting)")
+
+
+def check_unit(backend: Any, expected: dict[str, Any], required: bool, summary: dict[str, Any], axis: str) -> None:
+    """The device opened is the unit its commissioning was of. Another unit in its place (or one that no
+    longer says which it is) is refused with ``--require-commissioned``; else named at once and in the summary
+    (``commissioned_unit``, per axis name, ``""`` for a run of one): that commissioning is not its own."""
+    found = unit_of(backend.identity())
+    if found == expected:
+        return
+    said = f"is {describe_unit(found)}" if found else "did not say which unit it is (no serial number at open)"
+    where = f"axis {axis}: " if axis else ""
+    msg = (f"{where}the device opened {said}, but the commissioning on record is of {describe_unit(expected)}: "
+           "this unit has not been commissioned (run `rt-ident commission` on it)")
+    if required:
+        raise ConfigError("--require-commissioned", msg)
+    log.warning(msg)
+    summary.setdefault("commissioned_unit", {})[axis] = {"expected": expected, "found": found, "message": msg}
+
+
+__all__ = ["check_config", "check_settings", "check_start", "check_unit", "drive_holds", "preflight"]

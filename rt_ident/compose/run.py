@@ -33,7 +33,6 @@ from pathlib import Path
 from typing import Any
 
 from drivers import make_backend
-from drivers.base import describe_unit, settings_differ, unit_of
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.compose import preflight
 from rt_ident.compose.build import (
@@ -93,7 +92,8 @@ def run(cfg: RunConfig, *, rrd: str | None = None, record: str | None = None, si
     refused before any device is enabled raises its :class:`~rt_ident.errors.ConfigError`.
     Its output files are claimed host-wide from their check to the end (:class:`OutputClaims`).
     ``commissioned_units``: per axis (``""`` for a run of one), the unit its device's commissioning was of
-    (:func:`drivers.base.unit_of`), checked once the device is open and before it is enabled (:func:`_check_unit`).
+    (:func:`drivers.base.unit_of`), checked once the device is open and before it is enabled
+    (:func:`~rt_ident.compose.preflight.check_unit`).
     """
     claims = OutputClaims()
     try:
@@ -208,9 +208,9 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
             for name, ax in axes.items():                # the unit commissioned, before it is enabled
                 expected_unit = expected_units.get(name)
                 if expected_unit is not None:
-                    _check_unit(ax.backend, expected_unit, unit_required, summary, name)
+                    preflight.check_unit(ax.backend, expected_unit, unit_required, summary, name)
             for name, ax in axes.items():                # what the device says it is set to, before enabling it
-                _named(name, _check_settings, ax.backend, ax.cfg)
+                _named(name, preflight.check_settings, ax.backend, ax.cfg)
             for name, ax in axes.items():                # nothing energized that would trip on its first ticks
                 start = ax.backend.read_position()
                 if start is not None:
@@ -308,33 +308,6 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
         if emulated is not None:
             summary["emulator"] = emulated
     return summary
-
-
-def _check_settings(backend: Any, cfg: RunConfig) -> None:
-    """A device that reports its angles' scales or its sample rate unlike ``[backend]`` is refused before it
-    is enabled: the position loop would close on angles off by that factor."""
-    differ = settings_differ(backend.identity(), cfg.backend.options())
-    if differ:
-        key, (dev, told) = next(iter(differ.items()))
-        raise ConfigError(f"backend.{key}", f"the device reports {dev:g}, the config says {told:g}: correct "
-                                            f"backend.{key} (rt-ident commission checks every such setting)")
-
-
-def _check_unit(backend: Any, expected: dict[str, Any], required: bool, summary: dict[str, Any], axis: str) -> None:
-    """The device opened is the unit its commissioning was of. Another unit in its place (or one that no
-    longer says which it is) is refused with ``--require-commissioned``; else named at once and in the summary
-    (``commissioned_unit``, per axis name, ``""`` for a run of one): that commissioning is not its own."""
-    found = unit_of(backend.identity())
-    if found == expected:
-        return
-    said = f"is {describe_unit(found)}" if found else "did not say which unit it is (no serial number at open)"
-    where = f"axis {axis}: " if axis else ""
-    msg = (f"{where}the device opened {said}, but the commissioning on record is of {describe_unit(expected)}: "
-           "this unit has not been commissioned (run `rt-ident commission` on it)")
-    if required:
-        raise ConfigError("--require-commissioned", msg)
-    log.warning(msg)
-    summary.setdefault("commissioned_unit", {})[axis] = {"expected": expected, "found": found, "message": msg}
 
 
 def _build_axis(ax: _Axis, cfg: RunConfig, sink: str, live_url: str | None, port: int, several: bool,
