@@ -100,7 +100,8 @@ def rig():
 
 
 def assert_de_energized(board: EmulatedBoard) -> None:
-    assert wait_until(lambda: not board.enabled and board.applied_torque == 0.0)
+    # the board's thread shares this process: a busy host may hold it off for a second
+    assert wait_until(lambda: not board.enabled and board.applied_torque == 0.0, timeout=5.0)
     assert board.motor_torque == 0.0 or wait_until(lambda: board.motor_torque == 0.0)
 
 
@@ -446,14 +447,14 @@ def test_host_heartbeat_loss_disables_the_board_and_raises_device_fault(rig):
 def test_time_the_board_itself_was_not_run_is_no_silence_of_the_host(rig):
     """A real board runs on a processor of its own; the emulated one's loop can be held up with its host (a
     starved process, a paused VM), and that gap is not the host falling silent."""
-    board, be = rig(hold=False, heartbeat_timeout=0.5)
+    board, be = rig(hold=False)            # the board's watch of the host: the rig's 2 s (a busy host)
     be.write(0.0)
     read_for(be, 0.05)
     offset = [0.0]
     board.clock = lambda: time.monotonic() + offset[0]
-    offset[0] = 3.0                        # the board's next look at its clock comes 3 s on: its loop was not run
+    offset[0] = 6.0                        # the board's next look at its clock comes 6 s on: its loop was not run
     read_for(be, 0.3)                      # the host reads, and sends its heartbeats, throughout
-    assert board.enabled and board.paused_s >= 3.0
+    assert board.enabled and board.paused_s >= 6.0
 
 
 def test_travel_limit_switch_is_a_device_fault(rig):
