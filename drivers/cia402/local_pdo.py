@@ -4,7 +4,8 @@
 while its PDO is valid (CiA 301: map only with COB-ID bit 31 set; abort 0x08000022, "present
 device state"), one that names a missing object (abort 0x06020000), an object that is not
 PDO-mappable or mapped with the wrong length (0x06040041), or more than 8 bytes or more entries
-than the drive's mapping record has (0x06040042).
+than the drive's mapping record has (0x06040042); an entry written while sub-index 0 is not 0 (CiA 301's
+sequence clears the count first: abort 0x08000022).
 :func:`check_mapping_write` does that; :func:`pdo_layouts` reads the valid PDOs and
 their mappings as ``struct`` layouts.
 """
@@ -51,6 +52,8 @@ def check_mapping_write(node: canopen.LocalNode, index: int, subindex: int, valu
         if bits > 64:
             raise SdoAbortedError(0x06040042)
         return
+    if od_value(node, index, 0) != 0:
+        raise SdoAbortedError(0x08000022)    # entries only while the count is 0 (CiA 301)
     if value == 0:
         return
     obj, sub, bits = p402.split_mapping_entry(value)

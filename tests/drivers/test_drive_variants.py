@@ -71,6 +71,7 @@ def test_the_refused_variants_answer_with_their_abort_codes_to_any_master():
     try:
         assert _abort(lambda: node.sdo.upload(0x60E4, 1)) == 0x06020000
         node.sdo.download(0x1801, 1, (0x80000285).to_bytes(4, "little"))
+        node.sdo.download(0x1A01, 0, b"\x00")
         entry = p402.mapping_entry(0x60E4, 1, 32).to_bytes(4, "little")
         assert _abort(lambda: node.sdo.download(0x1A01, 1, entry)) == 0x06020000
     finally:
@@ -81,6 +82,7 @@ def test_the_refused_variants_answer_with_their_abort_codes_to_any_master():
     try:
         assert len(node.sdo.upload(p402.TORQUE_ACTUAL, 0)) == 2       # readable by SDO
         node.sdo.download(0x1800, 1, (0x80000185).to_bytes(4, "little"))
+        node.sdo.download(0x1A00, 0, b"\x00")
         entry = p402.mapping_entry(p402.TORQUE_ACTUAL, 0, 16).to_bytes(4, "little")
         assert _abort(lambda: node.sdo.download(0x1A00, 3, entry)) == 0x06040041
     finally:

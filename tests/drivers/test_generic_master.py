@@ -176,7 +176,7 @@ def test_every_mandatory_object_of_the_eds_reads_by_sdo(profile):
             m.close()
 
 
-def test_pdo_mapping_only_while_disabled_and_at_most_8_bytes():
+def test_pdo_mapping_only_while_disabled_entries_only_while_the_count_is_0_and_at_most_8_bytes():
     kw = _bus("virtual")
     with _drive(kw):
         m = _Master(kw)
@@ -186,6 +186,9 @@ def test_pdo_mapping_only_while_disabled_and_at_most_8_bytes():
                 sdo[0x1A00][0].raw = 0
             assert err.value.code == 0x08000022
             sdo[0x1800][1].raw = 0x80000180 + NODE        # disabled: mapping allowed
+            with pytest.raises(SdoAbortedError) as err:   # the count is not 0 yet: entries locked
+                sdo[0x1A00][1].raw = p402.mapping_entry(0x6064, 0, 32)
+            assert err.value.code == 0x08000022
             sdo[0x1A00][0].raw = 0
             for sub, entry in enumerate([(0x6064, 32), (0x6077, 16), (0x6041, 16), (0x6041, 16)], start=1):
                 sdo[0x1A00][sub].raw = p402.mapping_entry(entry[0], 0, entry[1])
