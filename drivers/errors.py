@@ -35,6 +35,20 @@ class DeviceTimeout(DriverError):
     cause = "timeout"
 
 
+class DriveNotReady(DriverError):
+    """The device says what keeps it from enabling, and it is on the device (its power, its control), not in
+    a setting; ``fix`` says what to do there."""
+
+    cause = "not-ready"
+
+    def __init__(self, message: str, fix: str) -> None:
+        super().__init__(message)
+        self.fix: str = fix
+
+    def __reduce__(self) -> tuple[type[DriveNotReady], tuple[str, str]]:
+        return type(self), (str(self), self.fix)
+
+
 class ProtocolError(DriverError):
     """Malformed traffic beyond what resynchronization can absorb (CRC storm, wrong EDS)."""
 

@@ -45,6 +45,7 @@ from drivers.errors import (
     DeviceConnectionError,
     DeviceFault,
     DeviceTimeout,
+    DriveNotReady,
     DriverError,
     HeartbeatLost,
     ProtocolError,
@@ -269,6 +270,10 @@ class Cia402Backend(Backend):
                         f"node {cfg.node_id} is in OPERATION ENABLED but its heartbeat did not report NMT "
                         f"OPERATIONAL within startup_timeout {cfg.startup_timeout:g} s (last state "
                         f"{self._hb_state})")
+                blocker = p402.enable_blocker(sw)
+                if blocker is not None:
+                    raise DriveNotReady(f"node {cfg.node_id} does not enable: state {state} (statusword "
+                                        f"0x{sw:04X}); {blocker[0]}", fix=blocker[1])
                 raise DeviceTimeout(
                     f"node {cfg.node_id} did not reach OPERATION ENABLED within startup_timeout "
                     f"{cfg.startup_timeout:g} s: state {state} (statusword 0x{sw:04X})")

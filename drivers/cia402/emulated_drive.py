@@ -544,7 +544,12 @@ class EmulatedCia402Drive:
             if state == p402.OPERATION_ENABLED and self._t_enabled is None:
                 self._t_enabled = time.monotonic()
             self._state = state
-        self._values[(p402.STATUSWORD, 0)] = p402.STATUSWORD_OF[state]
+        sw = p402.STATUSWORD_OF[state]
+        if self.faults.main_power_off:
+            sw &= ~p402.SW_VOLTAGE_ENABLED
+        if self.faults.local_control:
+            sw &= ~p402.SW_REMOTE
+        self._values[(p402.STATUSWORD, 0)] = sw
         if state != p402.OPERATION_ENABLED:
             self.applied_torque = 0.0
 
@@ -782,8 +787,15 @@ class EmulatedCia402Drive:
             self._qs_samples += 1
             if self._qs_samples > 1 and self._values[(_QUICK_STOP_OPTION, 0)] in (0, 1, 2, 3, 4):
                 state = p402.SWITCH_ON_DISABLED           # 12: quick stop done (torque already 0)
+        if self.faults.local_control:           # the bus's controlword is not obeyed
+            self._prev_cw = controlword
+            if state != self._state:
+                self._set_state(state)
+            return
         new = p402.drive_transition(state, controlword, self._prev_cw, self._values[(_QUICK_STOP_OPTION, 0)])
         self._prev_cw = controlword
+        if self.faults.main_power_off and new in (p402.SWITCHED_ON, p402.OPERATION_ENABLED):
+            new = state                          # no voltage at the power stage: it does not switch on
         if new == p402.OPERATION_ENABLED and state != new and not self._cycle_time_set():
             self._fault(PARAMETER_ERROR, "cyclic synchronous mode without an interpolation time period (0x60C2)")
             return

@@ -18,6 +18,7 @@ from rt_ident.errors import ConfigError
 _GARBAGE_IDS = tuple(range(0x101, 0x180)) + tuple(range(0x500, 0x580))
 _INT_FAULTS = frozenset({"drop_tpdo_every", "tpdo_faults_from_sample", "corrupt_tpdo_every", "emcy_at_sample",
                          "emcy_code", "stuck_encoder_at_sample", "garbage_frames_per_sync", "seed"})
+_BOOL_FAULTS = frozenset({"main_power_off", "local_control"})
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,10 @@ class FaultConfig:
     heartbeat_stop_at_s: the drive stops its heartbeat this long after first OPERATION ENABLED.
     stuck_encoder_at_sample: the motor encoder 0x6064 freezes from that sample on.
     garbage_frames_per_sync: random frames on COB-IDs no node uses, after each SYNC.
+    main_power_off: the power stage has no main voltage (main power off, E-stop or STO): voltage enabled
+        (statusword bit 4) is off and the drive does not switch on; it stays READY TO SWITCH ON.
+    local_control: the drive is under local control (its panel or the vendor's software): remote
+        (statusword bit 9) is off and it ignores the bus's controlword.
     """
 
     tpdo_faults_from_sample: int = 1
@@ -45,12 +50,18 @@ class FaultConfig:
     heartbeat_stop_at_s: float | None = None
     stuck_encoder_at_sample: int | None = None
     garbage_frames_per_sync: int = 0
+    main_power_off: bool = False
+    local_control: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
             if v is None and f.default is None:
+                continue
+            if f.name in _BOOL_FAULTS:
+                if not isinstance(v, bool):
+                    raise ConfigError(f"emulator.faults.{f.name}", f"must be true or false, got {v!r}")
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ConfigError(f"emulator.faults.{f.name}", f"must be a finite number >= 0, got {v!r}")

@@ -99,6 +99,9 @@ _SW_PATTERNS = (
     (0x4F, 0x08, FAULT),
 )
 
+SW_VOLTAGE_ENABLED = 0x0010   # statusword bit 4: main voltage at the power stage
+SW_REMOTE = 0x0200            # statusword bit 9: the drive follows the bus's controlword
+
 #: Statusword a drive reports in each state: state bits | voltage enabled (bit 4) where
 #: the power stage is on | remote (bit 9, the drive follows the controlword).
 STATUSWORD_OF = {
@@ -179,6 +182,18 @@ def drive_transition(state: str, controlword: int, previous_controlword: int,
             return OPERATION_ENABLED                                                   # 16
         return state
     return state
+
+
+def enable_blocker(statusword: int) -> tuple[str, str] | None:
+    """``(what, fix)`` when a statusword says what keeps a drive from enabling, something waiting longer
+    will not change and no setting of the host cures; None when it says nothing of the kind."""
+    if not statusword & SW_REMOTE:
+        return ("remote (bit 9) is off: the drive reports local control (its panel or the vendor's software) "
+                "and ignores the host's controlword", "the drive: hand its control to the bus")
+    if decode_state(statusword) == READY_TO_SWITCH_ON and not statusword & SW_VOLTAGE_ENABLED:
+        return ("voltage enabled (bit 4) is off: its power stage has no main voltage",
+                "the drive: main power on, E-stop and safe torque off released")
+    return None
 
 
 def next_controlword(state: str, previous_controlword: int) -> int:

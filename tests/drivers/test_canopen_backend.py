@@ -12,6 +12,7 @@ import collections
 import logging
 import math
 import os
+import pickle
 import re
 import struct
 import time
@@ -29,7 +30,14 @@ from drivers.cia402.drive import Cia402Backend
 from drivers.cia402.emulator import start_emulator_for
 from drivers.cia402.profile import OPERATION_ENABLED, SWITCH_ON_DISABLED, decode_state, frame_bits
 from drivers.cia402.stream import CANCEL, ECHO, MARK, SampleAssembler, SyncSender, TorquePlan
-from drivers.errors import DeviceConnectionError, DeviceFault, HeartbeatLost, ProtocolError, WatchdogTrip
+from drivers.errors import (
+    DeviceConnectionError,
+    DeviceFault,
+    DriveNotReady,
+    HeartbeatLost,
+    ProtocolError,
+    WatchdogTrip,
+)
 from rt_ident.axis.params import CONFIG_DIR
 from rt_ident.axis.plant import DEFAULT_KP
 from rt_ident.errors import ConfigError
@@ -459,6 +467,29 @@ def test_emcy_raises_device_fault_with_the_code_and_drive_ends_disabled():
         assert drive.emcy_codes == [0x2310] and drive.state == "FAULT"
         assert_drive_safe(drive)
         assert be.stop_cause == "device-fault"
+
+
+@pytest.mark.parametrize(("fault", "state", "what", "fix"), [
+    ("main_power_off", "READY TO SWITCH ON", "bit 4", "main power on"),
+    ("local_control", "SWITCH ON DISABLED", "bit 9", "hand its control to the bus"),
+])
+def test_a_drive_that_cannot_enable_says_why_and_what_to_do_on_the_drive_not_to_wait_longer(fault, state, what, fix):
+    # a longer startup_timeout cures neither: the error names the statusword bit and the fix on the drive
+    with rig(faults={fault: True}, startup_timeout=0.5) as (drive, be):
+        with pytest.raises(DriveNotReady, match=rf"does not enable: state {state} .*{what}") as err:
+            with be:
+                be.activate()
+        assert fix in err.value.fix and err.value.cause == "not-ready"
+        assert pickle.loads(pickle.dumps(err.value)).fix == err.value.fix      # crosses a process intact
+        assert_drive_safe(drive)                   # the host's stop still disables it
+
+
+def test_the_emulated_faults_main_power_off_and_local_control_are_true_or_false():
+    from drivers.cia402.faults import FaultConfig
+
+    for key in ("main_power_off", "local_control"):
+        with pytest.raises(ConfigError, match=rf"emulator.faults.{key}: must be true or false"):
+            FaultConfig.from_mapping({key: 1})
 
 
 def test_next_session_resets_a_faulted_drive_and_runs():
