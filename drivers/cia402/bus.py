@@ -55,6 +55,27 @@ def check_interface(interface: str) -> None:
                           "the kernel's CAN modules (modprobe can_raw)") from None
 
 
+def bus_error_hint(code: int | None, interface: str, channel: str, bitrate: int) -> str:
+    """What an errno from sending on a SocketCAN interface means on a bench ("" for others)."""
+    if interface != "socketcan":
+        return ""
+    if code == errno.ENETDOWN:
+        return f"the interface is down: bring it up (sudo ip link set {channel} up type can bitrate {bitrate})"
+    if code == errno.ENOBUFS:
+        return (f"its transmit queue is full: no node acknowledges this host's frames (a drive without power or "
+                f"off the bus, a bitrate other than {bitrate}, a missing terminator), or the controller is "
+                f"bus-off (ip -details -statistics link show {channel})")
+    return ""
+
+
+def error_code(exc: BaseException) -> int | None:
+    """The errno a python-can error carries (``error_code``), or an ``OSError``'s."""
+    code = getattr(exc, "error_code", None)
+    if not isinstance(code, int):
+        code = getattr(exc, "errno", None)
+    return code if isinstance(code, int) else None
+
+
 def open_bus(bus_kwargs: Mapping[str, Any]) -> can.BusABC:
     """``can.Bus(**bus_kwargs)``, or the loopback-confined ``udp_multicast`` bus (see the module)."""
     kw = dict(bus_kwargs)

@@ -26,18 +26,21 @@ against the motor: the host then reverses the scale (see :class:`Cia402Backend`)
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
 import struct
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
+import can
 import numpy as np
 from canopen.emcy import EmcyError
 
 from drivers.base import Backend, SampleBlock
 from drivers.cia402 import profile as p402
+from drivers.cia402.bus import bus_error_hint, error_code
 from drivers.cia402.config import Cia402Config, validate
 from drivers.cia402.node import NodeSetup
 from drivers.cia402.stream import ECHO, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
@@ -163,8 +166,9 @@ class Cia402Backend(Backend):
                           on_sync_echo=self._on_sync_echo)
         self._setup = setup
         try:
-            setup.connect()
-            self.rated_torque = setup.configure()
+            with self._bus_errors("opening the drive"):
+                setup.connect()
+                self.rated_torque = setup.configure()
         except BaseException:
             setup.teardown(drive_consumer_off=False)
             self._setup = None
@@ -180,6 +184,17 @@ class Cia402Backend(Backend):
                                     cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo,
                                     timed=setup.timed)
         self._hb_time = time.monotonic()
+
+    @contextlib.contextmanager
+    def _bus_errors(self, doing: str) -> Iterator[None]:
+        """A python-can error while ``doing``: a one-line :class:`DeviceConnectionError` with what it means."""
+        try:
+            yield
+        except can.CanError as exc:
+            cfg = self.config
+            hint = bus_error_hint(error_code(exc), cfg.interface, cfg.channel, cfg.bitrate)
+            raise DeviceConnectionError(f"{doing} on CAN interface {cfg.interface}:{cfg.channel} failed: "
+                                        f"{type(exc).__name__}: {exc}" + (f": {hint}" if hint else "")) from exc
 
     def _identity(self) -> dict[str, Any]:
         """0x1000 device type, 0x6502 supported drive modes, 0x6076 rated torque [N m], 0x6072 max torque
@@ -216,7 +231,8 @@ class Cia402Backend(Backend):
             # one SYNC producer per bus: started by the first drive, joined by the others
             sender = self._sender = setup.conn.join_sync(channel, cfg.gil_switch_interval_us)
             self._asm.host_missed = lambda: sender.overruns
-            self._enable(sender)
+            with self._bus_errors("enabling the drive"):
+                self._enable(sender)
         except BaseException:
             self._stop_drive()
             raise
@@ -293,8 +309,9 @@ class Cia402Backend(Backend):
             raise DeviceFault(f"node {cfg.node_id} left NMT OPERATIONAL (heartbeat state {self._hb_state})")
         s = self._sender
         if s is not None and s.consecutive_errors >= 10:
+            hint = bus_error_hint(s.last_errno, cfg.interface, cfg.channel, cfg.bitrate)
             raise DeviceConnectionError(f"CAN send failing on {cfg.interface}:{cfg.channel}: {s.last_error} "
-                                        f"({s.send_errors} errors)")
+                                        f"({s.send_errors} errors)" + (f": {hint}" if hint else ""))
         io = self._setup.io if self._setup is not None else None
         if io is not None and io.dropped:
             raise ProtocolError(f"{io.dropped} frames dropped by this host's receive buffer on "

@@ -59,6 +59,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from drivers.cia402.bus import error_code
 from drivers.errors import ProtocolError, WatchdogTrip
 from rt_ident.errors import ask_realtime
 
@@ -204,6 +205,7 @@ class SyncSender:
         self.send_errors = 0
         self.consecutive_errors = 0
         self.last_error: str | None = None
+        self.last_errno: int | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._creator: tuple[int, int] | None = None
@@ -342,6 +344,7 @@ class SyncSender:
                 self.send_errors += 1
                 self.consecutive_errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
+                self.last_errno = error_code(exc)
             if k >= next_hb and self.heartbeat is not None:   # (set to None: the heartbeat stops)
                 hb_cob, hb_every = self.heartbeat
                 # The host's heartbeat from this thread (real-time, one step above the loop) while the

@@ -9,6 +9,7 @@ fault tests, whose injected faults exceed it by far.
 from __future__ import annotations
 
 import collections
+import errno
 import logging
 import math
 import os
@@ -482,6 +483,56 @@ def test_a_drive_that_cannot_enable_says_why_and_what_to_do_on_the_drive_not_to_
         assert fix in err.value.fix and err.value.cause == "not-ready"
         assert pickle.loads(pickle.dumps(err.value)).fix == err.value.fix      # crosses a process intact
         assert_drive_safe(drive)                   # the host's stop still disables it
+
+
+@pytest.mark.parametrize("when", ["open", "enable"])
+def test_a_python_can_send_error_ends_in_one_line_naming_the_step_and_the_drive_ends_safe(monkeypatch, when):
+    # a SocketCAN interface that is down raises CanOperationError (ENETDOWN) from the first send: before,
+    # it left the backend as an uncaught python-can error ("internal error", exit 1)
+    import can
+
+    import drivers.cia402.node as node_mod
+
+    failing, opened = {"on": when == "open"}, node_mod.open_bus
+
+    def open_bus(kwargs):
+        bus = opened(kwargs)
+        real = bus.send
+
+        def send(msg, timeout=None):
+            if failing["on"]:
+                raise can.CanOperationError("Failed to transmit: Network is down", errno.ENETDOWN)
+            return real(msg, timeout)
+
+        bus.send = send
+        return bus
+
+    monkeypatch.setattr(node_mod, "open_bus", open_bus)
+    enable = Cia402Backend._enable
+
+    def enable_on_a_dead_bus(self, sender):
+        failing["on"] = True
+        return enable(self, sender)
+
+    monkeypatch.setattr(Cia402Backend, "_enable", enable_on_a_dead_bus)
+    said = {"open": r"^opening the drive on CAN interface virtual:\S+ failed: ",   # the SDO set-up's own sends
+            "enable": r"^CAN send failing on virtual:\S+: "}[when]              # the SYNC sender's, counted
+    with rig(startup_timeout=0.5) as (drive, be):
+        with pytest.raises(DeviceConnectionError, match=said + r"CanOperationError: .*Network is down"):
+            with be:
+                be.activate()
+        assert not drive.enabled and drive.applied_torque == 0.0
+
+
+def test_a_socketcan_send_errno_is_explained_with_what_to_check_on_the_bench():
+    from drivers.cia402.bus import bus_error_hint
+
+    assert "sudo ip link set can0 up type can bitrate 500000" in bus_error_hint(errno.ENETDOWN, "socketcan", "can0",
+                                                                                 500000)
+    full = bus_error_hint(errno.ENOBUFS, "socketcan", "can0", 1000000)
+    assert "no node acknowledges" in full and "bitrate other than 1000000" in full and "bus-off" in full
+    assert bus_error_hint(errno.ENOBUFS, "udp_multicast", "239.0.0.1", 1000000) == ""      # not a CAN controller
+    assert bus_error_hint(errno.EIO, "socketcan", "can0", 1000000) == ""
 
 
 def test_the_emulated_faults_main_power_off_and_local_control_are_true_or_false():
