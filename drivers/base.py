@@ -254,6 +254,11 @@ class Backend(ABC):
         has a backlog to read); False for a simulation that makes samples only when read."""
         return True
 
+    def link_trouble(self) -> str:
+        """What was failing on the link to the device when a host-side check stopped the run ("; ..."), or
+        "": a trip can be the first sign of a link that went while the device held its last torque."""
+        return ""
+
     def step_ahead(self, seconds: float) -> None:  # noqa: B027 - optional: a real device needs nothing
         """Called by the loop after each tick with the time to its next deadline: a simulated device
         may produce the samples due by then now, so that read() only hands them out (the sim does,

@@ -185,6 +185,14 @@ class Cia402Backend(Backend):
                                     timed=setup.timed)
         self._hb_time = time.monotonic()
 
+    def link_trouble(self) -> str:
+        s, cfg = self._sender, self.config
+        if s is None or not s.consecutive_errors:
+            return ""
+        return (f"; meanwhile the last {s.consecutive_errors} SYNC cycles failed to send on "
+                f"{cfg.interface}:{cfg.channel} ({s.last_error}): the drive held its last torque up to its "
+                f"RPDO deadline")
+
     @contextlib.contextmanager
     def _bus_errors(self, doing: str) -> Iterator[None]:
         """A python-can error while ``doing``: a one-line :class:`DeviceConnectionError` with what it means."""

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers import make_backend
+from drivers.errors import SafetyTrip
 from rt_ident.axis.modal import modal_parameters
 from rt_ident.compose import preflight
 from rt_ident.compose.build import (
@@ -243,6 +244,8 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
             refused = exc                                # refused before enabling: a one-line error, exit 2
         stop_cause = getattr(exc, "cause", "error")
         stop_message = str(exc) + getattr(exc, "after_stall", "")
+        if isinstance(exc, SafetyTrip):                  # a host-side check: was the link going too?
+            stop_message += "".join(ax.backend.link_trouble() for ax in axes.values())
         stop_fix = getattr(exc, "fix", None)
         if several:
             failed = runner.failed_axis if isinstance(runner, MultiAxisLoop) else None

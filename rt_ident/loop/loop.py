@@ -272,6 +272,7 @@ class IdentificationLoop(TelemetryWindow):
         policy = self.stall_policy
         stats.compiles.start()
         last_read = t0 = self.ticker.start()
+        stats.stalls.origin = t0                # the summary's stall times: seconds into the run
         try:
             for _ in range(n_ticks):
                 if self.stop_event.is_set():
@@ -636,6 +637,8 @@ class MultiAxisLoop:
         policy = self.stall_policy
         stats.compiles.start()
         last_read = t0 = self.ticker.start()
+        for st in [stats] + [ax.stats for ax in axes]:
+            st.stalls.origin = t0               # the summary's stall times: seconds into the run
         try:
             for _ in range(int(round(self.duration * self.tick_hz))):
                 if self.stop_event.is_set():

@@ -62,6 +62,7 @@ class StallLog:
     count: int = 0
     longest_s: float = 0.0
     catch_up_longest_s: float = 0.0     # the longest wait, after a stall, for the device's backlog
+    origin: float = 0.0                 # the loop's start on the clock ``t`` is on (the summary's zero)
 
     def caught_up(self, wait_s: float) -> None:
         self.catch_up_longest_s = max(self.catch_up_longest_s, wait_s)
@@ -84,7 +85,8 @@ class StallLog:
     def as_dict(self) -> dict[str, Any]:
         return {"count": self.count, "longest_ms": self.longest_s * 1e3,
                 "catch_up_longest_ms": self.catch_up_longest_s * 1e3,
-                "events": [{"t": round(t, 4), "ms": round(s * 1e3, 1), "action": a} for t, s, a in self.events[-20:]]}
+                "events": [{"t": round(t - self.origin, 4), "ms": round(s * 1e3, 1), "action": a}
+                           for t, s, a in self.events[-20:]]}
 
 
 __all__ = ["LoopStall", "StallLog", "StallPolicy"]

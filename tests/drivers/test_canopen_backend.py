@@ -524,6 +524,17 @@ def test_a_python_can_send_error_ends_in_one_line_naming_the_step_and_the_drive_
         assert not drive.enabled and drive.applied_torque == 0.0
 
 
+def test_a_canopen_backend_reports_sync_cycles_failing_in_a_row_and_nothing_once_they_send():
+    from types import SimpleNamespace
+
+    be = Cia402Backend(backend_cfg("x"))
+    assert be.link_trouble() == ""                                      # never activated
+    be._sender = SimpleNamespace(consecutive_errors=4, last_error="CanOperationError: Failed to transmit")
+    assert be.link_trouble().startswith("; meanwhile the last 4 SYNC cycles failed to send on virtual:x ")
+    be._sender = SimpleNamespace(consecutive_errors=0, last_error="CanOperationError: Failed to transmit")
+    assert be.link_trouble() == ""
+
+
 def test_a_socketcan_send_errno_is_explained_with_what_to_check_on_the_bench():
     from drivers.cia402.bus import bus_error_hint
 

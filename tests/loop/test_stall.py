@@ -4,6 +4,7 @@ or stops, and says so (rt_ident.loop.stall, rt_ident.control.anchor)."""
 from __future__ import annotations
 
 import re
+import time
 
 import numpy as np
 import pytest
@@ -501,3 +502,29 @@ def test_a_host_stopped_inside_a_read_that_then_raises_counts_the_stall_and_the_
     assert out["stop"].startswith("DeviceFault: node 5 sent EMCY 0x8250"), out["stop"]
     assert out["loop"]["stalls"]["count"] == 1 and out["loop"]["stalls"]["longest_ms"] >= 490, out["loop"]["stalls"]
     assert re.search(r"after a 50\d ms loop stall", out["stop"]), out["stop"]
+
+
+def test_the_summarys_stall_times_are_seconds_into_the_run():
+    from rt_ident.compose.run import run
+
+    def hook(tick: int) -> None:
+        if tick == 300:
+            time.sleep(0.3)                     # the host away for longer than safety.max_stall_s
+
+    s = run(load(None, **{**FAST, "loop.duration": 1.0}), tick_hook=hook)
+    events = s["loop"]["stalls"]["events"]          # a busy host may add stalls of its own
+    assert any(e["ms"] >= 250 for e in events), events
+    assert all(0.0 <= e["t"] <= 5.0 for e in events), events          # not the host's monotonic clock
+
+
+def test_a_host_side_trip_names_what_was_failing_on_the_link_meanwhile(monkeypatch):
+    # a drive whose bus went holds its last torque up to its own deadline: the trip that follows is the
+    # first thing the host sees, and its message says the link was failing too
+    from drivers.sim import SimBackend
+    from rt_ident.compose.run import run
+
+    monkeypatch.setattr(SimBackend, "link_trouble", lambda self: "; meanwhile the link was failing")
+    s = run(load(None, **{**FAST, "loop.duration": 1.0, "safety.max_speed_m_s": 1e-4}))
+    assert s["stop"]["cause"] == "speed-limit"
+    assert s["stop"]["message"].endswith("; meanwhile the link was failing")
+
