@@ -81,6 +81,9 @@ class Cia402Backend(Backend):
         self._plan = TorquePlan()
         self._sender: SyncSender | None = None    # the bus's (shared with the other drives on it)
         self._channel: RpdoChannel | None = None  # this drive's RPDO in the sender's cycle
+        # the outcome of a stop made over the SYNC (what was not confirmed, or None); after it the drive's
+        # RPDO has left the cycle, and its answers can no longer be matched to SYNCs
+        self._sync_stop: tuple[str | None] | None = None
         self._asm: SampleAssembler | None = None
         self.rated_torque = cfg.rated_torque or math.nan
         self._k0 = 0                  # SYNC index of seq 0
@@ -226,6 +229,7 @@ class Cia402Backend(Backend):
         self._plan.hold(0.0)
         channel = RpdoChannel(setup.rpdo_cob, self._plan, self._torque_to_permille, self._deque, p402.CW_SHUTDOWN)
         self._channel = channel
+        self._sync_stop = None
         try:
             # Heartbeats sent before the drive saw NMT start may still be queued (python-can's cyclic
             # sender also sends missed heartbeats in a burst after a stall, e.g. while this process
@@ -387,7 +391,9 @@ class Cia402Backend(Backend):
         self._plan.hold(0.0)
         if sender is None or ch is None:          # never activated: the drive was not enabled by us
             return None
-        if not sender.running:
+        if self._sync_stop is not None and self._sync_stop[0] is None:
+            return None                           # stopped and confirmed before (a failed enable, then the run's stop)
+        if not sender.running or self._sync_stop is not None:
             if self._sdo_disable():
                 return None
             return f"the drive did not acknowledge the disable written by SDO (no SYNC cycle left to send it in); " \
@@ -411,6 +417,7 @@ class Cia402Backend(Backend):
             if self._setup is not None:
                 self._setup.receive_in_thread()     # SDO (close) needs a receiver again
             self._deque.clear()
+            self._sync_stop = (unconfirmed,)
         return unconfirmed
 
     def _on_its_own(self) -> str:

@@ -282,3 +282,23 @@ def test_a_drive_fault_on_either_axis_stops_both_drives(axis, node, restore_sche
     assert s["stop"]["axis"] == axis and f"node {node}" in message
     other = s["emulator"]["node 6" if node == 5 else "node 5"]
     assert other["state"] == "SWITCH ON DISABLED" and other["samples"] > 1000
+
+
+@pytest.mark.xdist_group("realtime")
+@pytest.mark.parametrize("fault", ["local_control", "main_power_off"])
+def test_a_second_drive_that_cannot_enable_beside_an_enabled_one_ends_confirmed_disabled(fault, restore_scheduling):
+    # Y's enable fails while X, enabled, keeps the SYNC running: Y's stop inside its enable takes it out of
+    # the SYNC cycle, and the run's stop after it must not then wait on its unmatched answers ("disable NOT
+    # confirmed" for a drive that was disabled)
+    from rt_ident.config import from_mapping
+
+    data = _xy_canopen(**{"loop.duration": 1.0}).model_dump(exclude={"source"})
+    data["axes"]["y"] = {**data["axes"]["y"], "emulator": {**(data["axes"]["y"].get("emulator") or {}),
+                                                           "faults": {fault: True}},
+                         "backend": {**data["axes"]["y"]["backend"], "startup_timeout": 0.5}}
+    s = run_axes(from_mapping(data))
+    assert s["stop"]["cause"] == "not-ready" and s["stop"]["axis"] == "y", s["stop"]
+    assert not s["stop"].get("disable_unconfirmed"), s["stop"]
+    assert run_mod.exit_code(s) == 3
+    for name, st in s["emulator"].items():
+        assert st["applied_torque"] == 0.0 and not st["enabled"], (name, st)
