@@ -118,15 +118,20 @@ class Cia402Config(BaseModel):
         return kw
 
     def eds_path(self) -> Path:
-        """The EDS file; a relative path that does not exist is looked up in ``configs/``."""
-        p = Path(self.eds)
-        if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p).is_file():
-            p = CONFIG_DIR / p
-        if not p.is_file():
-            raise ConfigError("backend.eds", f"EDS file not found: {self.eds} (looked in {Path.cwd()} and "
-                                             f"{CONFIG_DIR}; a relative path is looked for beside the config file "
-                                             "first)")
-        return p
+        """The EDS file (:func:`find_eds`)."""
+        return find_eds(self.eds, "backend.eds")
+
+
+def find_eds(name: str, key: str) -> Path:
+    """The EDS file ``name``; a relative path that does not exist is looked up in ``configs/`` (the config's
+    own folder came first, when it was loaded). Missing: a :class:`ConfigError` naming ``key``."""
+    p = Path(name)
+    if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p).is_file():
+        p = CONFIG_DIR / p
+    if not p.is_file():
+        raise ConfigError(key, f"EDS file not found: {name} (looked in {Path.cwd()} and {CONFIG_DIR}; a relative "
+                               "path is looked for beside the config file first)")
+    return p
 
 
 @dataclass(frozen=True)

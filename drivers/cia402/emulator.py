@@ -99,19 +99,9 @@ def _sections(config: Any) -> tuple[dict, dict, AxisParams]:
         AxisParams.from_mapping(axis, where="axis") if axis else thomson_x())
 
 
-def _eds_path(name: str, key: str = "emulator.eds") -> Path:
-    p = Path(name)
-    if not p.is_file() and not p.is_absolute() and (CONFIG_DIR / p).is_file():
-        p = CONFIG_DIR / p
-    if not p.is_file():
-        raise ConfigError(key, f"EDS file not found: {name} (looked in {Path.cwd()} and {CONFIG_DIR}; a relative "
-                               "path is looked for beside the config file first)")
-    return p
-
-
 def build_emulator_for(config: Any) -> EmulatedCia402Drive:
     """Construct (not start) the emulated drive a run configuration describes."""
-    from drivers.cia402.config import validate
+    from drivers.cia402.config import find_eds, validate
     from rt_ident.axis.plant import DEFAULT_KD, DEFAULT_KP, HoldController, PlantSimulator, SensorConfig, rest_at
 
     backend, emulator, axis = _sections(config)
@@ -145,7 +135,7 @@ def build_emulator_for(config: Any) -> EmulatedCia402Drive:
                            integrator=emu.integrator, seed=emu.seed, friction=friction,
                            x0=rest_at(emu.x0, axis.lead))
     bus = cfg.bus_kwargs()
-    eds = _eds_path(emu.eds or cfg.eds, "emulator.eds" if emu.eds else "backend.eds")
+    eds = find_eds(emu.eds or cfg.eds, "emulator.eds" if emu.eds else "backend.eds")
     return EmulatedCia402Drive(emu.node_id or cfg.node_id, eds, bus, plant,
                                FaultConfig.from_mapping(emu.faults), counts_per_rev=counts_per_rev,
                                scale_resolution=scale_resolution, scale_index=cfg.scale_index,
