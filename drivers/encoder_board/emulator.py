@@ -137,7 +137,7 @@ class EmulatedBoard:
         self._stuck_counts: int | None = None
         self._decoder = sp.FrameDecoder()
         self._out = bytearray()          # the board's transmit FIFO
-        self._transit = bytearray()      # bytes held up by delay()
+        self._transit = bytearray()      # bytes past the FIFO: held up by delay(), or made in a pause of this loop
         self._delay_until = -math.inf
         self._drop_next = self._corrupt_next = 0
         self._garbage_next = b""
@@ -193,6 +193,7 @@ class EmulatedBoard:
             return {"enabled": self.enabled, "applied_torque": self.applied_torque, "status": self.status,
                     "samples": self._k, "frames_sent": self.frames_sent, "frames_dropped": self.frames_dropped,
                     "frames_corrupted": self.frames_corrupted, "host_frames": self.host_frames,
+                    "tx_overflow_frames": self.tx_overflow_frames, "paused_s": self.paused_s,
                     "queued_bytes": len(self._out) + len(self._transit)}
 
     # ----- one-shot faults -----------------------------------------------------------------
@@ -243,14 +244,15 @@ class EmulatedBoard:
             next_wake = prev = origin
             while not self._stop.is_set():
                 now = self.clock()
-                if now - prev > OWN_PAUSE_BURSTS * self.cfg.burst_period:
+                paused = now - prev > OWN_PAUSE_BURSTS * self.cfg.burst_period
+                if paused:
                     self.paused_s += now - prev
                     self._last_host += now - prev
                 prev = now
                 self._service_host(now)
                 due = int((now - origin) * self.sample_rate_hz) - self._k
                 if due > 0:
-                    self._produce(due)
+                    self._produce(due, sent_meanwhile=paused)
                 self._flush(now)
                 self.cpu_seconds = time.thread_time()
                 next_wake += self.cfg.burst_period
@@ -364,7 +366,9 @@ class EmulatedBoard:
             cmd[:] = 0.0
         return cmd, active
 
-    def _produce(self, n: int) -> None:
+    def _produce(self, n: int, sent_meanwhile: bool = False) -> None:
+        """The next ``n`` samples, encoded and queued. ``sent_meanwhile``: they fell due while this loop was
+        not run, a pause a board with a processor of its own never takes; it would have sent them during it."""
         cmd, plan_active = self._commands(n)
         lim = self.torque_limit
         limited = np.abs(cmd) > lim
@@ -410,7 +414,7 @@ class EmulatedBoard:
             log.warning("emulated board: table outside its travel: disabling")
             self._set_enabled(False)
             self._latched |= sp.ST_FAULT | sp.ST_LIMIT_SWITCH
-        self._emit(raw, n)
+        self._emit(raw, n, sent_meanwhile)
 
     def _faulty(self, frames: np.ndarray) -> tuple[int, bytes]:
         """Drop, corrupt and pad (n, 30) frames; returns (frames sent, bytes)."""
@@ -450,15 +454,16 @@ class EmulatedBoard:
             pieces.append(frames[i].tobytes())
         return m, b"".join(pieces)
 
-    def _emit(self, raw: bytes, n: int) -> None:
-        """Apply the transmit faults to n encoded frames and queue what is sent."""
+    def _emit(self, raw: bytes, n: int, sent_meanwhile: bool = False) -> None:
+        """Apply the transmit faults to n encoded frames and queue what is sent. ``sent_meanwhile``: frames
+        the board would already have sent, now waiting on the host's side, past its FIFO."""
         f = self.faults
         m, data = n, raw
         if (f.drop_probability or f.corrupt_probability or f.garbage_probability or f.silent
                 or self._drop_next or self._corrupt_next or self._garbage_next):
             with self._lock:
                 m, data = self._faulty(np.frombuffer(raw, dtype=np.uint8).reshape(n, sp.DATA_FRAME_SIZE))
-        if self.clock() < self._delay_until:   # delay(): held up in transit (USB, kernel), not the FIFO
+        if sent_meanwhile or self.clock() < self._delay_until:   # delay(): held up in transit, not the FIFO
             if self._out:                      # behind what the FIFO held when the hold began: in order
                 self._transit += self._out
                 self._out.clear()
