@@ -25,6 +25,7 @@ from __future__ import annotations
 import errno
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -42,6 +43,7 @@ log = logging.getLogger(__name__)
 
 _MAX_READ = 1 << 16  # bytes drained per read() at most (~109 ms of frames at 20 kHz)
 _TTY_PIECE = 4095    # bytes a tty read returns at most (Linux N_TTY's 4 KiB buffer, raw mode)
+_REFILL_LOOK_S = 5e-5  # [s] between looks at ``in_waiting`` while the kernel refills the tty's buffer
 
 #: errnos of a tty whose device went away under an open port (EIO, ENXIO, ENODEV)
 _GONE_ERRNOS = (5, 6, 19)
@@ -117,7 +119,7 @@ class SerialBoardBackend(Backend):
         # idempotent; a partial one is garbage the board skips); a board that does not read times out twice.
         for retry in (False, True):
             try:
-                self._ser.write(data)
+                self._write(data)
                 break
             except serial.SerialTimeoutException as exc:
                 if retry:
@@ -128,26 +130,48 @@ class SerialBoardBackend(Backend):
                 raise DeviceConnectionError(f"serial port {self.port!r}: write failed: {exc}{_gone(exc)}") from exc
         self._last_tx = self.clock()
 
-    def _recv(self) -> bytes:
-        """Everything that has arrived. The kernel hands a tty over in pieces of at most its line discipline's
-        buffer (:data:`_TTY_PIECE`) and refills that buffer from its queue a moment after each read, so
-        ``in_waiting`` can read 0 with more queued. A read that found a backlog (a piece's worth or more) goes on
-        with timed reads (``poll_timeout`` each) until one finds nothing: a backlog is drained in one tick, not
-        a piece a tick. A read of less (the board's few frames per tick) pays no wait."""
+    def _write(self, data: bytes) -> None:
+        """``data`` out. pyserial polls the port after every write, and a poll of a tty with no input waits
+        inside the kernel for its tty worker (see :meth:`_recv`): a write the port takes whole is made
+        directly; only one it cannot take waits, for ``write_timeout`` at most, as pyserial waits."""
+        fd = getattr(self._ser, "fd", None)
+        if not isinstance(fd, int):              # not an OS port (a pyserial URL such as loop://)
+            self._ser.write(data)
+            return
         try:
-            data = self._ser.read(self._ser.in_waiting or 1)
-            while data and len(data) < _MAX_READ:
-                more = self._ser.in_waiting
-                if not more and len(data) < _TTY_PIECE:
+            n = os.write(fd, data)
+        except BlockingIOError:
+            n = 0
+        if n < len(data):
+            self._ser.write(data[n:])
+
+    def _recv(self) -> bytes:
+        """Everything that has arrived, without ever waiting inside the kernel.
+
+        Serial input reaches the line discipline through the kernel's tty work, run by an ordinary-priority
+        worker thread; a read or poll finding the line discipline empty waits, uninterruptibly, for pending
+        work to finish, and a real-time loop waits with it, however long a busy CPU holds the worker off. So
+        this reads only what ``in_waiting`` says is there. The line discipline holds at most
+        :data:`_TTY_PIECE` and is refilled a moment after each read: a read that found a backlog (a piece's
+        worth or more) looks again until nothing has come for ``poll_timeout``; a read of less (the board's
+        few frames per tick) pays no wait. With nothing there, it looks for ``poll_timeout`` at most."""
+        ser, data = self._ser, bytearray()
+        quiet_s = self.config.poll_timeout
+        try:
+            until = time.monotonic() + quiet_s
+            while len(data) < _MAX_READ:
+                n = ser.in_waiting
+                if n:
+                    data += ser.read(min(n, _MAX_READ - len(data)))
+                    until = time.monotonic() + quiet_s
+                    continue
+                if (data and len(data) < _TTY_PIECE) or time.monotonic() >= until:
                     break
-                piece = self._ser.read(more or _TTY_PIECE)
-                if not piece:
-                    break
-                data += piece
+                time.sleep(_REFILL_LOOK_S)       # the tty worker may need this CPU to refill the buffer
         except (serial.SerialException, OSError) as exc:
             raise DeviceConnectionError(f"serial port {self.port!r}: read failed: {exc}{_gone(exc)}") from exc
         self.bytes_read += len(data)
-        return data
+        return bytes(data)
 
     def _stop_frames(self) -> bool:
         """Quick stop, zero torque, disable: best effort, never raises. False when they could not be sent."""
