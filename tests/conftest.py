@@ -202,6 +202,17 @@ def emulators(monkeypatch) -> list:
 
 
 @pytest.fixture
+def sighup_default():
+    """SIGHUP at its default action in this process, and so in what it starts, for the test: a suite started
+    under ``nohup`` would otherwise hand its runs SIGHUP ignored, the case in which a run goes on."""
+    import signal
+
+    before = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    yield
+    signal.signal(signal.SIGHUP, before)
+
+
+@pytest.fixture
 def restore_scheduling():
     """``rt_ident.compose.run`` with ``loop.realtime`` makes the calling thread real-time (SCHED_FIFO,
     one CPU, mlockall, GC frozen): undo it after the test."""

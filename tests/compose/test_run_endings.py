@@ -59,7 +59,7 @@ def _wait_group_empty(pgid: int, timeout: float) -> list[int]:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["ctrl-c", "sigterm", "sighup"])
 @pytest.mark.slow
-def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_path, sig):
+def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_path, sig, sighup_default):
     proc, rec, rrd = _start(tmp_path)
     try:
         os.killpg(proc.pid, sig)                 # what a terminal's Ctrl-C / systemd's stop do
@@ -78,7 +78,7 @@ def test_a_signal_to_the_whole_group_records_every_sample_and_exits_cleanly(tmp_
 
 
 @pytest.mark.slow
-def test_a_run_whose_terminal_closes_stops_safely_with_complete_files_and_its_own_exit_code(tmp_path):
+def test_a_run_whose_terminal_closes_stops_safely_with_complete_files_and_its_own_exit_code(tmp_path, sighup_default):
     import pty
 
     rec, rrd = tmp_path / "r.parquet", tmp_path / "r.rrd"

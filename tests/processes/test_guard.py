@@ -169,7 +169,7 @@ def test_a_process_that_exits_without_closing_its_helper_ends_it_instead_of_wait
     assert not Path(f"/proc/{pid}").exists()
 
 
-def test_a_closed_terminals_sighup_stops_the_main_process_but_not_under_nohup():
+def test_a_closed_terminals_sighup_stops_the_main_process_but_not_under_nohup(sighup_default):
     probe = ("import signal, threading; from rt_ident.processes.guard import install_stop_signals, stop_signals; "
              "stop = threading.Event(); install_stop_signals(stop); signal.raise_signal(signal.SIGHUP); "
              "print(signal.SIGHUP in stop_signals(), stop.is_set())")
