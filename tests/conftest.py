@@ -162,6 +162,20 @@ def _nothing_left_in_the_checkouts_runs_folder():
                     "(record=..., recording.enabled = false, or monkeypatch.chdir(tmp_path))", pytrace=False)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _commissioning_ledger_of_the_suite(tmp_path_factory):
+    """Commissioning verdicts the tests write (and every process they start) go to the suite's own folder,
+    never to the host's ledger (``~/.local/state/rt_ident``, or ``$RT_IDENT_STATE_DIR``), which a real run
+    on this host reads before it enables a device. A test that needs its own sets its own."""
+    before = os.environ.get("RT_IDENT_STATE_DIR")
+    os.environ["RT_IDENT_STATE_DIR"] = str(tmp_path_factory.mktemp("commissioning-ledger"))
+    yield
+    if before is None:
+        os.environ.pop("RT_IDENT_STATE_DIR", None)
+    else:
+        os.environ["RT_IDENT_STATE_DIR"] = before
+
+
 @pytest.fixture(scope="session")
 def made_once(tmp_path_factory, worker_id) -> Callable[[str, Callable[[Path], None]], Path]:
     """``made_once(name, make)``: a folder ``make(folder)`` fills, made by the first xdist worker that asks (under a
