@@ -333,10 +333,12 @@ class SerialBoardBackend(Backend):
             if now - self._last_frame > cfg.read_timeout:
                 # whose silence: the host's (it had not read for most of the timeout: a busy host; the
                 # frames would be in the buffer had the board sent them, so the board was silent too,
-                # but the host cannot tell how long) or the board's (the host kept reading)
+                # but the host cannot tell how long) or, the host reading on, the board's - or the kernel's
+                # tty worker's, which the host does not wait for (_recv) and cannot see
                 gap = now - prev_read
                 who = (f"the host itself had not read for {gap:.3f} s: a busy host" if gap > 0.5 * cfg.read_timeout
-                       else f"the host kept reading (last read {1e3 * gap:.1f} ms before): the board sent nothing")
+                       else f"the host kept reading (last read {1e3 * gap:.1f} ms before): the board sent nothing, "
+                            "or this host's kernel held its bytes back (a CPU too busy for its tty worker)")
                 raise self._fail(DeviceTimeout(f"serial port {self.port!r}: no valid frame for "
                                                f"{now - self._last_frame:.3f} s (read_timeout={cfg.read_timeout}); "
                                                + who))
