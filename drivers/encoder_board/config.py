@@ -45,7 +45,7 @@ class SerialBoardConfig(BaseModel):
     read_timeout: float = Field(0.05, gt=0)     # [s] without a valid frame -> DeviceTimeout
     startup_timeout: float = Field(1.0, gt=0)   # [s] for the first frame (open) / enable ack
     info_timeout: float = Field(0.1, gt=0)      # [s] for the INFO answer at open (none: identity not available)
-    poll_timeout: float = Field(0.0002, ge=0)   # [s] a read() waits at most this for a first byte
+    poll_timeout: float = Field(0.0002, ge=0)   # [s] a read() looks this long for a first byte / behind a backlog
     write_timeout: float = Field(0.05, gt=0)    # [s] per write before DeviceTimeout
     heartbeat_period: float = Field(0.02, gt=0)  # [s] heartbeat if nothing else was sent
     stop_timeout: float = Field(0.1, ge=0)      # [s] safe_stop waits this long for the disable ack
