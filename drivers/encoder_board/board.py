@@ -135,8 +135,8 @@ class SerialBoardBackend(Backend):
         inside the kernel for its tty worker (see :meth:`_recv`): a write the port takes whole is made
         directly; only one it cannot take waits, for ``write_timeout`` at most, as pyserial waits."""
         fd = getattr(self._ser, "fd", None)
-        if not isinstance(fd, int):              # not an OS port (a pyserial URL such as loop://)
-            self._ser.write(data)
+        if not isinstance(fd, int) or os.get_blocking(fd):   # a pyserial URL (loop://...), or a port class
+            self._ser.write(data)                              # whose descriptor blocks: its own write
             return
         try:
             n = os.write(fd, data)
