@@ -28,6 +28,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -47,6 +48,25 @@ _REFILL_LOOK_S = 5e-5  # [s] between looks at ``in_waiting`` while the kernel re
 
 #: errnos of a tty whose device went away under an open port (EIO, ENXIO, ENODEV)
 _GONE_ERRNOS = (5, 6, 19)
+
+
+#: where Linux lists USB serial converters (FTDI, CP210x, ...), each with its latency timer [ms]
+USB_SERIAL_SYSFS = Path("/sys/bus/usb-serial/devices")
+
+
+def usb_latency_note(port: str, sysfs: Path | None = None) -> str | None:
+    """A USB serial converter hands received bytes over only when its buffer fills or its latency timer runs out
+    (16 ms by default for FTDI chips): a 1 kHz loop then reads in bursts that far apart and runs its control on
+    samples that old. The warning naming the fix, or None (a timer of 1 ms, a CDC-ACM board, not a converter)."""
+    timer = (sysfs or USB_SERIAL_SYSFS) / Path(os.path.realpath(port)).name / "latency_timer"
+    try:
+        ms = int(timer.read_text().strip())
+    except (OSError, ValueError):
+        return None
+    if ms <= 1:
+        return None
+    return (f"serial port {port!r} is a USB serial converter that holds received bytes up to {ms} ms (its latency "
+            f"timer): the loop reads the board in {ms} ms bursts; set it to 1 ms: echo 1 | sudo tee {timer}")
 
 
 def _gone(exc: BaseException) -> str:
@@ -273,6 +293,9 @@ class SerialBoardBackend(Backend):
             elif "Inappropriate ioctl" in str(exc):
                 hint = " (not a serial device: backend.port names the board's tty, e.g. /dev/ttyACM0)"
             raise DeviceConnectionError(f"cannot open serial port {self.port!r}: {exc}{hint}") from exc
+        note = usb_latency_note(self.port or "") if ecfg is None else None
+        if note:
+            log.warning("%s", note)
         try:
             self._send(sp.encode_disable())          # a known, de-energized state
             got = self._wait_for(lambda _s: 0, cfg.startup_timeout)

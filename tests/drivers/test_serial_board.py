@@ -151,6 +151,40 @@ def test_a_port_without_permission_raises_device_connection_error_with_a_hint(mo
     assert be.state.value == "created"      # nothing opened, nothing to stop
 
 
+@pytest.mark.parametrize("timer, warned", [("16\n", True), ("1\n", False), (None, False)],
+                         ids=["ftdi-default", "set-to-1", "cdc-acm"])
+def test_a_usb_serial_converter_holding_bytes_longer_than_a_tick_is_named_with_its_fix(tmp_path, timer, warned):
+    from drivers.encoder_board.board import usb_latency_note
+
+    dev = tmp_path / "dev" / "ttyUSB0"
+    dev.parent.mkdir()
+    dev.touch()
+    by_id = tmp_path / "usb-FTDI_FT232R-if00-port0"
+    by_id.symlink_to(dev)                              # as /dev/serial/by-id names it
+    if timer is not None:
+        (tmp_path / "sys" / "ttyUSB0").mkdir(parents=True)
+        (tmp_path / "sys" / "ttyUSB0" / "latency_timer").write_text(timer)
+    note = usb_latency_note(str(by_id), tmp_path / "sys")
+    assert (note is not None) == warned
+    if warned:
+        assert "16 ms" in note and f"echo 1 | sudo tee {tmp_path / 'sys' / 'ttyUSB0' / 'latency_timer'}" in note
+
+
+def test_opening_a_board_behind_a_slow_usb_converter_warns_once(tmp_path, monkeypatch, caplog):
+    from drivers.encoder_board import board as board_mod
+
+    with start_emulator_for({}) as emulated:
+        name = Path(os.path.realpath(emulated.port)).name
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "latency_timer").write_text("16\n")
+        monkeypatch.setattr(board_mod, "USB_SERIAL_SYSFS", tmp_path)
+        with caplog.at_level("WARNING", logger="drivers.encoder_board.board"):
+            with SerialBoardBackend({"port": emulated.port, "startup_timeout": 5.0}):
+                pass
+    warned = [r.getMessage() for r in caplog.records if "latency timer" in r.getMessage()]
+    assert len(warned) == 1 and "16 ms" in warned[0], warned
+
+
 def test_a_port_with_no_board_behind_it_times_out_at_open():
     master, slave = os.openpty()
     tty.setraw(slave)
