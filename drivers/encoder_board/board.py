@@ -287,6 +287,10 @@ class SerialBoardBackend(Backend):
                 hint = " (no permission: add your user to the group that owns the port, e.g. dialout, and log in again)"
             elif getattr(exc, "errno", None) == 2 or "No such file" in str(exc):
                 hint = " (no such device: is the board plugged in? backend.port names it, e.g. /dev/ttyACM0)"
+            elif getattr(exc, "errno", None) == errno.EBUSY or "Device or resource busy" in str(exc):
+                hint = (" (busy: another program opened it for itself alone; on a desktop Linux often ModemManager "
+                        "probing a newly plugged /dev/ttyACM board for a few seconds: try again, or keep it off "
+                        "with a udev rule setting ENV{ID_MM_DEVICE_IGNORE}=\"1\" for the board)")
             elif getattr(exc, "errno", None) == errno.EAGAIN or "exclusively lock" in str(exc):
                 hint = (f" (in use: {holder(self.port or '') or 'another program'} has the port: let it end first; "
                         "two programs on one board would each send it torque)")

@@ -151,6 +151,19 @@ def test_a_port_without_permission_raises_device_connection_error_with_a_hint(mo
     assert be.state.value == "created"      # nothing opened, nothing to stop
 
 
+def test_a_port_another_program_holds_exclusively_names_the_usual_holder_and_its_fix(monkeypatch):
+    import serial
+
+    def busy(url, **kwargs):
+        raise serial.SerialException(16, f"could not open port {url}: [Errno 16] Device or resource busy: {url!r}")
+
+    monkeypatch.setattr(serial, "serial_for_url", busy)
+    be = SerialBoardBackend({"port": "/dev/ttyACM0"})
+    with pytest.raises(DeviceConnectionError, match="ttyACM0.*busy.*ModemManager.*ID_MM_DEVICE_IGNORE"):
+        be.open()
+    assert be.state.value == "created"
+
+
 @pytest.mark.parametrize("timer, warned", [("16\n", True), ("1\n", False), (None, False)],
                          ids=["ftdi-default", "set-to-1", "cdc-acm"])
 def test_a_usb_serial_converter_holding_bytes_longer_than_a_tick_is_named_with_its_fix(tmp_path, timer, warned):
