@@ -138,30 +138,22 @@ def test_a_port_that_is_no_tty_raises_device_connection_error_naming_the_setting
         be.open()
 
 
-def test_a_port_without_permission_raises_device_connection_error_with_a_hint(monkeypatch):
+@pytest.mark.parametrize("code, text, match", [
+    (13, "Permission denied", "Permission denied.*dialout"),
+    (16, "Device or resource busy", "busy.*ModemManager.*ID_MM_DEVICE_IGNORE"),     # held with TIOCEXCL
+], ids=["no-permission", "held-exclusively"])
+def test_a_port_the_os_refuses_raises_device_connection_error_naming_the_usual_cause_and_fix(monkeypatch, code, text,
+                                                                                              match):
     import serial
 
     def refuse(url, **kwargs):
-        raise serial.SerialException(13, f"could not open port {url}: [Errno 13] Permission denied: {url!r}")
+        raise serial.SerialException(code, f"could not open port {url}: [Errno {code}] {text}: {url!r}")
 
     monkeypatch.setattr(serial, "serial_for_url", refuse)
     be = SerialBoardBackend({"port": "/dev/ttyACM7"})
-    with pytest.raises(DeviceConnectionError, match="ttyACM7.*Permission denied.*dialout"):
+    with pytest.raises(DeviceConnectionError, match="ttyACM7.*" + match):
         be.open()
     assert be.state.value == "created"      # nothing opened, nothing to stop
-
-
-def test_a_port_another_program_holds_exclusively_names_the_usual_holder_and_its_fix(monkeypatch):
-    import serial
-
-    def busy(url, **kwargs):
-        raise serial.SerialException(16, f"could not open port {url}: [Errno 16] Device or resource busy: {url!r}")
-
-    monkeypatch.setattr(serial, "serial_for_url", busy)
-    be = SerialBoardBackend({"port": "/dev/ttyACM0"})
-    with pytest.raises(DeviceConnectionError, match="ttyACM0.*busy.*ModemManager.*ID_MM_DEVICE_IGNORE"):
-        be.open()
-    assert be.state.value == "created"
 
 
 @pytest.mark.parametrize("timer, warned", [("16\n", True), ("1\n", False), (None, False)],
