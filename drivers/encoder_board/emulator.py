@@ -149,6 +149,8 @@ class EmulatedBoard:
         self.garbage_sent = self.tx_overflow_frames = self.host_frames = 0
         self.plan_late_samples = self.ignored_commands = 0
         self.tx_buffer = c.tx_buffer     # bytes the board queues before dropping whole frames
+        self.tx_refused_longest_s = 0.0  # longest time the pty took no byte of what the board had to send
+        self._refused_since: float | None = None
         self.cpu_seconds = 0.0           # CPU time used by the board thread (emulation cost)
 
     # ----- lifecycle ---------------------------------------------------------------------
@@ -194,6 +196,8 @@ class EmulatedBoard:
                     "samples": self._k, "frames_sent": self.frames_sent, "frames_dropped": self.frames_dropped,
                     "frames_corrupted": self.frames_corrupted, "host_frames": self.host_frames,
                     "tx_overflow_frames": self.tx_overflow_frames, "paused_s": self.paused_s,
+                    "tx_refused_longest_s": max(self.tx_refused_longest_s, 0.0 if self._refused_since is None
+                                                else self.clock() - self._refused_since),
                     "queued_bytes": len(self._out) + len(self._transit)}
 
     # ----- one-shot faults -----------------------------------------------------------------
@@ -486,13 +490,26 @@ class EmulatedBoard:
             try:
                 written = os.write(self._master, buf)
             except (BlockingIOError, InterruptedError):
-                return
+                written = 0
             except OSError:
                 log.debug("emulated board: write failed", exc_info=True)
                 return
+            self._note_refusal(now, written == 0)
             del buf[:written]
             if buf:
                 return
+        self._note_refusal(now, False)
+
+    def _note_refusal(self, now: float, refused: bool) -> None:
+        """Times the pseudo-terminal took no byte while the board, enabled, had some to send: the host's side of
+        it full (the host not reading, or its kernel's tty worker not moving bytes) - ``tx_refused_longest_s``.
+        Not counted while disabled: before its run and after it, a host need not read."""
+        if refused and self.enabled:
+            if self._refused_since is None:
+                self._refused_since = now
+        elif self._refused_since is not None:
+            self.tx_refused_longest_s = max(self.tx_refused_longest_s, now - self._refused_since)
+            self._refused_since = None
 
 
 def start_emulator_for(config: Any) -> EmulatedBoard:

@@ -678,10 +678,14 @@ def test_a_real_time_loop_at_100_hz_reads_a_20_khz_board_without_losing_samples(
         loop, stop = s["loop"], s["stop"]
         if stop["cause"] is None and loop["lost_samples"] <= 0.01 * loop["samples"]:
             return
-        # a loop stalled longer than the board's FIFO holds loses samples on any board: the host's doing
+        # the host's doing, on any board: a loop stalled longer than the board's FIFO holds, or a kernel that
+        # moved no byte from the board for that long while the loop read on (its tty worker starved)
+        refused_ms = 1e3 * float((s.get("emulator") or {}).get("tx_refused_longest_s") or 0.0)
         why = host_made_end(stop) if stop["cause"] else (
             f"{loop['lost_samples']} samples lost after a {loop['stalls']['longest_ms']:.0f} ms loop stall"
-            if loop["stalls"]["longest_ms"] >= fifo_ms else None)
+            if loop["stalls"]["longest_ms"] >= fifo_ms else
+            f"{loop['lost_samples']} samples lost while the host's kernel took no byte from the board for "
+            f"{refused_ms:.0f} ms" if refused_ms >= fifo_ms else None)
         assert why, (stop, loop, s.get("emulator"))
         host.append(why)
     pytest.skip(f"the host ended or stalled all 3 runs: {host}")
