@@ -62,8 +62,13 @@ def _board_text() -> str:
     """serial-virtual.toml as these tests run it: not real-time, and the link's and the board's watches widened (a
     busy host), as in the other rigs: the subject is the unit on record, not the link."""
     text = (ROOT / "configs" / "serial-virtual.toml").read_text().replace("realtime = true", "realtime = false")
-    return text.replace("read_timeout = 0.05 ", "read_timeout = 0.5  ").replace("heartbeat_timeout = 0.1\n",
-                                                                                 "heartbeat_timeout = 1.0\n")
+    for shipped, wide in [("read_timeout = 0.05 ", "read_timeout = 1.0\nwrite_timeout = 1.0\ninfo_timeout = 1.0 "),
+                          ("startup_timeout = 1.0 ", "startup_timeout = 5.0 "),
+                          ("heartbeat_timeout = 0.1\n", "heartbeat_timeout = 1.0\n"),
+                          ("watchdog_ticks = 20\n", "watchdog_ticks = 1000\n")]:
+        assert shipped in text, shipped
+        text = text.replace(shipped, wide, 1)
+    return text
 
 
 def _board_run(tmp_path: Path, serial: int, *args: str) -> subprocess.CompletedProcess:
@@ -78,7 +83,7 @@ def _board_run(tmp_path: Path, serial: int, *args: str) -> subprocess.CompletedP
 def test_a_board_swapped_for_another_unit_is_not_run_as_commissioned(tmp_path):
     ledger.record(config.from_mapping(tomllib.loads(_board_text())), {"verdict": "pass", "identity": BOARD_1})
     same = _board_run(tmp_path, 1, "--require-commissioned")
-    assert same.returncode == 0, same.stderr[-2000:]
+    assert same.returncode == 0, (same.stderr[-2000:], same.stdout[-3000:])
     assert json.loads(same.stdout)["commissioning"]["verdict"] == "pass"
     files = sorted((tmp_path / "runs").iterdir())
     swapped = _board_run(tmp_path, 2, "--require-commissioned")
