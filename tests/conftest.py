@@ -167,13 +167,9 @@ def _commissioning_ledger_of_the_suite(tmp_path_factory):
     """Commissioning verdicts the tests write (and every process they start) go to the suite's own folder,
     never to the host's ledger (``~/.local/state/rt_ident``, or ``$RT_IDENT_STATE_DIR``), which a real run
     on this host reads before it enables a device. A test that needs its own sets its own."""
-    before = os.environ.get("RT_IDENT_STATE_DIR")
-    os.environ["RT_IDENT_STATE_DIR"] = str(tmp_path_factory.mktemp("commissioning-ledger"))
-    yield
-    if before is None:
-        os.environ.pop("RT_IDENT_STATE_DIR", None)
-    else:
-        os.environ["RT_IDENT_STATE_DIR"] = before
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("RT_IDENT_STATE_DIR", str(tmp_path_factory.mktemp("commissioning-ledger")))
+        yield
 
 
 @pytest.fixture(scope="session")

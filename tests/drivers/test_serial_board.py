@@ -14,6 +14,7 @@ import serial
 from drivers import make_backend
 from drivers.encoder_board import protocol as sp
 from drivers.encoder_board.board import SerialBoardBackend
+from drivers.encoder_board.config import EmulatorConfig
 from drivers.encoder_board.emulator import EmulatedBoard, start_emulator_for
 from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
 from rt_ident.axis.params import thomson_x
@@ -671,7 +672,7 @@ def test_a_real_time_loop_at_100_hz_reads_a_20_khz_board_without_losing_samples(
                **{"loop.tick_hz": 100, "loop.duration": 2.0, "loop.realtime": True, "telemetry.sink": "off",
                   "recording.enabled": False, "backend.read_timeout": 0.5, "emulator.heartbeat_timeout": 1.0,
                   "control.mode": "off", "emulator.hold": True})
-    fifo_ms = 1e3 * 65536 / (sp.DATA_FRAME_SIZE * cfg.backend.sample_rate_hz)   # the board's FIFO, in time
+    fifo_ms = 1e3 * EmulatorConfig().tx_buffer / (sp.DATA_FRAME_SIZE * cfg.backend.sample_rate_hz)  # in time
     host = []
     for _ in range(3):
         s = run(cfg)
@@ -681,11 +682,14 @@ def test_a_real_time_loop_at_100_hz_reads_a_20_khz_board_without_losing_samples(
         # the host's doing, on any board: a loop stalled longer than the board's FIFO holds, or a kernel that
         # moved no byte from the board for that long while the loop read on (its tty worker starved)
         refused_ms = 1e3 * float((s.get("emulator") or {}).get("tx_refused_longest_s") or 0.0)
-        why = host_made_end(stop) if stop["cause"] else (
-            f"{loop['lost_samples']} samples lost after a {loop['stalls']['longest_ms']:.0f} ms loop stall"
-            if loop["stalls"]["longest_ms"] >= fifo_ms else
-            f"{loop['lost_samples']} samples lost while the host's kernel took no byte from the board for "
-            f"{refused_ms:.0f} ms" if refused_ms >= fifo_ms else None)
+        why = None
+        if stop["cause"]:
+            why = host_made_end(stop)
+        elif loop["stalls"]["longest_ms"] >= fifo_ms:
+            why = f"{loop['lost_samples']} samples lost after a {loop['stalls']['longest_ms']:.0f} ms loop stall"
+        elif refused_ms >= fifo_ms:
+            why = (f"{loop['lost_samples']} samples lost while the host's kernel took no byte from the board for "
+                   f"{refused_ms:.0f} ms")
         assert why, (stop, loop, s.get("emulator"))
         host.append(why)
     pytest.skip(f"the host ended or stalled all 3 runs: {host}")
