@@ -95,6 +95,7 @@ class SerialBoardBackend(Backend):
         self.emulator: Any = None
         self.port: str | None = cfg.port
         self._ser: Any = None
+        self._direct: tuple[Any, int | None] = (None, None)   # (port, its descriptor for direct writes)
         self._decoder = sp.FrameDecoder()
         self._unwrap = sp.StreamUnwrapper()
         self._pending = np.empty(0, dtype=sp.DATA_DTYPE)
@@ -154,16 +155,20 @@ class SerialBoardBackend(Backend):
         """``data`` out. pyserial polls the port after every write, and a poll of a tty with no input waits
         inside the kernel for its tty worker (see :meth:`_recv`): a write the port takes whole is made
         directly; only one it cannot take waits, for ``write_timeout`` at most, as pyserial waits."""
-        fd = getattr(self._ser, "fd", None)
-        if not isinstance(fd, int) or os.get_blocking(fd):   # a pyserial URL (loop://...), or a port class
-            self._ser.write(data)                              # whose descriptor blocks: its own write
+        ser = self._ser
+        if self._direct[0] is not ser:           # once per port: a pyserial URL (loop://...) has no descriptor,
+            fd = getattr(ser, "fd", None)        # and a port class whose descriptor blocks keeps its own write
+            self._direct = (ser, fd if isinstance(fd, int) and not os.get_blocking(fd) else None)
+        fd = self._direct[1]
+        if fd is None:
+            ser.write(data)
             return
         try:
             n = os.write(fd, data)
         except BlockingIOError:
             n = 0
         if n < len(data):
-            self._ser.write(data[n:])
+            ser.write(data[n:])
 
     def _recv(self) -> bytes:
         """Everything that has arrived, without ever waiting inside the kernel.
