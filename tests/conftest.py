@@ -44,9 +44,9 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
-    """With xdist workers and a cold kernel cache (a fresh clone): before the workers start, one short run
-    and the tick kernel's compile, side by side, fill numba's cache (beside the package) with the loop's
-    kernels. Otherwise every worker, and the helper processes of their first runs, compile them at once."""
+    """With xdist workers and a cold kernel cache (a fresh clone): before the workers start, one short run,
+    the tick kernel's compile and the offline kernels' compile, side by side, fill numba's cache (beside the
+    package). Otherwise every worker, and the helper processes of their first runs, compile them at once."""
     config = session.config
     if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
         return
@@ -67,6 +67,9 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     kernel = subprocess.Popen([sys.executable, "-c", "from rt_ident.loop.tick_kernel import compiled_kernel as k; k(); "
                                "from rt_ident.loop.idle_poll import IdlePoller; IdlePoller(0).prepare()"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # the kernels no run of the loop compiles (integrators, RLS, friction), which tests in every worker use
+    rest = subprocess.Popen([sys.executable, "-c", _OFFLINE_KERNELS], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
     run = ("import sys; from rt_ident.config import load; from rt_ident.compose.run import run, exit_code; "
            "s = run(load(sys.argv[1], **{'loop.duration': 0.3, 'loop.realtime': False, 'loop.compiled_tick': False}),"
            " sink='off'); sys.exit(exit_code(s))")
@@ -74,10 +77,31 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         r = subprocess.run([sys.executable, "-c", run, os.path.join(root, "configs", "sim.toml")],
                            cwd=tmp, capture_output=True, text=True, timeout=600)
     k_err = kernel.communicate(timeout=600)[1]
+    rest_err = rest.communicate(timeout=600)[1]
     _wait_for(rewrite)
-    for what, code, err in (("run", r.returncode, r.stderr), ("tick kernel's compile", kernel.returncode, k_err)):
+    for what, code, err in (("run", r.returncode, r.stderr), ("tick kernel's compile", kernel.returncode, k_err),
+                            ("offline kernels' compile", rest.returncode, rest_err)):
         if code != 0:       # the tests that run the loop say why; this only fills a cache
             print(f"conftest: the cache-filling {what} exited {code}: {err.strip()[-300:]}", file=sys.stderr)
+
+
+# Compiles (fills numba's cache with) the kernels of the offline paths: the five integrators, RLS in the shapes
+# the tests use, the friction plant and the per-sample friction estimator.
+_OFFLINE_KERNELS = """
+import numpy as np
+from rt_ident.axis.friction import Friction
+from rt_ident.axis.integrators import INTEGRATORS, get_integrator
+from rt_ident.axis.params import thomson_x
+from rt_ident.axis.plant import PlantSimulator
+from rt_ident.estimators.friction_stream import RecursiveFrictionEstimator
+from rt_ident.estimators.rls import warmup
+p = thomson_x()
+for name in INTEGRATORS:
+    get_integrator(name).simulate(p, np.zeros(16), 1e-3)
+warmup(((5, 4), (3, 1)))
+PlantSimulator(p, 1e-3, friction=Friction(Fc1=0.01)).step_block(np.zeros(8))
+RecursiveFrictionEstimator(1e-4).update_block(np.zeros(64), np.zeros(64), np.zeros(64))
+"""
 
 
 def _rewrite_tests_once(root: str):
