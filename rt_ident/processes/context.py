@@ -20,6 +20,7 @@ instead (the default where the platform has no forkserver).
 
 from __future__ import annotations
 
+import _thread
 import atexit
 import multiprocessing as mp
 import multiprocessing.util  # noqa: F401 - its exit handler is registered before this module's (below)
@@ -27,8 +28,12 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import Future
 from multiprocessing.context import ForkServerContext, SpawnContext
-from typing import Any
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 #: modules the forkserver imports once (one missing is skipped by multiprocessing). Not rerun nor pyarrow:
 #: they start threads at import (tokio's workers, jemalloc's), and a process with threads must not fork. Nor
@@ -162,10 +167,31 @@ def _ensure_forkserver(ctx: ForkServerContext) -> None:
                 os.environ.pop(k, None)
 
 
+def beside_the_loop(fn: Callable[[], T]) -> Future[T]:
+    """``fn()`` on a thread of its own at SCHED_OTHER on every CPU, for work the loop's tick must not wait
+    for (a helper's restart: the kill, new shared memory, the fork, each waiting on other processes that
+    a busy host may not run for a long time). The thread does not inherit the loop's CPU or priority. The
+    future holds what ``fn`` returned or raised."""
+    fut: Future[T] = Future()
+
+    def run() -> None:
+        _ordinary_scheduling()
+        fut.set_running_or_notify_cancel()
+        try:
+            fut.set_result(fn())
+        except BaseException as exc:  # noqa: BLE001 - handed to whoever takes the result
+            fut.set_exception(exc)
+
+    # not threading.Thread.start(), which waits until the new thread runs: on the loop's CPU that is a few ms
+    _thread.start_new_thread(run, ())
+    return fut
+
+
 def _ordinary_scheduling() -> tuple | None:
-    """The calling thread on every CPU at SCHED_OTHER while it starts the forkserver (which inherits both and
-    passes them to every helper): a loop thread on its own CPU at SCHED_FIFO would otherwise start the
-    helpers and emulated devices of every later run there. Returns what to restore."""
+    """The calling thread on every CPU at SCHED_OTHER (a thread beside the loop; or while it starts the
+    forkserver, which inherits both and passes them to every helper: a loop thread on its own CPU at
+    SCHED_FIFO would otherwise start the helpers and emulated devices of every later run there). Returns
+    what to restore."""
     try:
         saved = (os.sched_getscheduler(0), os.sched_getparam(0), os.sched_getaffinity(0))
     except (AttributeError, OSError):
@@ -191,4 +217,4 @@ def _restore_scheduling(saved: tuple | None) -> None:
         pass
 
 
-__all__ = ["PRELOAD", "Prestart", "end_forkserver", "helper_context", "prestart", "start_method"]
+__all__ = ["PRELOAD", "Prestart", "beside_the_loop", "end_forkserver", "helper_context", "prestart", "start_method"]

@@ -287,6 +287,7 @@ class HelperWatch:
             st = self.status[name]
             if not st["alive"]:
                 continue
+            st["pid"] = getattr(h, "pid", None)      # a restarted helper's, once its new process is in
             if not h.alive:
                 code = h.exitcode
                 st["deaths"] += 1
@@ -310,8 +311,7 @@ class HelperWatch:
         if name in self.restartable and st["restarts"] < self.max_restarts:
             st["restarts"] += 1
             h.restart()
-            st["pid"] = getattr(h, "pid", None)
-            _log.error("helper %s %s; restarted it (pid %s)", name, what, st["pid"])
+            _log.error("helper %s %s; restarting it (the old pid %s)", name, what, st["pid"])
         else:
             if alive:
                 st["hung"] = True                    # left as it is: reported, not timed again
@@ -324,6 +324,7 @@ class HelperWatch:
         for name, h in self.helpers.items():
             st = self.status[name]
             st["alive"] = st["alive"] and bool(h.alive)
+            st["pid"] = getattr(h, "pid", None)
             if hasattr(h, "fits") and st["restarts"]:
                 st["results_since_restart"] = h.fits - h.fits_at_restart
         self._frozen = True

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -18,13 +19,14 @@ from typing import Any
 import numpy as np
 
 from rt_ident.estimators.streaming import fit_snapshot
-from rt_ident.processes.context import helper_context
+from rt_ident.processes.context import beside_the_loop, helper_context
 from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, RingReused
 
 log = logging.getLogger(__name__)
 
 _WORKER_POLL_S = 0.002  # fit process: sleep between polls of an empty inbox
+_RESTART_WAIT_S = 10.0  # close: how long a restart under way is waited for
 
 
 def _job_main(job: Callable[[Any], Any], inbox: MessageRing, outbox: MessageRing, min_interval: float,
@@ -117,7 +119,8 @@ class JobProcess:
     ring_bytes: int = 4 << 20       # per direction; a snapshot is a few kB
 
     def __post_init__(self) -> None:
-        self._make()
+        self._in, self._out, self._proc = self._parts()
+        self._replacing: Future[tuple[MessageRing, MessageRing, Any]] | None = None    # restart() under way
         self.skipped = 0
         self.generation = 0             # restarts so far: a request sent to an earlier process gets no answer
         self._was_ready = False         # this process has said it is ready at least once (its imports are done)
@@ -126,13 +129,14 @@ class JobProcess:
         self.errors = 0
         self.last_error: str | None = None
 
-    def _make(self) -> None:
+    def _parts(self) -> tuple[MessageRing, MessageRing, Any]:
+        """New rings (in, out) and the process that will serve them, not started."""
         ctx = helper_context()
-        self._in = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
-        self._out = MessageRing(self.ring_bytes, ctx=ctx)
-        self._proc = ctx.Process(target=_job_process, args=(self.job, self._in, self._out, self.min_interval,
-                                                                 self.view_interval),
-                                 name=self.name, daemon=True)
+        inbox = MessageRing(self.ring_bytes, max_messages=1, ctx=ctx)
+        outbox = MessageRing(self.ring_bytes, ctx=ctx)
+        proc = ctx.Process(target=_job_process, args=(self.job, inbox, outbox, self.min_interval, self.view_interval),
+                           name=self.name, daemon=True)
+        return inbox, outbox, proc
 
     def start(self) -> JobProcess:
         start_ignoring_signals(self._proc)
@@ -140,21 +144,54 @@ class JobProcess:
 
     @property
     def alive(self) -> bool:
-        return self._proc.is_alive()
+        """The process lives, or its replacement is under way."""
+        return not self._current() or self._proc.is_alive()
 
     @property
     def exitcode(self) -> int | None:
         return self._proc.exitcode
 
     def restart(self) -> JobProcess:
-        """A new job process (and rings) in place of a dead or hung one; results in flight are lost. A live
-        one is killed at once (it ignores SIGTERM, and the loop's tick is waiting)."""
-        end_helper(self._proc, term_wait_s=0.0)
-        self._make()
+        """A new job process (and rings) in place of a dead or hung one; results in flight are lost. Returns
+        at once: the old process is killed (it ignores SIGTERM) and the new one made and started beside the
+        loop (:func:`~rt_ident.processes.context.beside_the_loop`); until it is in, the job is busy
+        (``submit`` skips, ``poll`` has nothing)."""
+        if self._replacing is not None:
+            return self
+        old = self._proc
         self._was_ready = False
         self.generation += 1
         self.fits_at_restart = self.fits
-        return self.start()
+        self._replacing = beside_the_loop(lambda: self._replacement(old))
+        return self
+
+    def _replacement(self, old: Any) -> tuple[MessageRing, MessageRing, Any]:
+        end_helper(old, term_wait_s=0.0)
+        parts = self._parts()
+        start_ignoring_signals(parts[2])
+        return parts
+
+    def _current(self, wait_s: float = 0.0) -> bool:
+        """True once no restart is under way (waiting up to ``wait_s`` for one): a finished one's rings and
+        process are taken in here, on the caller's thread. One that failed leaves the killed process in
+        place, to be found dead."""
+        fut = self._replacing
+        if fut is None:
+            return True
+        try:
+            parts = fut.result(timeout=wait_s) if wait_s > 0 else (fut.result() if fut.done() else None)
+        except TimeoutError:
+            return False
+        except Exception as exc:  # noqa: BLE001 - said, and the process is then found dead
+            log.error("%s: restart failed: %s", self.name, exc)
+            parts = None
+        else:
+            if parts is None:
+                return False
+        self._replacing = None
+        if parts is not None:
+            self._in, self._out, self._proc = parts
+        return True
 
     def wait_ready(self, timeout: float = 30.0) -> bool:
         """Block (before the loop starts) until the job process has imported everything and waits for
@@ -163,6 +200,8 @@ class JobProcess:
         import time
 
         end = time.monotonic() + timeout
+        if not self._current(timeout):
+            return False
         while time.monotonic() < end:
             if self._in.flag:
                 return True
@@ -173,12 +212,14 @@ class JobProcess:
 
     @property
     def pid(self) -> int | None:
+        """The process's pid (the old one's while a restart is under way)."""
+        self._current()
         return self._proc.pid
 
     @property
     def ready(self) -> bool:
         """True when the job process waits for a snapshot (and none is on its way)."""
-        return bool(self._in.flag) and not self._in.pending_messages
+        return self._current() and bool(self._in.flag) and not self._in.pending_messages
 
     @property
     def progress(self) -> tuple[int, int] | None:
@@ -186,6 +227,8 @@ class JobProcess:
         as (snapshots taken, results returned); None while it waits for work or has not started yet (its
         imports). A process whose progress does not move is found hung by
         :class:`rt_ident.processes.guard.HelperWatch`."""
+        if not self._current():
+            return None
         inbox = self._in
         self._was_ready = self._was_ready or bool(inbox.flag) or inbox.messages_read > 0
         if not self._was_ready or (inbox.flag and not inbox.pending_messages):
@@ -218,7 +261,7 @@ class JobProcess:
     def take(self) -> list:
         """The results returned since the last call, still packed (:meth:`unpack` opens them): the
         loop takes them on one tick and unpickles them on the next, each step tens of microseconds."""
-        if not self._out.pending_messages:
+        if not self._current() or not self._out.pending_messages:
             return []
         return self._out.get()
 
@@ -230,7 +273,9 @@ class JobProcess:
 
     def begin_close(self) -> None:
         """Tell the process to finish (idempotent); :meth:`close` then waits for it. Several helpers
-        told first end side by side: each takes a few hundred ms to exit."""
+        told first end side by side: each takes a few hundred ms to exit. A restart under way is waited
+        for first (its process is then told too)."""
+        self._current(_RESTART_WAIT_S)
         self._in.close_writer()
 
     def close(self, timeout: float = 5.0) -> None:

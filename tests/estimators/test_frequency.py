@@ -434,7 +434,7 @@ def test_restarting_a_live_fit_worker_leaves_no_old_process_behind():
     try:
         old = worker.pid
         worker.restart()
-        assert worker.pid != old
+        assert worker.wait_ready(60) and worker.pid != old      # replaced beside the caller
         with pytest.raises(ProcessLookupError):
             os.kill(old, 0)
     finally:

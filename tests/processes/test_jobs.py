@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 
+import pytest
+
+from rt_ident.processes import jobs
 from rt_ident.processes.jobs import JobProcess
 
 
@@ -60,3 +65,53 @@ def test_a_restarted_job_process_has_no_progress_to_time_until_its_imports_are_d
         assert jp.progress is not None
     finally:
         jp.close(timeout=0.2)
+
+
+@pytest.fixture
+def held_restart(monkeypatch):
+    """A gate the restarts' reaping of the old process waits on (10 s at most), and whether each was let go."""
+    gate, let_go = threading.Event(), []
+    end = jobs.end_helper
+
+    def held(proc, **kw):
+        let_go.append(gate.wait(10.0))
+        end(proc, **kw)
+
+    monkeypatch.setattr(jobs, "end_helper", held)
+    yield gate, let_go
+    gate.set()
+
+
+def test_a_restart_returns_before_its_work_is_done_and_the_job_is_busy_until_the_new_process_is_in(held_restart):
+    # the loop's tick calls restart(): the kill, the new rings and the fork wait on other processes
+    gate, let_go = held_restart
+    jp = JobProcess(time.sleep, min_interval=0.0).start()
+    try:
+        _submit_when_ready(jp, 0.01)
+        old = jp.pid
+        jp.restart()                                 # back here with the old process not yet reaped
+        assert jp.alive and not jp.ready and jp.progress is None and jp.take() == [] and not jp.submit(0.01)
+        assert jp.pid == old
+        gate.set()
+        _submit_when_ready(jp, 0.01)                 # the new process takes work
+        assert let_go == [True] and jp.pid != old and jp.generation == 1
+        deadline = time.monotonic() + 30
+        while jp.fits == 0:                          # time.sleep's answer (None) counted as a result
+            jp.poll()
+            assert time.monotonic() < deadline, "the new process never answered"
+            time.sleep(0.01)
+    finally:
+        jp.close(timeout=0.2)
+
+
+def test_closing_a_job_while_its_restart_is_under_way_ends_the_new_process_too(held_restart):
+    gate, _ = held_restart
+    jp = JobProcess(time.sleep, min_interval=0.0).start()
+    old = jp.pid
+    jp.restart()
+    threading.Timer(0.3, gate.set).start()
+    jp.close(timeout=0.2)
+    assert jp.pid != old and not jp.alive and jp.exitcode is not None
+    for pid in (old, jp.pid):
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
