@@ -102,9 +102,9 @@ def test_a_recorder_that_stalls_stops_the_run_without_holding_the_loop_and_its_l
 
     from rt_ident.processes import recorder as recorder_mod
 
-    class SmallRing(recorder_mod.RecorderProcess):         # fills in ~40 blocks, not ~30 s
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **{**kwargs, "ring_bytes": 1 << 16})
+    class SmallRing(recorder_mod.RecorderProcess):         # fills in well under the 2 s hang, not ~30 s,
+        def __init__(self, *args, **kwargs):                # and holds the block a busy host's stall hands over
+            super().__init__(*args, **{**kwargs, "ring_bytes": 1 << 20})
 
     monkeypatch.setattr(recorder_mod, "RecorderProcess", SmallRing)
     made: list[SmallRing] = []
