@@ -76,8 +76,8 @@ def test_a_job_busy_for_the_hang_time_is_restarted_once_and_said(caplog):
         _look_every(watch, clock, 1.0)
     st = watch.summary()["control"]
     assert job.restarts == 1 and st["hangs"] == 1 and st["restarts"] == 1 and st["alive"] and st["pid"] == 101
-    assert any("helper control gave no answer for 10 s" in r.getMessage() and "restarting it (the old pid 100)" in r.getMessage()
-               for r in caplog.records)
+    assert any("helper control gave no answer for 10 s" in r.getMessage()
+               and "restarting it (the old pid 100)" in r.getMessage() for r in caplog.records)
     job.busy = True                          # the restarted one hangs too: reported, not restarted again
     _look_every(watch, clock, 11.0)
     st = watch.summary()["control"]
