@@ -179,18 +179,12 @@ class JobProcess:
         if fut is None:
             return True
         try:
-            parts = fut.result(timeout=wait_s) if wait_s > 0 else (fut.result() if fut.done() else None)
+            self._in, self._out, self._proc = fut.result(timeout=wait_s)
         except TimeoutError:
             return False
         except Exception as exc:  # noqa: BLE001 - said, and the process is then found dead
             log.error("%s: restart failed: %s", self.name, exc)
-            parts = None
-        else:
-            if parts is None:
-                return False
         self._replacing = None
-        if parts is not None:
-            self._in, self._out, self._proc = parts
         return True
 
     def wait_ready(self, timeout: float = 30.0) -> bool:
