@@ -35,6 +35,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Collection, Mapping
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +62,7 @@ from rt_ident.outputs.sinks import (
     port_open,
     viewer_address,
 )
-from rt_ident.processes.context import helper_context
+from rt_ident.processes.context import beside_the_loop, helper_context
 from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, RingReused, key_words, put_rows
 
@@ -471,6 +472,7 @@ class TelemetryProcess:
         self._footer: dict[str, Any] = {}   # close(): whether the .rrd got its footer (_finish)
         self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
         self._sent_before = 0
+        self._replacing: Future[tuple[Any, ...]] | None = None    # restart() under way
 
     @property
     def sent(self) -> int:
@@ -486,29 +488,56 @@ class TelemetryProcess:
 
     @property
     def pid(self) -> int | None:
+        """The child's pid (the dead one's while a restart is under way)."""
+        self._current()
         return None if self._proc is None else self._proc.pid
 
     def start(self) -> TelemetryProcess:
         if self._proc is not None or self.config.sink == "off":
             return self
-        self._ctx = helper_context()
-        self._ring = MessageRing(self.config.ring_bytes, max_messages=self.config.queue_size, ctx=self._ctx)
-        self._schemas = {}                     # a new child (restart) has been told no window names yet
-        # Lock-free, one writer (the child). A child terminated while holding a lock would
-        # otherwise hang every later read.
-        self._sent = self._ctx.Value("q", 0, lock=False)
-        self._failed = self._ctx.Value("b", 0, lock=False)   # FAIL_*: a full disk, an undelivered dashboard
-        self._ready = self._ctx.Event()
-        self._proc = self._ctx.Process(target=_telemetry_main, name="rt_ident-telemetry", daemon=True,
-                                       args=(self.config, self._ring, self._sent, self._ready, dict(self._truth),
-                                             self._failed))
-        start_ignoring_signals(self._proc)
+        self._take(self._parts(self.config, dict(self._truth)))
         self._truth_pending = False
         return self
 
+    @staticmethod
+    def _parts(config: TelemetryConfig, truth: dict[str, float]) -> tuple[Any, ...]:
+        """A started child with its ring, counters and ready event (context, ring, sent, failed, ready, process)."""
+        ctx = helper_context()
+        ring = MessageRing(config.ring_bytes, max_messages=config.queue_size, ctx=ctx)
+        # Lock-free, one writer (the child). A child terminated while holding a lock would
+        # otherwise hang every later read.
+        sent = ctx.Value("q", 0, lock=False)
+        failed = ctx.Value("b", 0, lock=False)   # FAIL_*: a full disk, an undelivered dashboard
+        ready = ctx.Event()
+        proc = ctx.Process(target=_telemetry_main, name="rt_ident-telemetry", daemon=True,
+                           args=(config, ring, sent, ready, truth, failed))
+        start_ignoring_signals(proc)
+        return ctx, ring, sent, failed, ready, proc
+
+    def _take(self, parts: tuple[Any, ...]) -> None:
+        self._ctx, self._ring, self._sent, self._failed, self._ready, self._proc = parts
+        self._schemas = {}                     # a new child has been told no window names yet
+
+    def _current(self, wait_s: float = 0.0) -> bool:
+        """True once no restart is under way (waiting up to ``wait_s`` for one): a finished one's child is
+        taken in here, on the caller's thread. One that failed leaves no ring: hand-offs are dropped."""
+        fut = self._replacing
+        if fut is None:
+            return True
+        try:
+            self._take(fut.result(timeout=wait_s))
+            self._truth_pending = bool(self._truth)      # set meanwhile, perhaps: sent again
+        except TimeoutError:
+            return False
+        except Exception as exc:  # noqa: BLE001 - said; the dead child is then left as it is
+            log.error("telemetry: restart failed: %s", exc)
+        self._replacing = None
+        return True
+
     @property
     def alive(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
+        """The child lives, or its replacement is under way."""
+        return not self._current() or (self._proc is not None and self._proc.is_alive())
 
     @property
     def exitcode(self) -> int | None:
@@ -516,18 +545,29 @@ class TelemetryProcess:
 
     def restart(self) -> TelemetryProcess:
         """A new telemetry process in place of a dead one. An .rrd sink continues in a new file
-        (``<name>-2.rrd``: the dead child's file keeps what it wrote, never overwritten)."""
-        end_helper(self._proc)
+        (``<name>-2.rrd``: the dead child's file keeps what it wrote, never overwritten). Returns at once:
+        the new child is made and started beside the loop
+        (:func:`~rt_ident.processes.context.beside_the_loop`); hand-offs until it is in are dropped."""
+        if self._replacing is not None or self.config.sink == "off":
+            return self
+        old = self._proc
         self._sent_before = self.sent
         self._sent = None
+        self._ring = None
         if self.config.sink == "rrd" and self.config.rrd_path:
             import dataclasses
 
             p = Path(self.config.rrd_path)
             self.earlier_rrd.append(str(p))
             self.config = dataclasses.replace(self.config, rrd_path=str(p.with_name(f"{p.stem}-2{p.suffix}")))
-        self._proc = None
-        return self.start()
+        config, truth = self.config, dict(self._truth)
+
+        def replacement() -> tuple[Any, ...]:
+            end_helper(old)
+            return self._parts(config, truth)
+
+        self._replacing = beside_the_loop(replacement)
+        return self
 
     def wait_ready(self, timeout: float) -> bool:
         """Wait (outside the real-time loop!) until the child has opened its sink (a ``connect`` sink:
@@ -535,6 +575,8 @@ class TelemetryProcess:
 
         Blocks published before that only fill the ring; with a short ring they are dropped.
         """
+        if not self._current(timeout):
+            return False
         if self._ready is None:
             return self.config.sink == "off"
         return bool(self._ready.wait(timeout))
@@ -695,6 +737,8 @@ class TelemetryProcess:
                 wid, new_names = self._window_id(names, keys), True
             else:
                 wid = known
+        if self._replacing is not None:
+            self._current()
         ring = self._ring
         if ring is None or self._closed or self._truth_pending or new_names:
             return self._send(lambda r: self._put_rows(r, words, index, rows, n, wid, values, names), names, wid)
@@ -727,6 +771,8 @@ class TelemetryProcess:
         return wid
 
     def _send(self, put: Callable[[MessageRing], bool], names: tuple[str, ...] | None, wid: int | None) -> bool:
+        if self._replacing is not None:
+            self._current()
         if self._ring is None or self._closed:
             self._dropped += 1
             return False
@@ -749,6 +795,7 @@ class TelemetryProcess:
         its footer (:func:`finish_rrd`) within ``config.finish_timeout`` s more."""
         t0 = time.monotonic()
         deadline = t0 + max(0.0, timeout - 0.5)  # keep 0.5 s for terminate/kill
+        self._current(max(0.0, deadline - t0))   # a restart under way: its child is closed too
         terminated = False
         if self._proc is not None and self._ring is not None and not self._closed:   # (started: both)
             self._closed = True

@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -202,10 +203,42 @@ def test_restarting_a_live_telemetry_process_leaves_no_old_child_behind(tmp_path
     old = tp.pid
     tp.restart()
     try:
-        assert tp.pid != old
+        assert tp.wait_ready(20.0) and tp.pid != old      # replaced beside the caller
         with pytest.raises(ProcessLookupError):
             os.kill(old, 0)
     finally:
+        tp.close(timeout=10.0)
+
+
+def test_a_telemetry_restart_returns_before_its_child_is_made_and_drops_what_comes_meanwhile(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the loop's tick calls restart(): the new ring and the fork wait on other processes
+    from rt_ident.processes import telemetry
+
+    gate, let_go = threading.Event(), []
+    end = telemetry.end_helper
+
+    def held(proc, *args):
+        let_go.append(gate.wait(10.0))
+        end(proc, *args)
+
+    monkeypatch.setattr(telemetry, "end_helper", held)
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "a.rrd"), queue_size=256)).start()
+    try:
+        assert tp.wait_ready(20.0)
+        os.kill(tp.pid, signal.SIGKILL)
+        old = tp.pid
+        tp.restart()                                   # back here with the new child not yet made
+        assert tp.alive and tp.pid == old
+        samples, tick, window = _loop_messages(0)
+        assert not tp.publish(samples) and not tp.publish(tick, window) and tp.dropped == 2
+        gate.set()
+        assert tp.wait_ready(20.0) and tp.pid != old and let_go == [True]
+        dropped = tp.dropped
+        _send_loop_messages(tp, range(1, 3))
+        assert tp.dropped == dropped
+    finally:
+        gate.set()
         tp.close(timeout=10.0)
 
 
