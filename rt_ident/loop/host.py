@@ -13,6 +13,7 @@ from typing import Any
 
 from rt_ident.config import RunConfig
 from rt_ident.loop.cpu_claim import CpuClaim
+from rt_ident.processes.guard import HELPER_NICE
 
 log = logging.getLogger(__name__)
 
@@ -113,13 +114,6 @@ def threads_of(pid: int) -> list[int]:
         return [pid]
 
 
-#: Nice value of each helper role (any other helper: 10). The control process answers a redesign
-#: request, rare and urgent: its latency is the time from a load change to the controller that fits
-#: it. At the nice value of the fit processes, which refit without pause, it gets a fifth of the
-#: helpers' CPU, and a 0.2 s redesign answers seconds late while the axis runs a controller that no
-#: longer fits it (docs/measurements.md, "After a load change on Y"). A fit process's fit only waits
-#: longer; its next fit starts when it is done anyway.
-HELPER_NICE = {"control": 5, "telemetry": 10, "recorder": 10, "fit": 15}
 
 
 def helper_role(name: str) -> str:

@@ -187,6 +187,15 @@ def name_process(name: str) -> None:
         pass
 
 
+#: Nice value of each helper role (any other helper: 10). The control process answers a redesign
+#: request, rare and urgent: its latency is the time from a load change to the controller that fits
+#: it. At the nice value of the fit processes, which refit without pause, it gets a fifth of the
+#: helpers' CPU, and a 0.2 s redesign answers seconds late while the axis runs a controller that no
+#: longer fits it (docs/measurements.md, "After a load change on Y"). A fit process's fit only waits
+#: longer; its next fit starts when it is done anyway.
+HELPER_NICE = {"control": 5, "telemetry": 10, "recorder": 10, "fit": 15}
+
+
 def helper_comm(process_name: str) -> str:
     """The kernel name of the helper whose process is named ``process_name`` (``rt_ident-fit`` -> ``rt-fit``)."""
     return ("rt-" + process_name.removeprefix("rt_ident-"))[:15]
@@ -196,24 +205,29 @@ def become_helper() -> ParentWatch:
     """First call in a helper's main: ignore the group's signals (:data:`GROUP_SIGNALS`), name it
     (:func:`name_process`), leave the loop's CPU; returns the parent watch.
 
-    A helper started from the loop thread (a restart during the run) may inherit its single-CPU
-    affinity (its scheduling policy is reset: the loop sets SCHED_RESET_ON_FORK): it moves to every
-    other CPU here, as the helpers started before the loop were moved by the run."""
+    A helper started while the parent's loop runs real-time (a restart during the run) places itself as the
+    run placed the helpers it started before the loop: off the loop's CPU and at its role's nice value
+    (:data:`HELPER_NICE`). It would otherwise keep the forkserver's CPUs and nice value, or, started from
+    the loop thread, the loop's single CPU (its scheduling policy is reset: the loop sets
+    SCHED_RESET_ON_FORK). It is still single-threaded here, so the threads it starts later inherit both."""
     import multiprocessing
 
     for s in GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
-    name_process(helper_comm(multiprocessing.current_process().name))
+    name = multiprocessing.current_process().name
+    name_process(helper_comm(name))
     try:
         parent = multiprocessing.parent_process()
         ppid = parent.pid if parent is not None and parent.pid is not None else os.getppid()
-        loop_cpus = os.sched_getaffinity(ppid)       # the parent's main thread: the loop, when it runs
-        mine = os.sched_getaffinity(0)
-        every = set(range(os.cpu_count() or 1))
-        # only a helper that inherited the real-time loop's own CPU moves (one the run already placed
-        # elsewhere stays where it is)
-        if (os.sched_getscheduler(ppid) == os.SCHED_FIFO and mine == loop_cpus and len(mine) < len(every)):
-            os.sched_setaffinity(0, every - loop_cpus)
+        # the parent's main thread: the loop, when it runs (SCHED_RESET_ON_FORK is or-ed into what it reads)
+        if os.sched_getscheduler(ppid) & ~getattr(os, "SCHED_RESET_ON_FORK", 0) == os.SCHED_FIFO:
+            loop_cpus = os.sched_getaffinity(ppid)
+            every = set(range(os.cpu_count() or 1))
+            if len(loop_cpus) < len(every):
+                os.sched_setaffinity(0, (os.sched_getaffinity(0) - loop_cpus) or (every - loop_cpus))
+            nice = HELPER_NICE.get(name.removeprefix("rt_ident-").split("-", 1)[0])
+            if nice is not None:
+                os.setpriority(os.PRIO_PROCESS, 0, nice)
     except (AttributeError, OSError):
         pass
     return ParentWatch()

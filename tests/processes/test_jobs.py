@@ -67,6 +67,35 @@ def test_a_restarted_job_process_has_no_progress_to_time_until_its_imports_are_d
         jp.close(timeout=0.2)
 
 
+@pytest.mark.parametrize("role", ["fit", "control"])
+def test_a_job_process_restarted_while_the_loop_runs_real_time_leaves_the_loops_cpu_at_its_roles_nice_value(role):
+    """The run places the helpers it starts before the loop; one restarted during the loop places itself."""
+    from rt_ident.processes.guard import HELPER_NICE
+
+    main = os.getpid()                               # the main thread, where a run's loop runs
+    cpus = os.sched_getaffinity(main)
+    if len(cpus) < 2:
+        pytest.skip("needs two CPUs: one for the loop, one for the helpers")
+    loop_cpu = max(cpus)
+    policy, param = os.sched_getscheduler(main), os.sched_getparam(main)
+    jp = JobProcess(time.sleep, name=f"rt_ident-{role}", min_interval=0.0).start()
+    try:
+        _submit_when_ready(jp, 0.01)
+        try:                                         # as the loop sets itself
+            os.sched_setaffinity(main, {loop_cpu})
+            os.sched_setscheduler(main, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(10))
+        except PermissionError:
+            pytest.skip("SCHED_FIFO not permitted here")
+        jp.restart()
+        _submit_when_ready(jp, 0.01)                 # the new process is in and took work
+        assert loop_cpu not in os.sched_getaffinity(jp.pid)
+        assert os.getpriority(os.PRIO_PROCESS, jp.pid) == HELPER_NICE[role]
+    finally:
+        os.sched_setscheduler(main, policy, param)
+        os.sched_setaffinity(main, cpus)
+        jp.close(timeout=0.2)
+
+
 @pytest.fixture
 def held_restart(monkeypatch):
     """A gate the restarts' reaping of the old process waits on (10 s at most), and whether each was let go."""
