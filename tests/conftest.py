@@ -9,7 +9,6 @@ comma-separated paths. Nothing here runs at import time.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import fcntl
 import gc
 import os
@@ -258,7 +257,7 @@ def restore_scheduling():
     except OSError:
         pass
     os.sched_setaffinity(0, cpus)
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    libc = ctypes.CDLL(None)                 # the process's own symbols hold libc's (find_library forks ldconfig)
     libc.munlockall()
     gc.unfreeze()
     gc.enable()

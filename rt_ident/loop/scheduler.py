@@ -306,8 +306,12 @@ _MCL_FUTURE = 2
 
 
 def _libc() -> ctypes.CDLL | str:
-    """The C library (errno kept), or why it does not load."""
+    """The C library (errno kept), or why it does not load. From the process's own symbols first: a
+    dynamically linked Python has it loaded, and ``find_library`` runs ``ldconfig`` in a child process."""
     try:
+        own = ctypes.CDLL(None, use_errno=True)
+        if hasattr(own, "mlockall") and hasattr(own, "munlockall"):
+            return own
         return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
     except OSError as exc:
         return f"libc not loadable: {exc}"

@@ -191,6 +191,23 @@ def test_apply_realtime_in_a_child_process_returns_a_full_report() -> None:
     assert report["gc_freeze"] is True and report["affinity"] is True
 
 
+def test_locking_and_unlocking_memory_start_no_process() -> None:
+    # in a child: the lock must not leak into the test process; a process started would be forked from a
+    # run's whole heap at its start and end
+    code = (
+        "import json, os, subprocess\n"
+        "def refuse(*a, **k):\n"
+        "    raise AssertionError('a process was started')\n"
+        "subprocess.Popen = os.fork = os.posix_spawn = refuse\n"
+        "from rt_ident.loop import scheduler\n"
+        "print(json.dumps([scheduler._mlockall(), scheduler.unlock_memory()]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-500:]
+    locked, unlocked = json.loads(out.stdout.strip().splitlines()[-1])
+    assert unlocked is True and (locked is True or "CAP_IPC_LOCK" in locked), (locked, unlocked)
+
+
 def test_apply_realtime_locks_memory_and_collects_before_it_turns_sched_fifo(restore_scheduling, monkeypatch):
     # both take tenths of a second of CPU: not at SCHED_FIFO, ahead of everything else on the loop's CPU
     import gc
