@@ -60,6 +60,10 @@ class Helpers:
         report = keep_off_loop_cpu(list(named), realtime, device=device,
                                    roles={pid: helper_role(n) for pid, n in named.items()})
         report["names"] = {str(pid): n for pid, n in named.items()}
+        for p in self.named().values():           # what a restarted one takes (a recorder is not restarted)
+            pid = getattr(p, "pid", None)
+            if hasattr(p, "placement") and pid is not None:
+                p.placement = {"nice": report["nice"].get(str(pid)), "cpus": report["cpus"]}
         return report
 
     def start_watch(self, tick_hz: float) -> HelperWatch:

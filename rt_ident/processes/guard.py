@@ -201,21 +201,45 @@ def helper_comm(process_name: str) -> str:
     return ("rt-" + process_name.removeprefix("rt_ident-"))[:15]
 
 
+#: attribute of a helper's ``multiprocessing.Process``: ``{"nice": int | None, "cpus": list[int] | None}``, how the run
+#: placed the process it replaces (:func:`become_helper` applies it in the child, before any thread starts)
+PLACEMENT_ATTR = "rt_placement"
+
+
+def _place_self(nice: int | None, cpus: list[int] | None) -> None:
+    """This process (its one thread) on ``cpus`` at ``nice``, each where given and permitted."""
+    try:
+        if cpus:
+            os.sched_setaffinity(0, set(cpus))
+    except (AttributeError, OSError, ValueError):
+        pass
+    try:
+        if nice is not None:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except (AttributeError, OSError):
+        pass
+
+
 def become_helper() -> ParentWatch:
     """First call in a helper's main: ignore the group's signals (:data:`GROUP_SIGNALS`), name it
     (:func:`name_process`), leave the loop's CPU; returns the parent watch.
 
-    A helper started while the parent's loop runs real-time (a restart during the run) places itself as the
-    run placed the helpers it started before the loop: off the loop's CPU and at its role's nice value
-    (:data:`HELPER_NICE`). It would otherwise keep the forkserver's CPUs and nice value, or, started from
-    the loop thread, the loop's single CPU (its scheduling policy is reset: the loop sets
-    SCHED_RESET_ON_FORK). It is still single-threaded here, so the threads it starts later inherit both."""
+    A helper started during the run (a restart) places itself as the run placed the one it replaces
+    (:data:`PLACEMENT_ATTR`); without that record, while the parent's loop runs real-time, off the loop's CPU
+    and at its role's nice value (:data:`HELPER_NICE`). It would otherwise keep the forkserver's CPUs and nice
+    value, or, started from the loop thread, the loop's single CPU (its scheduling policy is reset: the loop
+    sets SCHED_RESET_ON_FORK). It is still single-threaded here, so the threads it starts later inherit both."""
     import multiprocessing
 
     for s in GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
-    name = multiprocessing.current_process().name
-    name_process(helper_comm(name))
+    me = multiprocessing.current_process()
+    name_process(helper_comm(me.name))
+    placed = getattr(me, PLACEMENT_ATTR, None)
+    if placed:
+        _place_self(placed.get("nice"), placed.get("cpus"))
+        return ParentWatch()
+    name = me.name
     try:
         parent = multiprocessing.parent_process()
         ppid = parent.pid if parent is not None and parent.pid is not None else os.getppid()
@@ -223,11 +247,10 @@ def become_helper() -> ParentWatch:
         if os.sched_getscheduler(ppid) & ~getattr(os, "SCHED_RESET_ON_FORK", 0) == os.SCHED_FIFO:
             loop_cpus = os.sched_getaffinity(ppid)
             every = set(range(os.cpu_count() or 1))
-            if len(loop_cpus) < len(every):
-                os.sched_setaffinity(0, (os.sched_getaffinity(0) - loop_cpus) or (every - loop_cpus))
-            nice = HELPER_NICE.get(name.removeprefix("rt_ident-").split("-", 1)[0])
-            if nice is not None:
-                os.setpriority(os.PRIO_PROCESS, 0, nice)
+            cpus = ((os.sched_getaffinity(0) - loop_cpus) or (every - loop_cpus)) if len(loop_cpus) < len(every) \
+                else None
+            _place_self(HELPER_NICE.get(name.removeprefix("rt_ident-").split("-", 1)[0]),
+                        sorted(cpus) if cpus else None)
     except (AttributeError, OSError):
         pass
     return ParentWatch()

@@ -20,7 +20,7 @@ import numpy as np
 
 from rt_ident.estimators.streaming import fit_snapshot
 from rt_ident.processes.context import beside_the_loop, helper_context
-from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
+from rt_ident.processes.guard import PLACEMENT_ATTR, become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, RingReused
 
 log = logging.getLogger(__name__)
@@ -128,6 +128,7 @@ class JobProcess:
         self.fits = 0
         self.errors = 0
         self.last_error: str | None = None
+        self.placement: dict[str, Any] | None = None    # how the run placed it: a replacement takes the same
 
     def _parts(self) -> tuple[MessageRing, MessageRing, Any]:
         """New rings (in, out) and the process that will serve them, not started."""
@@ -168,6 +169,7 @@ class JobProcess:
     def _replacement(self, old: Any) -> tuple[MessageRing, MessageRing, Any]:
         end_helper(old, term_wait_s=0.0)
         parts = self._parts()
+        setattr(parts[2], PLACEMENT_ATTR, self.placement)
         start_ignoring_signals(parts[2])
         return parts
 

@@ -63,7 +63,7 @@ from rt_ident.outputs.sinks import (
     viewer_address,
 )
 from rt_ident.processes.context import beside_the_loop, helper_context
-from rt_ident.processes.guard import become_helper, end_helper, quick_exit, start_ignoring_signals
+from rt_ident.processes.guard import PLACEMENT_ATTR, become_helper, end_helper, quick_exit, start_ignoring_signals
 from rt_ident.processes.shm_ring import MessageRing, RingReused, key_words, put_rows
 
 log = logging.getLogger(__name__)
@@ -471,6 +471,7 @@ class TelemetryProcess:
         self._room_s = 0.0                     # wait_for_room(): how long full rings may still be waited on
         self._footer: dict[str, Any] = {}   # close(): whether the .rrd got its footer (_finish)
         self.earlier_rrd: list[str] = []   # files of telemetry processes that died (see restart)
+        self.placement: dict[str, Any] | None = None    # how the run placed the child: a replacement takes the same
         self._sent_before = 0
         self._replacing: Future[tuple[Any, ...]] | None = None    # restart() under way
 
@@ -500,8 +501,10 @@ class TelemetryProcess:
         return self
 
     @staticmethod
-    def _parts(config: TelemetryConfig, truth: dict[str, float]) -> tuple[Any, ...]:
-        """A started child with its ring, counters and ready event (context, ring, sent, failed, ready, process)."""
+    def _parts(config: TelemetryConfig, truth: dict[str, float],
+               placement: dict[str, Any] | None = None) -> tuple[Any, ...]:
+        """A started child with its ring, counters and ready event (context, ring, sent, failed, ready, process);
+        ``placement``: how the run placed the child it replaces (:data:`~rt_ident.processes.guard.PLACEMENT_ATTR`)."""
         ctx = helper_context()
         ring = MessageRing(config.ring_bytes, max_messages=config.queue_size, ctx=ctx)
         # Lock-free, one writer (the child). A child terminated while holding a lock would
@@ -511,6 +514,7 @@ class TelemetryProcess:
         ready = ctx.Event()
         proc = ctx.Process(target=_telemetry_main, name="rt_ident-telemetry", daemon=True,
                            args=(config, ring, sent, ready, truth, failed))
+        setattr(proc, PLACEMENT_ATTR, placement)
         start_ignoring_signals(proc)
         return ctx, ring, sent, failed, ready, proc
 
@@ -560,11 +564,11 @@ class TelemetryProcess:
             p = Path(self.config.rrd_path)
             self.earlier_rrd.append(str(p))
             self.config = dataclasses.replace(self.config, rrd_path=str(p.with_name(f"{p.stem}-2{p.suffix}")))
-        config, truth = self.config, dict(self._truth)
+        config, truth, placement = self.config, dict(self._truth), self.placement
 
         def replacement() -> tuple[Any, ...]:
             end_helper(old)
-            return self._parts(config, truth)
+            return self._parts(config, truth, placement)
 
         self._replacing = beside_the_loop(replacement)
         return self

@@ -96,6 +96,21 @@ def test_a_job_process_restarted_while_the_loop_runs_real_time_leaves_the_loops_
         jp.close(timeout=0.2)
 
 
+def test_a_restarted_job_process_takes_the_nice_value_and_cpus_the_run_gave_the_one_it_replaces():
+    """Not real-time too (the run nices its helpers either way): the record the run left on the job."""
+    cpus = sorted(os.sched_getaffinity(0))
+    jp = JobProcess(time.sleep, name="rt_ident-fit", min_interval=0.0).start()
+    try:
+        _submit_when_ready(jp, 0.01)
+        jp.placement = {"nice": 13, "cpus": cpus[:1]}
+        jp.restart()
+        _submit_when_ready(jp, 0.01)
+        assert os.getpriority(os.PRIO_PROCESS, jp.pid) == 13
+        assert os.sched_getaffinity(jp.pid) == set(cpus[:1])
+    finally:
+        jp.close(timeout=0.2)
+
+
 @pytest.fixture
 def held_restart(monkeypatch):
     """A gate the restarts' reaping of the old process waits on (10 s at most), and whether each was let go."""
