@@ -114,8 +114,6 @@ def threads_of(pid: int) -> list[int]:
         return [pid]
 
 
-
-
 def helper_role(name: str) -> str:
     """"fit-x" -> "fit": a helper's role from its name (the part before an axis suffix)."""
     return name.split("-", 1)[0]
