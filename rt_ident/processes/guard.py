@@ -206,29 +206,47 @@ def helper_comm(process_name: str) -> str:
 PLACEMENT_ATTR = "rt_placement"
 
 
-def _place_self(nice: int | None, cpus: list[int] | None) -> None:
-    """This process (its one thread) on ``cpus`` at ``nice``, each where given and permitted."""
+def _place_self(nice: int | None, cpus: list[int] | None, tid: int = 0) -> None:
+    """A thread of this process (0: the calling one) on ``cpus`` at ``nice``, each where given and permitted."""
     try:
         if cpus:
-            os.sched_setaffinity(0, set(cpus))
+            os.sched_setaffinity(tid, set(cpus))
     except (AttributeError, OSError, ValueError):
         pass
     try:
         if nice is not None:
-            os.setpriority(os.PRIO_PROCESS, 0, nice)
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
     except (AttributeError, OSError):
         pass
 
 
-def become_helper() -> ParentWatch:
+def take_placement() -> None:
+    """A helper that deferred it (:func:`become_helper`), once ready: the recorded placement on every thread it has.
+    The run placed the first helpers the same way, once they were ready: their imports ran at the run's priority."""
+    import multiprocessing
+
+    placed = getattr(multiprocessing.current_process(), PLACEMENT_ATTR, None)
+    if not placed:
+        return
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for tid in tids:
+        _place_self(placed.get("nice"), placed.get("cpus"), tid)
+
+
+def become_helper(defer_placement: bool = False) -> ParentWatch:
     """First call in a helper's main: ignore the group's signals (:data:`GROUP_SIGNALS`), name it
     (:func:`name_process`), leave the loop's CPU; returns the parent watch.
 
     A helper started during the run (a restart) places itself as the run placed the one it replaces
-    (:data:`PLACEMENT_ATTR`); without that record, while the parent's loop runs real-time, off the loop's CPU
-    and at its role's nice value (:data:`HELPER_NICE`). It would otherwise keep the forkserver's CPUs and nice
-    value, or, started from the loop thread, the loop's single CPU (its scheduling policy is reset: the loop
-    sets SCHED_RESET_ON_FORK). It is still single-threaded here, so the threads it starts later inherit both."""
+    (:data:`PLACEMENT_ATTR`), here or, with ``defer_placement``, at :func:`take_placement` (a helper that
+    imports or opens files before it is ready); without that record, while the parent's loop runs real-time,
+    off the loop's CPU and at its role's nice value (:data:`HELPER_NICE`). It would otherwise keep the
+    forkserver's CPUs and nice value, or, started from the loop thread, the loop's single CPU (its scheduling
+    policy is reset: the loop sets SCHED_RESET_ON_FORK). It is still single-threaded here, so the threads it
+    starts later inherit both."""
     import multiprocessing
 
     for s in GROUP_SIGNALS:
@@ -237,7 +255,8 @@ def become_helper() -> ParentWatch:
     name_process(helper_comm(me.name))
     placed = getattr(me, PLACEMENT_ATTR, None)
     if placed:
-        _place_self(placed.get("nice"), placed.get("cpus"))
+        if not defer_placement:
+            _place_self(placed.get("nice"), placed.get("cpus"))
         return ParentWatch()
     name = me.name
     try:

@@ -63,7 +63,14 @@ from rt_ident.outputs.sinks import (
     viewer_address,
 )
 from rt_ident.processes.context import beside_the_loop, helper_context
-from rt_ident.processes.guard import PLACEMENT_ATTR, become_helper, end_helper, quick_exit, start_ignoring_signals
+from rt_ident.processes.guard import (
+    PLACEMENT_ATTR,
+    become_helper,
+    end_helper,
+    quick_exit,
+    start_ignoring_signals,
+    take_placement,
+)
 from rt_ident.processes.shm_ring import MessageRing, RingReused, key_words, put_rows
 
 log = logging.getLogger(__name__)
@@ -345,7 +352,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
                     failed: Any = None) -> None:
     """Body of the telemetry process: poll the ring, send what is there, stop when the writer closes
     (or the run's main process dies: the .rrd is then finished with what arrived)."""
-    watch = become_helper()
+    watch = become_helper(defer_placement=True)      # rerun imported and the sink opened first
     if failed is None:
         from types import SimpleNamespace
 
@@ -375,6 +382,7 @@ def _telemetry_main(cfg: TelemetryConfig, ring: MessageRing, sent: Any, ready: A
     for path, (names, colors) in SERIES_STYLES.items():
         rec.log(path, rr.SeriesLines(names=list(names), colors=list(colors)), static=True)
     ready.set()
+    take_placement()
     truth = dict(truth)
     sender = _Sender(rec, rr)
     pending: list[dict[str, np.ndarray]] = []

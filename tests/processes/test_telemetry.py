@@ -242,6 +242,33 @@ def test_a_telemetry_restart_returns_before_its_child_is_made_and_drops_what_com
         tp.close(timeout=10.0)
 
 
+def test_a_restarted_telemetry_process_writes_its_next_file_with_every_thread_where_the_run_put_the_first(
+        tmp_path: Path) -> None:
+    # its rerun import and file opening run at the forkserver's priority (as the first's ran before the run placed
+    # it): niced from the start, beside a busy host it may not open its file before the run ends
+    cpus = sorted(os.sched_getaffinity(0))
+    tp = TelemetryProcess(TelemetryConfig(sink="rrd", rrd_path=str(tmp_path / "a.rrd"), queue_size=256)).start()
+    try:
+        assert tp.wait_ready(20.0)
+        tp.placement = {"nice": 13, "cpus": cpus[:1]}
+        os.kill(tp.pid, signal.SIGKILL)
+        tp.restart()
+        assert tp.wait_ready(20.0) and (tmp_path / "a-2.rrd").is_file()
+
+        def placed() -> bool:
+            tids = os.listdir(f"/proc/{tp.pid}/task")
+            return len(tids) > 1 and all(os.getpriority(os.PRIO_PROCESS, int(t)) == 13
+                                         and os.sched_getaffinity(int(t)) == set(cpus[:1]) for t in tids)
+
+        deadline = time.monotonic() + 10
+        while not placed():
+            assert time.monotonic() < deadline, [(t, os.getpriority(os.PRIO_PROCESS, int(t)))
+                                                 for t in os.listdir(f"/proc/{tp.pid}/task")]
+            time.sleep(0.01)
+    finally:
+        tp.close(timeout=10.0)
+
+
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")     # the parent adds the footer at close()
 def test_a_telemetry_process_whose_ring_was_given_to_another_ring_finishes_its_rrd_and_says_so_in_one_line(
         tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
