@@ -56,13 +56,12 @@ class Helpers:
     def place(self, realtime: bool, device: int | None) -> dict[str, Any]:
         """Off the loop's CPU and niced by role (:func:`rt_ident.loop.host.keep_off_loop_cpu`); the report
         names each pid's helper."""
-        named = {pid: name for name, p in self.named().items() if (pid := getattr(p, "pid", None)) is not None}
-        report = keep_off_loop_cpu(list(named), realtime, device=device,
-                                   roles={pid: helper_role(n) for pid, n in named.items()})
-        report["names"] = {str(pid): n for pid, n in named.items()}
-        for p in self.named().values():           # what a restarted one takes (a recorder is not restarted)
-            pid = getattr(p, "pid", None)
-            if hasattr(p, "placement") and pid is not None:
+        procs = {pid: (name, p) for name, p in self.named().items() if (pid := getattr(p, "pid", None)) is not None}
+        report = keep_off_loop_cpu(list(procs), realtime, device=device,
+                                   roles={pid: helper_role(n) for pid, (n, _) in procs.items()})
+        report["names"] = {str(pid): n for pid, (n, _) in procs.items()}
+        for pid, (_, p) in procs.items():          # what a restarted one takes (a recorder is not restarted)
+            if hasattr(p, "placement"):
                 p.placement = {"nice": report["nice"].get(str(pid)), "cpus": report["cpus"]}
         return report
 

@@ -13,7 +13,7 @@ from typing import Any
 
 from rt_ident.config import RunConfig
 from rt_ident.loop.cpu_claim import CpuClaim
-from rt_ident.processes.guard import HELPER_NICE
+from rt_ident.processes.guard import HELPER_NICE, threads_of
 
 log = logging.getLogger(__name__)
 
@@ -104,14 +104,6 @@ class LoopCpuInterrupts:
         delta = {name: counts[col] - before.get(name, [0] * len(cpus))[col] for name, counts in end[1].items()}
         busy = sorted(((n, d) for n, d in delta.items() if d > 0), key=lambda nd: -nd[1])
         return {"cpu": self.cpu, "total": sum(d for _, d in busy), "top": dict(busy[:3])}
-
-
-def threads_of(pid: int) -> list[int]:
-    """Every thread of a process (Linux: priority and affinity calls on a pid reach one thread only)."""
-    try:
-        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-    except OSError:
-        return [pid]
 
 
 def helper_role(name: str) -> str:

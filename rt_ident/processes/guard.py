@@ -220,6 +220,14 @@ def _place_self(nice: int | None, cpus: list[int] | None, tid: int = 0) -> None:
         pass
 
 
+def threads_of(pid: int) -> list[int]:
+    """Every thread of a process (Linux: priority and affinity calls on a pid reach one thread only)."""
+    try:
+        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        return [pid]
+
+
 def take_placement() -> None:
     """A helper that deferred it (:func:`become_helper`), once ready: the recorded placement on every thread it has.
     The run placed the first helpers the same way, once they were ready: their imports ran at the run's priority."""
@@ -228,11 +236,7 @@ def take_placement() -> None:
     placed = getattr(multiprocessing.current_process(), PLACEMENT_ATTR, None)
     if not placed:
         return
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        tids = [0]
-    for tid in tids:
+    for tid in threads_of(os.getpid()):
         _place_self(placed.get("nice"), placed.get("cpus"), tid)
 
 
@@ -343,7 +347,6 @@ class HelperWatch:
             st = self.status[name]
             if not st["alive"]:
                 continue
-            st["pid"] = getattr(h, "pid", None)      # a restarted helper's, once its new process is in
             if not h.alive:
                 code = h.exitcode
                 st["deaths"] += 1
@@ -366,8 +369,9 @@ class HelperWatch:
         st = self.status[name]
         if name in self.restartable and st["restarts"] < self.max_restarts:
             st["restarts"] += 1
+            old = getattr(h, "pid", None)
             h.restart()
-            _log.error("helper %s %s; restarting it (the old pid %s)", name, what, st["pid"])
+            _log.error("helper %s %s; restarting it (the old pid %s)", name, what, old)
         else:
             if alive:
                 st["hung"] = True                    # left as it is: reported, not timed again
