@@ -57,7 +57,14 @@ from rt_ident.config import RunConfig
 from rt_ident.errors import ConfigError, RtIdentError, ask_realtime, host_fix
 from rt_ident.loop.host import HostSteal, LoopCpuInterrupts, LoopRealtime
 from rt_ident.loop.loop import IdentificationLoop, MultiAxisLoop
-from rt_ident.outputs.paths import OutputClaims, check_methods, check_output, prepare_outputs, remove_empty_outputs
+from rt_ident.outputs.paths import (
+    OutputClaims,
+    check_methods,
+    check_output,
+    drop_unwritten,
+    prepare_outputs,
+    remove_empty_outputs,
+)
 from rt_ident.processes.guard import install_stop_signals
 from rt_ident.processes.jobs import make_fit_process
 
@@ -271,6 +278,7 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
                 (ax.loop.stats.samples if ax.loop is not None else 0)
             if not read:                                 # read nothing: leave no empty files behind
                 remove_empty_outputs(reports[name], files[name])
+            drop_unwritten(files[name])
         if lost:
             summary["data_lost"] = lost
         summary["helpers"] = helpers.summary()

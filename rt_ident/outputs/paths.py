@@ -108,6 +108,22 @@ def check_methods(cfg: RunConfig) -> None:
                           f"use one of {', '.join(STREAMING_METHODS)} (rt-ident identify runs the others offline)")
 
 
+def drop_unwritten(files: dict[str, Any]) -> None:
+    """Name only files that exist: a path whose file was never written (a telemetry restarted too late to
+    open its file, a recorder that failed before its first batch) moves to ``not_written``; what it lost
+    is in the run's ``data_lost``."""
+    missing = [str(f) for key in ("rrd", "recording") if (f := files.get(key)) and not Path(f).exists()]
+    for key in ("rrd", "recording"):
+        if files.get(key) in missing:
+            files[key] = None
+    earlier = files.get("rrd_earlier")
+    if earlier:
+        missing += [f for f in earlier if not Path(f).exists()]
+        files["rrd_earlier"] = [f for f in earlier if Path(f).exists()]
+    if missing:
+        files["not_written"] = missing
+
+
 def remove_empty_outputs(summary: dict[str, Any], files: dict[str, Any]) -> None:
     """A run that read no sample leaves no file: an empty recording and a dashboard with nothing
     on it would only look like data."""

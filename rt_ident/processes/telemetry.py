@@ -884,6 +884,8 @@ class TelemetryProcess:
                     why = f"{path} is not a regular file: nothing was stored"
                 elif st.st_size == 0 and self.sent > 0:
                     why = f"{path} is empty though {self.sent} blocks were sent (a failed write)"
+            except FileNotFoundError:
+                why = f"{path} was never written: its telemetry process did not open it"
             except OSError as exc:
                 why = f"{path}: {exc.strerror or exc}"
         return {"written": why is None, "write_error": why}

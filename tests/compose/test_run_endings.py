@@ -196,6 +196,43 @@ def test_a_dead_fit_worker_and_telemetry_are_reported_at_once_and_restarted(tmp_
 
 
 @pytest.mark.slow
+def test_a_restarted_telemetry_that_never_opens_its_file_is_not_named_as_the_dashboard(tmp_path):
+    import multiprocessing as mp
+
+    from rt_ident.compose import run as run_mod
+    from rt_ident.config import load
+
+    before = {p.pid for p in mp.active_children()}
+    killed: list[int] = []
+    stopped: list[int] = []
+
+    def hook(n: int) -> None:                            # kill the telemetry, then stop its replacement at birth
+        for p in mp.active_children():
+            if p.name != "rt_ident-telemetry" or p.pid in before or p.pid in killed:
+                continue
+            if n == 1000:
+                os.kill(p.pid, signal.SIGKILL)
+                killed.append(p.pid)
+            elif n > 1000 and not stopped:
+                os.kill(p.pid, signal.SIGSTOP)
+                stopped.append(p.pid)
+
+    rrd = tmp_path / "d.rrd"
+    cfg = load(None, **{"loop.duration": 6.0, "loop.realtime": False, "recording.enabled": False,
+                        "control.mode": "off", "backend.position_hold": True})
+    s = run_mod.run(cfg, rrd=str(rrd), sink="rrd", tick_hook=hook)
+    assert killed and stopped, (killed, stopped, s.get("helpers"))
+    replacement = tmp_path / "d-2.rrd"
+    assert not replacement.exists()
+    files = s["files"]
+    assert files["rrd"] is None and files["not_written"] == [str(replacement)], files
+    assert files["rrd_earlier"] == [str(rrd)] and rrd.stat().st_size > 0
+    assert f"{replacement} was never written" in s["data_lost"], s.get("data_lost")
+    for pid in stopped:                                  # the stopped replacement was ended, not left behind
+        assert not Path(f"/proc/{pid}").exists() or Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+
+
+@pytest.mark.slow
 def test_a_control_process_that_stops_answering_is_restarted_and_the_load_change_still_gets_its_design(
         tmp_path, monkeypatch):
     # SIGSTOPped before the plant changes (I2 x 3 at 1 s): the request for the new plant is never taken.
