@@ -55,8 +55,9 @@ def new_books() -> tuple[np.ndarray, np.ndarray]:
 @numba.njit(cache=True)
 def schedule_torque(bi, bf, last, lag, u) -> bool:
     """The control torques in flight to the drive: those landing by the sample after ``last`` become the
-    torque in force, and ``u`` joins, to land ``lag`` samples after that one. False: no room (a delay of
-    more than ``SCHED_CAP`` ticks)."""
+    torque in force, and ``u`` joins, to land ``lag`` samples after ``last`` (the torque of sample s acts
+    from s to s + 1: ``lag`` = delay x samples per tick is the design's delay, rt_ident.control.design).
+    False: no room (a delay of more than ``SCHED_CAP`` ticks)."""
     n = bi[BI_SCHED_N]
     k = 0
     while k < n and bi[BI_SCHED_SEQ + k] <= last + 1:
@@ -69,7 +70,7 @@ def schedule_torque(bi, bf, last, lag, u) -> bool:
     if n >= SCHED_CAP:
         bi[BI_SCHED_N] = n
         return False
-    bi[BI_SCHED_SEQ + n] = last + 1 + lag
+    bi[BI_SCHED_SEQ + n] = last + lag
     bf[BF_SCHED_VAL + n] = u
     bi[BI_SCHED_N] = n + 1
     return True

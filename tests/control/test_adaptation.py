@@ -145,7 +145,7 @@ def test_loop_reports_work_time_and_attributes_every_overrun():
     assert math.isfinite(loop["work_us"]["max"]) or loop["work_us"]["max"] is None
 
 
-def _landing(delay: int) -> np.ndarray:
+def _landing(delay: int, per_tick: int = 34) -> np.ndarray:
     """Run the loop with a controller whose torque is the number of the tick that computed it."""
     from types import SimpleNamespace
 
@@ -177,7 +177,8 @@ def _landing(delay: int) -> np.ndarray:
 
     # on virtual time: a host stall (a busy machine) cannot make the loop catch up or resume here
     clock = VirtualClock()
-    backend = SimBackend({"paced": False, "samples_per_read": 34, "position_hold": False}, clock=clock)
+    backend = SimBackend({"paced": False, "samples_per_read": per_tick, "sample_period": 1e-3 / per_tick,
+                          "position_hold": False}, clock=clock)
     rec = Recorder()
     blocks = []
     loop = IdentificationLoop(backend, tick_hz=1000, excitation=lambda s: np.zeros(s.shape),
@@ -192,16 +193,25 @@ def _landing(delay: int) -> np.ndarray:
 
 def test_control_torque_lands_one_tick_after_the_sample_it_was_computed_from():
     cmd = _landing(1)
-    # block k (34 samples) is read at tick k; its u = k lands 34 samples after its last sample
-    assert np.all(cmd[:34] == 0.0)
-    assert np.all(cmd[34:68] == 0.0)                     # tick 1's torque is still in flight
-    assert np.all(cmd[68:102] == 1.0) and np.all(cmd[102:136] == 2.0)
+    # block k (34 samples, seq 34 (k - 1) .. 34 k - 1) is read at tick k; its u = k is the torque of the
+    # sample one tick (34 samples) after its last one, and of the tick's samples from there (the design's
+    # x_{k+1} = A x_k + B u_{k-1}: the torque of sample s acts from s to s + 1)
+    assert np.all(cmd[:67] == 0.0)                       # tick 1's torque is still in flight
+    assert np.all(cmd[67:101] == 1.0) and np.all(cmd[101:135] == 2.0)
 
 
 def test_control_torque_with_a_two_tick_delay_lands_two_ticks_later():
     cmd = _landing(2)
-    assert np.all(cmd[:102] == 0.0)
-    assert np.all(cmd[102:136] == 1.0) and np.all(cmd[136:170] == 2.0)
+    assert np.all(cmd[:101] == 0.0)
+    assert np.all(cmd[101:135] == 1.0) and np.all(cmd[135:169] == 2.0)
+
+
+def test_with_one_sample_per_tick_the_control_torque_is_the_next_samples():
+    # a drive sampled once per tick (a CANopen SYNC at the tick rate): the design's one tick is one sample
+    cmd = _landing(1, per_tick=1)                        # tick k reads sample k - 1; its u = k is sample k's
+    assert cmd[0] == 0.0 and np.array_equal(cmd[1:5], [1.0, 2.0, 3.0, 4.0])
+    cmd = _landing(2, per_tick=1)
+    assert np.all(cmd[:2] == 0.0) and np.array_equal(cmd[2:5], [1.0, 2.0, 3.0])
 
 
 class _KF:
