@@ -254,6 +254,13 @@ class Backend(ABC):
         has a backlog to read); False for a simulation that makes samples only when read."""
         return True
 
+    def read_phase(self) -> float | None:
+        """Seconds from now until a sample the device takes on the host's signal (a SYNC the host sends)
+        has been answered, or None: the device samples on its own clock. The loop puts its ticks there
+        (modulo the sample period): each tick then reads the newest sample, and the torque it plans
+        makes the next one, the one-tick delay the controller is designed with."""
+        return None
+
     def link_trouble(self) -> str:
         """What was failing on the link to the device when a host-side check stopped the run ("; ..."), or
         "": a trip can be the first sign of a link that went while the device held its last torque."""

@@ -48,6 +48,9 @@ class Cia402Config(BaseModel):
     eds: str = "cia402_generic.eds"                  # path; a bare relative name is also looked up in configs/
     sync_rate_hz: float = Field(1000.0, ge=100)     # SYNC rate = sample rate; at least one per 10 ms (the slowest tick)
     max_bus_load: float = Field(0.8, gt=0, le=0.95)  # refuse rates whose worst-case load exceeds this
+    # us from a SYNC until every drive's answers are in; the host reads then. None: the answers' worst-case
+    # time on the bus (answer_time) plus ANSWER_ALLOWANCE_S for the drives and the host's receive path
+    answer_us: float | None = Field(None, gt=0, le=100_000)
     # torque
     torque_limit: float = Field(..., gt=0)          # N m, host-side clamp (drivers.base)
     rated_torque: float | None = Field(None, gt=0)  # N m; None: read 0x6076 (mN m) from the drive
@@ -159,6 +162,19 @@ def bus_budget(sync_rate_hz: float, bitrate: int, heartbeat_ms: int = 100, drive
     bits = sum(frame_bits(n) for n in sizes)
     background = (1 + drives) * frame_bits(HEARTBEAT_BYTES) * 1000.0 / heartbeat_ms
     return BusBudget(len(sizes), bits, background, bits * sync_rate_hz + background, bitrate)
+
+
+#: a drive's own time to answer a SYNC, and the host's receive path, on top of the answers' bits on the bus
+ANSWER_ALLOWANCE_S = 150e-6
+
+
+def answer_time(cfg: Cia402Config, drives: int = 1) -> float:
+    """Seconds from a SYNC until the TPDOs of ``drives`` drives answering it are in the host (``answer_us``,
+    or the SYNC's and the answers' worst-case bits at the bit rate plus :data:`ANSWER_ALLOWANCE_S`)."""
+    if cfg.answer_us is not None:
+        return cfg.answer_us * 1e-6
+    bits = frame_bits(SYNC_BYTES) + drives * sum(frame_bits(n) for n in TPDO_BYTES)
+    return bits / cfg.bitrate + ANSWER_ALLOWANCE_S
 
 
 def check_shared_bus(cfgs: list[Cia402Config], where: str = "backend") -> BusBudget:

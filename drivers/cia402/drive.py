@@ -41,7 +41,7 @@ from canopen.emcy import EmcyError
 from drivers.base import Backend, SampleBlock
 from drivers.cia402 import profile as p402
 from drivers.cia402.bus import bus_error_hint, error_code
-from drivers.cia402.config import Cia402Config, validate
+from drivers.cia402.config import Cia402Config, answer_time, validate
 from drivers.cia402.node import NodeSetup
 from drivers.cia402.stream import ECHO, RpdoChannel, SampleAssembler, SyncSender, TorquePlan
 from drivers.errors import (
@@ -112,7 +112,8 @@ class Cia402Backend(Backend):
 
     @property
     def counters(self) -> dict[str, int]:
-        """Stale/late/corrupt samples and frames, unchanged encoder samples, SYNC overruns, late plan values."""
+        """Stale/late/corrupt samples and frames, unchanged encoder samples, SYNC overruns, late plan values
+        (late_torques: those that differed from the torque sent, so it landed a SYNC late)."""
         a, s = self._asm, self._sender
         io = self._setup.io if self._setup is not None else None
         return {"stale": a.stale if a else 0, "ambiguous": a.ambiguous if a else 0,
@@ -120,8 +121,16 @@ class Cia402Backend(Backend):
                 "unchanged": a.unchanged if a else 0, "sync_sent": s.sent if s else 0,
                 "sync_echoes": a.echoes if a else 0, "sync_overruns": s.overruns if s else 0,
                 "send_errors": s.send_errors if s else 0, "late_plan_samples": self._plan.late,
+                "late_torques": self._plan.late_changed,
                 "rx_dropped": io.dropped if io else 0,
                 "max_latency_us": int(1e6 * a.max_latency) if a else 0}
+
+    def read_phase(self) -> float | None:
+        """The next SYNC's time plus the time its answers need (answer_time, every drive on the bus)."""
+        s = self._sender
+        if s is None or not s.running or s.next_at is None:
+            return None
+        return s.next_at - time.monotonic() + answer_time(self.config, s.channels)
 
     # ----- light callbacks (python-can's receive thread: no work, never raise) ----------
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:

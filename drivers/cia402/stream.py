@@ -79,13 +79,20 @@ def wrap32(delta: int) -> int:
     return ((delta + 0x80000000) & 0xFFFFFFFF) - 0x80000000
 
 
+#: N m: plan values closer than this are one torque (the same sum in another order differs in its last bits)
+SAME_TORQUE = 1e-9
+
+
 class TorquePlan:
     """Per-sample torque commands keyed by SYNC index; written by the loop, read by the sender.
 
     Semantics of :mod:`drivers.base`: ``hold(v)`` holds ``v`` from now on; ``plan(values, k0)``
     asks for ``values[i]`` at SYNC ``k0 + i`` and replaces the rest of an older plan; indices not
-    covered hold the last value taken. Values for SYNCs already sent are counted in ``late``.
+    covered hold the last value taken. Values for SYNCs already sent are counted in ``late``; those
+    of them that differ from the torque sent (a torque that lands a SYNC late) in ``late_changed``.
     """
+
+    SENT = 64                     # the torques of the last SENT SYNCs, for late_changed
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -94,6 +101,9 @@ class TorquePlan:
         self._last = 0.0
         self._next = 0            # the next SYNC index the sender will take
         self.late = 0
+        self.late_changed = 0
+        self._sent_k = [-1] * self.SENT
+        self._sent_v = [0.0] * self.SENT
 
     def hold(self, torque: float) -> None:
         with self._lock:
@@ -117,6 +127,11 @@ class TorquePlan:
         if start < nxt:
             late = min(nxt - start, vals.size)
             self.late += late
+            sk, sv, n = self._sent_k, self._sent_v, self.SENT
+            for i in range(late):
+                j = (start + i) % n
+                if sk[j] == start + i and abs(sv[j] - vals[i]) > SAME_TORQUE:
+                    self.late_changed += 1
             if late == vals.size:
                 self._values = self._values[:0]
                 self._last = float(vals[-1])
@@ -145,6 +160,8 @@ class TorquePlan:
                     self._last = float(v[i])
                     self._values = v[i + 1:]
                     self._start = k + 1
+            j = k % self.SENT
+            self._sent_k[j], self._sent_v[j] = k, self._last
             return self._last
 
 
@@ -200,6 +217,7 @@ class SyncSender:
         self.heartbeat = heartbeat    # (COB-ID, every n SYNC periods): the host's heartbeat, sent by this thread
         self.heartbeats = 0
         self.next_index = 0          # SYNC index of the next cycle
+        self.next_at: float | None = None    # its deadline, on ``clock`` (None: not running)
         self.sent = 0
         self.overruns = 0
         self.send_errors = 0
@@ -278,6 +296,7 @@ class SyncSender:
 
     def stop(self, timeout: float = 1.0) -> None:
         self._stop.set()
+        self.next_at = None
         if self._thread is not None:
             self._thread.join(timeout)
             if self._thread.is_alive():
@@ -306,6 +325,7 @@ class SyncSender:
         period, clock, stop = self.period, self._clock, self._stop
         channels, send, pack, sync_cob = self._channels, self._send, _RPDO.pack, self._sync_cob
         deadline = clock()
+        self.next_at = deadline
         k = self.next_index
         next_hb = k
         while not stop.is_set():
@@ -318,6 +338,7 @@ class SyncSender:
                 skip = int(late // period)
                 k += skip
                 deadline += skip * period
+                self.next_at = deadline
                 self.overruns += skip
             if self._changes:
                 self._apply_changes(channels)
@@ -359,6 +380,7 @@ class SyncSender:
             k += 1
             self.next_index = k
             deadline += period
+            self.next_at = deadline
 
 
 def _scheduling() -> tuple[int, int] | None:

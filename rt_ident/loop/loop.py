@@ -38,7 +38,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -76,6 +76,18 @@ SIM_AHEAD_MARGIN_S = 100e-6
 #: After a stall the loop has caught up with the device once the newest sample read trails the host's
 #: clock by at most this many ticks more than it does when the loop keeps up (rt_ident.loop.stall).
 CATCH_UP_TICKS = 2
+
+
+def read_anchor(clock: Callable[[], float], backends: Sequence[Backend]) -> float | None:
+    """Tick 0's time (Ticker.start): the ticks fall where a device's sample has just been answered
+    (Backend.read_phase, modulo its sample period), or None (now) when no device samples on the host's
+    signal. One SYNC for every drive on a bus: the first phase serves them all."""
+    for b in backends:
+        phase = b.read_phase()
+        if phase is not None:
+            period = b.sample_period
+            return clock() + phase % period - period
+    return None
 
 
 def _stall_before(loops: list[IdentificationLoop], blocks: list[SampleBlock], stats: LoopStats,
@@ -271,7 +283,7 @@ class IdentificationLoop(TelemetryWindow):
         last_cpu, backlog = 0.0, False      # the tick before: its CPU time, whether it had a stall's backlog
         policy = self.stall_policy
         stats.compiles.start()
-        last_read = t0 = self.ticker.start()
+        last_read = t0 = self.ticker.start(read_anchor(clock, [backend]))
         stats.stalls.origin = t0                # the summary's stall times: seconds into the run
         try:
             for _ in range(n_ticks):
@@ -636,7 +648,7 @@ class MultiAxisLoop:
         any_simulated = any(ax.backend.simulated for ax in axes)
         policy = self.stall_policy
         stats.compiles.start()
-        last_read = t0 = self.ticker.start()
+        last_read = t0 = self.ticker.start(read_anchor(self.clock, [ax.backend for ax in axes]))
         for st in [stats] + [ax.stats for ax in axes]:
             st.stalls.origin = t0               # the summary's stall times: seconds into the run
         try:

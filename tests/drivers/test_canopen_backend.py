@@ -160,6 +160,64 @@ def test_torque_plan_follows_the_base_class_semantics():
     assert [plan.take(k) for k in (12, 13, 14, 15)] == [1.0, 1.0, 5.0, 5.0]
 
 
+def test_late_plan_values_count_as_late_torques_only_where_they_differ_from_the_torque_sent():
+    plan = TorquePlan()
+    plan.plan(np.array([1.0, 2.0, 3.0, 4.0]), start=0)
+    assert [plan.take(k) for k in (0, 1)] == [1.0, 2.0]
+    plan.plan(np.array([2.0 + 1e-15, 3.0, 5.0]), start=1)   # SYNC 1 sent: the same torque (a last-bit sum)
+    assert (plan.late, plan.late_changed) == (1, 0)
+    assert plan.take(2) == 3.0
+    plan.plan(np.array([3.5, 6.0, 7.0]), start=2)           # SYNC 2 sent with 3.0: this torque lands late
+    assert (plan.late, plan.late_changed) == (2, 1)
+    assert [plan.take(k) for k in (3, 4)] == [6.0, 7.0]
+
+
+def test_a_drive_is_read_where_its_answers_to_a_sync_are_in():
+    from drivers.cia402.config import ANSWER_ALLOWANCE_S, answer_time
+
+    cfg = validate(backend_cfg("phase"))
+    # CAN 2.0A worst case: SYNC 55 bits, TPDO1 (8 bytes) 135, TPDO2 (4 bytes) 95; at 1 Mbit/s
+    assert answer_time(cfg) == pytest.approx(285e-6 + ANSWER_ALLOWANCE_S)
+    assert answer_time(cfg, drives=2) == pytest.approx(515e-6 + ANSWER_ALLOWANCE_S)
+    assert answer_time(validate(backend_cfg("phase", answer_us=420.0)), drives=2) == pytest.approx(420e-6)
+
+    be = Cia402Backend(backend_cfg("phase"))
+    assert be.read_phase() is None                          # no SYNC sent: the loop's ticks start now
+
+    class Sender:
+        running, channels = True, 2
+        next_at = time.monotonic() + 0.3e-3
+
+    be._sender = Sender()
+    assert be.read_phase() == pytest.approx(0.3e-3 + answer_time(cfg, drives=2), abs=2e-4)
+
+
+def test_the_loops_ticks_fall_at_the_read_phase_modulo_the_sample_period():
+    from rt_ident.loop.loop import read_anchor
+    from rt_ident.loop.scheduler import Ticker
+
+    class Device:
+        sample_period = 0.5e-3
+
+        def __init__(self, phase):
+            self.phase = phase
+
+        def read_phase(self):
+            return self.phase
+
+    now = 100.0
+    assert read_anchor(lambda: now, [Device(None)]) is None
+    for phase in (0.2e-3, 0.7e-3, 3.45e-3):
+        t0 = read_anchor(lambda: now, [Device(None), Device(phase)])
+        ticker = Ticker(1e-3, clock=lambda: now)
+        ticker.start(t0)
+        first = ticker.next_deadline()
+        assert now <= first < now + 1e-3                    # the first tick within a period
+        for k in (1, 2, 50):                                # every tick phase after a SYNC's answers
+            offset = (ticker.deadline(k) - (now + phase)) / 0.5e-3
+            assert offset == pytest.approx(round(offset), abs=1e-6)
+
+
 def test_a_leased_plan_ends_in_zero_taken_under_one_lock_with_the_plan():
     plan = TorquePlan()
     taken = []
