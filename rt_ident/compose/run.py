@@ -420,6 +420,9 @@ def _axis_summary(ax: _Axis, host: dict[str, Any] | None = None) -> dict[str, An
         out["loop"] = {**loop.stats.as_dict(), **({"host": host} if host is not None else {}),
                        "compiled_tick": loop.compiled_ticks}
         out["control"] = loop.control.summary() if loop.control is not None else {"mode": "off"}
+        late = late_torques(out["backend_counters"], loop.stats.ticks, acfg.control.delay_ticks)
+        if late is not None and loop.control is not None:
+            out["control"]["late_torques"] = late
         out["torque_estimate"] = loop.torque_estimate()
         fr = friction_summary(loop)
         if fr is not None:
@@ -434,6 +437,23 @@ def _axis_summary(ax: _Axis, host: dict[str, Any] | None = None) -> dict[str, An
         if out["parameters"]:
             out["error_pct"] = {k: 100.0 * (out["parameters"][k] - v) / v for k, v in tr.items()}
     return out
+
+
+#: control torques that missed their SYNC, as a share of the ticks, from which a run's summary says so
+LATE_TORQUE_SHARE = 0.05
+
+
+def late_torques(counters: dict[str, Any] | None, ticks: int, delay: int) -> dict[str, Any] | None:
+    """What the drive's ``late_torques`` count means for the controller, once it is a share of the ticks
+    the design's margins no longer describe (None below that)."""
+    n = (counters or {}).get("late_torques") or 0
+    if not ticks or n < LATE_TORQUE_SHARE * ticks:
+        return None
+    return {"count": n, "ticks": ticks,
+            "message": f"in {ticks} ticks, {n} planned torques missed their SYNC and acted a SYNC late: the "
+                       f"loop's delay was longer than the {delay} tick(s) the controller was designed for",
+            "fix": f"control.delay_ticks = {delay + 1} (a design for that delay), or backend.answer_us if the "
+                   f"drives answer sooner than the bus time assumed, or a less busy host"}
 
 
 def _named(axis: str, check, *args) -> None:

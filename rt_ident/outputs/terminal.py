@@ -258,6 +258,9 @@ def print_axes(s: dict) -> None:
 def print_no_design(ctl: dict) -> None:
     if ctl.get("no_design"):
         out.print(f"[yellow]  no design:[/] {escape(str(ctl['no_design']))}")
+    late = ctl.get("late_torques")
+    if late:
+        out.print(f"[yellow]  late torques:[/] {escape(late['message'])}; fix: {escape(late['fix'])}")
 
 
 def print_fix(stop: dict) -> None:

@@ -379,3 +379,17 @@ def test_a_watchdog_stop_says_the_emulated_drive_was_starved_only_when_it_answer
     if starved:
         assert "starved" in note and "not the device" in note
     assert run_mod.starved_emulator("device-fault", WATCHDOG, stats) is None      # only a stale-data stop
+
+
+def test_control_torques_that_missed_their_sync_on_a_twentieth_of_the_ticks_are_reported_with_the_fix(capsys):
+    from rt_ident.compose.run import late_torques
+    from rt_ident.outputs.terminal import print_no_design
+
+    assert late_torques({"late_torques": 49}, 1000, 1) is None          # a busy tick now and then
+    assert late_torques({"stale": 3}, 1000, 1) is None                  # a backend without the count
+    assert late_torques({"late_torques": 10}, 0, 1) is None
+    late = late_torques({"late_torques": 400}, 1000, 1)
+    assert late is not None and late["count"] == 400 and "control.delay_ticks = 2" in late["fix"]
+    print_no_design({"late_torques": late})
+    printed = capsys.readouterr().out
+    assert "400 planned torques missed their SYNC" in printed and "control.delay_ticks = 2" in printed
