@@ -546,7 +546,9 @@ def test_stuck_encoder_is_a_device_fault(rig):
 
 
 def test_host_heartbeat_loss_disables_the_board_and_raises_device_fault(rig):
-    board, be = rig(hold=False, heartbeat_timeout=0.5)
+    # the host's read timeout well past the board's watch: a board starved beside a busy host (its loop
+    # runs in this process) must still be the one to find the silence, not the host's timeout first
+    board, be = rig({"read_timeout": 2.0}, hold=False, heartbeat_timeout=0.5)
     be.write(0.01)
     read_for(be, 0.01)
     board.faults.deaf = True              # host frames (heartbeats included) no longer arrive
