@@ -325,6 +325,19 @@ class SerialBoardBackend(Backend):
             self._close()
             raise
 
+    def link_trouble(self) -> str:
+        """The port gone under the run (a board unplugged, powered off or reset): its silence was the link's.
+        The kernel hangs a tty up a moment after its device goes, so the read before a watchdog trip may
+        not have seen it yet; this looks again, without waiting."""
+        ser = self._ser
+        if ser is None:
+            return ""
+        try:
+            _waiting = ser.in_waiting                   # the ioctl fails (EIO) on a hung-up tty
+        except (serial.SerialException, OSError) as exc:
+            return f"; serial port {self.port!r} then failed: {exc}{_gone(exc)}"
+        return ""
+
     def _read_position(self) -> tuple[float, float]:
         return self._opened_at
 

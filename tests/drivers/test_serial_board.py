@@ -545,6 +545,17 @@ def test_stuck_encoder_is_a_device_fault(rig):
     assert_de_energized(board)
 
 
+def test_a_port_gone_under_the_run_is_named_when_a_host_check_stops_it(rig):
+    board, be = rig()
+    read_for(be, 0.01)
+    assert be.link_trouble() == ""                # a live board: nothing to add to the trip
+    board.stop()                                  # the board's end of the line closes: the tty hangs up
+    end = time.monotonic() + 5.0
+    while not be.link_trouble() and time.monotonic() < end:
+        time.sleep(0.01)
+    assert "link went away" in be.link_trouble()
+
+
 def test_host_heartbeat_loss_disables_the_board_and_raises_device_fault(rig):
     # the host's read timeout well past the board's watch: a board starved beside a busy host (its loop
     # runs in this process) must still be the one to find the silence, not the host's timeout first
