@@ -97,6 +97,10 @@ class Cia402Config(BaseModel):
             raise ValueError("scale_subindex 0 of 0x60E4 is the entry count, not a position")
         if self.heartbeat_consumer_ms is not None and self.heartbeat_consumer_ms <= self.heartbeat_ms:
             raise ValueError("heartbeat_consumer_ms must exceed heartbeat_ms")
+        if self.answer_us is not None and self.answer_us * 1e-6 >= 1.0 / self.sync_rate_hz:
+            raise ValueError(f"answer_us {self.answer_us:g} is not shorter than the SYNC period "
+                             f"({1e6 / self.sync_rate_hz:g} us): answers that come after the next SYNC leave no "
+                             f"time to plan its torque; lower sync_rate_hz")
         return self
 
     # -- derived values ------------------------------------------------------------------

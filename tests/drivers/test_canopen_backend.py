@@ -180,6 +180,8 @@ def test_a_drive_is_read_where_its_answers_to_a_sync_are_in():
     assert answer_time(cfg) == pytest.approx(285e-6 + ANSWER_ALLOWANCE_S)
     assert answer_time(cfg, drives=2) == pytest.approx(515e-6 + ANSWER_ALLOWANCE_S)
     assert answer_time(validate(backend_cfg("phase", answer_us=420.0)), drives=2) == pytest.approx(420e-6)
+    with pytest.raises(ConfigError, match=r"^backend: answer_us 1000 is not shorter than the SYNC .*sync_rate_hz"):
+        validate(backend_cfg("phase", answer_us=1000.0))       # 1 kHz SYNC: the next SYNC comes first
 
     be = Cia402Backend(backend_cfg("phase"))
     assert be.read_phase() is None                          # no SYNC sent: the loop's ticks start now
