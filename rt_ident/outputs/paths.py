@@ -114,7 +114,7 @@ def drop_unwritten(files: dict[str, Any]) -> None:
     is in the run's ``data_lost``."""
     missing = [str(f) for key in ("rrd", "recording") if (f := files.get(key)) and not Path(f).exists()]
     for key in ("rrd", "recording"):
-        if files.get(key) in missing:
+        if files.get(key) and str(files[key]) in missing:
             files[key] = None
     earlier = files.get("rrd_earlier")
     if earlier:
