@@ -402,6 +402,7 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
                      "control.bandwidth_hz, lower)") if host is not None
         else "control.bandwidth_hz (lower) - the axis does not move as the identified model predicts"
         if got["stop"] is None else f"the move stopped: {got['stop']}"))
+    timing["late_torques"] = (s.get("backend_counters") or {}).get("late_torques")
     disabled = _disable_confirmed(result["checks"], unconfirmed)
     return ok and disabled
 
