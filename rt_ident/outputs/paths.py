@@ -112,14 +112,14 @@ def drop_unwritten(files: dict[str, Any]) -> None:
     """Name only files that exist: a path whose file was never written (a telemetry restarted too late to
     open its file, a recorder that failed before its first batch) moves to ``not_written``; what it lost
     is in the run's ``data_lost``."""
-    missing = [str(f) for key in ("rrd", "recording") if (f := files.get(key)) and not Path(f).exists()]
+    missing = []
     for key in ("rrd", "recording"):
-        if files.get(key) and str(files[key]) in missing:
+        if files.get(key) and not Path(files[key]).exists():
+            missing.append(str(files[key]))
             files[key] = None
-    earlier = files.get("rrd_earlier")
-    if earlier:
-        missing += [f for f in earlier if not Path(f).exists()]
-        files["rrd_earlier"] = [f for f in earlier if Path(f).exists()]
+    if files.get("rrd_earlier"):
+        missing += [f for f in files["rrd_earlier"] if not Path(f).exists()]
+        files["rrd_earlier"] = [f for f in files["rrd_earlier"] if f not in missing]
     if missing:
         files["not_written"] = missing
 
