@@ -57,6 +57,9 @@ def _ordered(v: tuple[float, float]) -> tuple[float, float]:
 #: A device's table travel in a config: [min, max] in m on the scale, min < max.
 Travel = Annotated[tuple[float, float], AfterValidator(_ordered)]
 
+#: torques closer than this [N m] are the same command: one sum computed in another order differs in its last bits
+SAME_TORQUE = 1e-9
+
 _ZERO = np.zeros(1)     # the lease's one-value plan (backends copy what they keep; written every tick)
 _ZERO.flags.writeable = False
 

@@ -59,6 +59,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from drivers.base import SAME_TORQUE
 from drivers.cia402.bus import error_code
 from drivers.errors import ProtocolError, WatchdogTrip
 from rt_ident.errors import ask_realtime
@@ -78,9 +79,6 @@ def wrap32(delta: int) -> int:
     """A difference of two INTEGER32 readings, wrapped into [-2^31, 2^31)."""
     return ((delta + 0x80000000) & 0xFFFFFFFF) - 0x80000000
 
-
-#: N m: plan values closer than this are one torque (the same sum in another order differs in its last bits)
-SAME_TORQUE = 1e-9
 
 
 class TorquePlan:

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import serial
 
-from drivers.base import Backend, SampleBlock, settings_differ
+from drivers.base import SAME_TORQUE, Backend, SampleBlock, settings_differ
 from drivers.encoder_board import protocol as sp
 from drivers.encoder_board.config import EmulatorConfig, parse_emulator, parse_serial
 from drivers.errors import DeviceConnectionError, DeviceFault, DeviceTimeout, DriverError, ProtocolError
@@ -49,6 +49,9 @@ _REFILL_LOOK_S = 5e-5  # [s] between looks at ``in_waiting`` while the kernel re
 #: errnos of a tty whose device went away under an open port (EIO, ENXIO, ENODEV)
 _GONE_ERRNOS = (5, 6, 19)
 
+
+#: relative spacing of float32 values: the board's copy of a planned torque is the host's value rounded to it
+F32_EPS = float(np.finfo(np.float32).eps)
 
 #: where Linux lists USB serial converters (FTDI, CP210x, ...), each with its latency timer [ms]
 USB_SERIAL_SYSFS = Path("/sys/bus/usb-serial/devices")
@@ -110,6 +113,12 @@ class SerialBoardBackend(Backend):
         self._info: dict[str, Any] | None = None    # the board's INFO answer (cached at open)
         self.bytes_read = 0
         self.plan_late = 0
+        self.late_torques = 0
+        # the torque last planned for each sample (seq modulo the size; -1: none), to tell which samples the
+        # board ran on an older plan because the newer one came after them
+        size = 1 << max(16, (2 * cfg.plan_capacity).bit_length())
+        self._intent_seq = np.full(size, -1, dtype=np.int64)
+        self._intent = np.zeros(size, dtype=np.float32)
         self.torque_limited = 0
         self.tx_overflow = 0
         self.write_retries = 0     # writes sent once more after a timeout (_send)
@@ -129,7 +138,7 @@ class SerialBoardBackend(Backend):
         return {"frames": d.frames, "crc_errors": d.crc_errors, "header_errors": d.header_errors,
                 "garbage_bytes": d.garbage_bytes, "resyncs": d.resyncs, "lost": self._unwrap.lost,
                 "backsteps": self._unwrap.backsteps, "bytes_read": self.bytes_read,
-                "heartbeats": self._heartbeats, "plan_late": self.plan_late,
+                "heartbeats": self._heartbeats, "plan_late": self.plan_late, "late_torques": self.late_torques,
                 "torque_limited": self.torque_limited, "tx_overflow": self.tx_overflow,
                 "clamped": self.clamped, "write_retries": self.write_retries}
 
@@ -408,6 +417,7 @@ class SerialBoardBackend(Backend):
             self.plan_late += int(np.count_nonzero(status & sp.ST_PLAN_LATE))
             self.torque_limited += int(np.count_nonzero(status & sp.ST_TORQUE_LIMITED))
             self.tx_overflow += int(np.count_nonzero(status & sp.ST_TX_OVERFLOW))
+        self._count_late(u.seq, samples["cmd"], status)
         self._last_seq = int(u.seq[-1])
         return SampleBlock(t=u.t, seq=u.seq, theta1=theta1, theta2=theta2,
                            torque_cmd=samples["cmd"].astype(np.float64),
@@ -428,12 +438,30 @@ class SerialBoardBackend(Backend):
                 f"serial port {self.port!r}: motor encoder and linear scale disagree by {drift[i]:.3f} rad "
                 f"at seq {int(seq[i])} (encoder_mismatch_limit={limit}): encoder stuck or slipping?"))
 
+    def _count_late(self, seq: np.ndarray, cmd: np.ndarray, status: np.ndarray) -> None:
+        """late_torques: samples whose torque in force (not clamped by the board) is not the one last planned
+        for them; the plan for them reached the board after they were taken."""
+        idx = seq & (self._intent.size - 1)
+        known = (self._intent_seq[idx] == seq) & ((status & sp.ST_TORQUE_LIMITED) == 0)
+        if known.any():
+            want = self._intent[idx[known]].astype(np.float64)
+            off = np.abs(cmd[known].astype(np.float64) - want) > SAME_TORQUE + F32_EPS * np.abs(want)
+            self.late_torques += int(np.count_nonzero(off))
+
+    def _remember(self, start_seq: int, torques: np.ndarray) -> None:
+        seq = start_seq + np.arange(torques.size, dtype=np.int64)
+        idx = seq & (self._intent.size - 1)
+        self._intent_seq[idx] = seq
+        self._intent[idx] = torques
+
     def _write_hold(self, torque: float) -> None:
         self._send(sp.encode_torque_hold(torque))
+        self._intent_seq.fill(-1)                         # a hold replaces every plan the board queued
 
     def _write_plan(self, torques: np.ndarray, start_seq: int) -> None:
         if torques.size:
             self._send(self._plan_frames(torques, start_seq, int(torques.size)))
+            self._remember(start_seq, torques)
 
     def _write_leased_plan(self, torques: np.ndarray, start_seq: int, lease: int) -> None:
         """The plan and its lease's zero in one write: a host stalled between two writes would leave
@@ -442,6 +470,7 @@ class SerialBoardBackend(Backend):
         if n:
             self._send(self._plan_frames(torques, start_seq, n + lease + 1)
                        + sp.encode_torque_plan(start_seq + n + lease, (0.0,)))
+            self._remember(start_seq, np.concatenate([torques, np.full(lease, torques[-1]), np.zeros(1)]))
 
     def _plan_frames(self, torques: np.ndarray, start_seq: int, span: int) -> bytes:
         cap = self.config.plan_capacity

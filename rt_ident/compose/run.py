@@ -420,7 +420,7 @@ def _axis_summary(ax: _Axis, host: dict[str, Any] | None = None) -> dict[str, An
         out["loop"] = {**loop.stats.as_dict(), **({"host": host} if host is not None else {}),
                        "compiled_tick": loop.compiled_ticks}
         out["control"] = loop.control.summary() if loop.control is not None else {"mode": "off"}
-        late = late_torques(out["backend_counters"], loop.stats.ticks, acfg.control.delay_ticks)
+        late = late_torques(out["backend_counters"], loop.stats.samples, acfg.control.delay_ticks, acfg.backend.name)
         if late is not None and loop.control is not None:
             out["control"]["late_torques"] = late
         out["torque_estimate"] = loop.torque_estimate()
@@ -439,21 +439,27 @@ def _axis_summary(ax: _Axis, host: dict[str, Any] | None = None) -> dict[str, An
     return out
 
 
-#: control torques that missed their SYNC, as a share of the ticks, from which a run's summary says so
+#: control torques that acted late, as a share of the samples, from which a run's summary says so
 LATE_TORQUE_SHARE = 0.05
 
 
-def late_torques(counters: dict[str, Any] | None, ticks: int, delay: int) -> dict[str, Any] | None:
-    """What the drive's ``late_torques`` count means for the controller, once it is a share of the ticks
-    the design's margins no longer describe (None below that)."""
+def late_torques(counters: dict[str, Any] | None, samples: int, delay: int,
+                 backend: str = "canopen") -> dict[str, Any] | None:
+    """What the device's ``late_torques`` count (samples that ran on an older torque than the one planned for
+    them) means for the controller, once it is a share of the samples the design's margins no longer
+    describe (None below that)."""
     n = (counters or {}).get("late_torques") or 0
-    if not ticks or n < LATE_TORQUE_SHARE * ticks:
+    if not samples or n < LATE_TORQUE_SHARE * samples:
         return None
-    return {"count": n, "ticks": ticks,
-            "message": f"in {ticks} ticks, {n} planned torques missed their SYNC and acted a SYNC late: the "
-                       f"loop's delay was longer than the {delay} tick(s) the controller was designed for",
-            "fix": f"control.delay_ticks = {delay + 1} (a design for that delay), or backend.answer_us if the "
-                   f"drives answer sooner than the bus time assumed, or a less busy host"}
+    designed = f"the loop's delay was longer than the {delay} tick(s) the controller was designed for"
+    fix = f"control.delay_ticks = {delay + 1} (a design for that delay), or "
+    if backend == "serial":
+        what = f"{n} samples ran on an older plan: the torque planned for them reached the board after them"
+        fix += "a less busy host (a USB serial converter: its latency timer at 1 ms)"
+    else:
+        what = f"{n} planned torques missed their SYNC and acted a SYNC late"
+        fix += "backend.answer_us if the drives answer sooner than the bus time assumed, or a less busy host"
+    return {"count": n, "samples": samples, "message": f"in {samples} samples, {what}: {designed}", "fix": fix}
 
 
 def _named(axis: str, check, *args) -> None:

@@ -381,7 +381,7 @@ def test_a_watchdog_stop_says_the_emulated_drive_was_starved_only_when_it_answer
     assert run_mod.starved_emulator("device-fault", WATCHDOG, stats) is None      # only a stale-data stop
 
 
-def test_control_torques_that_missed_their_sync_on_a_twentieth_of_the_ticks_are_reported_with_the_fix(capsys):
+def test_control_torques_that_acted_late_on_a_twentieth_of_the_samples_are_reported_with_the_fix(capsys):
     from rt_ident.compose.run import late_torques
     from rt_ident.outputs.terminal import print_no_design
 
@@ -393,3 +393,7 @@ def test_control_torques_that_missed_their_sync_on_a_twentieth_of_the_ticks_are_
     print_no_design({"late_torques": late})
     printed = capsys.readouterr().out
     assert "400 planned torques missed their SYNC" in printed and "control.delay_ticks = 2" in printed
+    board = late_torques({"late_torques": 2000}, 20000, 2, "serial")
+    assert board is not None and "2000 samples ran on an older plan" in board["message"]
+    assert "control.delay_ticks = 3" in board["fix"] and "latency timer" in board["fix"]
+    assert "answer_us" not in board["fix"]

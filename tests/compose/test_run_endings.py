@@ -218,7 +218,7 @@ def test_a_restarted_telemetry_that_never_opens_its_file_is_not_named_as_the_das
                 stopped.append(p.pid)
 
     rrd = tmp_path / "d.rrd"
-    cfg = load(None, **{"loop.duration": 6.0, "loop.realtime": False, "recording.enabled": False,
+    cfg = load(None, **{"loop.duration": 3.0, "loop.realtime": False, "recording.enabled": False,
                         "control.mode": "off", "backend.position_hold": True})
     s = run_mod.run(cfg, rrd=str(rrd), sink="rrd", tick_hook=hook)
     assert killed and stopped, (killed, stopped, s.get("helpers"))

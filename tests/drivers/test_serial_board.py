@@ -371,6 +371,30 @@ def test_a_newer_plan_replaces_the_rest_of_an_older_one(rig):
     assert np.all(cmd[i + 50:i + 120] == np.float32(0.02))   # 20 planned, then the last value held
 
 
+def test_samples_that_ran_on_an_older_plan_count_as_late_torques_and_a_late_plan_of_the_same_torque_does_not(rig):
+    board, be = rig(hold=False)
+    s = int(read_samples(be, 1)[-1].seq[-1]) + LEAD
+    be.write(np.full(100, 0.01), start_seq=s)
+    last = int(read_through(be, s + 100)[-1].seq[-1])
+    # a plan the board was too late for (those samples ran on the hold of 0) counts every value it dropped
+    assert be.stats()["late_torques"] == board.plan_late_samples
+
+    def late_plan(torque: float) -> tuple[int, int]:
+        """A plan for the 200 samples after the last read, written once the board ran past them: (the board's
+        dropped values, the host's late_torques), each as an increase."""
+        nonlocal last
+        dropped, counted = board.plan_late_samples, be.stats()["late_torques"]
+        assert wait_until(lambda: board.cfg.seq0 + board.stats()["samples"] > last + 400, timeout=5.0)
+        be.write(np.full(200, torque), start_seq=last + 1)
+        last = int(read_through(be, last + 400)[-1].seq[-1])
+        return board.plan_late_samples - dropped, be.stats()["late_torques"] - counted
+
+    dropped, counted = late_plan(0.02)          # the samples ran on 0.01, the plan's last value held
+    assert dropped == 200 and counted == 200
+    dropped, counted = late_plan(0.02)          # late again, but the board holds 0.02 already
+    assert dropped == 200 and counted == 0
+
+
 def test_a_leased_plan_reaches_the_board_in_one_write_with_its_end(rig):
     # a host that stalls between two writes would leave the board holding the plan's last value
     board, be = rig(hold=False)
