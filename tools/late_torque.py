@@ -1,9 +1,11 @@
-"""When the control torque lands on the CiA 402 path, and what a tick of delay more than designed costs.
+"""When the control torque lands, and what a tick of delay more than designed costs.
 
 Prints (1) the margins of the XY axes' designs as designed (one tick) and with the torque one tick
-later (the loop the design does not know about), and (2) for the emulated drives, how many control
+later (the loop the design does not know about), (2) for the emulated drives, how many control
 torques missed their SYNC (``late_torques``) with the ticks put just after the answers to a SYNC
-(Backend.read_phase) and with the ticks wherever the start left them.
+(Backend.read_phase) and with the ticks wherever the start left them, and (3) for the emulated serial
+board, how many samples ran on an older torque than the one planned for them, designed for a delay of
+two ticks (the shipped config) and of one.
 
     python tools/late_torque.py [--seconds 4] [--runs 2]
 """
@@ -58,6 +60,22 @@ def runs(seconds: float, n: int) -> None:
     Cia402Backend.read_phase = anchored          # type: ignore[method-assign]
 
 
+def serial_runs(seconds: float, n: int) -> None:
+    from rt_ident.compose import run as run_mod
+    from rt_ident.config import load
+
+    for delay in (2, 1):
+        for _ in range(n):
+            cfg = load("configs/serial-virtual.toml", **{"loop.duration": seconds, "telemetry.sink": "off",
+                                                         "recording.enabled": False, "control.delay_ticks": delay})
+            s = run_mod.run(cfg)
+            c = s["backend_counters"]
+            print(json.dumps({"config": "configs/serial-virtual.toml", "delay_ticks": delay,
+                              "samples": s["loop"]["samples"], "late_torques": c["late_torques"],
+                              "plan_late": c["plan_late"], "table_rms_um": 1e6 * s["control"]["rms_error_m"],
+                              "stop": s["stop"]["cause"]}))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=4.0)
@@ -65,6 +83,7 @@ def main() -> None:
     a = ap.parse_args()
     margins()
     runs(a.seconds, a.runs)
+    serial_runs(a.seconds, a.runs)
 
 
 if __name__ == "__main__":

@@ -439,27 +439,35 @@ def _axis_summary(ax: _Axis, host: dict[str, Any] | None = None) -> dict[str, An
     return out
 
 
-#: control torques that acted late, as a share of the samples, from which a run's summary says so
+#: the mean extra delay of the control torques [ticks] from which a run's summary reports it
 LATE_TORQUE_SHARE = 0.05
+#: ... and from which the design's delay is the wrong one: the loop's delay is nearer the next whole tick
+LATE_REDESIGN_TICKS = 0.5
 
 
 def late_torques(counters: dict[str, Any] | None, samples: int, delay: int,
                  backend: str = "canopen") -> dict[str, Any] | None:
     """What the device's ``late_torques`` count (samples that ran on an older torque than the one planned for
-    them) means for the controller, once it is a share of the samples the design's margins no longer
-    describe (None below that)."""
+    them) means for the controller, or None while it is small.
+
+    Each such sample is a plan landing one sample later than designed, so their share of the samples is the
+    torques' mean delay past the design's, in ticks. From half a tick on, a design for one tick more describes
+    the loop better; below that, one tick more would add more delay than it accounts for, and the fix is the
+    host's timing."""
     n = (counters or {}).get("late_torques") or 0
-    if not samples or n < LATE_TORQUE_SHARE * samples:
+    extra = n / samples if samples else 0.0
+    if extra < LATE_TORQUE_SHARE:
         return None
-    designed = f"the loop's delay was longer than the {delay} tick(s) the controller was designed for"
-    fix = f"control.delay_ticks = {delay + 1} (a design for that delay), or "
-    if backend == "serial":
-        what = f"{n} samples ran on an older plan: the torque planned for them reached the board after them"
-        fix += "a less busy host (a USB serial converter: its latency timer at 1 ms)"
-    else:
-        what = f"{n} planned torques missed their SYNC and acted a SYNC late"
-        fix += "backend.answer_us if the drives answer sooner than the bus time assumed, or a less busy host"
-    return {"count": n, "samples": samples, "message": f"in {samples} samples, {what}: {designed}", "fix": fix}
+    what = (f"{n} samples ran on an older plan: the torque planned for them reached the board after them"
+            if backend == "serial" else f"{n} planned torques missed their SYNC and acted a SYNC late")
+    host = ("a less busy host (a USB serial converter: its latency timer at 1 ms)" if backend == "serial" else
+            "backend.answer_us if the drives answer sooner than the bus time assumed, or a less busy host")
+    fix = f"control.delay_ticks = {delay + 1} (a design for the delay the loop has), or {host}" \
+        if extra >= LATE_REDESIGN_TICKS else host
+    return {"count": n, "samples": samples, "extra_delay_ticks": round(extra, 3),
+            "message": f"in {samples} samples, {what}: the torques acted {extra:.2f} tick later on average than "
+                       f"the {delay} tick(s) the controller was designed for",
+            "fix": fix}
 
 
 def _named(axis: str, check, *args) -> None:

@@ -381,19 +381,22 @@ def test_a_watchdog_stop_says_the_emulated_drive_was_starved_only_when_it_answer
     assert run_mod.starved_emulator("device-fault", WATCHDOG, stats) is None      # only a stale-data stop
 
 
-def test_control_torques_that_acted_late_on_a_twentieth_of_the_samples_are_reported_with_the_fix(capsys):
+def test_late_control_torques_are_reported_from_a_twentieth_of_a_tick_and_a_longer_design_only_from_half(capsys):
     from rt_ident.compose.run import late_torques
     from rt_ident.outputs.terminal import print_no_design
 
     assert late_torques({"late_torques": 49}, 1000, 1) is None          # a busy tick now and then
     assert late_torques({"stale": 3}, 1000, 1) is None                  # a backend without the count
     assert late_torques({"late_torques": 10}, 0, 1) is None
-    late = late_torques({"late_torques": 400}, 1000, 1)
-    assert late is not None and late["count"] == 400 and "control.delay_ticks = 2" in late["fix"]
+    late = late_torques({"late_torques": 600}, 1000, 1)                 # most ticks' torques a SYNC late
+    assert late is not None and late["extra_delay_ticks"] == 0.6 and "control.delay_ticks = 2" in late["fix"]
     print_no_design({"late_torques": late})
     printed = capsys.readouterr().out
-    assert "400 planned torques missed their SYNC" in printed and "control.delay_ticks = 2" in printed
-    board = late_torques({"late_torques": 2000}, 20000, 2, "serial")
-    assert board is not None and "2000 samples ran on an older plan" in board["message"]
-    assert "control.delay_ticks = 3" in board["fix"] and "latency timer" in board["fix"]
-    assert "answer_us" not in board["fix"]
+    assert "600 planned torques missed their SYNC" in printed and "control.delay_ticks = 2" in printed
+    # a serial board whose plans land a sample of 20 late each tick: a twentieth of a tick, not a tick more
+    board = late_torques({"late_torques": 6000}, 120000, 1, "serial")
+    assert board is not None and "6000 samples ran on an older plan" in board["message"]
+    assert "0.05 tick later" in board["message"]
+    assert "delay_ticks" not in board["fix"] and "latency timer" in board["fix"] and "answer_us" not in board["fix"]
+    board = late_torques({"late_torques": 66000}, 120000, 2, "serial")
+    assert board is not None and "control.delay_ticks = 3" in board["fix"]
