@@ -402,7 +402,10 @@ def _verify(cfg: RunConfig, ident: dict[str, Any], out: Path, result: dict[str, 
                      "control.bandwidth_hz, lower)") if host is not None
         else "control.bandwidth_hz (lower) - the axis does not move as the identified model predicts"
         if got["stop"] is None else f"the move stopped: {got['stop']}"))
-    timing["late_torques"] = (s.get("backend_counters") or {}).get("late_torques")
+    late = (s.get("backend_counters") or {}).get("late_torques")
+    timing["late_torques"] = late
+    if late is not None and loop.get("samples"):          # each is a torque a sample late: the mean lateness
+        timing["late_torque_ticks"] = round(late / loop["samples"], 4)
     disabled = _disable_confirmed(result["checks"], unconfirmed)
     return ok and disabled
 

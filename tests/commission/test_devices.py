@@ -129,3 +129,5 @@ def test_an_emulated_device_wired_as_the_host_is_told_passes_from_off_centre_or_
     assert r["stage_reached"] == "e"
     assert r["parameters"]["I2"] == pytest.approx(8.3e-6, rel=0.1)
     assert Path(r["report"]).is_file() and Path(r["axis_toml"]).is_file()
+    timing = r["verification"]["timing"]          # both devices say how late the move's torques landed
+    assert timing["late_torques"] >= 0 and 0 <= timing["late_torque_ticks"] <= 1, timing
