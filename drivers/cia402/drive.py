@@ -60,6 +60,9 @@ log = logging.getLogger(__name__)
 
 _TWO_PI = 2.0 * math.pi
 
+#: the NMT states a heartbeat reports (CiA 301), other than OPERATIONAL (5)
+NMT_STATES = {0: "a boot-up", 4: "STOPPED", 127: "PRE-OPERATIONAL"}
+
 
 class Cia402Backend(Backend):
     """A CiA 402 drive streaming motor encoder, table scale and torque at the SYNC rate.
@@ -94,6 +97,7 @@ class Cia402Backend(Backend):
         self._hb_state = 0
         self._hb_operational = False  # a heartbeat reported OPERATIONAL since NMT start was sent
         self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
+        self._hb_rebooted = False     # one of them a boot-up message
         self.statusword = 0
         self._ident: dict[str, Any] = {}
         # one master per drive on this host: a second program commanding the node would each send it torque
@@ -145,6 +149,7 @@ class Cia402Backend(Backend):
             self._hb_not_operational = 0
         elif self._hb_operational:
             self._hb_not_operational += 1
+            self._hb_rebooted |= state == 0
 
     def _on_sync_echo(self, timestamp: float, ordinal: int) -> None:
         self._deque.append((ECHO, timestamp, ordinal))
@@ -245,6 +250,7 @@ class Cia402Backend(Backend):
             # was being locked in memory): only a heartbeat after one reporting OPERATIONAL counts.
             self._hb_operational = False
             self._hb_not_operational = 0
+            self._hb_rebooted = False
             if setup.echo or setup.timed:   # bus order or bus times are in the frames: read them in this
                 setup.receive_in_caller()      # thread, no receive thread competing for the GIL
             setup.nmt_operational()
@@ -327,7 +333,11 @@ class Cia402Backend(Backend):
             raise DeviceFault(f"no heartbeat from node {cfg.node_id} for {age:.3f} s (consumer time "
                               f"{cfg.consumer_ms} ms, producer {cfg.heartbeat_ms} ms)")
         if not startup and self._hb_not_operational:
-            raise DeviceFault(f"node {cfg.node_id} left NMT OPERATIONAL (heartbeat state {self._hb_state})")
+            raise DeviceFault(f"node {cfg.node_id} left NMT OPERATIONAL: " + (
+                "it sent a boot-up message, so it restarted (its logic supply dipped, its own watchdog, or an "
+                "NMT reset from another master on the bus)" if self._hb_rebooted else
+                f"its heartbeat reports {NMT_STATES.get(self._hb_state, f'state {self._hb_state}')} (an NMT "
+                "command from another master on the bus, or the drive's own error behaviour, 0x1029)"))
         s = self._sender
         if s is not None and s.consecutive_errors >= 10:
             hint = bus_error_hint(s.last_errno, cfg.interface, cfg.channel, cfg.bitrate)
@@ -425,9 +435,33 @@ class Cia402Backend(Backend):
             self._leave_sync()
             if self._setup is not None:
                 self._setup.receive_in_thread()     # SDO (close) needs a receiver again
+            if unconfirmed is not None and self._sdo_confirms_disabled():
+                log.warning("canopen: node %d sent no PDO after the disable; its statusword read by SDO "
+                            "confirms it", cfg.node_id)
+                unconfirmed = None
             self._deque.clear()
             self._sync_stop = (unconfirmed,)
         return unconfirmed
+
+    def _sdo_confirms_disabled(self) -> bool:
+        """Whether the statusword read by SDO shows the power stage off. A drive that left NMT OPERATIONAL (a
+        restart, another master's NMT command) sends no PDO but answers SDO in PRE-OPERATIONAL. One still
+        enabled is sent the disable by SDO and read once more; a drive that does not answer costs one
+        sdo_timeout."""
+        setup = self._setup
+        if setup is None:
+            return False
+        for attempt in range(2):
+            sw = setup.try_upload(p402.STATUSWORD, 0)
+            if sw is None:
+                return False
+            if p402.decode_state(sw) in (p402.SWITCH_ON_DISABLED, p402.NOT_READY, p402.FAULT):
+                self.statusword = sw
+                return True
+            if attempt == 0 and not setup.try_download(p402.CONTROLWORD, 0,
+                                                       struct.pack("<H", p402.CW_DISABLE_VOLTAGE)):
+                return False
+        return False
 
     def _on_its_own(self) -> str:
         """What this drive does by itself once the host falls silent, as this host set it up."""

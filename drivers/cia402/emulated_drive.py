@@ -573,6 +573,16 @@ class EmulatedCia402Drive:
         except Exception as exc:  # noqa: BLE001
             log.warning("emulated drive: EMCY send failed: %s", exc)
 
+    def _restart(self, sample: int) -> None:
+        """A restart (fault injection): the power stage off, then NMT as at power-up, the boot-up message
+        and PRE-OPERATIONAL (no PDOs until a master starts the node again)."""
+        node = self._node
+        assert node is not None                      # SYNCs arrive after start()
+        log.warning("emulated drive %d: restarting at sample %d (fault injection)", self.node_id, sample)
+        self._set_state(p402.SWITCH_ON_DISABLED)
+        node.nmt.send_command(0x81)                  # reset: boot-up message
+        node.nmt.send_command(0x80)
+
     def _housekeeping(self) -> None:
         node = self._node
         assert node is not None                      # the worker runs after start()
@@ -679,6 +689,9 @@ class EmulatedCia402Drive:
         v[(p402.TORQUE_ACTUAL, 0)] = _int16(meas * 1000.0 / self.rated_torque)
         if enabled and f.emcy_at_sample is not None and n == f.emcy_at_sample:
             self._fault(f.emcy_code, f"injected at sample {n}")
+        if enabled and f.restart_at_sample is not None and n == f.restart_at_sample:
+            self._restart(n)
+            return
         if enabled and self.plant.travel_exceeded:
             self._fault(0x8612, "table outside its travel")
         self._set_state(self._state)                      # refresh the statusword

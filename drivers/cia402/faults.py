@@ -17,7 +17,8 @@ from rt_ident.errors import ConfigError
 # COB-IDs no predefined-connection-set service uses (0x100 is TIME, 0x080-0x0FF SYNC/EMCY)
 _GARBAGE_IDS = tuple(range(0x101, 0x180)) + tuple(range(0x500, 0x580))
 _INT_FAULTS = frozenset({"drop_tpdo_every", "tpdo_faults_from_sample", "corrupt_tpdo_every", "emcy_at_sample",
-                         "emcy_code", "stuck_encoder_at_sample", "garbage_frames_per_sync", "seed"})
+                         "emcy_code", "stuck_encoder_at_sample", "garbage_frames_per_sync", "restart_at_sample",
+                         "seed"})
 _BOOL_FAULTS = frozenset({"main_power_off", "local_control"})
 
 
@@ -34,6 +35,8 @@ class FaultConfig:
     emcy_at_sample / emcy_code: the drive faults (EMCY, FAULT state, torque 0) at that sample (once).
     heartbeat_stop_at_s: the drive stops its heartbeat this long after first OPERATION ENABLED.
     stuck_encoder_at_sample: the motor encoder 0x6064 freezes from that sample on.
+    restart_at_sample: the drive restarts at that sample (a dip of its logic supply): power stage off, a
+        boot-up message, then PRE-OPERATIONAL with no PDOs, as a drive comes up.
     garbage_frames_per_sync: random frames on COB-IDs no node uses, after each SYNC.
     main_power_off: the power stage has no main voltage (main power off, E-stop or STO): voltage enabled
         (statusword bit 4) is off and the drive does not switch on; it stays READY TO SWITCH ON.
@@ -49,6 +52,7 @@ class FaultConfig:
     emcy_code: int = 0x2310
     heartbeat_stop_at_s: float | None = None
     stuck_encoder_at_sample: int | None = None
+    restart_at_sample: int | None = None
     garbage_frames_per_sync: int = 0
     main_power_off: bool = False
     local_control: bool = False

@@ -367,6 +367,15 @@ class NodeSetup:
             log.warning("canopen: writing 0x%04X:%02X failed: %s", index, subindex, exc)
         return False
 
+    def try_upload(self, index: int, subindex: int) -> int | None:
+        """Best effort (stop paths): the object's value, or None (logged); never raises."""
+        try:
+            if self.node is not None and self.network is not None and self.network.bus is not None:
+                return self._read(index, subindex, self._data_type(index, subindex))
+        except Exception as exc:  # noqa: BLE001
+            log.warning("canopen: reading 0x%04X:%02X failed: %s", index, subindex, exc)
+        return None
+
     @property
     def echo(self) -> bool:
         """True when this host's own frames come back in bus order (python-can's ``udp_multicast``

@@ -442,7 +442,17 @@ def test_stale_preoperational_heartbeats_after_nmt_start_do_not_trip():
     be._check_emcy_heartbeat()                      # no fault
     be._on_heartbeat(0x705, bytearray([0x05]), 0.0)
     be._on_heartbeat(0x705, bytearray([0x7F]), 0.0)  # after OPERATIONAL: the drive really left it
-    with pytest.raises(DeviceFault, match="left NMT OPERATIONAL"):
+    with pytest.raises(DeviceFault, match="left NMT OPERATIONAL: its heartbeat reports PRE-OPERATIONAL .*0x1029"):
+        be._check_emcy_heartbeat()
+
+
+def test_a_drive_that_restarted_mid_run_is_named_as_restarted_by_its_boot_up_message():
+    be = Cia402Backend(backend_cfg("never-opened"))
+    be._hb_time = time.monotonic()
+    be._on_heartbeat(0x705, bytearray([0x05]), 0.0)
+    be._on_heartbeat(0x705, bytearray([0x00]), 0.0)  # boot-up, then the state a restarted drive comes up in
+    be._on_heartbeat(0x705, bytearray([0x7F]), 0.0)
+    with pytest.raises(DeviceFault, match="left NMT OPERATIONAL: it sent a boot-up message, so it restarted"):
         be._check_emcy_heartbeat()
 
 
@@ -646,6 +656,17 @@ def test_drive_heartbeat_loss_raises_device_fault():
                 pump(be, 2.0, square(0.1))
         assert_drive_safe(drive)
         assert drive.state == SWITCH_ON_DISABLED
+
+
+def test_a_drive_that_restarts_mid_run_is_named_and_its_disable_confirmed_by_sdo_without_its_pdos():
+    with rig(faults={"restart_at_sample": 100}) as (drive, be):
+        with pytest.raises(DeviceFault, match=r"left NMT OPERATIONAL: it sent a boot-up message, so it restarted"):
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.1))
+        assert_drive_safe(drive)
+        assert be.stop_unconfirmed is None               # its statusword read by SDO: the power stage is off
+        assert drive.nmt_state == "PRE-OPERATIONAL"
 
 
 def test_master_heartbeat_loss_faults_the_drive_and_names_the_host():
