@@ -51,6 +51,9 @@ logger = logging.getLogger(__name__)
 DEFAULT_LEAD = 7.96e-4
 INIT_MAX_WDT = 2.0      # zoh: linear initial fit uses lines with w dt <= this
 MAX_CHI2 = 10.0         # weighted residual per degree of freedom: above, the model does not explain the data
+#: what makes a periodic response the linear two-inertia model cannot fit, and what identifies such an axis
+MISFIT_CAUSES = ("friction or backlash the linear model lacks, or a plant that changed during the fit; "
+                 "with friction, `rt-ident identify RECORDING --model two-inertia-friction` fits it")
 _TOL = 1e-10            # Gauss-Newton stop: largest step in log-parameters
 
 
@@ -390,7 +393,7 @@ def identification_from_fit(sp: Spectra, fit: FitResult, hold: str, *, lead: flo
               # intervals grow with it, but a model error is a bias they do not cover
               criterion("fit error: weighted residual chi2 per degree of freedom", fit.s2 <= MAX_CHI2, fit.s2,
                         f"<= {MAX_CHI2:g}", f"the model does not explain the data: chi2/dof {fit.s2:.3g} > "
-                        f"{MAX_CHI2:g} (residuals {math.sqrt(fit.s2):.3g} x the noise)")]
+                        f"{MAX_CHI2:g} (residuals {math.sqrt(fit.s2):.3g} x the noise): {MISFIT_CAUSES}")]
     if sp.periods >= 2:
         var_T = sp.cov[:, 2, 2].real * sp.mean_cov_factor
         snr = float(np.median(np.abs(sp.mean[2]) ** 2 / np.maximum(var_T, 1e-300)))

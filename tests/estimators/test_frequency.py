@@ -89,6 +89,19 @@ def test_exact_on_noise_free_closed_loop_plant(integrator, hold):
     assert np.max(np.abs(_err(r, p))) < 1e-8
 
 
+def test_an_axis_with_coulomb_friction_is_not_trusted_and_the_reason_names_the_friction_model():
+    from rt_ident.axis.friction import Friction
+
+    p, (dt, N) = thomson_x(), SLOW
+    ms = schroeder_multisine(N, _band(modal_parameters(p)["wn"], dt, N), peak=0.3)
+    sensors = SensorConfig(counts_per_rev=2**17, scale_resolution=1e-7, torque_meas_noise=0.005 * ms.rms)
+    sim = PlantSimulator(p, dt, sensors=sensors, controller=HoldController(), friction=Friction(Fc1=0.01))
+    blk = sim.step_block(ms.periodic(9))
+    r = fit_frequency(blk.theta1, blk.theta2, blk.torque_meas, dt)
+    assert not r.trusted
+    assert any("chi2/dof" in why and "--model two-inertia-friction" in why for why in r.reasons), r.reasons
+
+
 # --------------------------------------------------------------------------- bench accuracy
 @pytest.mark.parametrize("dt,N", [FAST, SLOW])
 def test_closed_loop_quantized_noisy_bench_within_one_percent(dt, N):
