@@ -98,6 +98,8 @@ class Cia402Backend(Backend):
         self._hb_operational = False  # a heartbeat reported OPERATIONAL since NMT start was sent
         self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
         self._hb_rebooted = False     # one of them a boot-up message
+        self.warning_samples = 0      # samples whose statusword had its warning bit set
+        self.limited_samples = 0      # ... its internal-limit bit: the drive cut the torque
         self.statusword = 0
         self._ident: dict[str, Any] = {}
         # one master per drive on this host: a second program commanding the node would each send it torque
@@ -117,7 +119,8 @@ class Cia402Backend(Backend):
     @property
     def counters(self) -> dict[str, int]:
         """Stale/late/corrupt samples and frames, unchanged encoder samples, SYNC overruns, late plan values
-        (late_torques: those that differed from the torque sent, so it landed a SYNC late)."""
+        (late_torques: those that differed from the torque sent, so it landed a SYNC late), samples with the
+        statusword's warning (bit 7) and internal limit (bit 11) set."""
         a, s = self._asm, self._sender
         io = self._setup.io if self._setup is not None else None
         return {"stale": a.stale if a else 0, "ambiguous": a.ambiguous if a else 0,
@@ -125,7 +128,8 @@ class Cia402Backend(Backend):
                 "unchanged": a.unchanged if a else 0, "sync_sent": s.sent if s else 0,
                 "sync_echoes": a.echoes if a else 0, "sync_overruns": s.overruns if s else 0,
                 "send_errors": s.send_errors if s else 0, "late_plan_samples": self._plan.late,
-                "late_torques": self._plan.late_changed,
+                "late_torques": self._plan.late_changed, "warning": self.warning_samples,
+                "internal_limit": self.limited_samples,
                 "rx_dropped": io.dropped if io else 0,
                 "max_latency_us": int(1e6 * a.max_latency) if a else 0}
 
@@ -359,11 +363,16 @@ class Cia402Backend(Backend):
         if n == 0:
             return SampleBlock.empty(with_measured=True)
         sw = rows["sw"]
-        for _i, word in enumerate(sw):
+        flags = 0
+        for word in sw:
             if p402.decode_state(word) != p402.OPERATION_ENABLED:
                 self.statusword = word
                 raise DeviceFault(f"node {self.config.node_id} left OPERATION ENABLED: state "
                                   f"{p402.decode_state(word)} (statusword 0x{word:04X})")
+            flags |= word
+        if flags & (p402.SW_WARNING | p402.SW_INTERNAL_LIMIT):
+            self.warning_samples += sum(1 for word in sw if word & p402.SW_WARNING)
+            self.limited_samples += sum(1 for word in sw if word & p402.SW_INTERNAL_LIMIT)
         self.statusword = sw[-1]
         cfg = self.config
         seq = np.asarray(rows["k"], dtype=np.int64) - self._k0

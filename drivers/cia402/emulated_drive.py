@@ -199,6 +199,7 @@ class EmulatedCia402Drive:
         self._sync_bad = False                       # SYNCs of the wrong length since the last good one
         self._tpdo_started: dict[int, int] = {}      # TPDO COB-ID -> the SYNC it started at (0x18xx:06)
         self._qs_samples = 0
+        self._limited = False                        # the torque in force was cut at a limit (statusword bit 11)
         self._delayed: list[tuple[float, int, int, bytes]] = []
         self._delay_n = 0
         self._stuck_counts: int | None = None
@@ -549,6 +550,8 @@ class EmulatedCia402Drive:
             sw &= ~p402.SW_VOLTAGE_ENABLED
         if self.faults.local_control:
             sw &= ~p402.SW_REMOTE
+        if state == p402.OPERATION_ENABLED and self._limited:
+            sw |= p402.SW_INTERNAL_LIMIT
         self._values[(p402.STATUSWORD, 0)] = sw
         if state != p402.OPERATION_ENABLED:
             self.applied_torque = 0.0
@@ -724,12 +727,17 @@ class EmulatedCia402Drive:
 
     def _torque_in_force(self) -> tuple[bool, float]:
         """(enabled, the torque the drive believes it applies [N m], its own frame): the last target torque
-        plus the offset 0x60B2 within 0x6072 while OPERATION ENABLED, else 0."""
+        plus the offset 0x60B2 within 0x6072 (and an injected derating) while OPERATION ENABLED, else 0."""
         if self._state != p402.OPERATION_ENABLED:
+            self._limited = False
             return False, 0.0
-        v = self._values
+        v, f = self._values, self.faults
         limit = v[(p402.MAX_TORQUE, 0)]
-        permille = max(-limit, min(limit, v[(p402.TARGET_TORQUE, 0)] + v[(0x60B2, 0)]))
+        if f.derate_at_sample is not None and self.samples >= f.derate_at_sample:
+            limit = min(limit, f.derate_permille)
+        want = v[(p402.TARGET_TORQUE, 0)] + v[(0x60B2, 0)]
+        permille = max(-limit, min(limit, want))
+        self._limited = permille != want
         return True, permille * self.rated_torque / 1000.0
 
     def _step(self, torques: np.ndarray) -> None:

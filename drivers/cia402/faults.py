@@ -18,7 +18,7 @@ from rt_ident.errors import ConfigError
 _GARBAGE_IDS = tuple(range(0x101, 0x180)) + tuple(range(0x500, 0x580))
 _INT_FAULTS = frozenset({"drop_tpdo_every", "tpdo_faults_from_sample", "corrupt_tpdo_every", "emcy_at_sample",
                          "emcy_code", "stuck_encoder_at_sample", "garbage_frames_per_sync", "restart_at_sample",
-                         "seed"})
+                         "derate_at_sample", "derate_permille", "seed"})
 _BOOL_FAULTS = frozenset({"main_power_off", "local_control"})
 
 
@@ -37,6 +37,9 @@ class FaultConfig:
     stuck_encoder_at_sample: the motor encoder 0x6064 freezes from that sample on.
     restart_at_sample: the drive restarts at that sample (a dip of its logic supply): power stage off, a
         boot-up message, then PRE-OPERATIONAL with no PDOs, as a drive comes up.
+    derate_at_sample / derate_permille: from that sample the drive limits its torque to derate_permille of
+        its rated torque (a thermal derating), below 0x6072, and reports statusword bit 11 (internal limit
+        active) on every sample it limits, as it does for 0x6072 itself.
     garbage_frames_per_sync: random frames on COB-IDs no node uses, after each SYNC.
     main_power_off: the power stage has no main voltage (main power off, E-stop or STO): voltage enabled
         (statusword bit 4) is off and the drive does not switch on; it stays READY TO SWITCH ON.
@@ -53,6 +56,8 @@ class FaultConfig:
     heartbeat_stop_at_s: float | None = None
     stuck_encoder_at_sample: int | None = None
     restart_at_sample: int | None = None
+    derate_at_sample: int | None = None
+    derate_permille: int = 100
     garbage_frames_per_sync: int = 0
     main_power_off: bool = False
     local_control: bool = False

@@ -101,6 +101,8 @@ _SW_PATTERNS = (
 
 SW_VOLTAGE_ENABLED = 0x0010   # statusword bit 4: main voltage at the power stage
 SW_REMOTE = 0x0200            # statusword bit 9: the drive follows the bus's controlword
+SW_WARNING = 0x0080           # statusword bit 7: a warning (which one: the drive's own objects)
+SW_INTERNAL_LIMIT = 0x0800    # statusword bit 11: an internal limit is active (in CST: the torque is limited)
 
 #: Statusword a drive reports in each state: state bits | voltage enabled (bit 4) where
 #: the power stage is on | remote (bit 9, the drive follows the controlword).

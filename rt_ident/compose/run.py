@@ -423,6 +423,9 @@ def _axis_summary(ax: _Axis, host: dict[str, Any] | None = None) -> dict[str, An
         late = late_torques(out["backend_counters"], loop.stats.samples, acfg.control.delay_ticks, acfg.backend.name)
         if late is not None and loop.control is not None:
             out["control"]["late_torques"] = late
+        notes = device_notes(out["backend_counters"], loop.stats.samples, acfg.backend.name)
+        if notes:
+            out["device_notes"] = notes
         out["torque_estimate"] = loop.torque_estimate()
         fr = friction_summary(loop)
         if fr is not None:
@@ -468,6 +471,26 @@ def late_torques(counters: dict[str, Any] | None, samples: int, delay: int,
             "message": f"in {samples} samples, {what}: the torques acted {extra:.2f} tick later on average than "
                        f"the {delay} tick(s) the controller was designed for",
             "fix": fix}
+
+
+def device_notes(counters: dict[str, Any] | None, samples: int, backend: str = "canopen") -> list[dict[str, str]]:
+    """What the device flagged in its samples: a torque it cut below the command (the loop's model of the
+    actuator did not hold there) and warnings, each with what to look at."""
+    c = counters or {}
+    notes = []
+    limited = c.get("internal_limit") or c.get("torque_limited") or 0
+    if limited:
+        who, how = (("the board", "its status flag") if backend == "serial" else
+                    ("the drive", "statusword bit 11, internal limit active"))
+        notes.append({"message": f"{who} limited the torque below the command on {limited} of {samples} samples "
+                                 f"({how}): there the loop's model of the actuator did not hold",
+                      "fix": f"{who}'s own torque, current and thermal limits above backend.torque_limit, or a "
+                             "smaller backend.torque_limit or excitation.peak"})
+    if c.get("warning"):
+        notes.append({"message": f"the drive reported a warning on {c['warning']} of {samples} samples "
+                                 "(statusword bit 7)",
+                      "fix": "the drive's own warning objects or its software say which (vendor-specific)"})
+    return notes
 
 
 def _named(axis: str, check, *args) -> None:

@@ -154,6 +154,7 @@ def print_run(s: dict) -> None:
         print_no_design(ctl)
     elif ctl:
         out.print("control: off (the host sends the excitation only; the drive must hold the axis)")
+    print_device_notes(s)
     te = s.get("torque_estimate") or {}
     if te.get("nrmse_percent") is not None:
         out.print(f"torque estimate (Eq. 18 on filtered derivatives vs the filtered measured torque): NRMSE "
@@ -211,6 +212,7 @@ def print_axes(s: dict) -> None:
                       f"{kept(rd)}, "
                       f"rejected {rd.get('rejected', 0)}; running the {ctl.get('controller')} controller")
             print_no_design(ctl)
+        print_device_notes(ax)
         files = ax.get("files") or {}
         for key, what in (("rrd", "dashboard"), ("recording", "recording")):
             if files.get(key):
@@ -253,6 +255,11 @@ def print_axes(s: dict) -> None:
     elif stop.get("interrupted"):
         err.print(_INTERRUPTED.format(ticks=loop.get("ticks", 0), stopped=_stopped(stop, True)))
     print_unconfirmed(stop)
+
+
+def print_device_notes(ax: dict) -> None:
+    for note in ax.get("device_notes") or []:
+        out.print(f"[yellow]device:[/] {escape(note['message'])}; look at: {escape(note['fix'])}")
 
 
 def print_no_design(ctl: dict) -> None:

@@ -669,6 +669,36 @@ def test_a_drive_that_restarts_mid_run_is_named_and_its_disable_confirmed_by_sdo
         assert drive.nmt_state == "PRE-OPERATIONAL"
 
 
+@pytest.mark.parametrize("derate", [None, 50])
+def test_samples_in_which_the_drive_cut_the_torque_are_counted_from_its_statusword_bit_11(derate):
+    faults = {} if derate is None else {"derate_at_sample": 100, "derate_permille": derate}
+    with rig(faults=faults) as (drive, be):
+        with be:
+            be.activate()
+            blocks = pump(be, 0.3, square(0.1), ahead=100, samples=300)   # 0.1 N m: 156 per mille of rated
+            got = sum(len(b) for b in blocks)
+            limited, warned = be.counters["internal_limit"], be.counters["warning"]
+        assert_drive_safe(drive)
+    assert warned == 0
+    if derate is None:
+        assert limited == 0                      # within 0x6072: nothing cut
+    else:
+        assert 0 < limited <= got and limited >= got - 150, (limited, got)   # every sample from the 100th on
+
+
+def test_device_notes_name_a_cut_torque_and_a_warning_with_where_to_look():
+    from rt_ident.compose.run import device_notes
+
+    assert device_notes({"internal_limit": 0, "warning": 0}, 1000) == []
+    assert device_notes(None, 1000) == []
+    drive = device_notes({"internal_limit": 12, "warning": 3}, 1000)
+    assert "the drive limited the torque below the command on 12 of 1000 samples" in drive[0]["message"]
+    assert "bit 11" in drive[0]["message"] and "backend.torque_limit" in drive[0]["fix"]
+    assert "warning on 3 of 1000 samples" in drive[1]["message"]
+    board = device_notes({"torque_limited": 5}, 1000, "serial")
+    assert len(board) == 1 and board[0]["message"].startswith("the board limited the torque")
+
+
 def test_master_heartbeat_loss_faults_the_drive_and_names_the_host():
     with rig() as (drive, be):
         with pytest.raises(HeartbeatLost, match=r"0x8130") as lost:
