@@ -32,6 +32,37 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                     help="run config (TOML) naming a real backend; repeat or comma-separate for several")
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """The session's temporary directory (TMPDIR, inherited by the xdist workers and every process a test
+    starts) is one of its own, removed at the session's end: a run a test kills with SIGKILL leaves its
+    forkserver's socket directory (multiprocessing's ``pymp-*``) behind, which would pile up in /tmp."""
+    if hasattr(config, "workerinput"):
+        return
+    import tempfile
+
+    own = tempfile.mkdtemp(prefix="rt-ident-tests-")
+    config.stash[_OWN_TMP] = (own, os.environ.get("TMPDIR"))
+    os.environ["TMPDIR"] = own
+    tempfile.tempdir = None
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    own, before = config.stash.get(_OWN_TMP, (None, None))
+    if own is None:
+        return
+    import tempfile
+
+    if before is None:
+        os.environ.pop("TMPDIR", None)
+    else:
+        os.environ["TMPDIR"] = before
+    tempfile.tempdir = None
+    shutil.rmtree(own, ignore_errors=True)
+
+
+_OWN_TMP = pytest.StashKey[tuple]()
+
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: three workers per two CPUs. A worker spends about half its time in runs paced in real
     time or waiting on processes, not on a CPU, so one per CPU leaves the CPUs half idle. The tests whose runs
