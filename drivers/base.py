@@ -264,6 +264,11 @@ class Backend(ABC):
         makes the next one, the one-tick delay the controller is designed with."""
         return None
 
+    def fault_detail(self) -> str:
+        """What the device said about its own fault once it was stopped ("; ..."), or "": for a fault the
+        run saw only as a state, the device's error code read afterwards."""
+        return ""
+
     def link_trouble(self) -> str:
         """What was failing on the link to the device when a host-side check stopped the run ("; ..."), or
         "": a trip can be the first sign of a link that went while the device held its last torque."""

@@ -99,6 +99,7 @@ class Cia402Backend(Backend):
         self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
         self._hb_rebooted = False     # one of them a boot-up message
         self.warning_samples = 0      # samples whose statusword had its warning bit set
+        self._fault_code: int | None = None   # 0x603F read after the stop of a drive in FAULT that sent no EMCY
         self.limited_samples = 0      # ... its internal-limit bit: the drive cut the torque
         self.statusword = 0
         self._ident: dict[str, Any] = {}
@@ -205,6 +206,14 @@ class Cia402Backend(Backend):
                                     cfg.stuck_torque * 1000.0 / self.rated_torque, echo=setup.echo,
                                     timed=setup.timed)
         self._hb_time = time.monotonic()
+
+    def fault_detail(self) -> str:
+        code = self._fault_code
+        if not code:
+            return ""
+        return (f"; node {self.config.node_id}'s error code 0x603F, read after the stop: "
+                f"{p402.emcy_text(code).removeprefix('EMCY ')} (no EMCY reached this host: the drive's 0x1014 may "
+                f"have it off)")
 
     def link_trouble(self) -> str:
         s, cfg = self._sender, self.config
@@ -444,6 +453,10 @@ class Cia402Backend(Backend):
             self._leave_sync()
             if self._setup is not None:
                 self._setup.receive_in_thread()     # SDO (close) needs a receiver again
+            sw = self.statusword
+            if self._setup is not None and self._emcy is None and sw is not None \
+                    and p402.decode_state(sw) == p402.FAULT:
+                self._fault_code = self._setup.try_upload(p402.ERROR_CODE, 0)
             if unconfirmed is not None and self._sdo_confirms_disabled():
                 log.warning("canopen: node %d sent no PDO after the disable; its statusword read by SDO "
                             "confirms it", cfg.node_id)

@@ -570,6 +570,8 @@ class EmulatedCia402Drive:
         self._values[(p402.ERROR_REGISTER, 0)] = register
         self._set_state(p402.FAULT)
         self.emcy_codes.append(code)
+        if self.faults.emcy_off:
+            return
         try:
             assert self._node is not None            # a fault is raised only while on the bus
             self._node.emcy.send(code, register)

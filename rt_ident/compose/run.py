@@ -253,6 +253,7 @@ def _run(cfg: RunConfig, claims: OutputClaims, *, rrd: str | None, record: str |
         stop_message = str(exc) + getattr(exc, "after_stall", "")
         if isinstance(exc, SafetyTrip):                  # a host-side check: was the link going too?
             stop_message += "".join(ax.backend.link_trouble() for ax in axes.values())
+        stop_message += "".join(ax.backend.fault_detail() for ax in axes.values())
         stop_fix = getattr(exc, "fix", None)
         if several:
             failed = runner.failed_axis if isinstance(runner, MultiAxisLoop) else None

@@ -627,9 +627,25 @@ def test_a_socketcan_send_errno_is_explained_with_what_to_check_on_the_bench():
 def test_the_emulated_faults_main_power_off_and_local_control_are_true_or_false():
     from drivers.cia402.faults import FaultConfig
 
-    for key in ("main_power_off", "local_control"):
+    for key in ("main_power_off", "local_control", "emcy_off"):
         with pytest.raises(ConfigError, match=rf"emulator.faults.{key}: must be true or false"):
             FaultConfig.from_mapping({key: 1})
+
+
+@pytest.mark.parametrize("emcy_off", [False, True])
+def test_a_fault_without_an_emcy_is_named_by_the_error_code_read_after_the_stop(emcy_off):
+    with rig(faults={"emcy_at_sample": 80, "emcy_code": 0x2310, "emcy_off": emcy_off}) as (drive, be):
+        with pytest.raises(DeviceFault) as fault:
+            with be:
+                be.activate()
+                pump(be, 2.0, square(0.1))
+        assert_drive_safe(drive)
+    if emcy_off:                                 # only the statusword said so
+        assert "left OPERATION ENABLED: state FAULT" in str(fault.value)
+        assert be.fault_detail() == ("; node 5's error code 0x603F, read after the stop: 0x2310 (continuous "
+                                     "over-current) (no EMCY reached this host: the drive's 0x1014 may have it off)")
+    else:                                        # the EMCY named it already
+        assert "0x2310" in str(fault.value) and be.fault_detail() == ""
 
 
 def test_next_session_resets_a_faulted_drive_and_runs():
