@@ -552,6 +552,9 @@ class EmulatedCia402Drive:
             sw &= ~p402.SW_REMOTE
         if state == p402.OPERATION_ENABLED and self._limited:
             sw |= p402.SW_INTERNAL_LIMIT
+        warn = self.faults.warning_at_sample
+        if warn is not None and self.samples >= warn:
+            sw |= p402.SW_WARNING
         self._values[(p402.STATUSWORD, 0)] = sw
         if state != p402.OPERATION_ENABLED:
             self.applied_torque = 0.0

@@ -18,7 +18,7 @@ from rt_ident.errors import ConfigError
 _GARBAGE_IDS = tuple(range(0x101, 0x180)) + tuple(range(0x500, 0x580))
 _INT_FAULTS = frozenset({"drop_tpdo_every", "tpdo_faults_from_sample", "corrupt_tpdo_every", "emcy_at_sample",
                          "emcy_code", "stuck_encoder_at_sample", "garbage_frames_per_sync", "restart_at_sample",
-                         "derate_at_sample", "derate_permille", "seed"})
+                         "derate_at_sample", "derate_permille", "warning_at_sample", "seed"})
 _BOOL_FAULTS = frozenset({"main_power_off", "local_control", "emcy_off"})
 
 
@@ -43,6 +43,8 @@ class FaultConfig:
     garbage_frames_per_sync: random frames on COB-IDs no node uses, after each SYNC.
     main_power_off: the power stage has no main voltage (main power off, E-stop or STO): voltage enabled
         (statusword bit 4) is off and the drive does not switch on; it stays READY TO SWITCH ON.
+    warning_at_sample: from that sample on the drive reports a warning (statusword bit 7), as for a motor
+        running warm.
     emcy_off: the drive sends no EMCY (its 0x1014 bit 31 set, as some drives ship): a fault shows only in its
         statusword and its error code 0x603F.
     local_control: the drive is under local control (its panel or the vendor's software): remote
@@ -60,6 +62,7 @@ class FaultConfig:
     restart_at_sample: int | None = None
     derate_at_sample: int | None = None
     derate_permille: int = 100
+    warning_at_sample: int | None = None
     garbage_frames_per_sync: int = 0
     main_power_off: bool = False
     local_control: bool = False

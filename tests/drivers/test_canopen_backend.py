@@ -686,8 +686,8 @@ def test_a_drive_that_restarts_mid_run_is_named_and_its_disable_confirmed_by_sdo
 
 
 @pytest.mark.parametrize("derate", [None, 50])
-def test_samples_in_which_the_drive_cut_the_torque_are_counted_from_its_statusword_bit_11(derate):
-    faults = {} if derate is None else {"derate_at_sample": 100, "derate_permille": derate}
+def test_samples_in_which_the_drive_cut_the_torque_or_warned_are_counted_from_its_statusword_bits_11_and_7(derate):
+    faults = {} if derate is None else {"derate_at_sample": 100, "derate_permille": derate, "warning_at_sample": 100}
     with rig(faults=faults) as (drive, be):
         with be:
             be.activate()
@@ -695,11 +695,11 @@ def test_samples_in_which_the_drive_cut_the_torque_are_counted_from_its_statuswo
             got = sum(len(b) for b in blocks)
             limited, warned = be.counters["internal_limit"], be.counters["warning"]
         assert_drive_safe(drive)
-    assert warned == 0
     if derate is None:
-        assert limited == 0                      # within 0x6072: nothing cut
-    else:
-        assert 0 < limited <= got and limited >= got - 150, (limited, got)   # every sample from the 100th on
+        assert limited == 0 and warned == 0      # within 0x6072, no warning: nothing flagged
+    else:                                        # every sample from the 100th on
+        assert 0 < limited <= got and limited >= got - 150, (limited, got)
+        assert 0 < warned <= got and warned >= got - 150, (warned, got)
 
 
 def test_device_notes_name_a_cut_torque_and_a_warning_with_where_to_look():
