@@ -490,7 +490,7 @@ def device_notes(counters: dict[str, Any] | None, samples: int, backend: str = "
     if c.get("warning"):
         notes.append({"message": f"the drive reported a warning on {c['warning']} of {samples} samples "
                                  "(statusword bit 7)",
-                      "fix": "the drive's own warning objects or its software say which (vendor-specific)"})
+                      "fix": "the drive's warning objects or its setup software (vendor-specific), which say which"})
     return notes
 
 
