@@ -212,7 +212,7 @@ def print_axes(s: dict) -> None:
                       f"{kept(rd)}, "
                       f"rejected {rd.get('rejected', 0)}; running the {ctl.get('controller')} controller")
             print_no_design(ctl)
-        print_device_notes(ax)
+        print_device_notes(ax, name)
         files = ax.get("files") or {}
         for key, what in (("rrd", "dashboard"), ("recording", "recording")):
             if files.get(key):
@@ -257,9 +257,10 @@ def print_axes(s: dict) -> None:
     print_unconfirmed(stop)
 
 
-def print_device_notes(ax: dict) -> None:
+def print_device_notes(ax: dict, name: str = "") -> None:
     for note in ax.get("device_notes") or []:
-        out.print(f"[yellow]device:[/] {escape(note['message'])}; look at: {escape(note['fix'])}")
+        out.print(f"[yellow]device{' ' + name if name else ''}:[/] {escape(note['message'])}; "
+                  f"look at: {escape(note['fix'])}")
 
 
 def print_no_design(ctl: dict) -> None:

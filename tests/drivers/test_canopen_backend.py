@@ -715,6 +715,17 @@ def test_device_notes_name_a_cut_torque_and_a_warning_with_where_to_look():
     assert len(board) == 1 and board[0]["message"].startswith("the board limited the torque")
 
 
+def test_device_notes_are_printed_under_their_axis(capsys):
+    from rt_ident.compose.run import device_notes
+    from rt_ident.outputs.terminal import print_device_notes
+
+    print_device_notes({"device_notes": device_notes({"internal_limit": 12}, 1000)}, "y")
+    printed = capsys.readouterr().out
+    assert printed.startswith("device y: the drive limited the torque") and "look at:" in printed
+    print_device_notes({})
+    assert capsys.readouterr().out == ""
+
+
 def test_master_heartbeat_loss_faults_the_drive_and_names_the_host():
     with rig() as (drive, be):
         with pytest.raises(HeartbeatLost, match=r"0x8130") as lost:
