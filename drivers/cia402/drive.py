@@ -60,8 +60,8 @@ log = logging.getLogger(__name__)
 
 _TWO_PI = 2.0 * math.pi
 
-#: the NMT states a heartbeat reports (CiA 301), other than OPERATIONAL (5)
-NMT_STATES = {0: "a boot-up", 4: "STOPPED", 127: "PRE-OPERATIONAL"}
+#: the NMT states a heartbeat reports (CiA 301), other than OPERATIONAL (5) and the boot-up message (0)
+NMT_STATES = {4: "STOPPED", 127: "PRE-OPERATIONAL"}
 
 
 class Cia402Backend(Backend):
@@ -99,8 +99,8 @@ class Cia402Backend(Backend):
         self._hb_not_operational = 0  # heartbeats not reporting OPERATIONAL after one that did
         self._hb_rebooted = False     # one of them a boot-up message
         self.warning_samples = 0      # samples whose statusword had its warning bit set
-        self._fault_code: int | None = None   # 0x603F read after the stop of a drive in FAULT that sent no EMCY
         self.limited_samples = 0      # ... its internal-limit bit: the drive cut the torque
+        self._fault_code: int | None = None   # 0x603F read after the stop of a drive in FAULT that sent no EMCY
         self.statusword = 0
         self._ident: dict[str, Any] = {}
         # one master per drive on this host: a second program commanding the node would each send it torque
@@ -453,9 +453,7 @@ class Cia402Backend(Backend):
             self._leave_sync()
             if self._setup is not None:
                 self._setup.receive_in_thread()     # SDO (close) needs a receiver again
-            sw = self.statusword
-            if self._setup is not None and self._emcy is None and sw is not None \
-                    and p402.decode_state(sw) == p402.FAULT:
+            if self._setup is not None and self._emcy is None and p402.decode_state(self.statusword) == p402.FAULT:
                 self._fault_code = self._setup.try_upload(p402.ERROR_CODE, 0)
             if unconfirmed is not None and self._sdo_confirms_disabled():
                 log.warning("canopen: node %d sent no PDO after the disable; its statusword read by SDO "

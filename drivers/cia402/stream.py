@@ -80,7 +80,6 @@ def wrap32(delta: int) -> int:
     return ((delta + 0x80000000) & 0xFFFFFFFF) - 0x80000000
 
 
-
 class TorquePlan:
     """Per-sample torque commands keyed by SYNC index; written by the loop, read by the sender.
 
