@@ -35,15 +35,18 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     """The session's temporary directory (TMPDIR, inherited by the xdist workers and every process a test
     starts) is one of its own, removed at the session's end: a run a test kills with SIGKILL leaves its
-    forkserver's socket directory (multiprocessing's ``pymp-*``) behind, which would pile up in /tmp."""
+    forkserver's socket directory (multiprocessing's ``pymp-*``) behind, which would pile up in /tmp.
+    This process keeps its own temporary directory: multiprocessing removes its ``pymp-*`` at the interpreter's
+    exit, after this directory is gone."""
     if hasattr(config, "workerinput"):
         return
     import tempfile
 
-    own = tempfile.mkdtemp(prefix="rt-ident-tests-")
+    mine = tempfile.gettempdir()
+    own = tempfile.mkdtemp(prefix="rt-ident-tests-", dir=mine)
     config.stash[_OWN_TMP] = (own, os.environ.get("TMPDIR"))
     os.environ["TMPDIR"] = own
-    tempfile.tempdir = None
+    tempfile.tempdir = mine
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
