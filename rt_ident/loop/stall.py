@@ -24,13 +24,24 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from rt_ident.errors import RtIdentError
+from rt_ident.errors import RtIdentError, ask_realtime
 
 
 class LoopStall(RtIdentError):
-    """The loop stalled longer than it may resume from (or ``on_stall = "stop"``)."""
+    """The loop stalled longer than it may resume from (or ``on_stall = "stop"``). The stall is the
+    host's: its ``fix`` asks for a real-time loop or a less busy host (``otherwise``: a setting that
+    would have let the run go on)."""
 
     cause = "loop-stall"
+
+    def __init__(self, message: str, otherwise: str | None = None) -> None:
+        super().__init__(message)
+        self._otherwise = otherwise
+        self.fix = ask_realtime("the loop's thread was kept off its CPU (other processes, a disk or USB "
+                                "driver, a paused VM)", otherwise)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return type(self), (str(self), self._otherwise)
 
 
 @dataclass(frozen=True)

@@ -294,6 +294,8 @@ def test_a_sigstop_with_on_stall_stop_ends_in_loop_stall(tmp_path):
     rc, s, r, err, _ = _sigstop_run(tmp_path, str(cfg_path), early_ok=True, duration=5.0)
     assert rc == 3 and s["stop"]["cause"] == "loop-stall", (s["stop"], err[-2000:])
     assert re.match(r"loop stalled for \d+ ms", s["stop"]["message"])
+    # the stall is the host's, and the setting that would have let the run resume is named
+    assert s["stop"]["fix"].startswith("loop.realtime") and "safety.on_stall = 'resume'" in s["stop"]["fix"], s["stop"]
     # the stalled tick's samples are in the recording (one that ended too early to read back has under 10)
     assert len(r) == s["loop"]["samples"] if r is not None else s["loop"]["samples"] < 10, s["loop"]["samples"]
 
