@@ -71,7 +71,7 @@ def host_trouble(summary: dict[str, Any], sample_period: float, run_failed: bool
     stop = summary.get("stop") or {}
     if str(stop.get("fix") or "").startswith("loop.realtime"):     # the run itself put its end on the host
         said.append(f"the run stopped ({stop.get('cause')}: {stop.get('message')})")
-    if stalls.get("count"):
+    if stalls.get("count") and stop.get("cause") != "loop-stall":     # a loop-stall stop has said it
         said.append(f"the loop stalled {stalls['count']} time(s), for {float(stalls.get('longest_ms') or 0):.0f} ms "
                     "at longest")
     lost = int(loop.get("lost_samples") or 0)

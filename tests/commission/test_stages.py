@@ -485,7 +485,7 @@ def test_late_ticks_name_the_host_only_in_a_run_that_failed_and_when_over_a_shar
         assert said == f"the loop was late on {overruns} of 3100 ticks (9.7 ms at most)"
 
 
-def test_a_stop_the_run_put_on_the_host_names_the_host_and_one_it_put_on_the_axis_does_not():
+def test_a_stop_the_run_put_on_the_host_names_the_host_once_and_one_it_put_on_the_axis_does_not():
     from drivers.errors import RpdoTimeout
     from rt_ident.commission.stages import host_trouble
 
@@ -495,6 +495,12 @@ def test_a_stop_the_run_put_on_the_host_names_the_host_and_one_it_put_on_the_axi
     assert said == "the run stopped (device-fault: EMCY 0x8250 (RPDO timeout))"
     trip = {"cause": "travel-limit", "message": "table at 40 mm", "fix": "safety.window"}
     assert host_trouble({"loop": loop, "stop": trip}, 0.5e-3) is None
+    from rt_ident.loop.stall import LoopStall
+
+    stalled = LoopStall("loop stalled for 1200 ms, longer than it may resume from")
+    stop = {"cause": stalled.cause, "message": str(stalled), "fix": stalled.fix}
+    said = host_trouble({"loop": {**loop, "stalls": {"count": 1, "longest_ms": 1200.0}}, "stop": stop}, 0.5e-3)
+    assert said == "the run stopped (loop-stall: loop stalled for 1200 ms, longer than it may resume from)"
 
 
 @pytest.mark.parametrize("passed", [True, False])

@@ -126,6 +126,20 @@ def test_stall_policy_verdicts():
     assert "on_stall = 'stop'" in StallPolicy(action="stop").verdict(0.02)
 
 
+def test_a_loop_stall_stop_puts_the_stall_on_the_host_and_keeps_its_fix_across_processes():
+    import pickle
+
+    from rt_ident.errors import HOST_FIX
+    from rt_ident.loop.stall import LoopStall
+
+    chosen = LoopStall("loop stalled for 20 ms", "safety.on_stall = 'resume'")
+    assert chosen.fix.startswith(HOST_FIX + "; else safety.on_stall = 'resume')"), chosen.fix
+    too_long = LoopStall("loop stalled for 1500 ms, longer than it may resume from")
+    assert too_long.fix.startswith(HOST_FIX + ")") and "on_stall" not in too_long.fix, too_long.fix
+    back = pickle.loads(pickle.dumps(chosen))
+    assert (str(back), back.fix) == (str(chosen), chosen.fix)
+
+
 def test_stall_log_links_only_a_recent_stall():
     log = StallLog()
     log.note(10.0, 0.47, "resume")
