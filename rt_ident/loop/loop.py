@@ -107,7 +107,8 @@ def _stall_before(loops: list[IdentificationLoop], blocks: list[SampleBlock], st
             lp.stats.samples += len(block)
             if lp.on_block is not None and len(block):
                 lp.on_block(block)              # nothing read is lost
-        raise LoopStall(verdict, "safety.on_stall = 'resume'" if policy.action == "stop" else None)
+        resumable = policy.action == "stop" and stall_s <= policy.stop_s
+        raise LoopStall(verdict, "safety.on_stall = 'resume'" if resumable else None)
     for lp in loops:
         lp._resume = stall_s
 

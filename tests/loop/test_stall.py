@@ -140,6 +140,18 @@ def test_a_loop_stall_stop_puts_the_stall_on_the_host_and_keeps_its_fix_across_p
     assert (str(back), back.fix) == (str(chosen), chosen.fix)
 
 
+
+@pytest.mark.parametrize(("stall_s", "names_resume"), [(0.3, True), (1.5, False)])
+def test_on_stall_stop_names_resume_only_for_a_stall_resume_would_have_taken(stall_s, names_resume):
+    from rt_ident.loop.loop import _stall_before
+    from rt_ident.loop.stall import LoopStall
+    from rt_ident.loop.stats import LoopStats
+
+    with pytest.raises(LoopStall) as e:
+        _stall_before([], [], LoopStats(), StallPolicy(action="stop", stop_s=1.0), stall_s, 0.0)
+    assert ("on_stall = 'resume'" in e.value.fix) == names_resume, e.value.fix
+
+
 def test_stall_log_links_only_a_recent_stall():
     log = StallLog()
     log.note(10.0, 0.47, "resume")
