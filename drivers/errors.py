@@ -82,21 +82,38 @@ class SafetyTrip(DriverError):
 
 
 class WatchdogTrip(SafetyTrip):
-    """No fresh feedback for the configured number of ticks."""
+    """No fresh feedback for the configured number of ticks, or a motor encoder that did not move under torque
+    (:func:`stuck_encoder_fix`). Where it is raised says the fix, if a setting is one."""
 
     cause = "watchdog"
+
+
+#: the fix of the host's watchdog on a device whose samples stopped coming
+STALE_FEEDBACK_FIX = ("the device's link (its cable, power and bus) and its sample rate; a larger "
+                      "safety.watchdog_ticks only for a device that sends less often than the loop ticks")
+
+
+def stuck_encoder_fix(torque_setting: str) -> str:
+    """The fix of a watchdog trip on a motor encoder that did not move while torque was commanded;
+    ``torque_setting``: the setting of the torque above which a motor at rest counts as stuck."""
+    return (f"the motor encoder (its cable, supply and counts per revolution); or {torque_setting} at the axis's "
+            "breakaway torque, where friction holds the motor at rest under a small torque")
 
 
 class TravelLimitTrip(SafetyTrip):
     """The table would leave its window (position or predicted stopping distance)."""
 
     cause = "travel-limit"
+    fix = ("the start position and the path's extent ([reference], excitation.peak) inside safety.window; a wider "
+           "safety.window only as far as the table really travels")
 
 
 class SpeedTrip(SafetyTrip):
     """The table moves faster than ``[safety] max_speed_m_s``."""
 
     cause = "speed-limit"
+    fix = ("a slower path ([reference]) or a smaller excitation.peak; a higher safety.max_speed_m_s only as fast as "
+           "the axis may move")
 
 
 class SignTrip(SafetyTrip):
@@ -104,3 +121,4 @@ class SignTrip(SafetyTrip):
     host's position loop positive feedback."""
 
     cause = "sign"
+    fix = "backend.torque_sign, motor_encoder_sign or scale_sign: rt-ident commission finds which"

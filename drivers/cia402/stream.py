@@ -61,7 +61,7 @@ import numpy as np
 
 from drivers.base import SAME_TORQUE
 from drivers.cia402.bus import error_code
-from drivers.errors import ProtocolError, WatchdogTrip
+from drivers.errors import ProtocolError, WatchdogTrip, stuck_encoder_fix
 from rt_ident.errors import ask_realtime
 
 log = logging.getLogger(__name__)
@@ -652,9 +652,11 @@ class SampleAssembler:
             self.unchanged += 1
             self._stuck_run += 1
             if self._stuck_run > self.stale_limit:
-                raise WatchdogTrip(f"motor encoder 0x6064 unchanged at {pos_raw} counts through {self._stuck_run} "
-                                   f"samples with torque applied (last {tq} per mille of rated torque; "
-                                   f"stale_limit {self.stale_limit}): stuck encoder or frozen drive data")
+                trip = WatchdogTrip(f"motor encoder 0x6064 unchanged at {pos_raw} counts through {self._stuck_run} "
+                                    f"samples with torque applied (last {tq} per mille of rated torque; "
+                                    f"stale_limit {self.stale_limit}): stuck encoder or frozen drive data")
+                trip.fix = stuck_encoder_fix("backend.stuck_torque_min")
+                raise trip
         r = self.rows
         r["k"].append(k)
         r["t"].append(t)

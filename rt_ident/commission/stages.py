@@ -296,7 +296,8 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
     elif host is not None:
         fix = ask_realtime(f"{host}, then the run stopped: {stop} - {(s.get('stop') or {}).get('message')}")
     else:
-        fix = f"the run stopped: {stop} - {(s.get('stop') or {}).get('message')}"
+        ended = s.get("stop") or {}
+        fix = f"the run stopped: {stop} - {ended.get('message')}" + (f"; {ended['fix']}" if ended.get("fix") else "")
     result["checks"].append(check("identification trusted", trusted and stop is None, measured,
                                   "trusted, run ended normally", fix))
     disabled = _disable_confirmed(result["checks"], unconfirmed)

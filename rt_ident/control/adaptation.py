@@ -175,6 +175,8 @@ class ControlFallbackStop(RtIdentError):
     """The conservative controller did not bring the tracking error back in time."""
 
     cause = "control-fallback"
+    fix = ("the axis's model, which the controllers are designed from ([axis]: rt-ident commission, or rt-ident "
+           "identify of a recording); else control.bandwidth_hz lower, or a wider control.max_error_m")
 
 
 # the slots of ControlStats.err (the same three follow for the errors after error_after_s)

@@ -152,7 +152,7 @@ def test_travel_trip_stops_with_a_cause_and_keeps_the_recording(tmp_path):
     # a drive declared to hold the axis that does not: the probe walks the free table out of its window
     s = run(cfg(safety__window=[-2e-4, 2e-4], control__mode="off", control__drive_holds=True),
             record=str(tmp_path / "t.parquet"))
-    assert s["stop"]["cause"] == "travel-limit"
+    assert s["stop"]["cause"] == "travel-limit" and "safety.window" in s["stop"]["fix"], s["stop"]
     assert s["stop"]["final_torque"] == 0.0
     assert len(read_recording(tmp_path / "t.parquet")) == s["loop"]["samples"]
 

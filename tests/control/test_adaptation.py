@@ -94,6 +94,7 @@ def test_run_safe_stops_with_exit_code_3_when_the_fallback_cannot_hold_the_bound
     cfg = load(None, **{**FAST, "loop.duration": 2.0, "control.max_error_m": 1e-9, "control.fallback_timeout_s": 0.05})
     summary = run_mod.run(cfg)
     assert summary["stop"]["cause"] == "control-fallback", summary["stop"]
+    assert "rt-ident commission" in summary["stop"]["fix"] and "control.bandwidth_hz" in summary["stop"]["fix"]
     assert summary["stop"]["final_torque"] == 0.0 and summary["stop"]["backend_state"] == "closed"
     assert run_mod.exit_code(summary) == 3
     assert summary["control"]["fallbacks"] == 0 or summary["control"]["controller"] == "conservative"
