@@ -177,6 +177,7 @@ class Backend(ABC):
         self.last_torque = 0.0      # last value that left the host
         self.stop_cause: str | None = None
         self.stop_unconfirmed: str | None = None  # after safe_stop(): what the device did not confirm (None: all)
+        self._link_at_close = ""    # the link as close() found it (link_trouble() after the device is released)
 
     # ----- properties each backend provides --------------------------------
     @property
@@ -271,7 +272,12 @@ class Backend(ABC):
 
     def link_trouble(self) -> str:
         """What was failing on the link to the device when a host-side check stopped the run ("; ..."), or
-        "": a trip can be the first sign of a link that went while the device held its last torque."""
+        "": a trip can be the first sign of a link that went while the device held its last torque. Once
+        closed: as the close found it, after the safe stop (which gave a vanishing link time to show)."""
+        return self._link_at_close if self.state is State.CLOSED else self._link_trouble()
+
+    def _link_trouble(self) -> str:
+        """The hook of :meth:`link_trouble` on an open device."""
         return ""
 
     def step_ahead(self, seconds: float) -> None:  # noqa: B027 - optional: a real device needs nothing
@@ -339,6 +345,10 @@ class Backend(ABC):
         if self.state is State.CLOSED:
             return
         self.safe_stop()
+        try:
+            self._link_at_close = self._link_trouble()
+        except Exception:  # noqa: BLE001 - a diagnosis, never a reason not to close
+            log.exception("%s: looking at the link failed", self.name)
         try:
             self._close()
         except Exception:  # noqa: BLE001

@@ -215,7 +215,7 @@ class Cia402Backend(Backend):
                 f"{p402.emcy_text(code).removeprefix('EMCY ')} (no EMCY reached this host: the drive's 0x1014 may "
                 f"have it off)")
 
-    def link_trouble(self) -> str:
+    def _link_trouble(self) -> str:
         s, cfg = self._sender, self.config
         if s is None or not s.consecutive_errors:
             return ""

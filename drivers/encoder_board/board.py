@@ -334,7 +334,7 @@ class SerialBoardBackend(Backend):
             self._close()
             raise
 
-    def link_trouble(self) -> str:
+    def _link_trouble(self) -> str:
         """The port gone under the run (a board unplugged, powered off or reset): its silence was the link's.
         The kernel hangs a tty up a moment after its device goes, so the read before a watchdog trip may
         not have seen it yet; this looks again, without waiting."""

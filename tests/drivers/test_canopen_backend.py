@@ -611,6 +611,10 @@ def test_a_canopen_backend_reports_sync_cycles_failing_in_a_row_and_nothing_once
     assert be.link_trouble().startswith("; meanwhile the last 4 SYNC cycles failed to send on virtual:x ")
     be._sender = SimpleNamespace(consecutive_errors=0, last_error="CanOperationError: Failed to transmit")
     assert be.link_trouble() == ""
+    be._sender = SimpleNamespace(consecutive_errors=4, last_error="CanOperationError: Failed to transmit")
+    be.close()                              # released: as the close found it (the run asks after its exit)
+    be._sender = None
+    assert be.link_trouble().startswith("; meanwhile the last 4 SYNC cycles failed")
 
 
 def test_a_socketcan_send_errno_is_explained_with_what_to_check_on_the_bench():

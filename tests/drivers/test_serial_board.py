@@ -569,7 +569,7 @@ def test_stuck_encoder_is_a_device_fault(rig):
     assert_de_energized(board)
 
 
-def test_a_port_gone_under_the_run_is_named_when_a_host_check_stops_it(rig):
+def test_a_port_gone_under_the_run_is_named_when_a_host_check_stops_it_also_after_the_close(rig):
     board, be = rig()
     read_for(be, 0.01)
     assert be.link_trouble() == ""                # a live board: nothing to add to the trip
@@ -578,6 +578,8 @@ def test_a_port_gone_under_the_run_is_named_when_a_host_check_stops_it(rig):
     while not be.link_trouble() and time.monotonic() < end:
         time.sleep(0.01)
     assert "link went away" in be.link_trouble()
+    be.close()                                    # the run asks after its backends' exit: the port is released
+    assert be.state.value == "closed" and "link went away" in be.link_trouble()
 
 
 def test_host_heartbeat_loss_disables_the_board_and_raises_device_fault(rig):
