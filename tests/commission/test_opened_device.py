@@ -125,8 +125,7 @@ def test_a_board_set_to_other_counts_than_the_config_is_refused_before_it_is_ena
 
     enabled = []
     monkeypatch.setattr(SerialBoardBackend, "_activate", lambda self: enabled.append(self))
-    data = tomllib.loads((ROOT / "configs" / "serial-virtual.toml").read_text())
-    data["loop"]["realtime"] = False
+    data = tomllib.loads(_board_text())          # its start-up and link timeouts widened for a busy host
     data["plant"] = {"actual": {"counts_per_rev": 4096}}       # the board's encoder setting, not the config's
     with pytest.raises(ConfigError, match=r"^backend.counts_per_rev: the device reports 4096, the config says "
                                           r"131072: correct backend.counts_per_rev"):
