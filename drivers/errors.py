@@ -12,6 +12,11 @@ class DriverError(RtIdentError):
     cause = "driver-error"
     fix: str | None = None
 
+    def __init__(self, *args: object, fix: str | None = None) -> None:
+        super().__init__(*args)
+        if fix is not None:             # else the class's own (kept across processes in the instance's dict)
+            self.fix = fix
+
 
 class BackendNotFound(DriverError):
     cause = "backend-not-found"
@@ -40,13 +45,6 @@ class DriveNotReady(DriverError):
     a setting; ``fix`` says what to do there."""
 
     cause = "not-ready"
-
-    def __init__(self, message: str, fix: str) -> None:
-        super().__init__(message)
-        self.fix: str = fix
-
-    def __reduce__(self) -> tuple[type[DriveNotReady], tuple[str, str]]:
-        return type(self), (str(self), self.fix)
 
 
 class ProtocolError(DriverError):
@@ -83,7 +81,7 @@ class SafetyTrip(DriverError):
 
 class WatchdogTrip(SafetyTrip):
     """No fresh feedback for the configured number of ticks, or a motor encoder that did not move under torque
-    (:func:`stuck_encoder_fix`). Where it is raised says the fix, if a setting is one."""
+    (:func:`stuck_encoder_fix`). Where it is raised says the fix (``fix=``), if a setting is one."""
 
     cause = "watchdog"
 

@@ -621,12 +621,10 @@ class SampleAssembler:
                                         f"(last bad frame: {self._last_corrupt}); {self.corrupt} corrupt "
                                         f"frames in total")
                 whose, host = self._which()
-                trip = WatchdogTrip(f"no fresh TPDO data for {self._bad_run} SYNCs in a row "
-                                    f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total); {whose}")
-                if host:
-                    trip.fix = ask_realtime("the host's SYNCs were late, not the drive's answers",
-                                            "a larger backend.stale_limit")
-                raise trip
+                raise WatchdogTrip(f"no fresh TPDO data for {self._bad_run} SYNCs in a row "
+                                   f"(stale_limit {self.stale_limit}, {self.stale} stale samples in total); {whose}",
+                                   fix=ask_realtime("the host's SYNCs were late, not the drive's answers",
+                                                    "a larger backend.stale_limit") if host else None)
             return
         self._bad_run = 0
         self._bad_corrupt = False
@@ -652,11 +650,10 @@ class SampleAssembler:
             self.unchanged += 1
             self._stuck_run += 1
             if self._stuck_run > self.stale_limit:
-                trip = WatchdogTrip(f"motor encoder 0x6064 unchanged at {pos_raw} counts through {self._stuck_run} "
-                                    f"samples with torque applied (last {tq} per mille of rated torque; "
-                                    f"stale_limit {self.stale_limit}): stuck encoder or frozen drive data")
-                trip.fix = stuck_encoder_fix("backend.stuck_torque_min")
-                raise trip
+                raise WatchdogTrip(f"motor encoder 0x6064 unchanged at {pos_raw} counts through {self._stuck_run} "
+                                   f"samples with torque applied (last {tq} per mille of rated torque; "
+                                   f"stale_limit {self.stale_limit}): stuck encoder or frozen drive data",
+                                   fix=stuck_encoder_fix("backend.stuck_torque_min"))
         r = self.rows
         r["k"].append(k)
         r["t"].append(t)

@@ -286,6 +286,7 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
     else:
         measured = "trusted" if stop is None else f"trusted, but the run stopped: {stop}"
     period = result.get("sample_period") or _sample_period(cfg)
+    ended = s.get("stop") or {}
     host = host_trouble(s, period)
     # an estimate from a run the host disturbed enough to change what it measured may be untrusted for that
     disturbed = None if trusted else host_trouble(s, period, run_failed=False)
@@ -294,9 +295,8 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
     elif stop is None:
         fix = "commission.identify_s (longer), excitation.peak / excitation.band"
     elif host is not None:
-        fix = ask_realtime(f"{host}, then the run stopped: {stop} - {(s.get('stop') or {}).get('message')}")
+        fix = ask_realtime(f"{host}, then the run stopped: {stop} - {ended.get('message')}")
     else:
-        ended = s.get("stop") or {}
         fix = f"the run stopped: {stop} - {ended.get('message')}" + (f"; {ended['fix']}" if ended.get("fix") else "")
     result["checks"].append(check("identification trusted", trusted and stop is None, measured,
                                   "trusted, run ended normally", fix))

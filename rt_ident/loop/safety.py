@@ -109,18 +109,14 @@ class SafetyMonitor:
         if n_samples == 0:
             self.stale_ticks += 1
             if self.stale_ticks >= self.watchdog_ticks:
-                trip = WatchdogTrip(f"no fresh feedback for {self.stale_ticks} ticks")
-                trip.fix = STALE_FEEDBACK_FIX
-                raise trip
+                raise WatchdogTrip(f"no fresh feedback for {self.stale_ticks} ticks", fix=STALE_FEEDBACK_FIX)
             return
         self.stale_ticks = 0
         if torque_active and theta1_last == self._last_theta1:
             self.stuck_ticks += 1
             if self.stuck_ticks >= self.watchdog_ticks:
-                trip = WatchdogTrip(f"motor encoder stuck at {theta1_last:.6g} rad for {self.stuck_ticks} ticks "
-                                    "while torque was commanded")
-                trip.fix = stuck_encoder_fix("safety.stuck_torque")
-                raise trip
+                raise WatchdogTrip(f"motor encoder stuck at {theta1_last:.6g} rad for {self.stuck_ticks} ticks "
+                                   "while torque was commanded", fix=stuck_encoder_fix("safety.stuck_torque"))
         else:
             self.stuck_ticks = 0
         self._last_theta1 = theta1_last
