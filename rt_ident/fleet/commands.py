@@ -217,12 +217,28 @@ def query_cmd(
     if json_out:
         typer.echo(json.dumps([dict(zip(cols, r)) for r in rows], indent=2, default=str))
         return
+    print_rows(out, cols, rows)
+
+
+def print_rows(console: Console, cols: list[str], rows: list[tuple[Any, ...]]) -> None:
+    """A table where its columns fit the console; otherwise one block of "column  value" lines per row, as a
+    squeezed table would show wide results (``SELECT *``) as empty columns."""
+    from rich.measure import Measurement
+
     tab = Table()
     for c in cols:
         tab.add_column(c)
     for r in rows:
         tab.add_row(*(_cell(v) for v in r))
-    out.print(tab)
+    if Measurement.get(console, console.options.update_width(1 << 20), tab).minimum <= console.width:
+        console.print(tab)
+        return
+    pad = max((len(c) for c in cols), default=0)
+    for i, r in enumerate(rows, 1):
+        console.print(f"-- row {i} --", markup=False, highlight=False)
+        for c, v in zip(cols, r):
+            console.print(f"{c.ljust(pad)}  {_cell(v)}", markup=False, highlight=False)
+    console.print(f"({len(rows)} row{'' if len(rows) == 1 else 's'})", markup=False, highlight=False)
 
 
 def _mount_make() -> None:

@@ -240,3 +240,23 @@ def test_an_old_history_without_verdict_columns_reads_as_unknown_verdicts_and_is
     out = drift(tmp_path / "h")
     assert out["ignored"] == {"untrusted": 0, "unknown_verdict": 0}
     assert len(known_hashes(tmp_path / "h")) == len(entries)
+
+
+def test_query_results_too_wide_for_the_terminal_print_one_block_per_row_and_narrow_ones_a_table():
+    """A squeezed rich table shows ``SELECT *`` over the history's columns as empty cells at 80 characters."""
+    import io
+
+    from rich.console import Console
+
+    from rt_ident.fleet.commands import print_rows
+
+    wide_cols = [f"column_{i}" for i in range(30)]
+    text = io.StringIO()
+    print_rows(Console(file=text, width=80), wide_cols, [tuple(float(i) + 0.5 for i in range(30)), tuple(range(30))])
+    lines = text.getvalue().splitlines()
+    assert lines[0] == "-- row 1 --" and lines[-1] == "(2 rows)"
+    assert "column_29  29.5" in lines and "column_0   0" in lines
+    assert max(len(x) for x in lines) <= 80
+    text = io.StringIO()
+    print_rows(Console(file=text, width=80), ["machine", "n"], [("m01", 3)])
+    assert text.getvalue().splitlines()[1:4:2] == ["┃ machine ┃ n ┃", "│ m01     │ 3 │"]
