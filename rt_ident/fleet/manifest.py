@@ -53,7 +53,8 @@ def recording_path(text: str, folder: Path, allow_outside: bool = False) -> str:
     base = folder.resolve()
     path = (base / local).resolve()               # an absolute path stays itself; links are followed
     if not allow_outside and not path.is_relative_to(base):
-        raise ValueError(f"{text} is outside the manifest's folder {base} (--allow-outside reads it)")
+        via = "" if Path(os.path.normpath(base / local)) == path else f" (a link to {path})"
+        raise ValueError(f"{text}{via} is outside the manifest's folder {base} (--allow-outside reads it)")
     try:
         mode = os.stat(path).st_mode
     except FileNotFoundError:
@@ -69,7 +70,7 @@ def parse_time(text: str, where: str) -> _dt.datetime:
     try:
         t = _dt.datetime.fromisoformat(text.strip())
     except ValueError:
-        raise ConfigError(where, f"time {text!r} is not ISO 8601 (e.g. 2026-11-24 or 2026-11-24T06:00:00)") from None
+        raise ConfigError(where, f"{text!r} is not ISO 8601 (e.g. 2026-11-24 or 2026-11-24T06:00:00)") from None
     if t.tzinfo is None:
         t = t.replace(tzinfo=_dt.UTC)
     return t.astimezone(_dt.UTC)
@@ -106,9 +107,10 @@ def read_manifest(path: str | Path, allow_outside: bool = False) -> list[Entry]:
                 raise ConfigError("MANIFEST", f"{p} line {n}: empty {c}")
         try:
             rec = recording_path(vals["path"], p.parent, allow_outside)
+            when = parse_time(vals["time"], "time")
         except ValueError as exc:
             raise ConfigError("MANIFEST", f"{p} line {n}: {exc}") from None
-        out.append(Entry(rec, vals["machine"], vals["axis"], parse_time(vals["time"], f"MANIFEST line {n}")))
+        out.append(Entry(rec, vals["machine"], vals["axis"], when))
     if not out:
         raise ConfigError("MANIFEST", f"{p} lists no recordings")
     return out

@@ -187,6 +187,24 @@ def test_a_manifest_path_outside_its_folder_is_refused_naming_the_line(tmp_path,
         read_manifest(_manifest(folder, "good.parquet", bad))
 
 
+def test_a_refused_link_names_its_target_and_a_bad_time_its_manifest_and_line(tmp_path):
+    folder = tmp_path / "m"
+    folder.mkdir()
+    os.symlink("/etc/passwd", folder / "link.parquet")
+    with pytest.raises(ConfigError) as err:
+        read_manifest(_manifest(folder, "missing-yet.parquet", "link.parquet"))
+    assert str(err.value) == (f"MANIFEST: {folder / 'm.csv'} line 3: link.parquet (a link to /etc/passwd) is outside "
+                              f"the manifest's folder {folder.resolve()} (--allow-outside reads it)")
+    with pytest.raises(ConfigError, match=r"line 3: \.\./elsewhere\.parquet is outside"):   # no link named
+        read_manifest(_manifest(folder, "missing-yet.parquet", "../elsewhere.parquet"))
+    m = folder / "t.csv"
+    m.write_text("path,machine,axis,time\na.parquet,m01,x,2026-11-01\na.parquet,m01,x,yesterday\n")
+    with pytest.raises(ConfigError) as err:
+        read_manifest(m)
+    assert str(err.value) == f"MANIFEST: {m} line 3: time: 'yesterday' is not ISO 8601 (e.g. 2026-11-24 or " \
+                             "2026-11-24T06:00:00)"
+
+
 def test_allow_outside_reads_a_file_elsewhere_but_never_a_device_a_folder_or_a_pipe(tmp_path, small_fleet):
     outside = tmp_path / "outside.parquet"
     shutil.copy(small_fleet / "recordings" / "m01-x-day000.parquet", outside)
