@@ -511,7 +511,8 @@ def commission(
         for c in result["checks"]:
             mark = "[green]pass[/green]" if c["ok"] else "[red]FAIL[/red]"
             out.print(f"{mark} {escape(c['name'])}: {escape(_commission_value(c['measured']))}"
-                      + (f" - fix: {escape(str(c['fix']))}" if not c["ok"] else ""), highlight=False)
+                      + (f" - fix: {escape(str(c['fix']))}" if not c["ok"] else "")
+                      + (f" - note: {escape(c['note'])}" if c.get("note") else ""), highlight=False)
         out.print(f"verdict: {result['verdict']} (stage {result['stage_reached']}); report {result['report']}"
                   + (f"; [axis] for run: {result['axis_toml']}" if result.get("axis_toml") else ""), highlight=False,
               markup=False)

@@ -93,9 +93,10 @@ def write(result: dict[str, Any], cfg: RunConfig, path: Path) -> None:
         f = result["failed"]
         parts.append(f"<p class='fail'>{html.escape(f['check'])} failed. Fix: {html.escape(str(f['fix']))}</p>")
     parts.append("<h2>Checks</h2>")
-    parts.append(table(["check", "result", "measured", "expected", "fix"], [
+    parts.append(table(["check", "result", "measured", "expected", "fix, or what a pass leaves to look at"], [
         [html.escape(c["name"]), "<span class='pass'>pass</span>" if c["ok"] else "<span class='fail'>FAIL</span>",
-         html.escape(fmt(c["measured"])), html.escape(fmt(c["expected"])), html.escape(fmt(c.get("fix")))]
+         html.escape(fmt(c["measured"])), html.escape(fmt(c["expected"])),
+         html.escape(fmt(c.get("fix") or c.get("note")))]
         for c in result.get("checks", [])]))
     if result.get("identity"):
         parts.append("<h2>Device</h2>" + table(["object", "value"], [

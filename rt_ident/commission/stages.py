@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from rt_ident.commission.checks import check, probe_checks, probe_limits
+from rt_ident.commission.checks import check, probe_checks, probe_limits, scaled_torque_note
 from rt_ident.commission.probe import LAPSED_RETRIES, ProbeError, Prober
 from rt_ident.config import RunConfig, from_mapping
 from rt_ident.errors import ConfigError, RtIdentError, ask_realtime, host_fix
@@ -298,8 +298,13 @@ def _identify(cfg: RunConfig, out: Path, result: dict[str, Any], progress: Progr
         fix = ask_realtime(f"{host}, then the run stopped: {stop} - {ended.get('message')}")
     else:
         fix = f"the run stopped: {stop} - {ended.get('message')}" + (f"; {ended['fix']}" if ended.get("fix") else "")
+    params = s.get("parameters") or {}
+    note = None
+    if trusted and "I1" in params and "I2" in params:
+        p = cfg.axis_params()
+        note = scaled_torque_note(cfg, (params["I1"] + params["I2"]) / (p.I1 + p.I2), "the identified I1 + I2")
     result["checks"].append(check("identification trusted", trusted and stop is None, measured,
-                                  "trusted, run ended normally", fix))
+                                  "trusted, run ended normally", fix, note))
     disabled = _disable_confirmed(result["checks"], unconfirmed)
     return s if trusted and stop is None and disabled else None
 
@@ -447,10 +452,10 @@ def _sample_period(cfg: RunConfig) -> float:
     return float(opts.get("sample_period", 2.9481e-5))
 
 
-def axis_toml(cfg: RunConfig, params: dict[str, float], source: str | None) -> str:
+def axis_toml(cfg: RunConfig, params: dict[str, float], source: str | None, notes: tuple[str, ...] = ()) -> str:
     lead = cfg.axis_params().lead
     lines = [f"# identified by rt-ident commission on {_dt.datetime.now().isoformat(timespec='seconds')}"
-             f" from {source}", "[axis]"]
+             f" from {source}", *(f"# note: {n}" for n in notes), "[axis]"]
     lines += [f"{k} = {float(params[k]):.6g}" for k in ("I1", "I2", "B", "K")]
     lines.append(f"lead = {lead:.6g}")
     return "\n".join(lines) + "\n"
@@ -496,7 +501,9 @@ def _commission(cfg: RunConfig, out: Path, progress: Progress) -> dict[str, Any]
         if ok:
             result["stage_reached"] = "e"
             toml = out / "axis.toml"
-            toml.write_text(axis_toml(cfg, result["parameters"], cfg.source))
+            ident_check = next(c for c in result["checks"] if c["name"] == "identification trusted")
+            notes = (ident_check["note"],) if ident_check.get("note") else ()
+            toml.write_text(axis_toml(cfg, result["parameters"], cfg.source, notes))
             result["axis_toml"] = str(toml)
         result["verdict"] = "pass" if ok else "fail"
     except KeyboardInterrupt:

@@ -128,6 +128,7 @@ def test_an_emulated_device_wired_as_the_host_is_told_passes_from_off_centre_or_
         pytest.skip(f"the host disturbed all {ATTEMPTS} commissionings: {host_failures}")
     assert r["stage_reached"] == "e"
     assert r["parameters"]["I2"] == pytest.approx(8.3e-6, rel=0.1)
+    assert [c["name"] for c in r["checks"] if c.get("note")] == []     # the torque reaches the motor as told
     assert Path(r["report"]).is_file() and Path(r["axis_toml"]).is_file()
     timing = r["verification"]["timing"]          # both devices say how late the move's torques landed
     assert timing["late_torques"] >= 0 and 0 <= timing["late_torque_ticks"] <= 1, timing

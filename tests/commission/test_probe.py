@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,8 @@ from rt_ident.commission.checks import probe_checks, probe_limits
 from rt_ident.compose.build import backend_options
 from rt_ident.compose.offline import VirtualClock
 from tests.commission.test_stages import sim_data
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def run_pulses(monkeypatch, actual: dict, stall_at: str | None, stall_s: float = 0.03, late_s: float = 0.0,
@@ -157,6 +160,44 @@ def test_a_limit_passed_on_an_axis_far_livelier_per_newton_metre_names_the_torqu
     checks = probe_checks(cfg, pulses, pulses[0].t[1] - pulses[0].t[0])
     failed = [c for c in checks if not c["ok"]]
     assert [c["name"] for c in failed] == ["limits"] and failed[0]["fix"].startswith(key), failed
+
+
+@pytest.mark.parametrize(("torque_scale", "noted"), [(1.0, False), (1.15, False), (0.5, True), (2.0, True)])
+def test_a_torque_scale_the_acceleration_check_lets_pass_is_still_pointed_out_naming_the_torque_key(
+        monkeypatch, torque_scale, noted):
+    """Within x3 of [axis] the check passes (an inertia from a datasheet is rough), but a torque constant off
+    by 2 makes every identified parameter 2 x too large: the pass says so (serial: tests/commission/test_devices)."""
+    cfg, pulses, _ = run_pulses(monkeypatch, {"torque_scale": torque_scale}, None)
+    acc = next(c for c in probe_checks(cfg, pulses, pulses[0].t[1] - pulses[0].t[0])
+               if c["name"] == "acceleration per N m")
+    assert acc["ok"]
+    assert ("note" in acc) == noted, acc
+    if noted:
+        assert acc["note"].startswith(f"the acceleration per N m is {torque_scale:.2g} x what [axis] gives")
+        assert "the torque reaches the motor scaled;" in acc["note"]        # the sim has no torque key to name
+
+
+def test_the_scaled_torque_note_names_each_devices_torque_key():
+    from rt_ident.commission.checks import scaled_torque_note
+
+    for name, key in (("serial-virtual.toml", "(backend.torque_constant)"), ("canopen-virtual.toml",
+                                                                             "(backend.rated_torque)")):
+        cfg = config.load(str(ROOT / "configs" / name))
+        assert f"the torque reaches the motor scaled {key};" in scaled_torque_note(cfg, 0.5, "it")
+        assert scaled_torque_note(cfg, 1.2, "it") is None and scaled_torque_note(cfg, 1 / 1.2, "it") is None
+
+
+def test_the_axis_snippet_carries_a_note_as_a_comment_and_stays_valid_toml():
+    import tomllib
+
+    from rt_ident.commission.stages import axis_toml
+
+    cfg = config.from_mapping(sim_data({}))
+    params = {"I1": 5.4e-5, "I2": 1.66e-5, "B": 4.2e-3, "K": 220.0}
+    text = axis_toml(cfg, params, "my.toml", ("the identified I1 + I2 is 2 x what [axis] gives",))
+    assert text.splitlines()[1] == "# note: the identified I1 + I2 is 2 x what [axis] gives"
+    assert tomllib.loads(text)["axis"]["I1"] == 5.4e-5
+    assert not any(line.startswith("# note") for line in axis_toml(cfg, params, "my.toml").splitlines())
 
 
 def test_a_ratio_off_by_two_names_one_sensor_only_when_every_pulse_points_to_it(monkeypatch):
