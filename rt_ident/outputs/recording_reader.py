@@ -285,6 +285,8 @@ def read_recording(path: str | os.PathLike[str], *, require_theta2: bool = True)
     """
     p = Path(path)
     ext = p.suffix.lower()
+    if p.is_dir():
+        raise DataError(f"{p}: a folder, not a recording (one .parquet, .arrows or .csv file)")
     if ext == ".csv":
         if not p.is_file():
             raise DataError(f"{p}: no such file")

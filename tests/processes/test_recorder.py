@@ -297,6 +297,13 @@ def test_missing_file_is_a_data_error(tmp_path: Path) -> None:
             read_recording(tmp_path / name)
 
 
+def test_a_folder_is_named_as_a_folder_whatever_its_name_ends_in(tmp_path: Path) -> None:
+    for name in ("runs", "old.parquet", "x.csv"):
+        (tmp_path / name).mkdir()
+        with pytest.raises(DataError, match=r": a folder, not a recording \(one \.parquet, \.arrows or \.csv file\)$"):
+            read_recording(tmp_path / name)
+
+
 def test_unknown_extension_is_a_data_error(tmp_path: Path) -> None:
     p = tmp_path / "data.xlsx"
     p.write_text("t\n")
