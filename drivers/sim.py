@@ -45,7 +45,7 @@ from rt_ident.axis.plant import (
     SensorConfig,
     rest_at,
 )
-from rt_ident.errors import ConfigError
+from rt_ident.errors import ConfigError, first_error, validation_message
 
 log = logging.getLogger(__name__)
 
@@ -147,9 +147,9 @@ def _validate(config: Mapping[str, Any] | None) -> SimConfig:
     try:
         return SimConfig.model_validate(dict(config or {}))
     except ValidationError as exc:
-        err = exc.errors()[0]
+        err = first_error(exc.errors())
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        msg = str(err["msg"]).removeprefix("Value error, ")
+        msg = validation_message(SimConfig, err)
         if not loc and ": " in msg:                  # a model check that names its field itself
             loc, msg = msg.split(": ", 1)
         if loc.startswith("actual."):

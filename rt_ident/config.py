@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
-from rt_ident.errors import ConfigError
+from rt_ident.errors import ConfigError, first_error, validation_message
 
 if TYPE_CHECKING:
     from pydantic_core import ErrorDetails
@@ -444,8 +444,8 @@ def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfi
     try:
         cfg = RunConfig.model_validate({**data, "source": source})
     except ValidationError as exc:
-        first = exc.errors()[0]
-        field, msg = _field_name(first), str(first["msg"]).removeprefix("Value error, ")
+        first = first_error(exc.errors())
+        field, msg = _field_name(first), validation_message(RunConfig, first)
         head, sep, rest = msg.partition(": ")
         if sep and head.replace(".", "").replace("_", "").isalnum():   # a check across fields names its field
             field, msg = (f"{field}.{head}" if field else head), rest

@@ -7,6 +7,11 @@ one place and let genuine bugs propagate.
 
 from __future__ import annotations
 
+import difflib
+import typing
+from collections.abc import Mapping
+from typing import Any
+
 
 class RtIdentError(Exception):
     """Root of every error this package raises on purpose."""
@@ -70,3 +75,44 @@ def host_fix(fix: str | None, realtime: dict | bool | None) -> str | None:
         return f"loop.realtime is on and the loop ran at SCHED_FIFO: {host}{tail}"
     return (f"loop.realtime is on but the loop ran without SCHED_FIFO ({granted}): real-time privileges for it "
             f"(an rtprio and memlock limit, or root; see docs/operation/loop.md), or {host}{tail}")
+
+
+def first_error(errors: list[Any]) -> Any:
+    """The error of a pydantic validation to report: a mistyped key before the rest (the field it was meant
+    to be is then reported missing too)."""
+    return next((e for e in errors if e.get("type") == "extra_forbidden"), errors[0])
+
+
+def validation_message(model: Any, err: Mapping[str, Any]) -> str:
+    """One pydantic error of a config section (``model``) as its line says it: a key the section does not have
+    (at the error's ``loc``) is called unknown and the nearest keys it has are named (a typo); any other
+    message comes without pydantic's "Value error, "."""
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    if err.get("type") != "extra_forbidden" or not err.get("loc"):
+        return msg
+    *path, key = err["loc"]
+    for part in path:
+        model = _step(model, part)
+    found = _models(model)
+    if len(found) != 1:
+        return msg
+    keys = [k for k in found[0].model_fields if k != "source"]
+    near = difflib.get_close_matches(str(key), keys, n=2, cutoff=0.6)
+    return "unknown key" + (f" (did you mean {' or '.join(near)}?)" if near else f"; the keys here: {', '.join(keys)}")
+
+
+def _models(tp: Any) -> list[Any]:
+    """The pydantic models a type stands for: itself, or the models of a union (``X | None``, a tagged union)."""
+    if hasattr(tp, "model_fields"):
+        return [tp]
+    return [m for m in typing.get_args(tp) if hasattr(m, "model_fields")]
+
+
+def _step(tp: Any, part: int | str) -> Any:
+    """What stands at ``part`` below ``tp``: a field's type, or the member of a union of models that the tag
+    ``part`` picks (pydantic puts a tagged union's tag in the error's place); None if neither."""
+    found = _models(tp)
+    if len(found) == 1 and part in found[0].model_fields:
+        return found[0].model_fields[part].annotation
+    tagged = [m for m in found if any(part in typing.get_args(f.annotation) for f in m.model_fields.values())]
+    return tagged[0] if tagged else None

@@ -339,3 +339,37 @@ def test_an_eds_beside_the_config_is_the_one_used_from_any_folder_and_a_missing_
 
     with pytest.raises(ConfigError, match=r"^backend.eds: EDS file not found: nothere.eds \(looked in "):
         build_emulator_for(load(str(bench / "other.toml")))
+
+
+@pytest.mark.parametrize(("section", "data", "line"), [
+    ("top", {"safty": {"window": [-0.01, 0.01]}}, "safty: unknown key (did you mean safety?)"),
+    ("excitation", {"excitation": {"peek": 0.3}}, "excitation.peek: unknown key (did you mean peak?)"),
+    ("loop", {"loop": {"tickhz": 1000}}, "loop.tickhz: unknown key (did you mean tick_hz?)"),
+    ("nothing near", {"loop": {"xyzzy": 1}}, "loop.xyzzy: unknown key; the keys here: tick_hz, "),
+])
+def test_a_mistyped_key_is_called_unknown_and_the_nearest_keys_are_named(section, data, line):
+    with pytest.raises(ConfigError) as err:
+        from_mapping({"axis": AXIS, **data})
+    assert str(err.value).startswith(line), str(err.value)
+
+
+@pytest.mark.parametrize(("backend", "plant", "line"), [
+    ({"name": "serial", "emulate": True, "baudrat": 1}, {}, "backend.baudrat: unknown key (did you mean baudrate?)"),
+    # the typo is reported, not the field it was meant to be as missing
+    ({"name": "canopen", "emulate": True, "nodeid": 5}, {}, "backend.nodeid: unknown key (did you mean node_id or "),
+    ({"name": "sim"}, {"actual": {"torque_scal": 2.0}},
+     "plant.actual.torque_scal: unknown key (did you mean torque_scale or torque_sign?)"),
+])
+def test_a_mistyped_device_key_is_named_with_the_nearest_ones_by_the_devices_own_check(backend, plant, line):
+    with pytest.raises(ConfigError) as err:
+        preflight(from_mapping({"axis": AXIS, "backend": backend, "plant": plant}))
+    assert str(err.value).startswith(line), str(err.value)
+
+
+def test_a_mistyped_key_of_a_reference_kind_names_that_kinds_keys():
+    from rt_ident.control.reference import make_reference
+
+    with pytest.raises(ConfigError, match=r"^reference\.positons: unknown key \(did you mean positions\?\)$"):
+        make_reference({"kind": "moves", "positons": [0.001]})
+    with pytest.raises(ConfigError, match=r"^reference\.postion: unknown key \(did you mean position\?\)$"):
+        make_reference({"kind": "hold", "postion": 0.001})

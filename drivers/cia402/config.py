@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from drivers.cia402.bus import check_interface
 from drivers.cia402.profile import frame_bits
 from rt_ident.axis.params import CONFIG_DIR
-from rt_ident.errors import ConfigError
+from rt_ident.errors import ConfigError, first_error, validation_message
 
 #: Data bytes of the PDOs this backend maps (see drivers.cia402.drive): RPDO1 = controlword (2) +
 #: target torque (2); TPDO1 = statusword (2) + position actual (4) + torque actual (2);
@@ -225,9 +225,9 @@ def validate(config: Mapping[str, Any] | None) -> Cia402Config:
     try:
         cfg = Cia402Config.model_validate(dict(config or {}))
     except ValidationError as exc:
-        err = exc.errors()[0]
+        err = first_error(exc.errors())
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        msg = err["msg"].removeprefix("Value error, ")
+        msg = validation_message(Cia402Config, err)
         raise ConfigError(f"backend.{loc}" if loc else "backend", msg) from None
     rated = cfg.rated_torque
     if rated and cfg.torque_limit > 32.767 * rated:
