@@ -341,6 +341,10 @@ class Cia402Backend(Backend):
             code, reg = self._emcy
             fault = {p402.EMCY_RPDO_TIMEOUT: RpdoTimeout, p402.EMCY_HEARTBEAT: HeartbeatLost}.get(code, DeviceFault)
             raise fault(f"node {cfg.node_id} sent {p402.emcy_text(code)}, error register 0x{reg:02X}")
+        io = self._setup.io if self._setup is not None else None
+        if io is not None and io.dropped:       # the drive's heartbeats may be among them: no silence to judge
+            raise ProtocolError(f"{io.dropped} frames dropped by this host's receive buffer on "
+                                f"{cfg.interface}:{cfg.channel}; samples can no longer be matched to SYNCs")
         age = time.monotonic() - self._hb_time
         if age > cfg.consumer_ms / 1000.0:
             raise DeviceFault(f"no heartbeat from node {cfg.node_id} for {age:.3f} s (consumer time "
@@ -356,10 +360,6 @@ class Cia402Backend(Backend):
             hint = bus_error_hint(s.last_errno, cfg.interface, cfg.channel, cfg.bitrate)
             raise DeviceConnectionError(f"CAN send failing on {cfg.interface}:{cfg.channel}: {s.last_error} "
                                         f"({s.send_errors} errors)" + (f": {hint}" if hint else ""))
-        io = self._setup.io if self._setup is not None else None
-        if io is not None and io.dropped:
-            raise ProtocolError(f"{io.dropped} frames dropped by this host's receive buffer on "
-                                f"{cfg.interface}:{cfg.channel}; samples can no longer be matched to SYNCs")
 
     def _read(self) -> SampleBlock:
         asm, setup = self._asm, self._setup

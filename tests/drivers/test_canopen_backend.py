@@ -934,3 +934,21 @@ def test_rated_torque_mismatch_is_a_config_error():
                 pass
         assert err.value.field == "backend.rated_torque"
         assert math.isclose(drive.rated_torque, 1.27)
+
+
+def test_frames_the_hosts_receive_buffer_dropped_are_named_before_any_silence_of_the_drive():
+    """The drive's heartbeats may be among the dropped frames: a stale heartbeat then says nothing of the drive."""
+    import types
+
+    from drivers.errors import DeviceFault, ProtocolError
+
+    cfg = validate({"interface": "virtual", "channel": "rt-ident-dropped", "node_id": 5, "counts_per_rev": 131072,
+                    "scale_resolution": 1e-7, "lead": 7.96e-4, "rated_torque": 0.64, "torque_limit": 1.0})
+    io = types.SimpleNamespace(dropped=0)
+    fake = types.SimpleNamespace(config=cfg, _emcy=None, _hb_time=time.monotonic() - 1.0,
+                                 _setup=types.SimpleNamespace(io=io), _hb_not_operational=0, _sender=None)
+    with pytest.raises(DeviceFault, match="no heartbeat from node 5"):
+        Cia402Backend._check_emcy_heartbeat(fake)           # type: ignore[arg-type]
+    io.dropped = 7
+    with pytest.raises(ProtocolError, match="^7 frames dropped by this host's receive buffer on virtual:"):
+        Cia402Backend._check_emcy_heartbeat(fake)           # type: ignore[arg-type]
