@@ -36,7 +36,7 @@ def scaled_torque_note(cfg: RunConfig, factor: float, what: str) -> str | None:
     :data:`NOTE_FACTOR`, else that a torque scale and the inertias look alike to every measurement here."""
     if 1.0 / NOTE_FACTOR < factor < NOTE_FACTOR:
         return None
-    key = {"canopen": " (backend.rated_torque)", "serial": " (backend.torque_constant)"}.get(cfg.backend.name, "")
+    key = f" ({_torque_key(cfg)})" if cfg.backend.name in ("canopen", "serial") else ""
     return (f"{what} is {factor:.2g} x what [axis] gives: either [axis] I1, I2 are not this axis's, or the torque "
             f"reaches the motor scaled{key}; the identified I1, I2, B, K carry such a scale, which a measurement "
             "in commanded torque cannot tell from the inertia")
