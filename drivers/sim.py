@@ -45,7 +45,7 @@ from rt_ident.axis.plant import (
     SensorConfig,
     rest_at,
 )
-from rt_ident.errors import ConfigError, first_error, validation_message
+from rt_ident.errors import ConfigError, validation_error
 
 log = logging.getLogger(__name__)
 
@@ -147,9 +147,8 @@ def _validate(config: Mapping[str, Any] | None) -> SimConfig:
     try:
         return SimConfig.model_validate(dict(config or {}))
     except ValidationError as exc:
-        err = first_error(exc.errors())
+        err, msg = validation_error(SimConfig, exc)
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        msg = validation_message(SimConfig, err)
         if not loc and ": " in msg:                  # a model check that names its field itself
             loc, msg = msg.split(": ", 1)
         if loc.startswith("actual."):

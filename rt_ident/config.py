@@ -26,11 +26,9 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
-from rt_ident.errors import ConfigError, first_error, validation_message
+from rt_ident.errors import ConfigError, validation_error
 
 if TYPE_CHECKING:
-    from pydantic_core import ErrorDetails
-
     from rt_ident.control.job import ControlSettings
 
 
@@ -434,9 +432,6 @@ class RunConfig(_Section):
                          "its own (only the sim backend and the emulated devices take it)")
 
 
-def _field_name(err: ErrorDetails) -> str:
-    return ".".join(str(p) for p in err["loc"] if not isinstance(p, int) or True)
-
 
 def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfig:
     if not isinstance(data, dict):
@@ -444,8 +439,8 @@ def from_mapping(data: dict[str, Any], *, source: str | None = None) -> RunConfi
     try:
         cfg = RunConfig.model_validate({**data, "source": source})
     except ValidationError as exc:
-        first = first_error(exc.errors())
-        field, msg = _field_name(first), validation_message(RunConfig, first)
+        first, msg = validation_error(RunConfig, exc)
+        field = ".".join(str(p) for p in first["loc"])
         head, sep, rest = msg.partition(": ")
         if sep and head.replace(".", "").replace("_", "").isalnum():   # a check across fields names its field
             field, msg = (f"{field}.{head}" if field else head), rest

@@ -77,28 +77,26 @@ def host_fix(fix: str | None, realtime: dict | bool | None) -> str | None:
             f"(an rtprio and memlock limit, or root; see docs/operation/loop.md), or {host}{tail}")
 
 
-def first_error(errors: list[Any]) -> Any:
-    """The error of a pydantic validation to report: a mistyped key before the rest (the field it was meant
-    to be is then reported missing too)."""
-    return next((e for e in errors if e.get("type") == "extra_forbidden"), errors[0])
-
-
-def validation_message(model: Any, err: Mapping[str, Any]) -> str:
-    """One pydantic error of a config section (``model``) as its line says it: a key the section does not have
-    (at the error's ``loc``) is called unknown and the nearest keys it has are named (a typo); any other
-    message comes without pydantic's "Value error, "."""
+def validation_error(model: Any, exc: Any) -> tuple[Mapping[str, Any], str]:
+    """The error of a pydantic ``ValidationError`` of a config section (``model``) to report, and its message
+    as the config's line says it. A mistyped key comes first (the field it was meant to be is then missing
+    too): it is called unknown and the nearest keys the section has are named. Any other message comes
+    without pydantic's "Value error, "."""
+    errors = exc.errors()
+    err = next((e for e in errors if e.get("type") == "extra_forbidden"), errors[0])
     msg = str(err["msg"]).removeprefix("Value error, ")
     if err.get("type") != "extra_forbidden" or not err.get("loc"):
-        return msg
+        return err, msg
     *path, key = err["loc"]
     for part in path:
         model = _step(model, part)
     found = _models(model)
     if len(found) != 1:
-        return msg
+        return err, msg
     keys = [k for k in found[0].model_fields if k != "source"]
     near = difflib.get_close_matches(str(key), keys, n=2, cutoff=0.6)
-    return "unknown key" + (f" (did you mean {' or '.join(near)}?)" if near else f"; the keys here: {', '.join(keys)}")
+    return err, "unknown key" + (f" (did you mean {' or '.join(near)}?)" if near else
+                                 f"; the keys here: {', '.join(keys)}")
 
 
 def _models(tp: Any) -> list[Any]:

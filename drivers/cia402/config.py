@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from drivers.cia402.bus import check_interface
 from drivers.cia402.profile import frame_bits
 from rt_ident.axis.params import CONFIG_DIR
-from rt_ident.errors import ConfigError, first_error, validation_message
+from rt_ident.errors import ConfigError, validation_error
 
 #: Data bytes of the PDOs this backend maps (see drivers.cia402.drive): RPDO1 = controlword (2) +
 #: target torque (2); TPDO1 = statusword (2) + position actual (4) + torque actual (2);
@@ -225,9 +225,8 @@ def validate(config: Mapping[str, Any] | None) -> Cia402Config:
     try:
         cfg = Cia402Config.model_validate(dict(config or {}))
     except ValidationError as exc:
-        err = first_error(exc.errors())
+        err, msg = validation_error(Cia402Config, exc)
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        msg = validation_message(Cia402Config, err)
         raise ConfigError(f"backend.{loc}" if loc else "backend", msg) from None
     rated = cfg.rated_torque
     if rated and cfg.torque_limit > 32.767 * rated:

@@ -30,7 +30,7 @@ from drivers.cia402.faults import FaultConfig
 from drivers.cia402.variants import drive_profile
 from drivers.placement import clear_heap, device_placement, keep_to, settle_heap, start_realtime
 from rt_ident.axis.params import CONFIG_DIR, AxisParams, thomson_x
-from rt_ident.errors import ConfigError, first_error, validation_message
+from rt_ident.errors import ConfigError, validation_error
 
 log = logging.getLogger(__name__)
 
@@ -109,9 +109,8 @@ def build_emulator_for(config: Any) -> EmulatedCia402Drive:
     try:
         emu = EmulatorConfig.model_validate(emulator)
     except ValidationError as exc:
-        err = first_error(exc.errors())
+        err, msg = validation_error(EmulatorConfig, exc)
         loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int))
-        msg = validation_message(EmulatorConfig, err)
         raise ConfigError(f"emulator.{loc}" if loc else "emulator", msg) from None
     truth = emu.actual
     if truth.lead is not None:

@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from drivers.base import Travel
 from drivers.encoder_board import protocol as sp
-from rt_ident.errors import ConfigError, first_error, validation_message
+from rt_ident.errors import ConfigError, validation_error
 
 _LINK_MARGIN = 1.1   # the link must carry 10 % more than the frame stream
 #: The board's current range [A]: it reports the motor current as an int16 in mA (docs/serial-protocol.md),
@@ -78,9 +78,8 @@ def _validate(model: type[BaseModel], data: Mapping[str, Any], where: str) -> An
     try:
         return model.model_validate(dict(data))
     except ValidationError as exc:
-        err = first_error(exc.errors())
+        err, msg = validation_error(model, exc)
         loc = ".".join(str(p) for p in err["loc"])
-        msg = validation_message(model, err)
         head, sep, rest = msg.partition(": ")
         if sep and head.isidentifier():        # a check that names its field (or a key below it) itself
             loc, msg = (f"{loc}.{head}" if loc else head), rest

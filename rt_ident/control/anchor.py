@@ -35,7 +35,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from rt_ident.control.reference import Segments, s_curve, velocity_change
-from rt_ident.errors import ConfigError, first_error, validation_message
+from rt_ident.errors import ConfigError, validation_error
 
 
 @dataclass(frozen=True)
@@ -90,9 +90,9 @@ def split_reference_table(mapping: Mapping[str, Any] | None) -> tuple[dict[str, 
     try:
         opt = _Options.model_validate(common)
     except ValidationError as exc:
-        e = first_error(exc.errors())
+        e, msg = validation_error(_Options, exc)
         loc = ".".join(str(p) for p in e["loc"]) or "origin"
-        raise ConfigError(f"reference.{loc}", validation_message(_Options, e)) from None
+        raise ConfigError(f"reference.{loc}", msg) from None
     d = DEFAULT_LIMITS
     limits = MotionLimits(opt.v_max or d.v_max, opt.a_max or d.a_max, opt.j_max or d.j_max)
     return data, ReferenceOptions(opt.origin, limits)

@@ -30,7 +30,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from rt_ident.errors import ConfigError, first_error, validation_message
+from rt_ident.errors import ConfigError, validation_error
 
 Triple = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -508,9 +508,9 @@ def make_reference(mapping: Mapping[str, Any] | None, base_dir: str | Path | Non
     try:
         cfg = _ReferenceCfg.model_validate({"ref": data}).ref
     except ValidationError as exc:
-        e = first_error(exc.errors())
+        e, msg = validation_error(_ReferenceCfg, exc)
         loc = ".".join(str(p) for p in e["loc"][2:] if not isinstance(p, int)) or "kind"
-        raise ConfigError(f"reference.{loc}", validation_message(_ReferenceCfg, e)) from None
+        raise ConfigError(f"reference.{loc}", msg) from None
     if isinstance(cfg, _HoldCfg):
         return Hold(cfg.position)
     if isinstance(cfg, _MovesCfg):
