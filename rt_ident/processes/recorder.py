@@ -204,10 +204,20 @@ class Recorder:
         self.open()
         cols = [np.concatenate([b[i] for b in self._buffer]) for i in range(len(COLUMNS))]
         batch = pa.record_batch([pa.array(c) for c in cols], schema=self._schema)
-        self._journal.write_batch(batch)  # the crash-safe copy first
-        if self.fsync:
-            os.fsync(self._journal_file.fileno())
-        self._parquet.write_table(pa.Table.from_batches([batch]), row_group_size=batch.num_rows)
+        journaled = False
+        try:
+            self._journal.write_batch(batch)  # the crash-safe copy first
+            if self.fsync:
+                os.fsync(self._journal_file.fileno())
+            journaled = True
+            self._parquet.write_table(pa.Table.from_batches([batch]), row_group_size=batch.num_rows)
+        except BaseException:
+            if journaled:                     # on disk in the journal, which is the recording from now on
+                self._rows_written += batch.num_rows
+                self._buffer.clear()
+                self._buffered_rows = 0
+            self._stop_writing()
+            raise
         self._rows_written += batch.num_rows
         self._buffer.clear()
         self._buffered_rows = 0
@@ -228,22 +238,29 @@ class Recorder:
             journal_path(self.path).unlink(missing_ok=True)
             log.info("recording %s closed: %d rows", self.path, self._rows_written)
         except BaseException:
-            self._abandon_parquet()
+            self._stop_writing()
             raise
         finally:
             self._closed = True
 
-    def _abandon_parquet(self) -> None:
-        """After a failed write or close the unfinished ``.part`` stays as it is (the journal holds the rows
-        flushed): the writer is closed here, where its failure is expected, and not by the garbage
+    def _stop_writing(self) -> None:
+        """After a failed write or close: the journal, as far as it was written, is the recording. Nothing
+        more is written to it (a batch after one cut short by a full disk would be read as that batch's
+        body), and the footerless ``.part``, which no reader opens, is deleted to give its space back.
+        The Parquet writer is closed here, where its failure is expected, and not by the garbage
         collector, which would print the same error (a full disk) again as a traceback."""
+        self._closed = True
         writer, self._parquet = self._parquet, None
-        if writer is None:
-            return
-        try:
-            writer.close()
-        except OSError:
-            writer.is_open = False          # what pyarrow's __del__ checks before closing again
+        if writer is not None:
+            try:
+                writer.close()
+            except OSError:
+                writer.is_open = False      # what pyarrow's __del__ checks before closing again
+        part_path(self.path).unlink(missing_ok=True)
+        journal, self._journal_file = self._journal_file, None
+        self._journal = None                # its stream is not closed: that would append an end marker
+        if journal is not None:
+            journal.close()
 
     def __enter__(self) -> Recorder:
         self.open()
@@ -346,9 +363,11 @@ def _recorder_main(
         why = _os_reason(exc, path)
         log.info("recorder: %s", why)          # the parent names it in the run's stop (one line)
         _end_failed(rec, why, failed, reason)
+        rows_written.value = rec.rows_written    # with the rows of a batch only the journal took
         raise SystemExit(1) from None
     except RingReused as exc:                    # its parent let go of the ring: nothing more can come
         _end_failed(rec, str(exc), failed, reason)
+        rows_written.value = rec.rows_written
         log.warning("recorder: %s; %s finished with %d rows", exc, path, rec.rows_written)
         raise SystemExit(1) from None
     except BaseException as exc:

@@ -152,6 +152,82 @@ def test_a_full_disk_fails_close_once_and_leaves_no_traceback_for_the_garbage_co
     gc.collect()
     assert unraisable == []
     assert len(read_recording(path)) == 50              # the journal kept the batch the Parquet write lost
+    assert not part_path(path).exists()                 # its footerless copy no reader opens gave its space back
+
+
+def _append(r: Recorder, seq: np.ndarray) -> None:
+    sig = _signals(seq)
+    r.append(sig["t"], seq, sig["theta1"], sig["theta2"], sig["torque_cmd"])
+
+
+def test_a_batch_only_the_journal_took_before_the_disk_filled_is_counted_once_and_never_written_twice(
+        tmp_path, monkeypatch):
+    import errno
+
+    class FullAfterOne(pq.ParquetWriter):               # the disk fills between the journal's copy and this one
+        writes = 0
+
+        def write_table(self, *a, **k):
+            FullAfterOne.writes += 1
+            if FullAfterOne.writes > 1:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            super().write_table(*a, **k)
+
+    monkeypatch.setattr(pq, "ParquetWriter", FullAfterOne)
+    path = tmp_path / "full.parquet"
+    r = Recorder(path, {"method": "ls"})
+    _append(r, np.arange(50, dtype=np.int64))
+    assert r.flush()
+    _append(r, np.arange(50, 80, dtype=np.int64))
+    with pytest.raises(OSError):
+        r.flush()
+    assert r.rows_written == 80 and not part_path(path).exists()
+    r.close()                                           # writes nothing more: the journal is the recording
+    rec = read_recording(path)
+    assert rec.source == "journal"
+    _assert_matches_oracle(rec)
+    assert len(rec) == 80
+
+
+def test_a_journal_write_cut_short_by_a_full_disk_is_the_journals_last_write(tmp_path, monkeypatch):
+    import errno
+
+    import rt_ident.processes.recorder as recorder_mod
+
+    class CutOnce:                                      # writes half of one write, then ENOSPC; space frees after
+        def __init__(self, f):
+            self.f, self.armed = f, False
+
+        def write(self, b):
+            if self.armed:
+                self.armed = False
+                self.f.write(bytes(b)[: len(b) // 2])
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.f.write(b)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+    journals: list[CutOnce] = []
+
+    def journal_open(*a, **k):
+        journals.append(CutOnce(open(*a, **k)))         # noqa: SIM115 - the recorder closes it
+        return journals[-1]
+
+    monkeypatch.setattr(recorder_mod, "open", journal_open, raising=False)
+    path = tmp_path / "cut.parquet"
+    r = Recorder(path, {"method": "ls"})
+    _append(r, np.arange(50, dtype=np.int64))
+    assert r.flush()
+    journals[0].armed = True
+    _append(r, np.arange(50, 80, dtype=np.int64))
+    with pytest.raises(OSError):
+        r.flush()
+    assert r.rows_written == 50
+    r.close()                                           # no retry after the cut batch: it would be read as its body
+    rec = read_recording(path)
+    _assert_matches_oracle(rec)
+    assert len(rec) == 50 and not part_path(path).exists()
 
 
 def test_recorder_process_close_writes_complete_parquet(tmp_path: Path) -> None:
