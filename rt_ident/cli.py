@@ -411,7 +411,8 @@ def _check_rrd_sink(rrd: str | None, sink: str, from_flag: bool, field: str = "-
 @app.command()
 def identify(
     file: Path | None = typer.Argument(None, help="A recording (.parquet from `run`) or a CSV t,theta1,theta2,torque "
-                                          "(t,theta1,torque with --model rigid-friction)."),
+                                          "(t,theta1,torque with --model rigid-friction); a recording's torque_cmd and "
+                                          "torque_meas columns stand in for torque."),
     method: str | None = typer.Option(None, "--method", help="Estimator name (see --methods)."),
     model: str | None = typer.Option(None, "--model", help="two-inertia (default), two-inertia-friction or "
                                         "rigid-friction (the friction models: method svf-ls)."),

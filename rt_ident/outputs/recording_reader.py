@@ -6,10 +6,12 @@ does not depend on the writer.
 
 CSV input: a header row naming at least ``t, theta1, theta2, torque`` (SI units: s, rad, rad,
 N m), optionally ``omega1, omega2`` [rad/s]; any column order; other columns are ignored; ``#``
-starts a comment. With ``require_theta2=False`` (the ``rigid-friction`` model: one position
-sensor) ``theta2`` may be missing (``Recording.theta2`` is then None) and the units are the file's
-own (rad and N m, or m and N). A CSV carries no metadata (``metadata == {}``) and its ``torque`` is taken as
-both the applied and the commanded torque.
+starts a comment. A recording's own torque columns (``torque_cmd``, and ``torque_meas`` where present)
+stand in for ``torque``, so a recording exported to CSV reads as the recording does. With
+``require_theta2=False`` (the ``rigid-friction`` model: one position sensor) ``theta2`` may be missing
+(``Recording.theta2`` is then None) and the units are the file's own (rad and N m, or m and N). A CSV
+carries no metadata (``metadata == {}``) and its ``torque`` is taken as both the applied and the commanded
+torque.
 
 Torque used for identification (:attr:`Recording.torque`): ``torque_meas`` where it is present and
 finite, else ``torque_cmd`` (per sample; a mix is logged as a warning).
@@ -259,13 +261,19 @@ def _read_csv_utf8(path: Path, require_theta2: bool = True) -> dict[str, np.ndar
         raise DataError(f"{path}: empty CSV (no header row)")
     header = [h.strip() for h in header]
     required = CSV_REQUIRED if require_theta2 else tuple(c for c in CSV_REQUIRED if c != "theta2")
+    exported = "torque" not in header and "torque_cmd" in header
+    if exported:
+        required = tuple("torque_cmd" if c == "torque" else c for c in required)
     missing = [c for c in required if c not in header]
     if missing:
         hint = ""
         if require_theta2 and missing == ["theta2"]:
             hint = " (a one-sensor recording t,theta1,torque needs --model rigid-friction)"
+        elif "torque" in missing:
+            hint = " (torque: the applied torque in N m; a recording's torque_cmd and torque_meas also do)"
         raise DataError(f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(header)}){hint}")
-    names = [c for c in CSV_REQUIRED + CSV_OPTIONAL if c in header]
+    wanted = (*required, *(("torque_meas",) if exported else ()), *CSV_OPTIONAL)
+    names = [c for c in wanted if c in header]
     idx = [header.index(c) for c in names]
     try:
         with warnings.catch_warnings():

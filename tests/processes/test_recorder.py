@@ -367,6 +367,32 @@ def test_csv_column_order_is_free_and_extra_columns_ignored(tmp_path: Path) -> N
     assert np.allclose(rec.omega1, np.arange(15.0)) and np.allclose(rec.omega2, 2.0 * np.arange(15))
 
 
+def test_a_recording_exported_to_csv_reads_as_the_recording_with_its_measured_torque_where_finite(tmp_path):
+    import pyarrow.csv as pc
+
+    path = tmp_path / "run.parquet"
+    seq = np.arange(40, dtype=np.int64)
+    sig = _signals(seq)
+    meas = 0.9 * sig["torque_cmd"]
+    meas[5] = np.nan                                    # a sample the device did not report
+    with Recorder(path, {"method": "ls"}) as r:
+        r.append(sig["t"], seq, sig["theta1"], sig["theta2"], sig["torque_cmd"], meas)
+    pc.write_csv(pq.read_table(path), tmp_path / "run.csv")   # as a user exports one: every column, quoted names
+    rec, csv_rec = read_recording(path), read_recording(tmp_path / "run.csv")
+    assert csv_rec.source == "csv" and len(csv_rec) == 40
+    for name in ("t", "theta1", "theta2", "torque", "torque_cmd"):
+        assert np.array_equal(getattr(csv_rec, name), getattr(rec, name)), name
+    assert csv_rec.torque[5] == sig["torque_cmd"][5] and csv_rec.torque[6] == meas[6]
+
+
+def test_a_csv_without_a_torque_column_names_the_recordings_columns_that_would_do(tmp_path: Path) -> None:
+    header, rows = _csv_rows(20, False)
+    p = _write_csv(tmp_path / "g.csv", header[:3] + ["tau"], rows)
+    told = r"missing column\(s\) torque .*a recording's torque_cmd and torque_meas also do"
+    with pytest.raises(DataError, match=told):
+        read_recording(p)
+
+
 def test_missing_file_is_a_data_error(tmp_path: Path) -> None:
     for name in ("nope.csv", "nope.parquet", "nope.parquet.arrows"):
         with pytest.raises(DataError, match="no such file"):
