@@ -59,6 +59,7 @@ from rt_ident.hostlock import NamedLock
 log = logging.getLogger(__name__)
 
 _TWO_PI = 2.0 * math.pi
+_SDO_REREAD_S = 0.005       # between statusword reads by SDO after a disable written by SDO
 
 #: the NMT states a heartbeat reports (CiA 301), other than OPERATIONAL (5) and the boot-up message (0)
 NMT_STATES = {4: "STOPPED", 127: "PRE-OPERATIONAL"}
@@ -466,22 +467,28 @@ class Cia402Backend(Backend):
     def _sdo_confirms_disabled(self) -> bool:
         """Whether the statusword read by SDO shows the power stage off. A drive that left NMT OPERATIONAL (a
         restart, another master's NMT command) sends no PDO but answers SDO in PRE-OPERATIONAL. One still
-        enabled is sent the disable by SDO and read once more; a drive that does not answer costs one
-        sdo_timeout."""
+        enabled is sent the disable by SDO and read again for up to stop_timeout: a drive acts on a
+        controlword in its own cycle, after it has answered the write. A drive that does not answer costs
+        one sdo_timeout."""
         setup = self._setup
         if setup is None:
             return False
-        for attempt in range(2):
+        sent_at = None
+        while True:
             sw = setup.try_upload(p402.STATUSWORD, 0)
             if sw is None:
                 return False
             if p402.decode_state(sw) in (p402.SWITCH_ON_DISABLED, p402.NOT_READY, p402.FAULT):
                 self.statusword = sw
                 return True
-            if attempt == 0 and not setup.try_download(p402.CONTROLWORD, 0,
-                                                       struct.pack("<H", p402.CW_DISABLE_VOLTAGE)):
+            if sent_at is None:
+                if not setup.try_download(p402.CONTROLWORD, 0, struct.pack("<H", p402.CW_DISABLE_VOLTAGE)):
+                    return False
+                sent_at = time.monotonic()
+            elif time.monotonic() - sent_at > self.config.stop_timeout:
                 return False
-        return False
+            else:
+                time.sleep(_SDO_REREAD_S)
 
     def _on_its_own(self) -> str:
         """What this drive does by itself once the host falls silent, as this host set it up."""

@@ -7,7 +7,7 @@ CiA 301 transmits them (below), the heartbeat consumer (loss of the master's hea
 
 PDO transmission types (0x14xx:02 / 0x18xx:02, CiA 301), in NMT OPERATIONAL only:
 RPDOs 0-240 are applied at the next SYNC, 254/255 on receipt (a controlword steps the
-state machine at once). TPDO 0 is sent at the SYNC after its data changed, 1-240 at every
+state machine at once, as does one written by SDO). TPDO 0 is sent at the SYNC after its data changed, 1-240 at every
 n-th SYNC, 254/255 when its data change, not sooner than the inhibit time (0x18xx:03)
 after the previous one and at the latest the event timer (0x18xx:05) after it (checked
 with the housekeeping, every 2 ms or when due). Out of the box (the EDS) TPDO1 is the
@@ -395,6 +395,9 @@ class EmulatedCia402Drive:
             self._set_consumer((value >> 16) & 0x7F, value & 0xFFFF)
         elif index in _PROCESS:
             self._values[(index, subindex)] = value
+            if index == p402.CONTROLWORD:           # acted on in the drive's own cycle, SYNC or not
+                self._step_state_machine(value, sample=False)
+                self._event_tpdos()
 
     def _set_consumer(self, master_id: int, ms: int) -> None:
         old, net = self._master[0], self._net

@@ -862,13 +862,41 @@ def test_a_drive_whose_disable_is_not_confirmed_is_named_and_keeps_watching_the_
         be.open()
         be.activate()
         pump(be, 0.1)
-        monkeypatch.setattr(be, "_wait_state", lambda accept, timeout: False)   # its statusword answers lost
+        monkeypatch.setattr(be, "_wait_state", lambda accept, timeout: False)   # its statusword answers lost,
+        monkeypatch.setattr(be, "_sdo_confirms_disabled", lambda: False)         # by PDO and by SDO
         be.safe_stop("test")
         be.close()
         note = be.stop_unconfirmed
         assert note is not None and note.startswith("node 5 did not report itself disabled within 0.1 s"), note
         assert "RPDO deadline (1000 ms" in note and "heartbeat consumer time (1000 ms" in note, note
         assert drive._master[1] == 1000                # left on: the drive faults when this host falls silent
+
+
+@pytest.mark.parametrize("acts_after_s", [0.0, 0.03])
+def test_a_drive_that_sends_no_pdo_after_the_stop_is_disabled_by_sdo_and_confirmed_once_it_acts(monkeypatch,
+                                                                                               acts_after_s):
+    import threading
+
+    with rig(stop_timeout=0.5) as (drive, be):
+        be.open()
+        be.activate()
+        pump(be, 0.1)
+        monkeypatch.setattr(be, "_wait_state", lambda accept, timeout: False)   # no PDO answer to the stop
+        if acts_after_s:                               # a drive that acts on a controlword a cycle after the write
+            step = drive._step_state_machine
+
+            def later(cw: int, sample: bool = True) -> None:
+                def act() -> None:
+                    with drive._lock:
+                        step(cw, sample)
+                threading.Timer(acts_after_s, act).start()
+
+            monkeypatch.setattr(drive, "_step_state_machine", later)
+        be.safe_stop("test")
+        assert be.stop_unconfirmed is None             # the statusword read by SDO, after the drive took the write
+        be.close()
+        assert_drive_safe(drive)
+        assert drive._master[1] == 0                   # confirmed: its watch of this host's heartbeat is off
 
 
 def test_no_node_at_that_id_raises_one_error_naming_the_settings_without_canopens_own_abort_line(caplog):
