@@ -135,10 +135,11 @@ def _connect_and_probe(cfg: RunConfig, result: dict[str, Any], progress: Progres
         lo, hi = cfg.safety.window
         budget = cfg.commission.travel_m
         inside = x is None or (lo <= x - budget and x + budget <= hi)
-        checks.append(check("start position", inside, None if x is None else x,
+        fix = ("safety.window (or move the table toward the middle of its travel)" if hi - lo >= 2 * budget else
+               f"safety.window, narrower than the travel budget, or commission.travel_m ({budget * 1e3:g} mm)")
+        checks.append(check("start position", inside, None if x is None else f"{x * 1e3:.4g} mm",
                             f"the travel budget +-{budget * 1e3:g} mm inside safety.window "
-                            f"[{lo * 1e3:g}, {hi * 1e3:g}] mm",
-                            "safety.window (or move the table toward the middle of its travel)"))
+                            f"[{lo * 1e3:g}, {hi * 1e3:g}] mm", fix))
         if not inside:
             return False
         result["start_position_m"] = x

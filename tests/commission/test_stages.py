@@ -242,6 +242,22 @@ def test_a_table_that_starts_where_the_budget_leaves_the_window_is_refused_befor
     assert r["failed"]["fix"].startswith("safety.window") and r["max_travel_m"] is None
 
 
+def test_a_window_narrower_than_the_travel_budget_fails_naming_both_settings_and_says_what_it_expected(tmp_path):
+    from typer.testing import CliRunner
+
+    from rt_ident.cli import app
+
+    text = (ROOT / "configs" / "sim.toml").read_text()
+    cfg_path = tmp_path / "narrow.toml"
+    cfg_path.write_text(text.replace("window = [-0.04, 0.04]", "window = [-1e-5, 1e-5]", 1)
+                        .replace("realtime = true", "realtime = false").replace('sink = "rrd"', 'sink = "off"'))
+    r = CliRunner().invoke(app, ["commission", str(cfg_path), "--out", str(tmp_path / "out")])
+    assert r.exit_code == 3, r.output
+    line = next(x for x in r.output.splitlines() if x.startswith("FAIL"))
+    assert line == ("FAIL start position: 0 mm (expected: the travel budget +-2 mm inside safety.window [-0.01, 0.01] "
+                    "mm) - fix: safety.window, narrower than the travel budget, or commission.travel_m (2 mm)"), line
+
+
 @pytest.mark.slow
 def test_commission_passes_off_centre_and_its_axis_snippet_runs_trusted(tmp_path, state_dir, host_made_end):
     text = (ROOT / "configs" / "sim.toml").read_text().replace("realtime = true", "realtime = false")
