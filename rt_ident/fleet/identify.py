@@ -40,8 +40,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rt_ident import __version__
+from rt_ident.errors import DataError
 from rt_ident.fleet.manifest import Entry
 from rt_ident.fleet.store import HashIndex, history_lock, write_rows
+from rt_ident.outputs.recording_reader import journal_path
 from rt_ident.processes.guard import install_stop_signals, stop_signals
 
 if TYPE_CHECKING:
@@ -59,7 +61,15 @@ _STOP_POLL_S = 0.05          # the longest a stop request waits for the run to s
 
 
 def _hash_local(path: str, stop: threading.Event) -> str:
-    if not stat.S_ISREG(os.stat(path).st_mode):       # a device or pipe would be read forever
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        journal = journal_path(path)
+        if path.endswith(".parquet") and journal.is_file():
+            raise DataError(f"not closed: only its journal {journal.name} is there (a run that crashed, or one still "
+                            f"recording); list {journal.name} in the manifest to identify what it flushed") from None
+        raise DataError("no such file") from None
+    if not stat.S_ISREG(mode):                        # a device or pipe would be read forever
         raise ValueError(f"{path} is not a regular file")
     h = hashlib.sha256()
     with open(path, "rb") as fh:

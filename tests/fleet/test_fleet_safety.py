@@ -457,6 +457,22 @@ def test_identify_recording_returns_failed_when_its_work_overruns_the_timeout(en
     assert row["path"] == e.path and time.monotonic() - t0 < 2
 
 
+def test_a_recording_left_unclosed_points_to_its_journal_and_a_missing_one_says_so(entries, tmp_path):
+    import shutil
+
+    e = entries[0]
+    crashed = tmp_path / "crashed.parquet"
+    shutil.copy(e.path, tmp_path / "crashed.parquet.arrows")     # a journal stands beside no .parquet
+    row = identify_recording({"path": str(crashed), "machine": e.machine, "axis": e.axis, "time": e.time})
+    assert row["status"] == "failed", row
+    assert row["error"] == ("DataError: not closed: only its journal crashed.parquet.arrows is there (a run that "
+                            "crashed, or one still recording); list crashed.parquet.arrows in the manifest to "
+                            "identify what it flushed"), row["error"]
+    row = identify_recording({"path": str(tmp_path / "gone.parquet"), "machine": e.machine, "axis": e.axis,
+                              "time": e.time})
+    assert row["status"] == "failed" and row["error"] == "DataError: no such file", row["error"]
+
+
 def test_a_task_timed_out_while_hashing_stops_reading_the_file(tmp_path):
     import threading
 
