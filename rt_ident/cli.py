@@ -382,7 +382,9 @@ def _commissioning_of(cfg, config: Path | None, required: bool, axis: str = "") 
     entry = ledger.lookup(cfg)
     if entry is not None and entry.get("verdict") == "pass":
         return {"verdict": "pass", "report": entry.get("report"), "unit": entry.get("unit")}
-    why = ("has never been commissioned" if entry is None else
+    changed = ledger.changed_since_commissioned(cfg) if entry is None else None
+    why = (f"has changed since it was commissioned ({changed})" if changed else
+           "has never been commissioned" if entry is None else
            f"failed commissioning ({(entry.get('failed') or {}).get('check')}: "
            f"{(entry.get('failed') or {}).get('fix')})")
     what, how = (f"axis {axis}'s device configuration", "give the axis a config of its own (its [axes.NAME] "

@@ -43,6 +43,26 @@ def test_the_ledger_keeps_the_unit_a_passed_commissioning_was_of():
     assert ledger.lookup(cfg)["unit"] is None                  # a device without a serial number names no unit
 
 
+def test_a_config_file_changed_since_it_passed_names_the_settings_that_changed(tmp_path):
+    from typer.testing import CliRunner
+
+    from rt_ident.cli import app
+
+    text = _board_text()
+    path = tmp_path / "axis.toml"
+    path.write_text(text)
+    ledger.record(config.load(path), {"verdict": "pass", "identity": BOARD_1})
+    assert ledger.changed_since_commissioned(config.load(path)) is None          # as it was commissioned
+    path.write_text(text.replace("torque_constant = 0.1 ", "torque_constant = 0.2 ", 1))
+    r = CliRunner().invoke(app, ["run", str(path), "--require-commissioned"])
+    assert isinstance(r.exception, ConfigError), r.output
+    assert str(r.exception).startswith("--require-commissioned: this device configuration has changed since it was "
+                                       "commissioned (backend.torque_constant 0.1 -> 0.2); "), r.exception
+    other = tmp_path / "other.toml"                     # the same settings in a file never commissioned
+    other.write_text(path.read_text())
+    assert ledger.changed_since_commissioned(config.load(other)) is None
+
+
 def test_another_unit_is_refused_with_require_before_the_device_is_enabled_and_named_without(monkeypatch):
     enabled = []
     monkeypatch.setattr(SimBackend, "_activate", lambda self: enabled.append(self))
