@@ -514,8 +514,8 @@ def commission(
         for c in result["checks"]:
             mark = "[green]pass[/green]" if c["ok"] else "[red]FAIL[/red]"
             out.print(f"{mark} {escape(c['name'])}: {escape(_commission_value(c['measured']))}"
-                      + (f" (expected: {escape(_commission_value(c['expected']))})" if not c["ok"] else "")
-                      + (f" - fix: {escape(str(c['fix']))}" if not c["ok"] else "")
+                      + ("" if c["ok"] else f" (expected: {escape(_commission_value(c['expected']))})"
+                                            f" - fix: {escape(str(c['fix']))}")
                       + (f" - note: {escape(c['note'])}" if c.get("note") else ""), highlight=False)
         out.print(f"verdict: {result['verdict']} (stage {result['stage_reached']}); report {result['report']}"
                   + (f"; [axis] for run: {result['axis_toml']}" if result.get("axis_toml") else ""), highlight=False,

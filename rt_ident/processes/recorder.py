@@ -213,15 +213,16 @@ class Recorder:
             self._parquet.write_table(pa.Table.from_batches([batch]), row_group_size=batch.num_rows)
         except BaseException:
             if journaled:                     # on disk in the journal, which is the recording from now on
-                self._rows_written += batch.num_rows
-                self._buffer.clear()
-                self._buffered_rows = 0
+                self._written_out(batch.num_rows)
             self._stop_writing()
             raise
-        self._rows_written += batch.num_rows
+        self._written_out(batch.num_rows)
+        return True
+
+    def _written_out(self, rows: int) -> None:
+        self._rows_written += rows
         self._buffer.clear()
         self._buffered_rows = 0
-        return True
 
     def close(self) -> None:
         """Flush, finalize ``path`` and delete the journal. Safe to call twice."""
